@@ -1,0 +1,323 @@
+"""Command-line interface ``inclinometer-calib`` (works without ROS installed).
+
+Sub-commands: ``simulate``, ``twelve-position``, ``correct``, ``demo``.
+Errors in the input are reported as ``error: ...`` on stderr with exit status 2; rejected rows and
+dropped stations are listed as warnings and the good data is used.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+import yaml
+
+from . import simulate as sim
+from .coeffs import Calibration, CoefficientError
+from .frames import Site
+from .probelog import Limits, atomic_write_text, read_csv, segment_stations, write_csv
+from .survey import Tolerances, evaluate, format_table4, format_table5, summarize, table4, table5
+from .twelve_position import format_table2, format_table3, solve_stations, to_calibration
+
+
+class UserError(Exception):
+    """An error in the user's input: printed without a traceback."""
+
+
+def _warn(msg):
+    print(f"warning: {msg}", file=sys.stderr)
+
+
+# --------------------------------------------------------------------------------------------
+def load_site(path) -> Site:
+    if path is None:
+        return Site()
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = yaml.safe_load(fh)
+        return Site.from_dict(d.get("site", d) if isinstance(d, dict) else {})
+    except (OSError, yaml.YAMLError, ValueError, TypeError) as exc:
+        raise UserError(f"{path}: cannot read site reference: {exc}") from None
+
+
+def load_stations(path, min_samples=5, quiet=False):
+    """Read a log and segment it; print rejections and station problems as warnings."""
+    try:
+        log, rejections = read_csv(path, Limits())
+    except OSError as exc:
+        raise UserError(f"{path}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    stations, problems = segment_stations(log, min_samples=min_samples)
+    if not quiet:
+        for r in rejections[:20]:
+            _warn(f"{path}: {r}")
+        if len(rejections) > 20:
+            _warn(f"{path}: ... and {len(rejections) - 20} more rejected rows")
+        for p in problems:
+            _warn(f"{path}: {p}")
+    if rejections:
+        _warn(f"{path}: {len(rejections)} of {len(rejections) + len(log)} rows rejected; "
+              f"{len(log)} rows kept")
+    return log, stations, rejections, problems
+
+
+def load_calibration(spec):
+    if spec is None or str(spec).lower() == "none":
+        return None
+    try:
+        return Calibration.load(spec)
+    except OSError as exc:
+        raise UserError(f"{spec}: {exc.strerror}") from None
+    except CoefficientError as exc:
+        raise UserError(str(exc)) from None
+
+
+# --------------------------------------------------------------------------------------------
+def cmd_simulate(args):
+    try:
+        specs = [sim.parse_effect_arg(e) for e in args.effect]
+        probe = sim.build_probe(args.seed, specs, severity=args.severity,
+                                noise_acc=args.noise_acc, noise_mag=args.noise_mag)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    site = Site(args.total_field, args.dip, args.declination, args.gravity)
+    rng = np.random.default_rng(args.seed + 1)
+    temps = [float(t) for t in args.cal_temps.split(",")]
+    cal_session = sim.twelve_pose_session(temps, duration_s=args.station_seconds, azimuth_deg=args.stand_azimuth)
+    cal = sim.run_session(probe, site, cal_session, rng, rate_hz=args.rate, survey=False)
+    t_a, t_b = (float(x) for x in args.val_temp.split(":")) if ":" in args.val_temp else (float(args.val_temp),) * 2
+    val_session = sim.stand_grid_session(duration_s=args.station_seconds, temp_start_c=t_a, temp_end_c=t_b)
+    val = sim.run_session(probe, site, val_session, rng, rate_hz=args.rate, t0=cal.t_s[-1] + 10.0,
+                          survey=not args.no_survey_effects)
+    os.makedirs(args.out, exist_ok=True)
+    write_csv(os.path.join(args.out, "cal.csv"), cal)
+    write_csv(os.path.join(args.out, "val.csv"), val)
+    truth = {"seed": args.seed, "site": site.to_dict(), "probe": probe.to_dict(),
+             "cal": {"stations": len(cal_session), "rows": len(cal), "temperatures_c": temps},
+             "val": {"stations": len(val_session), "rows": len(val), "temperature_c": [t_a, t_b],
+                     "survey_effects": not args.no_survey_effects}}
+    atomic_write_text(os.path.join(args.out, "truth.json"), json.dumps(truth, indent=2) + "\n")
+    atomic_write_text(os.path.join(args.out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
+    true_cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id=f"sim-{args.seed}", method="simulator truth",
+                           site=site)
+    true_cal.save(os.path.join(args.out, "truth_coeffs.yaml"))
+    print(f"wrote {args.out}/cal.csv ({len(cal)} rows, {len(cal_session)} stations), "
+          f"val.csv ({len(val)} rows, {len(val_session)} stations), truth.json, truth_coeffs.yaml, site.yaml")
+    for e in probe.effects:
+        print(f"  hidden effect: {e.describe()}")
+    if probe.stand_pose_error_deg:
+        print(f"  stand pose error: {probe.stand_pose_error_deg} deg 1σ")
+    if probe.time_skew_s:
+        print(f"  time skew: {probe.time_skew_s} s")
+    return 0
+
+
+def run_twelve_position(cal_path, site, probe_id, quiet=False):
+    _, stations, _, _ = load_stations(cal_path, quiet=quiet)
+    try:
+        result = solve_stations(stations, site)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        raise UserError(f"{cal_path}: {exc}") from None
+    return result, to_calibration(result, site, probe_id)
+
+
+def cmd_twelve_position(args):
+    site = load_site(args.site)
+    result, cal = run_twelve_position(args.cal, site, args.probe_id)
+    cal.save(args.output)
+    print(format_table2(cal.acc, cal.mag))
+    print()
+    print(format_table3(cal.acc, cal.mag))
+    print()
+    print("Per-pose residuals (output minus model; acc m/s^2, mag nT) and round-to-round spread")
+    print(f"{'pose':>4} {'rounds':>6} {'acc x':>9} {'acc y':>9} {'acc z':>9} {'mag x':>8} {'mag y':>8} "
+          f"{'mag z':>8} {'spread acc':>11} {'spread mag':>11}")
+    for i in range(12):
+        ra, rm = result.acc.residuals[i], result.mag.residuals[i]
+        sa, sm = (float(np.max(sol.round_spread[i])) if sol.rounds[i] > 1 else float("nan")
+                  for sol in (result.acc, result.mag))
+        fmt = (lambda v, w, p: f"{v:>{w}.{p}f}" if np.isfinite(v) else f"{'-':>{w}}")
+        print(f"{i + 1:>4} {result.acc.rounds[i]:>6} " + " ".join(f"{v:>9.5f}" for v in ra) + " " +
+              " ".join(f"{v:>8.2f}" for v in rm) + " " + fmt(sa, 11, 5) + " " + fmt(sm, 11, 2))
+    imp = result.implied_site()
+    print(f"RMS residual: acc {result.acc.rms_residual:.5f} m/s^2, mag {result.mag.rms_residual:.2f} nT")
+    print(f"Implied by the corrected data: |B| {imp['total_field']:.1f} nT (site {site.total_field_nt:g}), "
+          f"dip {imp['dip_deg']:.3f} deg (site {site.dip_deg:g}), stand tilt {imp['stand_tilt_deg']:.3f} deg")
+    print(f"wrote {args.output} (id {cal.id})")
+    return 0
+
+
+def correct_log(log_path, cal, site, tol, quiet=False):
+    """Evaluate every static station of a log; returns (stations, result, summary)."""
+    _, stations, _, _ = load_stations(log_path, quiet=quiet)
+    if not stations:
+        raise UserError(f"{log_path}: no static stations found")
+    g = np.array([s.g for s in stations])
+    b = np.array([s.b for s in stations])
+    if cal is not None:
+        g, b = cal.correct(g, b)
+    ref = np.array([s.ref for s in stations])
+    has_ref = np.all(np.isfinite(ref), axis=1)
+    res = evaluate(g, b, site, tol, ref=ref if has_ref.any() else None)
+    return stations, res, summarize(res)
+
+
+STATION_COLUMNS = ["station", "pose", "t_start_s", "t_end_s", "samples", "temp_c", "drift_deg", "azimuth_deg",
+                   "toolface_deg", "toolface_type", "gravity_toolface_deg", "magnetic_toolface_deg",
+                   "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
+                   "delta_dip_deg", "status", "flags", "ref_drift_deg", "ref_azimuth_deg",
+                   "ref_toolface_deg", "drift_err_deg", "azimuth_err_deg", "toolface_err_deg"]
+
+
+def format_station_csv(stations, res) -> str:
+    lines = [",".join(STATION_COLUMNS)]
+
+    def f(v, p=4):
+        return "" if v is None or not np.isfinite(v) else f"{v:.{p}f}"
+
+    for k, st in enumerate(stations):
+        flags = [n for n in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance") if res[n][k]]
+        flags += ["moved_during_capture"] if st.warnings else []
+        err = (lambda n: res[n][k] if n in res else None)
+        row = [str(st.index), str(st.pose or ""), f(st.t_start, 3), f(st.t_end, 3), str(st.n), f(st.temp_c, 2),
+               f(res["drift_deg"][k]), f(res["azimuth_deg"][k]), f(res["toolface_deg"][k]),
+               "gravity" if res["toolface_is_gravity"][k] else "magnetic",
+               f(res["gravity_toolface_deg"][k]), f(res["magnetic_toolface_deg"][k]),
+               f(res["total_gravity"][k], 5), f(res["total_field"][k], 1), f(res["dip_deg"][k]),
+               f(res["delta_g"][k], 5), f(res["delta_b"][k], 1), f(res["delta_dip"][k]),
+               ["ok", "warn", "error"][int(res["status"][k])], "|".join(flags),
+               *(f(v) for v in st.ref), f(err("drift_err")), f(err("azimuth_err")), f(err("toolface_err"))]
+        lines.append(",".join(row))
+    return "\n".join(lines) + "\n"
+
+
+def cmd_correct(args):
+    cal = load_calibration(args.coeffs)
+    site = load_site(args.site) if args.site else (cal.site if cal else Site())
+    tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+    stations, res, summ = correct_log(args.log, cal, site, tol)
+    if args.output:
+        atomic_write_text(args.output, format_station_csv(stations, res))
+    summ["coefficients"] = cal.id if cal else "none"
+    summ["flagged"] = {n: int(np.sum(res[n])) for n in ("azimuth_undefined", "interference_suspected",
+                                                         "gravity_out_of_tolerance")}
+    if args.json:
+        print(json.dumps(summ, indent=2))
+        return 0
+    ref = np.array([s.ref for s in stations])
+    if "drift_err" in res:
+        label = "after" if cal else "uncorrected"
+        print(format_table4(None, table4(res, ref)).replace("after ", f"{label[:6]:<6}"))
+        print()
+        print(format_table5(None, table5(res, ref)).replace(" after ", f" {label[:6]:<6}"))
+        print()
+    print(_summary_line(summ))
+    if args.output:
+        print(f"wrote {args.output} ({len(stations)} stations)")
+    return 0
+
+
+def _summary_line(s):
+    if "drift_rms_deg" not in s:
+        return f"{s['stations']} stations (no reference angles in the log)"
+    return (f"{s['stations']} stations: drift RMS {s['drift_rms_deg']:.3f} deg (max {s['drift_max_abs_deg']:.3f}), "
+            f"azimuth RMS {s['azimuth_rms_deg']:.3f} deg (max {s['azimuth_max_abs_deg']:.3f}) "
+            f"over {s['azimuth_stations']} stations with defined azimuth")
+
+
+def cmd_demo(args):
+    """Offline demo: simulate → twelve-position → correct; before/after tables."""
+    out = args.out
+    sim_args = build_parser().parse_args(["simulate", "--out", out, "--seed", str(args.seed)])
+    cmd_simulate(sim_args)
+    site = load_site(os.path.join(out, "site.yaml"))
+    result, cal = run_twelve_position(os.path.join(out, "cal.csv"), site, f"sim-{args.seed}")
+    cal.save(os.path.join(out, "coeffs.yaml"))
+    print()
+    print(format_table2(cal.acc, cal.mag))
+    print()
+    print(format_table3(cal.acc, cal.mag))
+    print()
+    val = os.path.join(out, "val.csv")
+    tol = Tolerances()
+    st_b, res_b, s_b = correct_log(val, None, site, tol, quiet=True)
+    st_a, res_a, s_a = correct_log(val, cal, site, tol, quiet=True)
+    ref = np.array([s.ref for s in st_a])
+    print(format_table4(table4(res_b, ref), table4(res_a, ref)))
+    print()
+    print(format_table5(table5(res_b, ref), table5(res_a, ref)))
+    print()
+    print("before: " + _summary_line(s_b))
+    print("after:  " + _summary_line(s_a))
+    atomic_write_text(os.path.join(out, "stations.csv"), format_station_csv(st_a, res_a))
+    print(f"outputs in {out}/ (cal.csv, val.csv, coeffs.yaml, stations.csv, truth.json)")
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+def build_parser():
+    p = argparse.ArgumentParser(prog="inclinometer-calib",
+                                description="Calibrate magnetic borehole inclinometers and correct their surveys.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("simulate", help="simulate a probe: twelve-pose calibration log and stand-grid validation log")
+    s.add_argument("--out", required=True, help="output directory")
+    s.add_argument("--effect", action="append", default=[], metavar="NAME[:sensor[:axes]]=V[,V..]",
+                   help="add a physical effect (repeatable), e.g. axial_interference=300, "
+                        "temperature_bias:mag=2, stand_pose_error=0.1")
+    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--severity", type=float, default=1.0, help="scale of the probe's base-model errors")
+    s.add_argument("--noise-acc", type=float, default=0.002, help="accelerometer white noise, m/s^2 1σ")
+    s.add_argument("--noise-mag", type=float, default=20.0, help="magnetometer white noise, nT 1σ")
+    s.add_argument("--rate", type=float, default=100.0, help="sample rate, Hz")
+    s.add_argument("--station-seconds", type=float, default=1.0, help="time held at each station, s")
+    s.add_argument("--cal-temps", default="25", help="temperature of each calibration round, °C (comma list)")
+    s.add_argument("--val-temp", default="25:45", help="validation temperature START:END (ramp), °C")
+    s.add_argument("--stand-azimuth", type=float, default=0.0, help="stand's rotation from north, deg")
+    s.add_argument("--total-field", type=float, default=Site.total_field_nt, help="site total field, nT")
+    s.add_argument("--dip", type=float, default=Site.dip_deg, help="site dip, deg")
+    s.add_argument("--declination", type=float, default=Site.declination_deg, help="site declination, deg")
+    s.add_argument("--gravity", type=float, default=Site.gravity_mps2, help="site gravity, m/s^2")
+    s.add_argument("--no-survey-effects", action="store_true",
+                   help="leave survey-only effects (axial interference) out of the validation log")
+    s.set_defaults(func=cmd_simulate)
+
+    t = sub.add_parser("twelve-position", help="fit both triads from a twelve-pose calibration log")
+    t.add_argument("cal", help="calibration log CSV (poses 1..12 labelled)")
+    t.add_argument("-o", "--output", required=True, help="coefficient YAML to write")
+    t.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2)")
+    t.add_argument("--probe-id", default="probe")
+    t.set_defaults(func=cmd_twelve_position)
+
+    c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")
+    c.add_argument("log", help="probe log CSV")
+    c.add_argument("--coeffs", required=True, help="coefficient YAML, or 'none' for uncorrected figures")
+    c.add_argument("-o", "--output", help="station CSV to write")
+    c.add_argument("--json", action="store_true", help="print the summary as JSON")
+    c.add_argument("--site", help="site reference YAML (default: the calibration's site)")
+    c.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
+    c.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
+    c.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
+    c.set_defaults(func=cmd_correct)
+
+    d = sub.add_parser("demo", help="offline demo: simulate, calibrate, correct, before/after tables")
+    d.add_argument("--out", default="demo_out")
+    d.add_argument("--seed", type=int, default=1)
+    d.set_defaults(func=cmd_demo)
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,246 @@
+"""Frames, orientation angles and survey quality-control quantities.
+
+Conventions (used everywhere in this package)
+---------------------------------------------
+* **Tool frame**: right-handed; Z along the tool axis pointing down-hole; X and Y across the tool.
+  At toolface 0 the X axis points to the high side of the hole.
+* **Earth frame**: NED (north, east, down).  "North" is whatever north the site reference field is
+  given in (magnetic north when the declination is 0).
+* **Orientation**: ``R = Rz(azimuth) @ Ry(drift) @ Rz(toolface)`` maps tool-frame vectors to NED,
+  ``v_ned = R @ v_tool``.
+* **Gravity vector** (the seed paper's convention): ``g_tool = R.T @ [0, 0, +g]``, down positive.
+  ``sensor_msgs/Imu`` carries REP-145 *specific force* ``f = -g_tool`` (a resting probe reads
+  -gravity).  Convert once with :func:`gravity_from_specific_force`, at the boundary.
+* **Magnetic field** in nT in the core (``sensor_msgs/MagneticField`` carries tesla).
+
+Angles are in degrees at the public API.  All functions broadcast over leading dimensions: vectors
+are ``(..., 3)`` arrays.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Standard gravity, m/s² (used as default site gravity).
+STANDARD_GRAVITY = 9.80665
+#: nT per tesla.
+NT_PER_TESLA = 1e9
+
+
+def rot_x(angle_rad):
+    """Rotation matrix about X by ``angle_rad`` (right-hand rule), broadcasting: (..., 3, 3)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def rot_y(angle_rad):
+    """Rotation matrix about Y by ``angle_rad`` (right-hand rule), broadcasting: (..., 3, 3)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def rot_z(angle_rad):
+    """Rotation matrix about Z by ``angle_rad`` (right-hand rule), broadcasting: (..., 3, 3)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def orientation_matrix(drift_deg, azimuth_deg, toolface_deg):
+    """Tool→NED rotation ``R = Rz(A)·Ry(I)·Rz(T)`` from drift I, azimuth A, toolface T in degrees."""
+    i, a, t = (np.radians(np.asarray(x, dtype=float)) for x in (drift_deg, azimuth_deg, toolface_deg))
+    return rot_z(a) @ rot_y(i) @ rot_z(t)
+
+
+def wrap360(angle_deg):
+    """Wrap an angle to [0, 360) degrees."""
+    w = np.mod(angle_deg, 360.0)
+    # np.mod can return 360.0 for tiny negative inputs through rounding.
+    return np.where(w >= 360.0, 0.0, w)
+
+
+def wrap180(angle_deg):
+    """Wrap an angle (or angle difference) to [-180, 180) degrees."""
+    return np.mod(np.asarray(angle_deg, dtype=float) + 180.0, 360.0) - 180.0
+
+
+# --------------------------------------------------------------------------------------------
+# Site reference field
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Site:
+    """Reference field at the survey or calibration site.
+
+    Attributes
+    ----------
+    total_field_nt : float
+        Total magnetic field |B| in nT.
+    dip_deg : float
+        Magnetic dip (inclination of B below the horizontal), degrees, positive down.
+    declination_deg : float
+        Magnetic declination, degrees east of true north.  The NED frame's north is *true* north
+        when this is non-zero; azimuths computed from the magnetometers are magnetic and become
+        true azimuths by adding the declination.
+    gravity_mps2 : float
+        Local gravity |g| in m/s².
+    """
+
+    total_field_nt: float = 50000.0
+    dip_deg: float = 45.1  # Chengdu, the seed paper's site
+    declination_deg: float = 0.0
+    gravity_mps2: float = STANDARD_GRAVITY
+
+    def field_ned(self) -> np.ndarray:
+        """Earth field vector in NED (nT): [B cos(dip) cos(dec), B cos(dip) sin(dec), B sin(dip)]."""
+        d, dec = np.radians(self.dip_deg), np.radians(self.declination_deg)
+        b = self.total_field_nt
+        return np.array([b * np.cos(d) * np.cos(dec), b * np.cos(d) * np.sin(dec), b * np.sin(d)])
+
+    def gravity_ned(self) -> np.ndarray:
+        """Gravity vector in NED, m/s² (down positive)."""
+        return np.array([0.0, 0.0, self.gravity_mps2])
+
+    def to_dict(self) -> dict:
+        return {
+            "total_field_nt": float(self.total_field_nt),
+            "dip_deg": float(self.dip_deg),
+            "declination_deg": float(self.declination_deg),
+            "gravity_mps2": float(self.gravity_mps2),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Site":
+        known = {"total_field_nt", "dip_deg", "declination_deg", "gravity_mps2"}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected {sorted(known)}")
+        site = cls(**{k: float(v) for k, v in d.items()})
+        if not (site.total_field_nt > 0 and site.gravity_mps2 > 0 and -90 <= site.dip_deg <= 90):
+            raise ValueError(f"site: implausible reference {site.to_dict()}")
+        return site
+
+
+# --------------------------------------------------------------------------------------------
+# Boundary conversions
+# --------------------------------------------------------------------------------------------
+def gravity_from_specific_force(f):
+    """Paper-convention gravity vector (down positive) from REP-145 specific force: ``g = -f``."""
+    return -np.asarray(f, dtype=float)
+
+
+def specific_force_from_gravity(g):
+    """REP-145 specific force (a resting probe reads -gravity) from the gravity vector: ``f = -g``."""
+    return -np.asarray(g, dtype=float)
+
+
+# --------------------------------------------------------------------------------------------
+# Angles from sensor vectors (tool frame)
+# --------------------------------------------------------------------------------------------
+def drift_deg(g):
+    """Drift (inclination) in degrees from the tool-frame gravity vector ``g`` (down positive).
+
+    Paper eq. (1), ``θ = arctan(sqrt(gx² + gy²) / gz)``, written as ``atan2`` so that it is
+    valid over the whole range 0–180° (eq. 1 folds drifts above 90°).
+    """
+    g = np.asarray(g, dtype=float)
+    return np.degrees(np.arctan2(np.hypot(g[..., 0], g[..., 1]), g[..., 2]))
+
+
+def gravity_toolface_deg(g):
+    """Gravity (high-side) toolface in degrees [0, 360): the angle T of ``Rz(T)`` in R.
+
+    With ``g_tool = R.T @ [0, 0, g]`` one finds ``gx = -g sinI cosT``, ``gy = g sinI sinT``, so
+    ``T = atan2(gy, -gx)``.  In REP-145 specific force this is the familiar ``atan2(-fy, fx)``.
+    Undefined (noise-dominated) when the drift is near zero.
+    """
+    g = np.asarray(g, dtype=float)
+    return wrap360(np.degrees(np.arctan2(g[..., 1], -g[..., 0])))
+
+
+def magnetic_toolface_deg(b):
+    """Magnetic toolface in degrees [0, 360): angle from the cross-axial projection of north to X.
+
+    ``MTF = atan2(-by, bx)``; for a vertical tool it equals azimuth + gravity toolface.
+    """
+    b = np.asarray(b, dtype=float)
+    return wrap360(np.degrees(np.arctan2(-b[..., 1], b[..., 0])))
+
+
+def azimuth_deg(g, b):
+    """Magnetic azimuth in degrees [0, 360) of the tool axis from tool-frame gravity and field.
+
+    Implements the paper's eq. (2) in a quadrant-resolving form::
+
+        A = atan2( |g| (by gx - bx gy),  bz (gx² + gy²) - gz (bx gx + by gy) )
+
+    Eq. 2 is printed as ``arctan`` of the ratio ``|g|(bx gy - by gx) / (gz(bx gx + by gy) -
+    bz(gx² + gy²))``, which loses the quadrant; feeding its numerator and denominator to atan2 as
+    printed points 180° off in this frame.  Negating both leaves the paper's ratio unchanged and
+    gives the full-circle azimuth (pinned by tests against rotations built from known angles).  Equivalent to
+    levelling the field with the drift and toolface taken from ``g``.  Near vertical both
+    arguments vanish and the azimuth is undefined: see :func:`azimuth_defined`.
+    """
+    g = np.asarray(g, dtype=float)
+    b = np.asarray(b, dtype=float)
+    gx, gy, gz = g[..., 0], g[..., 1], g[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    gnorm = np.sqrt(gx * gx + gy * gy + gz * gz)
+    num = gnorm * (by * gx - bx * gy)
+    den = bz * (gx * gx + gy * gy) - gz * (bx * gx + by * gy)
+    return wrap360(np.degrees(np.arctan2(num, den)))
+
+
+def azimuth_defined(g, min_drift_deg: float = 0.5):
+    """True where the drift exceeds ``min_drift_deg`` so that the azimuth is meaningful."""
+    return drift_deg(g) >= min_drift_deg
+
+
+def total_gravity(g):
+    """Total gravity |g| (same units as ``g``)."""
+    return np.linalg.norm(np.asarray(g, dtype=float), axis=-1)
+
+
+def total_field(b):
+    """Total magnetic field |B| (same units as ``b``)."""
+    return np.linalg.norm(np.asarray(b, dtype=float), axis=-1)
+
+
+def dip_deg(g, b):
+    """Magnetic dip in degrees: 90° minus the angle between g (down) and B.
+
+    ``dip = asin( (g·b) / (|g||b|) )`` — independent of orientation, so a survey-QC invariant.
+    """
+    g = np.asarray(g, dtype=float)
+    b = np.asarray(b, dtype=float)
+    s = np.sum(g * b, axis=-1) / (total_gravity(g) * total_field(b))
+    return np.degrees(np.arcsin(np.clip(s, -1.0, 1.0)))
+
+
+def angles_from_vectors(g, b):
+    """All survey angles and QC quantities from tool-frame gravity ``g`` and field ``b``.
+
+    Returns a dict of arrays: drift_deg, azimuth_deg (magnetic), gravity_toolface_deg,
+    magnetic_toolface_deg, total_gravity, total_field, dip_deg.
+    """
+    return {
+        "drift_deg": drift_deg(g),
+        "azimuth_deg": azimuth_deg(g, b),
+        "gravity_toolface_deg": gravity_toolface_deg(g),
+        "magnetic_toolface_deg": magnetic_toolface_deg(b),
+        "total_gravity": total_gravity(g),
+        "total_field": total_field(b),
+        "dip_deg": dip_deg(g, b),
+    }
+
+
+def tool_vectors(site: Site, drift, azimuth, toolface):
+    """True tool-frame gravity (m/s², down positive) and field (nT) for the given orientation.
+
+    ``azimuth`` is measured from the NED frame's north (true north if the site has a declination).
+    """
+    r = orientation_matrix(drift, azimuth, toolface)
+    rt = np.swapaxes(r, -1, -2)
+    return rt @ site.gravity_ned(), rt @ site.field_ned()

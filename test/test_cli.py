@@ -1,0 +1,88 @@
+"""CLI end to end: simulate -> twelve-position -> correct, and clear errors for bad input."""
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+import yaml
+
+from inclinometer_calib.cli import main
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def simdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", "--out", str(d), "--seed", "3", "--station-seconds", "0.5"]) == 0
+    return d
+
+
+def _json(capsys, argv):
+    capsys.readouterr()
+    assert main(argv) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_calibration_lowers_validation_errors_to_the_noise_level(simdir, capsys, tmp_path):
+    coeffs = tmp_path / "coeffs.yaml"
+    assert main(["twelve-position", str(simdir / "cal.csv"), "-o", str(coeffs)]) == 0
+    out = capsys.readouterr().out
+    assert "Table 2" in out and "Table 3" in out
+    val = str(simdir / "val.csv")
+    before = _json(capsys, ["correct", val, "--coeffs", "none", "--json"])
+    after = _json(capsys, ["correct", val, "--coeffs", str(coeffs), "--json", "-o", str(tmp_path / "st.csv")])
+    truth = _json(capsys, ["correct", val, "--coeffs", str(simdir / "truth_coeffs.yaml"), "--json"])
+    for key in ("stations", "drift_rms_deg", "drift_max_abs_deg", "azimuth_rms_deg", "azimuth_max_abs_deg"):
+        assert key in after
+    assert after["stations"] == 198
+    assert before["azimuth_rms_deg"] > 1.0 and before["drift_rms_deg"] > 0.05
+    # the truth model's errors are the noise level of this data; the twelve-position fit
+    # (from noisy poses) must come within a small factor of it, in absolute terms tiny
+    assert after["drift_rms_deg"] < max(3 * truth["drift_rms_deg"], 0.005)
+    assert after["azimuth_rms_deg"] < max(3 * truth["azimuth_rms_deg"], 0.03)
+    assert (tmp_path / "st.csv").read_text().startswith("station,pose,")
+
+
+def test_correct_prints_paper_style_tables(simdir, capsys):
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(simdir / "truth_coeffs.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "Table 4" in out and "Table 5" in out and "RMS" in out
+
+
+def test_missing_pose_is_a_clear_error_with_exit_2(simdir, tmp_path, capsys):
+    lines = (simdir / "cal.csv").read_text().splitlines()
+    kept = [ln for ln in lines if ln.split(",")[8] != "5"]
+    bad = tmp_path / "cal_missing5.csv"
+    bad.write_text("\n".join(kept) + "\n")
+    assert main(["twelve-position", str(bad), "-o", str(tmp_path / "c.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "pose(s) [5] missing" in err
+    assert not (tmp_path / "c.yaml").exists()
+
+
+def test_bad_rows_are_warned_and_the_rest_used(simdir, tmp_path, capsys):
+    lines = (simdir / "cal.csv").read_text().splitlines()
+    lines[10] = lines[10].replace(lines[10].split(",")[1], "nan", 1)
+    bad = tmp_path / "cal_nan.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    assert main(["twelve-position", str(bad), "-o", str(tmp_path / "c.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert "row 10 (line 11): ax not finite" in err
+
+
+def test_hand_edited_coefficients_are_refused(simdir, tmp_path, capsys):
+    rec = yaml.safe_load((simdir / "truth_coeffs.yaml").read_text())
+    rec["magnetometer"]["offset"][0] += 50
+    p = tmp_path / "edited.yaml"
+    p.write_text(yaml.safe_dump(rec))
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(p)]) == 2
+    assert "disagree with the parameters" in capsys.readouterr().err
+
+
+def test_module_runs_as_a_program(simdir):
+    r = subprocess.run([sys.executable, "-m", "inclinometer_calib.cli", "correct", str(simdir / "val.csv"),
+                        "--coeffs", "none", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["coefficients"] == "none"

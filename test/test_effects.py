@@ -1,0 +1,90 @@
+"""Effect catalogue: each effect's forward function against its formula; composition order."""
+import numpy as np
+import pytest
+
+from inclinometer_calib import effects as fx
+
+CTX = fx.Context(temperature_c=np.array([25.0, 35.0, 5.0]), time_s=np.array([0.0, 1800.0, 3600.0]))
+V = np.array([[1.0, -2.0, 9.0], [-3.0, 4.0, -5.0], [0.5, 0.25, -9.5]])
+
+
+def test_catalogue_has_the_required_names():
+    need = {"bias", "scale", "nonorthogonality", "misalignment", "triad_misalignment", "temperature_bias",
+            "temperature_scale", "scale_asymmetry", "nonlinearity", "cross_coupling", "bias_drift",
+            "axial_interference"}
+    assert need <= set(fx.CATALOGUE)
+
+
+def test_each_effect_names_units_and_typical_magnitudes():
+    for name, cls in fx.CATALOGUE.items():
+        for sensor in cls.sensors:
+            e = cls(sensor=sensor, axes=cls.default_axes)
+            assert len(e.param_names()) == e.n_params == len(e.param_units()) == len(e.param_typical())
+            assert all(u for u in e.param_units())
+
+
+def test_temperature_bias_formula():
+    e = fx.make_effect("temperature_bias", "acc", "xz", c=[0.01, -0.02])
+    out = e.apply(V, CTX)
+    dt = CTX.temperature_c - 25.0
+    np.testing.assert_allclose(out[:, 0], V[:, 0] + 0.01 * dt)
+    np.testing.assert_allclose(out[:, 2], V[:, 2] - 0.02 * dt)
+    np.testing.assert_array_equal(out[:, 1], V[:, 1])
+
+
+def test_scale_asymmetry_differs_for_positive_and_negative_input():
+    e = fx.make_effect("scale_asymmetry", "acc", "x", a=0.01)
+    out = e.apply(V, CTX)
+    np.testing.assert_allclose(out[:, 0], [1.01, -3 * 0.99, 0.5 * 1.01])
+
+
+def test_nonlinearity_quadratic_and_cubic_at_full_scale():
+    e = fx.make_effect("nonlinearity", "mag", "y", q=1e-3, c=2e-3)
+    v = np.array([[0.0, 50000.0, 0.0], [0.0, -25000.0, 0.0]])
+    out = e.apply(v, CTX)
+    np.testing.assert_allclose(out[:, 1], [50000 + 50 + 100, -25000 + 50000 * (1e-3 * 0.25 - 2e-3 * 0.125)])
+
+
+def test_cross_coupling_uses_the_product_of_the_other_axes():
+    e = fx.make_effect("cross_coupling", "acc", "z", k=0.01)
+    out = e.apply(V, CTX)
+    np.testing.assert_allclose(out[:, 2], V[:, 2] + 0.01 * V[:, 0] * V[:, 1] / 9.80665)
+
+
+def test_bias_drift_is_per_hour():
+    e = fx.make_effect("bias_drift", "mag", "x", rate=60.0)
+    np.testing.assert_allclose(e.apply(V, CTX)[:, 0] - V[:, 0], [0, 30, 60])
+
+
+def test_misalignment_is_a_rotation_preserving_norm():
+    e = fx.make_effect("misalignment", "mag", "xyz", angle=[0.01, -0.02, 0.03])
+    np.testing.assert_allclose(np.linalg.norm(e.apply(V, CTX), axis=1), np.linalg.norm(V, axis=1))
+
+
+def test_nonorthogonality_matches_the_papers_e_matrix():
+    from inclinometer_calib.errormodel import TriadModel
+    e = fx.make_effect("nonorthogonality", "mag", "xyz", e1=[0.01, 0.02, 0.03], e2=[0.04, 0.05, 0.06])
+    m = TriadModel(e={"e_yx": 0.01, "e_zx": 0.04, "e_xy": 0.02, "e_zy": 0.05, "e_xz": 0.03, "e_yz": 0.06})
+    np.testing.assert_allclose(e.apply(V, CTX), V @ m.E.T)
+
+
+def test_chain_applies_stages_in_physical_order():
+    # bias (output stage) listed first must still be added after scale (gain stage)
+    chain = [fx.make_effect("bias", "acc", "x", b=1.0), fx.make_effect("scale", "acc", "x", k=1.0)]
+    out = fx.apply_chain(np.array([[2.0, 0, 0]]), chain, fx.Context(np.array([25.0]), np.array([0.0])))
+    assert out[0, 0] == 2.0 * 2 + 1
+
+
+def test_parameter_vector_round_trip():
+    e = fx.make_effect("nonlinearity", "acc", "xy", q=[1, 2], c=[3, 4])
+    assert list(e.get_vector()) == [1, 2, 3, 4]
+    e.set_vector([5, 6, 7, 8])
+    assert list(e.values["c"]) == [7, 8]
+
+
+def test_register_refuses_a_name_collision():
+    class Clash(fx.Effect):
+        name = "bias"
+        stage = "output"
+    with pytest.raises(ValueError, match="already taken"):
+        fx.register(Clash)

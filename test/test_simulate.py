@@ -1,0 +1,91 @@
+"""Probe simulator: determinism, physical units, effects where they belong."""
+import numpy as np
+import pytest
+
+from inclinometer_calib import simulate as sim
+from inclinometer_calib.frames import Site, drift_deg, total_field, total_gravity
+from inclinometer_calib.probelog import segment_stations
+
+
+def _run(probe, stations, seed=0, survey=False):
+    return sim.run_session(probe, Site(), stations, np.random.default_rng(seed), rate_hz=50, survey=survey)
+
+
+def test_same_seed_gives_identical_samples():
+    a = _run(sim.build_probe(3), sim.twelve_pose_session(duration_s=0.5))
+    b = _run(sim.build_probe(3), sim.twelve_pose_session(duration_s=0.5))
+    np.testing.assert_array_equal(a.acc, b.acc)
+    np.testing.assert_array_equal(a.mag, b.mag)
+
+
+def test_ideal_probe_reads_minus_gravity_and_the_site_field():
+    probe = sim.ProbeModel(acc=sim.TriadModel(), mag=sim.TriadModel(), noise_acc=0, noise_mag=0)
+    log = _run(probe, sim.stand_grid_session(drifts=(30,), azimuths=(60,), toolfaces=(0,)))
+    st = log.pose == 0
+    assert total_gravity(log.acc[st]) == pytest.approx(9.80665)
+    assert total_field(log.mag[st]) == pytest.approx(50000.0)
+    assert drift_deg(-log.acc[st][0]) == pytest.approx(30.0)   # REP-145: g = -f
+
+
+def test_noise_has_the_configured_sigma():
+    probe = sim.ProbeModel(acc=sim.TriadModel(), mag=sim.TriadModel(), noise_acc=0.01, noise_mag=50)
+    log = _run(probe, sim.stand_grid_session(drifts=(10,), azimuths=(0,), toolfaces=(0,), duration_s=40))
+    assert np.std(log.acc[:, 0]) == pytest.approx(0.01, rel=0.05)
+    assert np.std(log.mag[:, 2]) == pytest.approx(50, rel=0.05)
+
+
+def test_axial_interference_is_present_in_survey_logs_only():
+    probe = sim.build_probe(2, [("axial_interference", None, None, [400.0])], noise_acc=0, noise_mag=0)
+    grid = sim.stand_grid_session(drifts=(40,), azimuths=(90,), toolfaces=(0,))
+    clean = _run(probe, grid, survey=False)
+    dirty = _run(probe, grid, survey=True)
+    d = dirty.mag - clean.mag
+    # +400 nT along tool Z, passed through the probe's scale/non-orthogonality (column z of K·E)
+    np.testing.assert_allclose(d[0], probe.mag.A[:, 2] * 400.0, rtol=1e-9)
+
+
+def test_temperature_bias_follows_temperature():
+    probe = sim.build_probe(2, [("temperature_bias", "acc", "x", [0.001])], noise_acc=0, noise_mag=0)
+    base = sim.build_probe(2, noise_acc=0, noise_mag=0)
+    grid = sim.stand_grid_session(drifts=(20,), azimuths=(0, 60), toolfaces=(0,), temp_start_c=25, temp_end_c=45)
+    d = _run(probe, grid).acc - _run(base, grid).acc
+    # REP-145 output is -g: a +c·ΔT gravity-vector bias appears as -c·ΔT in specific force
+    np.testing.assert_allclose(d[:, 0], -0.001 * (_run(base, grid).temp_c - 25.0), atol=1e-12)
+    assert np.all(d[:, 1:] == 0)
+
+
+def test_stand_pose_error_moves_the_real_orientation_but_not_the_labels():
+    probe = sim.build_probe(4, [("stand_pose_error", None, None, [0.2])], noise_acc=0, noise_mag=0)
+    grid = sim.stand_grid_session(drifts=(30,), azimuths=(0,), toolfaces=(0, 120, 240))
+    log = _run(probe, grid)
+    stations, _ = segment_stations(log)
+    g_true = np.array([probe.acc.inverse(s.g) for s in stations])
+    err = drift_deg(g_true) - 30.0
+    assert 0.01 < np.max(np.abs(err)) < 1.0
+    assert all(s.ref[0] == 30.0 for s in stations)
+
+
+def test_time_skew_only_shows_while_moving():
+    base = sim.build_probe(6, noise_acc=0, noise_mag=0)
+    skew = sim.build_probe(6, [("time_skew", None, None, [0.05])], noise_acc=0, noise_mag=0)
+    sess = sim.twelve_pose_session(duration_s=1.0)
+    a, b = _run(base, sess), _run(skew, sess)
+    moving = a.pose == 0
+    assert np.max(np.abs(a.mag[moving] - b.mag[moving])) > 100
+    static = ~moving
+    inner = static & np.r_[static[5:], [False] * 5]  # away from the end of each station
+    np.testing.assert_allclose(a.mag[inner], b.mag[inner], atol=1e-6)
+
+
+@pytest.mark.parametrize("text,expected", [
+    ("axial_interference=300", ("axial_interference", None, None, [300.0])),
+    ("temperature_bias:mag:xy=2,3", ("temperature_bias", "mag", "xy", [2.0, 3.0])),
+])
+def test_effect_argument_parsing(text, expected):
+    assert sim.parse_effect_arg(text) == expected
+
+
+@pytest.mark.parametrize("text,msg", [("foo=1", "unknown effect 'foo'"), ("cross_coupling:mag=1", "does not act on")])
+def test_unknown_or_misapplied_effect_is_refused(text, msg):
+    with pytest.raises(ValueError, match=msg):
+        sim.build_probe(1, [sim.parse_effect_arg(text)])
