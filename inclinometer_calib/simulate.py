@@ -262,3 +262,25 @@ def parse_effect_arg(text: str):
     if sensor not in (None, "acc", "mag"):
         raise ValueError(f"--effect {text!r}: sensor must be 'acc' or 'mag'")
     return name, sensor, axes, values
+
+
+def well_path_session(n_stations: int = 30, kickoff_deg: float = 0.0, build_deg_per_station: float = 3.0,
+                      max_drift_deg: float = 85.0, azimuth_start_deg: float = 40.0,
+                      turn_deg_per_station: float = 1.5, duration_s: float = 2.0,
+                      temp_start_c: float = 25.0, temp_end_c: float = 60.0, seed: int = 0):
+    """Survey stations down a synthetic build-and-turn well path (reference angles known).
+
+    Drift builds from ``kickoff_deg`` by ``build_deg_per_station`` up to ``max_drift_deg``;
+    azimuth turns steadily; toolface is random per station (the tool rolls while drilling);
+    temperature rises with depth.
+    """
+    rng = np.random.default_rng(seed)
+    out = []
+    temps = np.linspace(temp_start_c, temp_end_c, n_stations)
+    for k in range(n_stations):
+        i = min(kickoff_deg + build_deg_per_station * k, max_drift_deg)
+        a = (azimuth_start_deg + turn_deg_per_station * k) % 360.0
+        t = float(rng.uniform(0, 360))
+        out.append(Stationary(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), t),
+                              temp_c=float(temps[k])))
+    return out

@@ -1,0 +1,182 @@
+"""Streaming (sample-by-sample) processing for live nodes — ROS-free.
+
+* :class:`StaticDetector` finds static intervals in a live stream and closes them as stations.
+* :class:`SurveyProcessor` corrects each closed station with the current calibration and evaluates
+  it against the site reference (QC), producing plain records that a node converts to messages.
+
+Inputs follow the boundary convention: accelerometer as REP-145 specific force (m/s²), converted
+here once to the gravity vector; magnetometer in nT (a node converts from tesla before calling).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .frames import Site
+from .survey import Tolerances, evaluate
+
+
+@dataclass
+class StaticSegment:
+    """A closed static interval: means in the gravity-vector convention (m/s²) and nT."""
+
+    t_start: float
+    t_end: float
+    n: int
+    g: np.ndarray
+    b: np.ndarray
+    g_std: np.ndarray
+    b_std: np.ndarray
+    temp_c: float
+    short: bool = False
+
+    @property
+    def duration_s(self) -> float:
+        return self.t_end - self.t_start
+
+
+@dataclass
+class StaticDetector:
+    """Detects static intervals from sample-to-mean deviations.
+
+    A sample belongs to the current static candidate when every accelerometer axis is within
+    ``k_sigma·noise_acc`` and every magnetometer axis within ``k_sigma·noise_mag`` of the
+    candidate's running mean (plus ``acc_floor``/``mag_floor`` for sensors quieter than stated).
+    A sample outside closes the candidate; it is reported if it lasted ``min_duration_s``,
+    otherwise counted in ``too_short``.  The first ``settle_s`` of a candidate are discarded
+    (vibration after a move).  ``max_duration_s`` closes long stations so they are reported live.
+    """
+
+    noise_acc: float = 0.002
+    noise_mag: float = 20.0
+    k_sigma: float = 6.0
+    acc_floor: float = 0.003
+    mag_floor: float = 30.0
+    min_duration_s: float = 1.0
+    settle_s: float = 0.2
+    max_duration_s: float = 30.0
+    short_report_s: float = 0.3
+
+    _n: int = 0
+    _t0: float = 0.0
+    _t_last: float = 0.0
+    _sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _sum_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _sq_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _sq_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    _sum_t: float = 0.0
+    _settle_until: float = -np.inf
+    too_short: int = 0
+
+    def __post_init__(self):
+        self._tol_f = max(self.k_sigma * self.noise_acc, self.acc_floor)
+        self._tol_m = max(self.k_sigma * self.noise_mag, self.mag_floor)
+
+    def reset(self):
+        self._n = 0
+        self._sum_f[:] = 0
+        self._sum_m[:] = 0
+        self._sq_f[:] = 0
+        self._sq_m[:] = 0
+        self._sum_t = 0.0
+
+    @property
+    def is_static(self) -> bool:
+        return self._n > 0 and (self._t_last - self._t0) >= self.min_duration_s
+
+    @property
+    def static_for_s(self) -> float:
+        return (self._t_last - self._t0) if self._n else 0.0
+
+    def update(self, t: float, f, m, temp_c: float = float("nan")):
+        """Feed one sample (specific force m/s², field nT).  Returns a closed segment or None."""
+        f = np.asarray(f, dtype=float)
+        m = np.asarray(m, dtype=float)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(m)) and np.isfinite(t)):
+            return self._close(t, restart=None)  # a bad sample breaks the station
+        if t < self._settle_until:
+            return None
+        out = None
+        if self._n:
+            mf = self._sum_f / self._n
+            mm = self._sum_m / self._n
+            if np.any(np.abs(f - mf) > self._tol_f) or np.any(np.abs(m - mm) > self._tol_m):
+                out = self._close(t, restart=None)
+                self._settle_until = t + self.settle_s
+                return out
+            if t - self._t0 >= self.max_duration_s:
+                out = self._close(t, restart=(t, f, m, temp_c))
+                return out
+        self._add(t, f, m, temp_c)
+        return out
+
+    def _add(self, t, f, m, temp_c):
+        if self._n == 0:
+            self._t0 = t
+        self._n += 1
+        self._t_last = t
+        self._sum_f += f
+        self._sum_m += m
+        self._sq_f += f * f
+        self._sq_m += m * m
+        self._sum_t += temp_c if np.isfinite(temp_c) else 0.0
+
+    def _close(self, t, restart):
+        seg = None
+        dur = self._t_last - self._t0
+        if self._n >= 2 and dur >= min(self.short_report_s, self.min_duration_s):
+            n = self._n
+            mf, mm = self._sum_f / n, self._sum_m / n
+            vf = np.maximum(self._sq_f / n - mf * mf, 0) * n / (n - 1)
+            vm = np.maximum(self._sq_m / n - mm * mm, 0) * n / (n - 1)
+            short = dur < self.min_duration_s
+            self.too_short += short
+            seg = StaticSegment(self._t0, self._t_last, n, -mf, mm, np.sqrt(vf), np.sqrt(vm),
+                                self._sum_t / n, short=short)
+        self.reset()
+        if restart is not None:
+            self._add(*restart)
+        return seg
+
+    def flush(self):
+        """Close the current candidate (end of stream)."""
+        return self._close(self._t_last, restart=None)
+
+
+@dataclass
+class StationRecord:
+    """A corrected, quality-checked survey station (plain data for a SurveyStation message)."""
+
+    station_id: int
+    segment: StaticSegment
+    values: dict
+    coefficients_id: str
+
+
+class SurveyProcessor:
+    """Corrects closed static segments with the current calibration and checks them against the site."""
+
+    def __init__(self, site: Site, tolerances: Tolerances = Tolerances(), calibration=None):
+        self.site = site
+        self.tolerances = tolerances
+        self.calibration = calibration
+        self._next_id = 0
+
+    def set_calibration(self, calibration):
+        self.calibration = calibration
+
+    def correct_vectors(self, g, b):
+        """Corrected gravity vector (m/s²) and field (nT); identity without a calibration."""
+        if self.calibration is None:
+            return np.asarray(g, float), np.asarray(b, float)
+        return self.calibration.correct(g, b)
+
+    def process(self, seg: StaticSegment, ref=None) -> StationRecord:
+        g, b = self.correct_vectors(seg.g, seg.b)
+        res = evaluate(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
+        values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
+        rec = StationRecord(self._next_id, seg, values,
+                            self.calibration.id if self.calibration is not None else "none")
+        self._next_id += 1
+        return rec
