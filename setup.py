@@ -18,6 +18,12 @@ setup(
     entry_points={
         "console_scripts": [
             "inclinometer-calib = inclinometer_calib.cli:main",
+            # ROS 2 nodes and the launcher for PyPI environments (need rclpy + built messages)
+            "inclinometer-calib-probe = inclinometer_calib.nodes.probe:main",
+            "inclinometer-calib-calibration = inclinometer_calib.nodes.calibration:main",
+            "inclinometer-calib-correction = inclinometer_calib.nodes.correction:main",
+            "inclinometer-calib-recorder = inclinometer_calib.nodes.recorder:main",
+            "inclinometer-calib-launch = inclinometer_calib.launcher:main",
         ],
     },
 )

