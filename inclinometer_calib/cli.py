@@ -77,6 +77,13 @@ def load_calibration(spec):
 
 # --------------------------------------------------------------------------------------------
 def cmd_simulate(args):
+    if args.plugin:
+        from .lab.plugins import PluginError, load_plugin
+        try:
+            for plug in args.plugin:
+                load_plugin(plug)
+        except PluginError as exc:
+            raise UserError(str(exc)) from None
     try:
         specs = [sim.parse_effect_arg(e) for e in args.effect]
         probe = sim.build_probe(args.seed, specs, severity=args.severity,
@@ -88,8 +95,11 @@ def cmd_simulate(args):
     temps = [float(t) for t in args.cal_temps.split(",")]
     cal_session = sim.twelve_pose_session(temps, duration_s=args.station_seconds, azimuth_deg=args.stand_azimuth)
     cal = sim.run_session(probe, site, cal_session, rng, rate_hz=args.rate, survey=False)
-    t_a, t_b = (float(x) for x in args.val_temp.split(":")) if ":" in args.val_temp else (float(args.val_temp),) * 2
-    val_session = sim.stand_grid_session(duration_s=args.station_seconds, temp_start_c=t_a, temp_end_c=t_b)
+    try:
+        val_temps = [float(x) for x in args.val_temp.split(":")]
+    except ValueError:
+        raise UserError(f"--val-temp {args.val_temp!r}: expected temperatures separated by ':'") from None
+    val_session = sim.stand_grid_session(duration_s=args.station_seconds, temp_profile_c=val_temps)
     val = sim.run_session(probe, site, val_session, rng, rate_hz=args.rate, t0=cal.t_s[-1] + 10.0,
                           survey=not args.no_survey_effects)
     os.makedirs(args.out, exist_ok=True)
@@ -97,7 +107,7 @@ def cmd_simulate(args):
     write_csv(os.path.join(args.out, "val.csv"), val)
     truth = {"seed": args.seed, "site": site.to_dict(), "probe": probe.to_dict(),
              "cal": {"stations": len(cal_session), "rows": len(cal), "temperatures_c": temps},
-             "val": {"stations": len(val_session), "rows": len(val), "temperature_c": [t_a, t_b],
+             "val": {"stations": len(val_session), "rows": len(val), "temperature_profile_c": val_temps,
                      "survey_effects": not args.no_survey_effects}}
     atomic_write_text(os.path.join(args.out, "truth.json"), json.dumps(truth, indent=2) + "\n")
     atomic_write_text(os.path.join(args.out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
@@ -258,6 +268,140 @@ def cmd_demo(args):
 
 
 # --------------------------------------------------------------------------------------------
+# Model lab
+# --------------------------------------------------------------------------------------------
+def _lab_setup(args):
+    from . import lab
+    from .lab.spec import build_model
+
+    for plug in args.plugin or []:
+        try:
+            names = lab.load_plugin(plug)
+        except lab.PluginError as exc:
+            raise UserError(str(exc)) from None
+        if not args.json:
+            print(f"plug-in {plug}: {', '.join(names)}", file=sys.stderr)
+    site = load_site(args.site)
+    try:
+        data = lab.load_logs(args.cal, args.val, warn=_warn)
+        model = build_model(site, args.effects, fit_heading=args.fit_heading)
+    except OSError as exc:
+        raise UserError(f"{exc.filename}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return lab, site, data, model
+
+
+def _progress(args):
+    if args.json or args.quiet:
+        return None
+    return lambda msg: print(f"  … {msg}", file=sys.stderr, flush=True)
+
+
+def cmd_lab_fit(args):
+    lab, site, data, model = _lab_setup(args)
+    train = data if args.fit_on == "all" else data.subset(data.role == "cal")
+    result = lab.fit(model, train, progress=_progress(args))
+    val = data.subset(data.role == "val")
+    in_sample = lab.val_metrics(model, val) if len(val) else {}
+    held_out = {}
+    if args.fit_on == "all" and len(val):
+        from .lab.diagnose import _folds
+        folds = _folds(data, args.folds)
+        held_out = lab.cross_validate(model, data, folds) if folds else {}
+    validation = held_out or in_sample
+    out = {"model": model.describe(), "effects": model.labels(), "data": data.describe(),
+           "fit": {"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms, "success": result.success,
+                   "seconds": result.seconds},
+           "parameters": result.parameter_table(),
+           "not_identifiable": [{"parameter": n.parameter, "reason": n.reason} for n in result.not_identifiable],
+           "strong_correlations": [{"a": a, "b": b, "r": r} for a, b, r in result.strong_correlations(0.98)],
+           "val": dict(validation, held_out=bool(held_out), in_sample=in_sample),
+           "uncorrected": lab.uncorrected_metrics(val, site) if len(val) else {}}
+    if args.json:
+        print(json.dumps(out, indent=2, default=float))
+        return 0
+    print(f"model: {out['model']}")
+    print(f"data:  {out['data']}")
+    print(f"fit:   χ²/dof {result.reduced_chi2:.2f}, noise-normalised residual RMS {result.z_rms:.2f} "
+          f"({result.seconds:.2f} s)")
+    print(f"{'parameter':<44}{'value':>14}{'±1σ':>12}  unit")
+    for r in result.parameter_table():
+        print(f"{r['name']:<44}{r['value']:>14.6g}{r['std']:>12.2g}  {r['unit']}")
+    for n in result.not_identifiable:
+        print(f"not identifiable: {n.parameter}: {n.reason}")
+    for a, b, r in result.strong_correlations(0.98):
+        print(f"strongly correlated: {a} ~ {b} (r = {r:+.3f})")
+    if validation:
+        kind = "held-out (cross-validated)" if held_out else "validation"
+        print(f"{kind}: drift RMS {validation['drift_rms_deg']:.4f} deg, azimuth RMS "
+              f"{validation['azimuth_rms_deg']:.4f} deg over {validation['stations']} stations")
+    return 0
+
+
+def cmd_lab_diagnose(args):
+    lab, site, data, model = _lab_setup(args)
+    dg = lab.diagnose(data, model, k_folds=args.folds, progress=_progress(args))
+    if args.json:
+        print(json.dumps(dg.to_json(), indent=2, default=float))
+        return 0
+    print(dg.verdict)
+    print()
+    print(f"{'candidate':<40}{'drift RMS':>10}{'az RMS':>10}{'pointing':>10}{'gain':>7}{'ΔBIC':>10}")
+    b = dg.base_val
+    print(f"{'(current model)':<40}{b.get('drift_rms_deg', float('nan')):>10.4f}"
+          f"{b.get('azimuth_rms_deg', float('nan')):>10.4f}{dg.base_score:>10.4f}")
+    for c in dg.ranked:
+        print(f"{c.label:<40}{c.val.get('drift_rms_deg', float('nan')):>10.4f}{c.val.get('azimuth_rms_deg', float('nan')):>10.4f}"
+              f"{c.score:>10.4f}{100 * c.gain:>6.0f}%{c.delta_bic:>10.0f}{'  *' if c.significant else ''}")
+    for u in dg.untestable:
+        print(f"not testable here: {u['effect']}: {u['reason']}")
+    return 0
+
+
+def cmd_lab_report(args):
+    lab, site, data, model = _lab_setup(args)
+    steps = lab.write_report(args.output, data, site, args.effects, max_steps=args.max_steps,
+                             progress=_progress(args))
+    for k, s in enumerate(steps):
+        v = s.base_val
+        print(f"rung {k}: {s.model.describe()}: held-out drift RMS {v.get('drift_rms_deg', float('nan')):.4f} deg, "
+              f"azimuth RMS {v.get('azimuth_rms_deg', float('nan')):.4f} deg")
+    print(f"wrote {args.output}")
+    return 0
+
+
+def _lab_parser(sub):
+    lab = sub.add_parser("lab", help="model lab: fit any model, diagnose missing effects, report")
+    lsub = lab.add_subparsers(dest="lab_command", required=True)
+
+    def common(p, effects_help):
+        p.add_argument("--cal", required=True, help="calibration log CSV (twelve poses and/or stand stations)")
+        p.add_argument("--val", help="validation / survey log CSV (reference angles)")
+        p.add_argument("--effects", help=effects_help)
+        p.add_argument("--plugin", action="append", help="Python file defining extra effects (repeatable)")
+        p.add_argument("--site", help="site reference YAML")
+        p.add_argument("--folds", type=int, default=4, help="cross-validation folds over validation stations")
+        p.add_argument("--fit-heading", action="store_true", help="also fit the stand's heading offset")
+        p.add_argument("--json", action="store_true")
+        p.add_argument("--quiet", action="store_true", help="no progress lines")
+
+    f = lsub.add_parser("fit", help="fit a model; parameters ± 1σ, identifiability, validation errors")
+    common(f, "effects beyond the paper's base model: NAME[:sensor[:axes]][@scope],...")
+    f.add_argument("--fit-on", choices=("all", "cal"), default="all",
+                   help="fit on cal + val (validation figures cross-validated) or on cal only")
+    f.set_defaults(func=cmd_lab_fit)
+    d = lsub.add_parser("diagnose", help="rank candidate effects by held-out error; recommend the next")
+    common(d, "effects already in the model (start of the diagnosis)")
+    d.set_defaults(func=cmd_lab_diagnose)
+    r = lsub.add_parser("report", help="effect ladder + plots + tables as one self-contained HTML file")
+    common(r, "effects to start from")
+    r.add_argument("-o", "--output", required=True, help="HTML file to write")
+    r.add_argument("--max-steps", type=int, default=4, help="most effects to add")
+    r.set_defaults(func=cmd_lab_report)
+
+
+# --------------------------------------------------------------------------------------------
 def build_parser():
     p = argparse.ArgumentParser(prog="inclinometer-calib",
                                 description="Calibrate magnetic borehole inclinometers and correct their surveys.")
@@ -268,6 +412,7 @@ def build_parser():
     s.add_argument("--effect", action="append", default=[], metavar="NAME[:sensor[:axes]]=V[,V..]",
                    help="add a physical effect (repeatable), e.g. axial_interference=300, "
                         "temperature_bias:mag=2, stand_pose_error=0.1")
+    s.add_argument("--plugin", action="append", help="Python file defining extra effects (repeatable)")
     s.add_argument("--seed", type=int, default=1)
     s.add_argument("--severity", type=float, default=1.0, help="scale of the probe's base-model errors")
     s.add_argument("--noise-acc", type=float, default=0.002, help="accelerometer white noise, m/s^2 1σ")
@@ -275,7 +420,8 @@ def build_parser():
     s.add_argument("--rate", type=float, default=100.0, help="sample rate, Hz")
     s.add_argument("--station-seconds", type=float, default=1.0, help="time held at each station, s")
     s.add_argument("--cal-temps", default="25", help="temperature of each calibration round, °C (comma list)")
-    s.add_argument("--val-temp", default="25:45", help="validation temperature START:END (ramp), °C")
+    s.add_argument("--val-temp", default="25:45:30",
+                   help="validation temperature profile T1:T2[:T3..] (piecewise linear over the stations), °C")
     s.add_argument("--stand-azimuth", type=float, default=0.0, help="stand's rotation from north, deg")
     s.add_argument("--total-field", type=float, default=Site.total_field_nt, help="site total field, nT")
     s.add_argument("--dip", type=float, default=Site.dip_deg, help="site dip, deg")
@@ -307,6 +453,7 @@ def build_parser():
     d.add_argument("--out", default="demo_out")
     d.add_argument("--seed", type=int, default=1)
     d.set_defaults(func=cmd_demo)
+    _lab_parser(sub)
     return p
 
 

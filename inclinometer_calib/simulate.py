@@ -134,10 +134,15 @@ VAL_TOOLFACES = (0, 120, 240)
 
 
 def stand_grid_session(drifts=VAL_DRIFTS, azimuths=VAL_AZIMUTHS, toolfaces=VAL_TOOLFACES,
-                       duration_s: float = 1.0, temp_start_c: float = 25.0, temp_end_c: float = 25.0):
-    """Validation stations on the stand grid; temperature ramps linearly over the session."""
+                       duration_s: float = 1.0, temp_profile_c=(25.0,)):
+    """Validation stations on the stand grid.
+
+    ``temp_profile_c``: temperatures (°C) the session passes through, piecewise linear over the
+    stations (e.g. (25, 45, 25): heated, then cooled — which keeps temperature and time apart).
+    """
     combos = [(i, a, t) for i in drifts for a in azimuths for t in toolfaces]
-    temps = np.linspace(temp_start_c, temp_end_c, len(combos)) if combos else []
+    prof = np.atleast_1d(np.asarray(temp_profile_c, dtype=float))
+    temps = np.interp(np.linspace(0, 1, len(combos)), np.linspace(0, 1, len(prof)), prof) if combos else []
     return [Stationary(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), float(t)),
                        temp_c=float(tc)) for (i, a, t), tc in zip(combos, temps)]
 

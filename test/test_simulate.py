@@ -47,7 +47,7 @@ def test_axial_interference_is_present_in_survey_logs_only():
 def test_temperature_bias_follows_temperature():
     probe = sim.build_probe(2, [("temperature_bias", "acc", "x", [0.001])], noise_acc=0, noise_mag=0)
     base = sim.build_probe(2, noise_acc=0, noise_mag=0)
-    grid = sim.stand_grid_session(drifts=(20,), azimuths=(0, 60), toolfaces=(0,), temp_start_c=25, temp_end_c=45)
+    grid = sim.stand_grid_session(drifts=(20,), azimuths=(0, 60), toolfaces=(0,), temp_profile_c=(25, 45))
     d = _run(probe, grid).acc - _run(base, grid).acc
     # REP-145 output is -g: a +c·ΔT gravity-vector bias appears as -c·ΔT in specific force
     np.testing.assert_allclose(d[:, 0], -0.001 * (_run(base, grid).temp_c - 25.0), atol=1e-12)

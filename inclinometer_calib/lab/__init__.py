@@ -1,0 +1,26 @@
+"""The model lab: compare a probe model with measurements, see where it fails, find the missing
+physical effect, add it, and watch the error fall.
+
+Python API (the CLI ``inclinometer-calib lab ...`` is a thin layer over it)::
+
+    from inclinometer_calib import lab
+    from inclinometer_calib.frames import Site
+
+    data = lab.load_logs("cal.csv", "val.csv")               # stations with roles cal / val
+    dg = lab.diagnose(data, site=Site())                      # ranked candidate effects
+    print(dg.verdict)
+    model = lab.LabModel.base(Site()).with_effect(lab.effect("axial_interference", "mag", "z"), "val")
+    result = lab.fit(model, data)                             # parameters ± 1σ, identifiability
+    steps = lab.ladder(data, Site())                          # effect ladder
+    lab.write_report("report.html", data, Site())             # self-contained HTML
+"""
+from .data import LabData, from_stations, load_logs
+from .diagnose import Diagnosis, cross_validate, diagnose, ladder, val_metrics
+from .fit import FitResult, fit
+from .model import LabModel
+from .plugins import PluginError, load_plugin
+from .spec import effect, model_from_truth, parse_effects, uncorrected_metrics, write_report
+
+__all__ = ["LabData", "from_stations", "load_logs", "Diagnosis", "cross_validate", "diagnose", "ladder",
+           "val_metrics", "FitResult", "fit", "LabModel", "PluginError", "load_plugin", "effect",
+           "parse_effects", "uncorrected_metrics", "write_report", "model_from_truth"]
