@@ -1,0 +1,1050 @@
+"""rosbag2-compatible MCAP files: message definitions, type hashes, writing, reading, recovery.
+
+ROS-free on purpose: this module imports neither rclpy nor any generated message module, so
+bags can be written from CDR bytes and read back on machines without ROS (tests, analysis).
+It needs ``mcap`` (and its ``zstandard`` / ``lz4`` dependencies) and PyYAML; ``rosbags`` only as
+the fallback for computing type hashes that no installed ``.json`` type description holds.
+
+What makes the file a rosbag2 bag (what ``ros2 bag record`` with the mcap storage writes, and
+what ``rosbags`` and ``mcap_ros2`` need to decode it):
+
+* header profile ``ros2``;
+* one schema per type, name ``pkg/msg/Type``, encoding ``ros2msg``, data = the complete message
+  definition (:func:`message_definition`);
+* one channel per topic, ``message_encoding`` ``cdr``, metadata ``offered_qos_profiles`` (YAML,
+  :func:`qos_profiles_yaml`) and ``topic_type_hash`` (``RIHS01_...``, :func:`type_hash`);
+* messages with ``log_time`` = receive time and ``publish_time`` = send time (ns since epoch),
+  data = the CDR bytes as on the wire;
+* a metadata record ``rosbag2`` with ``serialized_metadata`` (the ``metadata.yaml`` content),
+  then the summary with statistics and chunk indexes, written by :meth:`BagWriter.close`.
+
+Crash safety (:class:`BagWriter`)
+--------------------------------
+The bag is written **directly to its final path**, never to a temporary name that is renamed at
+the end: after a crash (SIGKILL, power cut) the file is where the user expects it, and every
+chunk that was completely written is readable (:func:`open_bag` reads it sequentially and
+reports where it stops; :func:`recover` rewrites the readable prefix into a finalized bag).
+Chunks are closed when they exceed ``chunk_size`` bytes *or* span ``max_chunk_s`` seconds of
+log time (checked on every write and, for idle topics, by :meth:`BagWriter.tick`), and every
+finished chunk goes to the operating system at once (no user-space buffer), so a crash of the
+process loses at most the open chunk, i.e. at most ``max_chunk_s`` of data. ``fsync=True``
+extends that to power loss, at the cost of one fsync per chunk.
+
+An existing file (or bag directory) is **never** overwritten or appended to: the file is created
+with ``O_EXCL`` and :class:`BagWriter` raises :class:`FileExistsError` if the path exists, so a
+good earlier recording can never be replaced by a half-written one. Choose a new name (the
+recorder's default name carries a UTC timestamp).
+
+Layouts: a path ending in ``.mcap`` is a bare MCAP file; any other path is a ``ros2 bag record``
+style directory ``<dir>/<dir-name>_0.mcap`` plus ``<dir>/metadata.yaml`` (written at close, or by
+:func:`recover`), which ``rosbags`` needs to open a directory and uses to check type hashes.
+"""
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import re
+import struct
+import sys
+import time
+import warnings
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional, Sequence, Union
+
+import yaml
+
+__all__ = [
+    "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
+    "normalize_type", "qos_profiles_yaml", "parse_qos_profiles", "DEFAULT_QOS_PROFILE",
+    "BagWriter", "BagReader", "BagMessage", "TopicInfo", "RecoveryReport", "open_bag", "recover",
+    "available_compressions",
+]
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+SEPARATOR = "=" * 80
+# ROS 2 .msg primitive types (rosidl); "string<=N" / "wstring<=N" are bounded strings.
+PRIMITIVE_TYPES = frozenset({
+    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
+    "uint32", "int64", "uint64", "string", "wstring",
+})
+# Legacy (ROS 1 style) builtin names, used only if no package-local type of that name exists.
+BUILTIN_ALIASES = {
+    "Header": "std_msgs/Header",
+    "time": "builtin_interfaces/Time",
+    "duration": "builtin_interfaces/Duration",
+}
+_REPO_MSG_DIR = Path(__file__).resolve().parent.parent / "msg"
+_OWN_PACKAGE = "inclinometer_calib"
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_OP_NAMES = {
+    0x01: "HEADER", 0x02: "FOOTER", 0x03: "SCHEMA", 0x04: "CHANNEL", 0x05: "MESSAGE",
+    0x06: "CHUNK", 0x07: "MESSAGE_INDEX", 0x08: "CHUNK_INDEX", 0x09: "ATTACHMENT",
+    0x0A: "ATTACHMENT_INDEX", 0x0B: "STATISTICS", 0x0C: "METADATA", 0x0D: "METADATA_INDEX",
+    0x0E: "SUMMARY_OFFSET", 0x0F: "DATA_END",
+}
+_ROSBAG2_VERSION = 9  # metadata.yaml / serialized_metadata version of Jazzy's rosbag2
+
+
+class BagError(Exception):
+    """A bag file is damaged or not a bag. ``path`` and byte ``offset`` say where."""
+
+    def __init__(self, path: PathLike, offset: int, reason: str, *, more: int = 0):
+        self.path = str(path)
+        self.offset = int(offset)
+        self.reason = reason
+        self.more = more
+        text = f"{self.path}: {reason} (at byte offset {self.offset})"
+        if more:
+            text += f"; {more} further problem(s) after it"
+        super().__init__(text)
+
+
+class UnknownTypeError(LookupError):
+    """No ``.msg`` definition found for a message type."""
+
+
+# ---------------------------------------------------------------------------------------------
+# message definitions and type hashes
+
+
+def normalize_type(type_name: str) -> str:
+    """``pkg/Type`` or ``pkg/msg/Type`` -> ``pkg/msg/Type`` (raises ValueError otherwise)."""
+    parts = type_name.strip().split("/")
+    if len(parts) == 2 and all(parts):
+        return f"{parts[0]}/msg/{parts[1]}"
+    if len(parts) == 3 and all(parts):
+        return type_name.strip()
+    raise ValueError(f"not a ROS message type name: {type_name!r} (expected pkg/msg/Type)")
+
+
+def _short(type_name: str) -> str:
+    pkg, _, name = normalize_type(type_name).split("/")
+    return f"{pkg}/{name}"
+
+
+_FIELD_TYPE_RE = re.compile(r"\s*([A-Za-z][A-Za-z0-9_/]*)")
+
+
+def _dependencies(text: str, package: str) -> List[str]:
+    """Nested (non-primitive) types referenced by a .msg text, as written (``pkg/Type``),
+    sorted like rosbag2 does (std::set)."""
+    deps = set()
+    for line in text.splitlines():
+        stripped = line.strip()
+        if not stripped or stripped.startswith("#"):
+            continue
+        m = _FIELD_TYPE_RE.match(stripped)
+        if not m:
+            continue
+        base = m.group(1)
+        if base in PRIMITIVE_TYPES:
+            continue
+        deps.add(base if "/" in base else f"{package}/{base}")
+    return sorted(deps)
+
+
+class MessageDefinitions:
+    """Finds ``.msg`` texts and type hashes of installed interfaces.
+
+    Search order for ``share/<pkg>/msg/<Type>.msg`` (and ``.json``): every prefix of
+    ``AMENT_PREFIX_PATH`` (or ``prefixes``), then ``sys.prefix`` (the venv, which holds the
+    ROS message wheels), then this repository's ``msg/`` directory for our own package.
+    """
+
+    def __init__(self, prefixes: Optional[Sequence[PathLike]] = None,
+                 extra_msg_dirs: Optional[Mapping[str, PathLike]] = None):
+        if prefixes is None:
+            prefixes = [p for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
+        roots = [Path(p) for p in prefixes]
+        if Path(sys.prefix) not in roots:
+            roots.append(Path(sys.prefix))
+        self.prefixes = roots
+        self.extra_msg_dirs: Dict[str, Path] = {_OWN_PACKAGE: _REPO_MSG_DIR}
+        for pkg, d in (extra_msg_dirs or {}).items():
+            self.extra_msg_dirs[pkg] = Path(d)
+        self._text_cache: Dict[str, str] = {}
+        self._def_cache: Dict[str, str] = {}
+        self._hash_cache: Dict[str, str] = {}
+        self.hash_sources: Dict[str, str] = {}  # type -> "json:<path>" / "computed" / "missing: .."
+
+    def find(self, type_name: str, ext: str = ".msg") -> Optional[Path]:
+        pkg, sub, name = normalize_type(type_name).split("/")
+        for prefix in self.prefixes:
+            p = prefix / "share" / pkg / sub / f"{name}{ext}"
+            if p.is_file():
+                return p
+        extra = self.extra_msg_dirs.get(pkg)
+        if extra is not None and sub == "msg":
+            p = extra / f"{name}{ext}"
+            if p.is_file():
+                return p
+        return None
+
+    def text(self, type_name: str) -> str:
+        """The verbatim ``.msg`` text of one type (no nested types)."""
+        full = normalize_type(type_name)
+        cached = self._text_cache.get(full)
+        if cached is not None:
+            return cached
+        path = self.find(full)
+        if path is None:
+            raise UnknownTypeError(
+                f"no .msg file for {full}: looked for share/{full.split('/')[0]}/msg/"
+                f"{full.split('/')[2]}.msg under {[str(p) for p in self.prefixes]}")
+        text = path.read_text(encoding="utf-8")
+        self._text_cache[full] = text
+        return text
+
+    def _resolve_dep(self, dep: str) -> str:
+        """``pkg/Type`` as written in a .msg -> an existing ``pkg/Type`` (builtin aliases)."""
+        pkg, _, name = dep.rpartition("/")
+        pkg = pkg.split("/")[0]
+        if self.find(f"{pkg}/msg/{name}") is not None:
+            return f"{pkg}/{name}"
+        alias = BUILTIN_ALIASES.get(name)
+        if alias is not None and self.find(alias) is not None:
+            return alias
+        return f"{pkg}/{name}"  # text() raises the clear error
+
+    def definition(self, type_name: str) -> str:
+        """The complete ``ros2msg`` definition, as rosbag2 writes it: the type's .msg text, then
+        for each nested type (depth first, each once) ``\\n`` + 80 ``=`` + ``\\nMSG: pkg/Type\\n``
+        + its text."""
+        full = normalize_type(type_name)
+        cached = self._def_cache.get(full)
+        if cached is not None:
+            return cached
+        seen = set()
+
+        def append(tname: str, depth: int) -> str:
+            if depth <= 0:
+                raise UnknownTypeError(f"recursion too deep resolving {full}")
+            text = self.text(tname)
+            out = [text]
+            pkg = normalize_type(tname).split("/")[0]
+            for dep in _dependencies(text, pkg):
+                dep = self._resolve_dep(dep)
+                if dep in seen:
+                    continue
+                seen.add(dep)
+                out.append(f"\n{SEPARATOR}\nMSG: {dep}\n")
+                out.append(append(dep, depth - 1))
+            return "".join(out)
+
+        result = append(full, 50)
+        self._def_cache[full] = result
+        return result
+
+    def type_hash(self, type_name: str) -> str:
+        """The REP-2011 type hash ``RIHS01_<sha256 hex>`` of a message type, or ``""``.
+
+        Read from ``share/<pkg>/msg/<Type>.json`` (Jazzy installs these type-description files
+        with the hashes next to the ``.msg``); if there is none (e.g. our ``msg/`` fallback
+        without a build), computed from the message definition with ``rosbags`` (its
+        ``hash_rihs01`` implements REP-2011). ``""`` if neither is possible;
+        ``hash_sources[type]`` says why.
+        """
+        full = normalize_type(type_name)
+        cached = self._hash_cache.get(full)
+        if cached is not None:
+            return cached
+        value = ""
+        path = self.find(full, ".json")
+        if path is not None:
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+                for entry in data.get("type_hashes", []):
+                    if entry.get("type_name") == full:
+                        value = entry.get("hash_string", "")
+                        break
+            except (OSError, ValueError) as exc:
+                self.hash_sources[full] = f"unreadable {path}: {exc}"
+            if value:
+                self.hash_sources[full] = f"json:{path}"
+        if not value:
+            try:
+                value = _compute_rihs01(full, self.definition(full))
+                self.hash_sources[full] = "computed (rosbags hash_rihs01)"
+            except Exception as exc:  # noqa: BLE001 - any failure means "no hash", said why
+                self.hash_sources[full] = f"missing: {type(exc).__name__}: {exc}"
+                value = ""
+        self._hash_cache[full] = value
+        return value
+
+
+def _compute_rihs01(type_name: str, definition: str) -> str:
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(definition, type_name))
+    return store.hash_rihs01(type_name)
+
+
+_default_definitions: Optional[MessageDefinitions] = None
+
+
+def _defaults() -> MessageDefinitions:
+    global _default_definitions
+    if _default_definitions is None:
+        _default_definitions = MessageDefinitions()
+    return _default_definitions
+
+
+def message_definition(type_name: str) -> str:
+    """Complete ``ros2msg`` definition of ``pkg/msg/Type`` (see :class:`MessageDefinitions`)."""
+    return _defaults().definition(type_name)
+
+
+def type_hash(type_name: str) -> str:
+    """``RIHS01_...`` hash of ``pkg/msg/Type`` or ``""`` (see :meth:`MessageDefinitions.type_hash`)."""
+    return _defaults().type_hash(type_name)
+
+
+# ---------------------------------------------------------------------------------------------
+# QoS profiles in rosbag2's YAML
+
+_INF_NS = 2**63 - 1
+DEFAULT_QOS_PROFILE = {
+    "history": "keep_last", "depth": 10, "reliability": "reliable", "durability": "volatile",
+    "deadline_ns": _INF_NS, "lifespan_ns": _INF_NS, "liveliness": "automatic",
+    "liveliness_lease_duration_ns": _INF_NS, "avoid_ros_namespace_conventions": False,
+}
+
+
+def _sec_nsec(ns: int) -> str:
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return f"sec: {sec}\n    nsec: {nsec}"
+
+
+def qos_profiles_yaml(profiles: Iterable[Mapping]) -> str:
+    """rosbag2 (Jazzy, metadata version 9) ``offered_qos_profiles`` YAML for a list of profiles.
+
+    Each profile is a mapping with the keys of :data:`DEFAULT_QOS_PROFILE` (missing keys take
+    those defaults): enum policies as lower-case rmw names (``keep_last``, ``best_effort``,
+    ``transient_local``, ``automatic``...), durations as integer nanoseconds. An empty list gives
+    ``""`` as rosbag2 does.
+    """
+    items = []
+    for prof in profiles:
+        p = dict(DEFAULT_QOS_PROFILE)
+        p.update(prof)
+        items.append(
+            f"- history: {p['history']}\n"
+            f"  depth: {int(p['depth'])}\n"
+            f"  reliability: {p['reliability']}\n"
+            f"  durability: {p['durability']}\n"
+            f"  deadline:\n    {_sec_nsec(p['deadline_ns'])}\n"
+            f"  lifespan:\n    {_sec_nsec(p['lifespan_ns'])}\n"
+            f"  liveliness: {p['liveliness']}\n"
+            f"  liveliness_lease_duration:\n    {_sec_nsec(p['liveliness_lease_duration_ns'])}\n"
+            f"  avoid_ros_namespace_conventions: "
+            f"{'true' if p['avoid_ros_namespace_conventions'] else 'false'}")
+    return "\n".join(items)
+
+
+_QOS_ENUMS = {
+    "history": {0: "system_default", 1: "keep_last", 2: "keep_all", 3: "unknown"},
+    "reliability": {0: "system_default", 1: "reliable", 2: "best_effort", 3: "unknown",
+                    4: "best_available"},
+    "durability": {0: "system_default", 1: "transient_local", 2: "volatile", 3: "unknown",
+                   4: "best_available"},
+    "liveliness": {0: "system_default", 1: "automatic", 3: "manual_by_topic", 4: "unknown",
+                   5: "best_available"},
+}
+
+
+def parse_qos_profiles(text) -> List[dict]:
+    """Inverse of :func:`qos_profiles_yaml`; also reads rosbag2's older integer-enum form and
+    an already-parsed list. Returns mappings shaped like :data:`DEFAULT_QOS_PROFILE`."""
+    if not text:
+        return []
+    items = yaml.safe_load(text) if isinstance(text, str) else text
+    out = []
+    for item in items or []:
+        p = dict(DEFAULT_QOS_PROFILE)
+        for key, names in _QOS_ENUMS.items():
+            if key in item:
+                v = item[key]
+                p[key] = names.get(v, "unknown") if isinstance(v, int) else str(v).lower()
+        if "depth" in item:
+            p["depth"] = int(item["depth"])
+        for key in ("deadline", "lifespan", "liveliness_lease_duration"):
+            if isinstance(item.get(key), Mapping):
+                p[key + "_ns"] = (int(item[key].get("sec", 0)) * 1_000_000_000
+                                  + int(item[key].get("nsec", 0)))
+        if "avoid_ros_namespace_conventions" in item:
+            p["avoid_ros_namespace_conventions"] = bool(item["avoid_ros_namespace_conventions"])
+        out.append(p)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# writing
+
+
+def available_compressions() -> List[str]:
+    """Chunk compressions the installed ``mcap`` writer can use (``""`` = none)."""
+    out = [""]
+    try:
+        import zstandard  # noqa: F401
+        out.append("zstd")
+    except ImportError:
+        pass
+    try:
+        import lz4.frame  # noqa: F401
+        out.append("lz4")
+    except ImportError:
+        pass
+    return out
+
+
+class _UnbufferedSink:
+    """File object handed to ``mcap.writer.Writer``: every write goes straight to the OS.
+
+    (The mcap writer wraps raw files in a BufferedWriter and only flushes them at the end; a
+    crash would then also lose whatever sits in that buffer. It writes whole records at chunk
+    boundaries, so unbuffered writes cost nothing per message.)
+    """
+
+    def __init__(self, fileobj, fsync: bool):
+        self._f = fileobj
+        self._fsync = fsync
+        self._pos = 0
+
+    def write(self, data) -> int:
+        view = memoryview(data)
+        total = len(view)
+        done = 0
+        while done < total:
+            done += self._f.write(view[done:])
+        self._pos += total
+        return total
+
+    def tell(self) -> int:
+        return self._pos
+
+    def flush(self) -> None:
+        if self._fsync:
+            os.fsync(self._f.fileno())
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def _library_string() -> str:
+    try:
+        from importlib.metadata import version
+        mv = version("mcap")
+    except Exception:  # noqa: BLE001
+        mv = "?"
+    try:
+        from . import __version__ as own
+    except Exception:  # noqa: BLE001
+        own = "?"
+    return f"inclinometer_calib-{own} (mcap-python-{mv})"
+
+
+def _split_layout(path: Path):
+    """(bag directory or None, mcap file path) for a writer/recover destination."""
+    if path.suffix == ".mcap":
+        return None, path
+    return path, path / f"{path.name}_0.mcap"
+
+
+@dataclass
+class _TopicRecord:
+    channel_id: int
+    topic: str
+    type: str
+    qos_yaml: str
+    type_hash: str
+
+
+class BagWriter:
+    """Write a rosbag2-compatible MCAP (see the module docstring for the file-safety rules).
+
+    ``path``: ``*.mcap`` for a bare file, otherwise a bag directory (``ros2 bag record`` layout).
+    ``compression``: ``"zstd"`` (default), ``"lz4"`` or ``""``/``"none"``.
+    ``chunk_size``: bytes of (uncompressed) records per chunk before it is closed.
+    ``max_chunk_s``: a chunk is closed once it spans this much log time (and by :meth:`tick`).
+    ``fsync``: fsync after each chunk (survives power loss, not only process crashes).
+
+    Hot path: :meth:`write` (``channel_id, data, log_time, publish_time``) does one comparison
+    and hands the bytes to the mcap writer.
+    """
+
+    def __init__(self, path: PathLike, *, compression: str = "zstd", chunk_size: int = 1 << 20,
+                 max_chunk_s: float = 1.0, fsync: bool = False, library: Optional[str] = None,
+                 definitions: Optional[MessageDefinitions] = None):
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self.bag_dir, self.mcap_path = _split_layout(self.path)
+        comp = (compression or "").lower()
+        ctype = {"": CompressionType.NONE, "none": CompressionType.NONE,
+                 "zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4}.get(comp)
+        if ctype is None:
+            raise ValueError(f"unknown compression {compression!r} (zstd, lz4 or none)")
+        if comp not in ("", "none") and comp not in available_compressions():
+            raise ValueError(f"compression {comp!r} is not available in this environment")
+        self.compression = "" if comp == "none" else comp
+        if max_chunk_s <= 0:
+            raise ValueError("max_chunk_s must be > 0")
+        self.max_chunk_ns = int(max_chunk_s * 1e9)
+        self.definitions = definitions or _defaults()
+        if self.path.exists():
+            raise FileExistsError(
+                f"{self.path} already exists; refusing to overwrite a recording "
+                "(choose another output name)")
+        if self.bag_dir is not None:
+            self.bag_dir.mkdir(parents=True, exist_ok=False)
+        else:
+            self.mcap_path.parent.mkdir(parents=True, exist_ok=True)
+        raw = open(self.mcap_path, "xb", buffering=0)  # O_EXCL: never replace an existing file
+        self._sink = _UnbufferedSink(raw, fsync)
+        self._mcap = Writer(self._sink, chunk_size=chunk_size, compression=ctype)
+        self._mcap.start(profile="ros2", library=library or _library_string())
+        self._add = self._mcap.add_message
+        self._stats = getattr(self._mcap, "_Writer__statistics", None)
+        self._own_counts: Optional[Dict[int, int]] = None
+        if self._stats is None:  # other mcap version: count ourselves (slightly slower)
+            self._own_counts = {}
+            self._own_times = [_INF_NS, 0]
+            inner = self._add
+
+            def counting_add(channel_id, log_time, data, publish_time):
+                self._own_counts[channel_id] = self._own_counts.get(channel_id, 0) + 1
+                t = self._own_times
+                if log_time < t[0]:
+                    t[0] = log_time
+                if log_time > t[1]:
+                    t[1] = log_time
+                inner(channel_id, log_time, data, publish_time)
+            self._add = counting_add
+        self._deadline = 0  # log time at which the open chunk must be closed (0: not armed)
+        self._schemas: Dict[str, int] = {}
+        self.topics: Dict[str, _TopicRecord] = {}
+        self.closed = False
+        self.chunks_flushed = 0
+
+    # -- registration --------------------------------------------------------------------------
+    def add_topic(self, topic: str, type_name: str, *, qos_profiles: Iterable[Mapping] = (),
+                  qos_yaml: Optional[str] = None, type_hash: Optional[str] = None,
+                  definition: Optional[str] = None, schema_encoding: str = "ros2msg",
+                  extra_metadata: Optional[Mapping[str, str]] = None) -> int:
+        """Register a topic; returns the channel id for :meth:`write`.
+
+        The definition and hash are looked up from the installed interfaces unless given. A type
+        without a findable ``.msg`` is still recorded (schema with empty encoding) with a
+        warning: the CDR bytes are kept, readers then need the type from elsewhere.
+        """
+        if self.closed:
+            raise ValueError("bag is closed")
+        if topic in self.topics:
+            raise ValueError(f"topic {topic} is already registered")
+        full = normalize_type(type_name)
+        schema_id = self._schemas.get(full)
+        if schema_id is None:
+            if definition is None:
+                try:
+                    definition = self.definitions.definition(full)
+                except UnknownTypeError as exc:
+                    warnings.warn(f"{topic}: {exc}; recording without a message definition",
+                                  stacklevel=2)
+                    definition, schema_encoding = "", ""
+            schema_id = self._mcap.register_schema(
+                name=full, encoding=schema_encoding if definition else "",
+                data=definition.encode("utf-8"))
+            self._schemas[full] = schema_id
+        if type_hash is None:
+            type_hash = self.definitions.type_hash(full) if definition != "" else ""
+        if qos_yaml is None:
+            qos_yaml = qos_profiles_yaml(qos_profiles)
+        metadata = {"offered_qos_profiles": qos_yaml, "topic_type_hash": type_hash}
+        if extra_metadata:
+            metadata.update({k: v for k, v in extra_metadata.items() if k not in metadata})
+        cid = self._mcap.register_channel(topic=topic, message_encoding="cdr",
+                                          schema_id=schema_id, metadata=metadata)
+        self.topics[topic] = _TopicRecord(cid, topic, full, qos_yaml, type_hash)
+        return cid
+
+    # -- hot path ------------------------------------------------------------------------------
+    def write(self, channel_id: int, data: bytes, log_time: int, publish_time: int = 0) -> None:
+        """Append one message (CDR bytes); times in ns since the epoch (publish_time 0 = log_time)."""
+        if log_time >= self._deadline:
+            self._roll(log_time)
+        self._add(channel_id, log_time, data, publish_time or log_time)
+
+    def _roll(self, log_time: int) -> None:
+        if self._deadline:
+            self._mcap.flush()
+            self.chunks_flushed += 1
+        self._deadline = log_time + self.max_chunk_ns
+
+    def tick(self, now_ns: Optional[int] = None) -> bool:
+        """Close the open chunk if it is older than ``max_chunk_s`` (call periodically, e.g. from
+        a timer, so a quiet topic's last messages do not wait in memory). Returns True if it did."""
+        if not self._deadline or self.closed:
+            return False
+        now = time.time_ns() if now_ns is None else now_ns
+        if now >= self._deadline:
+            self._mcap.flush()
+            self.chunks_flushed += 1
+            self._deadline = 0
+            return True
+        return False
+
+    def flush(self) -> None:
+        """Close the open chunk now and hand everything to the OS."""
+        if not self.closed:
+            self._mcap.flush()
+            self._deadline = 0
+
+    # -- statistics ----------------------------------------------------------------------------
+    def message_counts(self) -> Dict[str, int]:
+        """Messages written per topic so far."""
+        if self._stats is not None:
+            counts = self._stats.channel_message_counts
+        else:
+            counts = self._own_counts
+        return {t: int(counts.get(r.channel_id, 0)) for t, r in self.topics.items()}
+
+    def _time_range(self):
+        if self._stats is not None:
+            if not self._stats.message_count:
+                return 0, 0
+            return self._stats.message_start_time, self._stats.message_end_time
+        lo, hi = self._own_times
+        return (0, 0) if lo == _INF_NS else (lo, hi)
+
+    def rosbag2_metadata(self) -> dict:
+        """The ``rosbag2_bagfile_information`` mapping (metadata.yaml) for what was written."""
+        start, end = self._time_range()
+        counts = self.message_counts()
+        return _rosbag2_info(self.mcap_path.name, start, end,
+                             [(r, counts[t]) for t, r in self.topics.items()])
+
+    # -- finalize ------------------------------------------------------------------------------
+    def close(self) -> None:
+        """Finalize: last chunk, ``rosbag2`` metadata record, summary/statistics, footer;
+        ``metadata.yaml`` in directory mode. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        try:
+            info = self.rosbag2_metadata()
+            self._mcap.flush()
+            self._mcap.add_metadata("rosbag2", {
+                "serialized_metadata": yaml.safe_dump(info, sort_keys=False).strip(),
+                "ROS_DISTRO": os.environ.get("ROS_DISTRO", "jazzy"),
+            })
+            self._mcap.finish()
+            self._sink.flush()
+        finally:
+            self._sink.close()
+        if self.bag_dir is not None:
+            _write_metadata_yaml(self.bag_dir, info)
+
+    def __enter__(self) -> "BagWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _rosbag2_info(file_name: str, start: int, end: int, topics) -> dict:
+    duration = max(0, end - start)
+    total = sum(n for _, n in topics)
+    return {
+        "version": _ROSBAG2_VERSION,
+        "storage_identifier": "mcap",
+        "duration": {"nanoseconds": duration},
+        "starting_time": {"nanoseconds_since_epoch": start},
+        "message_count": total,
+        "topics_with_message_count": [
+            {"topic_metadata": {
+                "name": r.topic, "type": r.type, "serialization_format": "cdr",
+                "offered_qos_profiles": _qos_for_yaml(r.qos_yaml),
+                "type_description_hash": r.type_hash},
+             "message_count": n}
+            for r, n in topics],
+        "compression_format": "",
+        "compression_mode": "",
+        "relative_file_paths": [file_name],
+        "files": [{"path": file_name, "starting_time": {"nanoseconds_since_epoch": start},
+                   "duration": {"nanoseconds": duration}, "message_count": total}],
+        "custom_data": {},
+        "ros_distro": os.environ.get("ROS_DISTRO", "jazzy"),
+    }
+
+
+def _qos_for_yaml(qos_yaml: str):
+    try:
+        return yaml.safe_load(qos_yaml) or []
+    except yaml.YAMLError:
+        return qos_yaml
+
+
+def _write_metadata_yaml(bag_dir: Path, info: dict) -> None:
+    text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+    tmp = bag_dir / "metadata.yaml.tmp"
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, bag_dir / "metadata.yaml")
+
+
+# ---------------------------------------------------------------------------------------------
+# reading
+
+
+class BagMessage(NamedTuple):
+    topic: str
+    type: str
+    data: bytes          # CDR bytes as recorded
+    log_time: int        # ns since epoch (receive time)
+    publish_time: int    # ns since epoch (send time)
+
+
+@dataclass
+class TopicInfo:
+    topic: str
+    type: str
+    channel_id: int
+    message_encoding: str
+    schema_encoding: str
+    definition: str
+    qos_yaml: str
+    type_hash: str
+    metadata: Dict[str, str] = field(default_factory=dict)
+    count: int = 0   # messages seen by the last complete scan
+
+
+_u16 = struct.Struct("<H").unpack_from
+_u32 = struct.Struct("<I").unpack_from
+_u64 = struct.Struct("<Q").unpack_from
+_REC_HDR = struct.Struct("<BQ").unpack_from
+_MSG_HDR = struct.Struct("<HIQQ").unpack_from
+
+
+class _Bad(Exception):
+    def __init__(self, offset: int, reason: str):
+        super().__init__(reason)
+        self.offset = offset
+        self.reason = reason
+
+
+def _string(buf, pos: int):
+    (n,) = _u32(buf, pos)
+    end = pos + 4 + n
+    if end > len(buf):
+        raise struct.error("string runs past the end of its record")
+    return str(buf[pos + 4:end], "utf-8"), end
+
+
+def _string_map(buf, pos: int):
+    (n,) = _u32(buf, pos)
+    end = pos + 4 + n
+    if end > len(buf):
+        raise struct.error("map runs past the end of its record")
+    pos += 4
+    out = {}
+    while pos < end:
+        k, pos = _string(buf, pos)
+        v, pos = _string(buf, pos)
+        out[k] = v
+    return out, end
+
+
+def _records(buf, start: int, end: int):
+    """(offset, opcode, body memoryview) for each complete record in buf[start:end]; raises _Bad
+    at the first incomplete one."""
+    pos = start
+    while pos < end:
+        if end - pos < 9:
+            raise _Bad(pos, f"truncated record header ({end - pos} of 9 bytes)")
+        op, length = _REC_HDR(buf, pos)
+        body_end = pos + 9 + length
+        if body_end > end:
+            raise _Bad(pos, f"truncated {_OP_NAMES.get(op, f'opcode 0x{op:02x}')} record "
+                            f"(declares {length} bytes, {end - pos - 9} present)")
+        yield pos, op, buf[pos + 9:body_end]
+        pos = body_end
+
+
+def _decompress(compression: str, data, size: int) -> bytes:
+    if compression == "":
+        return bytes(data)
+    if compression == "zstd":
+        import zstandard
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if compression == "lz4":
+        import lz4.frame
+        return lz4.frame.decompress(data)
+    raise ValueError(f"unsupported chunk compression {compression!r}")
+
+
+class BagReader:
+    """Sequential reader of a (possibly damaged) rosbag2 MCAP file or bag directory.
+
+    Messages come in file order (the recorder writes in receive order). The file is read
+    record by record, so everything before a damage is delivered; a chunk that fails its CRC
+    or decompression is skipped and reading continues after it if the framing allows.
+    """
+
+    def __init__(self, path: PathLike):
+        self.path = Path(path)
+        self.mcap_path = _find_mcap(self.path)
+        self.profile = ""
+        self.library = ""
+        self.finalized = False
+        self.errors: List[BagError] = []
+        self.metadata: Dict[str, Dict[str, str]] = {}
+        self._topics: Dict[int, TopicInfo] = {}
+        self._schemas: Dict[int, tuple] = {}
+        self._scanned = False
+        self.chunks_read = 0
+        with open(self.mcap_path, "rb") as f:
+            head = f.read(8 + 9 + 4096)
+        if len(head) < 8 or head[:8] != MCAP_MAGIC:
+            raise BagError(self.mcap_path, 0, "not an MCAP file (bad or missing magic bytes)")
+        try:
+            pos, op, body = next(_records(memoryview(head), 8, len(head)))
+            if op != 0x01:
+                raise _Bad(8, "first record is not an MCAP header")
+            self.profile, p = _string(body, 0)
+            self.library, _ = _string(body, p)
+        except (StopIteration, _Bad, struct.error) as exc:
+            raise BagError(self.mcap_path, 8, f"unreadable MCAP header record: {exc}") from None
+
+    # -- topics ----------------------------------------------------------------------------
+    @property
+    def topics(self) -> Dict[str, TopicInfo]:
+        """Topics (channels) in the file; counts filled after a full pass over the messages."""
+        if not self._scanned:
+            for _ in self.messages(strict=False):
+                pass
+        return {t.topic: t for t in self._topics.values()}
+
+    # -- messages --------------------------------------------------------------------------
+    def messages(self, topics: Optional[Iterable[str]] = None, *,
+                 strict: bool = True) -> Iterator[BagMessage]:
+        """Yield :class:`BagMessage` for every readable message (of ``topics``, default all).
+
+        Damage (truncation, a bad chunk, a file that was never finalized) does not stop the
+        good data: all readable messages are yielded first; then, if ``strict``, the first
+        problem is raised as :class:`BagError` (with file and byte offset); otherwise the
+        problems are only kept in :attr:`errors`.
+        """
+        wanted = None if topics is None else set(topics)
+        self.errors = []
+        counts: Dict[int, int] = {}
+        with open(self.mcap_path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
+            try:
+                buf = memoryview(mm) if size else memoryview(b"")
+                yield from self._scan(buf, size, wanted, counts)
+            finally:
+                if size:
+                    try:
+                        mm.close()
+                    except BufferError:  # views still referenced; the GC closes it
+                        pass
+        for t in self._topics.values():
+            t.count = counts.get(t.channel_id, 0)
+        self._scanned = True
+        if strict and self.errors:
+            first = self.errors[0]
+            raise BagError(first.path, first.offset, first.reason, more=len(self.errors) - 1)
+
+    def _err(self, offset: int, reason: str) -> None:
+        self.errors.append(BagError(self.mcap_path, offset, reason))
+
+    def _scan(self, buf, size, wanted, counts):
+        topics = self._topics
+        self.finalized = False
+        pos = 8
+        it = _records(buf, 8, size)
+        data_end = None
+        while True:
+            try:
+                rec = next(it)
+            except StopIteration:
+                break
+            except _Bad as bad:
+                self._err(bad.offset, bad.reason + "; the file is truncated or corrupt "
+                          "(e.g. the recorder was killed); data before this point is intact")
+                return
+            pos, op, body = rec
+            try:
+                if op == 0x06:  # chunk
+                    records = self._chunk_records(body, pos)
+                    if records is None:
+                        continue
+                    self.chunks_read += 1
+                    for ipos, iop, ibody in records:
+                        if iop == 0x05:
+                            cid, _seq, log_time, pub_time = _MSG_HDR(ibody, 0)
+                            t = topics.get(cid)
+                            if t is None:
+                                self._err(pos, f"message for unknown channel {cid} in chunk")
+                                continue
+                            counts[cid] = counts.get(cid, 0) + 1
+                            if wanted is None or t.topic in wanted:
+                                yield BagMessage(t.topic, t.type, bytes(ibody[22:]), log_time,
+                                                 pub_time)
+                        else:
+                            self._definition_record(iop, ibody)
+                elif op == 0x05:
+                    cid, _seq, log_time, pub_time = _MSG_HDR(body, 0)
+                    t = topics.get(cid)
+                    if t is None:
+                        self._err(pos, f"message for unknown channel {cid}")
+                        continue
+                    counts[cid] = counts.get(cid, 0) + 1
+                    if wanted is None or t.topic in wanted:
+                        yield BagMessage(t.topic, t.type, bytes(body[22:]), log_time, pub_time)
+                elif op in (0x03, 0x04):
+                    self._definition_record(op, body)
+                elif op == 0x0C:
+                    name, p = _string(body, 0)
+                    self.metadata[name], _ = _string_map(body, p)
+                elif op == 0x0F:
+                    data_end = pos
+                    break
+            except (struct.error, UnicodeDecodeError, ValueError) as exc:
+                self._err(pos, f"malformed {_OP_NAMES.get(op, hex(op))} record: {exc}")
+        if data_end is None:
+            self._err(size, "file ends without a data-end record: the recording was not "
+                      "finalized (recorder crashed or was killed); all complete chunks were read")
+            return
+        # footer + closing magic present?
+        self.finalized = (size >= 8 + 9 + 20 and bytes(buf[size - 8:size]) == MCAP_MAGIC
+                          and buf[size - 8 - 29] == 0x02)
+        if not self.finalized:
+            self._err(size, "summary section or footer is missing or damaged "
+                      "(data section is complete)")
+
+    def _chunk_records(self, body, pos):
+        try:
+            _start, _end, usize = struct.unpack_from("<QQQ", body, 0)
+            (crc,) = _u32(body, 24)
+            compression, p = _string(body, 28)
+            (clen,) = _u64(body, p)
+            data = body[p + 8:p + 8 + clen]
+            if len(data) != clen:
+                raise ValueError("compressed data runs past the end of the chunk record")
+            raw = _decompress(compression, data, usize)
+            if len(raw) != usize:
+                raise ValueError(f"decompressed to {len(raw)} bytes, expected {usize}")
+            if crc and zlib.crc32(raw) != crc:
+                raise ValueError("CRC mismatch")
+            return list(_records(memoryview(raw), 0, len(raw)))
+        except (_Bad, struct.error, ValueError, Exception) as exc:  # noqa: BLE001
+            reason = exc.reason if isinstance(exc, _Bad) else str(exc)
+            self._err(pos, f"damaged chunk skipped ({type(exc).__name__}: {reason})")
+            return None
+
+    def _definition_record(self, op, body):
+        if op == 0x03:  # schema
+            (sid,) = _u16(body, 0)
+            name, p = _string(body, 2)
+            enc, p = _string(body, p)
+            (n,) = _u32(body, p)
+            self._schemas[sid] = (name, enc, str(body[p + 4:p + 4 + n], "utf-8"))
+        elif op == 0x04:  # channel
+            cid, sid = struct.unpack_from("<HH", body, 0)
+            topic, p = _string(body, 4)
+            menc, p = _string(body, p)
+            meta, _ = _string_map(body, p)
+            sname, senc, sdata = self._schemas.get(sid, ("", "", ""))
+            self._topics[cid] = TopicInfo(
+                topic=topic, type=sname, channel_id=cid, message_encoding=menc,
+                schema_encoding=senc, definition=sdata,
+                qos_yaml=meta.get("offered_qos_profiles", ""),
+                type_hash=meta.get("topic_type_hash", ""), metadata=meta)
+
+
+def _find_mcap(path: Path) -> Path:
+    if path.is_dir():
+        meta = path / "metadata.yaml"
+        if meta.is_file():
+            try:
+                info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+                files = info.get("relative_file_paths") or []
+                if files and (path / Path(files[0]).name).is_file():
+                    return path / Path(files[0]).name
+            except (yaml.YAMLError, KeyError, TypeError):
+                pass
+        found = sorted(path.glob("*.mcap"))
+        if not found:
+            raise BagError(path, 0, "bag directory holds no .mcap file")
+        return found[0]
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such bag file or directory")
+    return path
+
+
+def open_bag(path: PathLike) -> BagReader:
+    """Open a bag (``.mcap`` file or bag directory) for reading; see :class:`BagReader`.
+
+    ``for m in open_bag(p).messages(): m.topic, m.type, m.data, m.log_time, m.publish_time``
+    """
+    return BagReader(path)
+
+
+@dataclass
+class RecoveryReport:
+    source: Path
+    destination: Path
+    saved: int                       # messages written to the destination
+    per_topic: Dict[str, int]
+    errors: List[BagError]           # problems found in the source
+    finalized_source: bool           # the source was already a complete bag
+
+    def __str__(self) -> str:
+        s = f"recovered {self.saved} messages from {self.source} into {self.destination}"
+        if self.errors:
+            s += f" ({len(self.errors)} problem(s); first: {self.errors[0]})"
+        return s
+
+
+def recover(src: PathLike, dst: PathLike, *, compression: Optional[str] = None) -> RecoveryReport:
+    """Rewrite every readable message of a damaged (or unfinalized) bag into a new, finalized
+    bag at ``dst`` (``.mcap`` file or directory; must not exist). Schemas, QoS and type-hash
+    metadata are copied. Returns a :class:`RecoveryReport` with the number of messages saved."""
+    reader = BagReader(src)
+    comp = compression
+    if comp is None:
+        comp = "zstd" if "zstd" in available_compressions() else ""
+    writer = BagWriter(dst, compression=comp, library=reader.library or None)
+    cids: Dict[str, int] = {}
+    saved = 0
+    try:
+        for m in reader.messages(strict=False):
+            cid = cids.get(m.topic)
+            if cid is None:
+                t = next(x for x in reader._topics.values() if x.topic == m.topic)
+                extra = {k: v for k, v in t.metadata.items()
+                         if k not in ("offered_qos_profiles", "topic_type_hash")}
+                cid = writer.add_topic(t.topic, t.type, qos_yaml=t.qos_yaml,
+                                       type_hash=t.type_hash, definition=t.definition,
+                                       schema_encoding=t.schema_encoding or "ros2msg",
+                                       extra_metadata=extra)
+                cids[m.topic] = cid
+            writer._add(cid, m.log_time, m.data, m.publish_time)
+            saved += 1
+        # topics that had no readable message still get their channel
+        for t in reader._topics.values():
+            if t.topic not in cids:
+                cids[t.topic] = writer.add_topic(
+                    t.topic, t.type, qos_yaml=t.qos_yaml, type_hash=t.type_hash,
+                    definition=t.definition, schema_encoding=t.schema_encoding or "ros2msg")
+    finally:
+        writer.close()
+    return RecoveryReport(Path(src), Path(dst), saved, writer.message_counts(),
+                          list(reader.errors), reader.finalized and not reader.errors)

@@ -1,0 +1,284 @@
+"""``recorder`` node: record topics to a rosbag2-compatible MCAP file (rosbag2 has no PyPI wheel).
+
+    python -m inclinometer_calib.nodes.recorder --ros-args -p output:=run1.mcap
+    python -m inclinometer_calib.nodes.recorder --ros-args --params-file config/recorder.yaml
+
+Every ``discovery_period_s`` the graph is listed (``get_topic_names_and_types``); each new topic
+that passes ``topics`` / ``exclude`` and has at least one publisher is subscribed with
+``raw=True`` (serialized CDR, no deserialization) and a QoS matched to its publishers, as
+``ros2 bag record`` does: reliable only if every publisher is reliable, transient-local only if
+every publisher is (so latched messages such as calibration coefficients published before the
+recorder started are still delivered). The callback hands the bytes straight to
+:class:`inclinometer_calib.bag.BagWriter` (log time = receive time, publish time = the
+publisher's source timestamp).
+
+Topic types are imported with importlib (``pkg.msg`` module + class; ``rosidl_runtime_py`` is
+not on PyPI). A topic whose type cannot be imported is skipped with a warning; at shutdown the
+recorded topics are listed with their message counts.
+
+SIGINT/SIGTERM finalize the file (summary, statistics, ``rosbag2`` metadata; ``metadata.yaml``
+for a directory output). A crash or SIGKILL leaves a file whose complete chunks are readable
+(``inclinometer_calib.bag.open_bag`` / ``recover``); chunks are closed at least every
+``max_chunk_s`` seconds, so at most that much data is lost. An existing output is never
+overwritten: the node refuses to start (exit status 1).
+"""
+from __future__ import annotations
+
+import importlib
+import signal
+import sys
+import time
+from datetime import datetime, timezone
+from typing import Dict, List, Optional, Set
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from ..bag import BagWriter, UnknownTypeError, normalize_type
+
+NODE_NAME = "recorder"
+DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
+SUBSCRIPTION_DEPTH = 1000  # keep-last depth of each recording subscription (absorbs stalls)
+
+
+def default_output() -> str:
+    return datetime.now(timezone.utc).strftime("survey_%Y%m%dT%H%M%SZ.mcap")
+
+
+def import_message_type(type_name: str):
+    """``pkg/msg/Type`` -> the generated Python class (ImportError/AttributeError if missing)."""
+    pkg, sub, name = normalize_type(type_name).split("/")
+    module = importlib.import_module(f"{pkg}.{sub}")
+    return getattr(module, name)
+
+
+def _enum_name(value) -> str:
+    name = getattr(value, "name", None)
+    return str(name if name is not None else value).lower()
+
+
+def _ns(duration) -> int:
+    ns = getattr(duration, "nanoseconds", None)
+    if ns is None:
+        ns = int(getattr(duration, "sec", 0)) * 1_000_000_000 + int(getattr(duration, "nanosec", 0))
+    return int(ns)
+
+
+def qos_to_dict(qos) -> dict:
+    """rclpy QoSProfile (as offered by a publisher) -> mapping for ``bag.qos_profiles_yaml``."""
+    return {
+        "history": _enum_name(qos.history),
+        "depth": int(qos.depth),
+        "reliability": _enum_name(qos.reliability),
+        "durability": _enum_name(qos.durability),
+        "deadline_ns": _ns(qos.deadline),
+        "lifespan_ns": _ns(qos.lifespan),
+        "liveliness": _enum_name(qos.liveliness),
+        "liveliness_lease_duration_ns": _ns(qos.liveliness_lease_duration),
+        "avoid_ros_namespace_conventions": bool(qos.avoid_ros_namespace_conventions),
+    }
+
+
+def subscription_qos(offered) -> QoSProfile:
+    """QoS compatible with all offered profiles, as strong as they all allow (rosbag2's rule)."""
+    reliable = bool(offered) and all(
+        q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+    latched = bool(offered) and all(
+        q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=SUBSCRIPTION_DEPTH,
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
+    )
+
+
+def _make_callback(write, channel_id: int, now=time.time_ns):
+    # two positional parameters: rclpy then passes the message info (source timestamp)
+    def callback(data, info):
+        write(channel_id, data, now(), info["source_timestamp"])
+    return callback
+
+
+def _topic_name(name: str) -> str:
+    name = name.strip()
+    return name if name.startswith("/") else "/" + name
+
+
+class Recorder(Node):
+    """Records the chosen topics to one bag; :meth:`close` finalizes it."""
+
+    def __init__(self, **kwargs):
+        super().__init__(NODE_NAME, **kwargs)
+        ro = dict(read_only=True)
+        self.declare_parameter("output", "", ParameterDescriptor(
+            description="Output bag: a *.mcap file, or a directory (ros2 bag layout "
+                        "dir/metadata.yaml + dir/dir_0.mcap). Empty: survey_<UTC time>.mcap. "
+                        "An existing path is never overwritten.",
+            type=ParameterType.PARAMETER_STRING, **ro))
+        self.declare_parameter("topics", [""], ParameterDescriptor(
+            description="Topics to record (exact names); empty list = every topic seen.",
+            type=ParameterType.PARAMETER_STRING_ARRAY, **ro))
+        self.declare_parameter("exclude", list(DEFAULT_EXCLUDE), ParameterDescriptor(
+            description="Topics never recorded (exact names).",
+            type=ParameterType.PARAMETER_STRING_ARRAY, **ro))
+        self.declare_parameter("discovery_period_s", 1.0, ParameterDescriptor(
+            description="Period of the graph scan for new topics, seconds (> 0).",
+            type=ParameterType.PARAMETER_DOUBLE, **ro))
+        self.declare_parameter("max_chunk_s", 1.0, ParameterDescriptor(
+            description="Longest time span of one MCAP chunk, seconds (> 0): a crash loses at "
+                        "most this much data.",
+            type=ParameterType.PARAMETER_DOUBLE, **ro))
+        self.declare_parameter("compression", "zstd", ParameterDescriptor(
+            description="Chunk compression: zstd, lz4 or none.",
+            type=ParameterType.PARAMETER_STRING, **ro))
+
+        gp = self.get_parameter
+        output = gp("output").value or default_output()
+        self.only: Set[str] = {_topic_name(t) for t in (gp("topics").value or []) if t.strip()}
+        self.exclude: Set[str] = {_topic_name(t) for t in (gp("exclude").value or []) if t.strip()}
+        period = float(gp("discovery_period_s").value)
+        max_chunk_s = float(gp("max_chunk_s").value)
+        if period <= 0 or max_chunk_s <= 0:
+            raise ValueError("discovery_period_s and max_chunk_s must be > 0")
+        # the tick timer closes a chunk at most tick_s after its deadline: split the budget so
+        # the oldest unflushed message is never older than max_chunk_s
+        tick_s = min(0.1, max_chunk_s / 10.0)
+        self.bag = BagWriter(output, compression=str(gp("compression").value),
+                             max_chunk_s=max_chunk_s - tick_s)
+        self.output = str(self.bag.path)
+        self._subs: Dict[str, object] = {}
+        self._skipped: Dict[str, str] = {}
+        self._closed = False
+        self.get_logger().info(
+            f"recording to {self.output} (topics: {sorted(self.only) or 'all'}, "
+            f"excluding {sorted(self.exclude)}, chunks <= {max_chunk_s:g} s, "
+            f"compression {self.bag.compression or 'none'})")
+        self._discover()
+        self.create_timer(period, self._discover)
+        self.create_timer(tick_s, self.bag.tick)
+
+    # -- discovery ---------------------------------------------------------------------------
+    def _wanted(self, topic: str) -> bool:
+        if topic in self.exclude:
+            return False
+        return not self.only or topic in self.only
+
+    def _discover(self) -> None:
+        if self._closed:
+            return
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._subs or topic in self._skipped or not self._wanted(topic):
+                continue
+            if len(types) != 1:
+                self._skip(topic, f"published with several types {types}")
+                continue
+            type_name = types[0]
+            try:
+                msg_type = import_message_type(type_name)
+            except (ImportError, AttributeError, ValueError) as exc:
+                self._skip(topic, f"type {type_name} is not importable here ({exc}); "
+                                  "build/source its interface package to record it")
+                continue
+            publishers = self.get_publishers_info_by_topic(topic)
+            if not publishers:
+                continue  # only subscribers so far: QoS unknown, look again later
+            offered = [p.qos_profile for p in publishers]
+            hashes = {str(getattr(p, "topic_type_hash", "") or "") for p in publishers}
+            try:
+                cid = self.bag.add_topic(topic, type_name,
+                                         qos_profiles=[qos_to_dict(q) for q in offered])
+            except (UnknownTypeError, ValueError) as exc:
+                self._skip(topic, str(exc))
+                continue
+            recorded_hash = self.bag.topics[topic].type_hash
+            live = {h for h in hashes if h.startswith("RIHS01_")}
+            if live and recorded_hash not in live:
+                self.get_logger().warning(
+                    f"{topic}: type hash of the installed {type_name} ({recorded_hash or 'none'}) "
+                    f"differs from the publisher's {sorted(live)}: definitions differ")
+            qos = subscription_qos(offered)
+            self._subs[topic] = self.create_subscription(
+                msg_type, topic, _make_callback(self.bag.write, cid), qos, raw=True)
+            self.get_logger().info(
+                f"recording {topic} [{type_name}] ({qos.reliability.name.lower()}, "
+                f"{qos.durability.name.lower()})")
+
+        for topic in self.only:
+            if topic not in self._subs and topic not in self._skipped and topic in self.exclude:
+                self._skip(topic, "listed in both topics and exclude")
+
+    def _skip(self, topic: str, reason: str) -> None:
+        self._skipped[topic] = reason
+        self.get_logger().warning(f"not recording {topic}: {reason}")
+
+    # -- shutdown ----------------------------------------------------------------------------
+    def close(self) -> Dict[str, int]:
+        """Finalize the bag (idempotent); returns messages per recorded topic."""
+        if self._closed:
+            return self.bag.message_counts()
+        self._closed = True
+        for sub in list(self._subs.values()):
+            try:
+                self.destroy_subscription(sub)
+            except Exception:  # noqa: BLE001 - context may already be shut down
+                pass
+        self.bag.close()
+        counts = self.bag.message_counts()
+        lines = [f"  {t}: {n}" for t, n in sorted(counts.items())]
+        missing = [t for t in sorted(self.only) if t not in counts and t not in self._skipped]
+        text = (f"bag {self.output} finalized: {sum(counts.values())} messages on "
+                f"{len(counts)} topic(s)\n" + "\n".join(lines))
+        if self._skipped:
+            text += "\nnot recorded:\n" + "\n".join(
+                f"  {t}: {r}" for t, r in sorted(self._skipped.items()))
+        if missing:
+            text += "\nrequested but never seen: " + ", ".join(missing)
+        print(f"[{NODE_NAME}] {text}", file=sys.stderr, flush=True)
+        return counts
+
+
+def main(args: Optional[List[str]] = None) -> int:
+    # rclpy 7 (Jazzy) init() returns None, not a context manager: shut down in finally
+    rclpy.init(args=args)
+    node: Optional[Recorder] = None
+    try:
+        try:
+            node = Recorder()
+        except (FileExistsError, ValueError, OSError) as exc:
+            print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr, flush=True)
+            return 1
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            _finalize(node)
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def _finalize(node: Recorder) -> None:
+    # a second Ctrl-C / SIGTERM must not interrupt writing the summary
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[sig] = signal.signal(sig, signal.SIG_IGN)
+        except (ValueError, OSError):
+            pass
+    try:
+        node.close()
+    finally:
+        for sig, handler in old.items():
+            try:
+                signal.signal(sig, handler)
+            except (ValueError, OSError, TypeError):
+                pass
+
+
+if __name__ == "__main__":
+    sys.exit(main())

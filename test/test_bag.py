@@ -1,0 +1,428 @@
+"""inclinometer_calib.bag without ROS: definitions, hashes, writer, damaged-file reading, recovery.
+
+CDR bytes come from rosbags' serializer (no rclpy needed). Needs the mcap / rosbags packages
+(installed by scripts/setup.sh); skipped without them.
+"""
+import os
+import shutil
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mcap")
+pytest.importorskip("mcap_ros2")
+pytest.importorskip("rosbags")
+
+from mcap.reader import make_reader  # noqa: E402
+from mcap_ros2.reader import read_ros2_messages  # noqa: E402
+from rosbags.highlevel import AnyReader  # noqa: E402
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
+
+from inclinometer_calib import bag  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+TS = get_typestore(Stores.ROS2_JAZZY)
+IMU = "sensor_msgs/msg/Imu"
+STATION = "inclinometer_calib/msg/SurveyStation"
+SEP = "=" * 80
+T0 = 1_700_000_000_000_000_000
+
+
+def _station_store():
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg(bag.message_definition(STATION), STATION))
+    return store
+
+
+def imu_cdr(i: int) -> bytes:
+    t = TS.types
+    msg = t[IMU](
+        header=t["std_msgs/msg/Header"](
+            stamp=t["builtin_interfaces/msg/Time"](sec=i, nanosec=7), frame_id="probe"),
+        orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.zeros(9),
+        angular_velocity=t["geometry_msgs/msg/Vector3"](x=0.1, y=0.2, z=float(i)),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=9.81),
+        linear_acceleration_covariance=np.arange(9, dtype=np.float64))
+    return bytes(TS.serialize_cdr(msg, IMU))
+
+
+def station_cdr(store, i: int) -> bytes:
+    cls = store.types[STATION]
+    t = store.types
+    kwargs = {}
+    fields = {
+        "header": t["std_msgs/msg/Header"](
+            stamp=t["builtin_interfaces/msg/Time"](sec=i, nanosec=0), frame_id="probe"),
+        "station_id": i, "azimuth_reference": "true", "toolface_type": "gravity",
+        "coefficients_id": "cal-1", "status": 0,
+    }
+    for name in cls.__dataclass_fields__:
+        if name in fields:
+            kwargs[name] = fields[name]
+        elif name.startswith(("is_", "interference", "azimuth_undefined", "gravity_out")):
+            kwargs[name] = False
+        elif name == "samples_averaged":
+            kwargs[name] = 100
+        else:
+            kwargs[name] = float(i) + 0.5
+    return bytes(store.serialize_cdr(cls(**kwargs), STATION))
+
+
+def write_imu_bag(path, n=500, dt_ns=10_000_000, **kw):
+    with bag.BagWriter(path, **kw) as w:
+        cid = w.add_topic("/probe/imu", IMU, qos_profiles=[{"reliability": "best_effort"}])
+        for i in range(n):
+            w.write(cid, imu_cdr(i), T0 + i * dt_ns, T0 + i * dt_ns - 1000)
+    return w
+
+
+# ---------------------------------------------------------------------------------------------
+# definitions and hashes
+
+
+def test_imu_definition_is_rosbag2_ros2msg():
+    text = bag.message_definition(IMU)
+    imu_msg = (Path(os.sys.prefix) / "share/sensor_msgs/msg/Imu.msg")
+    parts = text.split(f"\n{SEP}\n")
+    if imu_msg.is_file():
+        assert parts[0] == imu_msg.read_text()
+    headers = [p.split("\n", 1)[0] for p in parts[1:]]
+    assert sorted(headers) == sorted([
+        "MSG: geometry_msgs/Quaternion", "MSG: geometry_msgs/Vector3", "MSG: std_msgs/Header",
+        "MSG: builtin_interfaces/Time"])
+    # each nested type once, separators exactly 80 '='
+    assert text.count("MSG: ") == 4
+    for line in text.splitlines():
+        if set(line) == {"="}:
+            assert len(line) == 80
+    # the definition parses to exactly the types rosbags ships for Jazzy
+    types = get_types_from_msg(text, IMU)
+    for name in ("sensor_msgs/msg/Imu", "std_msgs/msg/Header", "geometry_msgs/msg/Vector3"):
+        assert types[name][1] == TS.fielddefs[name][1], name
+
+
+def test_survey_station_definition_and_hash():
+    text = bag.message_definition(STATION)
+    assert text.startswith((REPO / "msg" / "SurveyStation.msg").read_text())
+    assert "MSG: std_msgs/Header" in text and "MSG: builtin_interfaces/Time" in text
+    types = get_types_from_msg(text, STATION)
+    consts, fields = types[STATION]
+    assert [f[0] for f in fields][:3] == ["header", "station_id", "drift_deg"]
+    assert ("STATUS_WARN", "uint8", 1) in consts
+    assert ("AZIMUTH_REFERENCE_TRUE", "string", "true") in consts
+    # hash: installed .json (after the colcon build) and the REP-2011 computation agree
+    installed = bag.type_hash(STATION)
+    assert installed.startswith("RIHS01_") and len(installed) == 7 + 64
+    computed = bag._compute_rihs01(STATION, text)
+    assert computed == installed
+    # without any install prefix: repo msg/ fallback + computed hash
+    defs = bag.MessageDefinitions(prefixes=[REPO / "nonexistent"])
+    defs.prefixes = [REPO / "nonexistent"]  # not even the venv
+    with pytest.raises(bag.UnknownTypeError):
+        defs.definition(IMU)
+    assert defs.text(STATION) == (REPO / "msg" / "SurveyStation.msg").read_text()
+
+
+def test_imu_hash_matches_rosbags_and_json():
+    h = bag.type_hash(IMU)
+    assert h == TS.hash_rihs01(IMU)
+
+
+def test_definition_syntax_cases(tmp_path):
+    share = tmp_path / "share" / "testpkg" / "msg"
+    share.mkdir(parents=True)
+    (share / "Outer.msg").write_text(
+        "# comment line with a type-looking word: Inner thing\n"
+        "uint8 MODE_A=1  # trailing comment\n"
+        'string GREETING="hello # not a comment"\n'
+        "string<=10 bounded_name\n"
+        "int32[<=5] bounded_ints\n"
+        "float64[9] fixed\n"
+        "Inner[] inners\n"
+        "testpkg/Inner[2] two_inners\n"
+        "Header header\n"
+        "int32 with_default 5\n")
+    (share / "Inner.msg").write_text("builtin_interfaces/Time stamp\nbool flag\n")
+    defs = bag.MessageDefinitions(prefixes=[tmp_path])
+    text = defs.definition("testpkg/Outer")
+    headers = [p.split("\n", 1)[0] for p in text.split(f"\n{SEP}\n")[1:]]
+    # sorted like rosbag2 (std::set), each once; `Header` resolves to std_msgs via the alias
+    assert headers == ["MSG: std_msgs/Header", "MSG: builtin_interfaces/Time",
+                       "MSG: testpkg/Inner"]
+    types = get_types_from_msg(text, "testpkg/msg/Outer")
+    assert "testpkg/msg/Inner" in types
+    assert defs.type_hash("testpkg/msg/Outer").startswith("RIHS01_")
+    with pytest.raises(bag.UnknownTypeError):
+        defs.definition("testpkg/msg/Missing")
+    # wstring is a primitive for the definition; rosbags cannot hash it: empty hash, reason kept
+    (share / "Wide.msg").write_text("wstring wide\n")
+    assert defs.definition("testpkg/Wide") == "wstring wide\n"
+    assert defs.type_hash("testpkg/Wide") == ""
+    assert defs.hash_sources["testpkg/msg/Wide"].startswith("missing:")
+    with pytest.raises(ValueError):
+        bag.normalize_type("notatype")
+
+
+def test_qos_yaml_roundtrip():
+    prof = {"reliability": "best_effort", "durability": "transient_local", "depth": 5,
+            "deadline_ns": 1_500_000_000}
+    text = bag.qos_profiles_yaml([prof])
+    assert "deadline:\n    sec: 1\n    nsec: 500000000" in text
+    back = bag.parse_qos_profiles(text)[0]
+    for k, v in prof.items():
+        assert back[k] == v
+    assert bag.qos_profiles_yaml([]) == ""
+    # rosbag2's older integer enums
+    assert bag.parse_qos_profiles([{"reliability": 2, "durability": 1}])[0]["reliability"] == \
+        "best_effort"
+
+
+# ---------------------------------------------------------------------------------------------
+# writer -> both readers
+
+
+def test_writer_decoded_by_mcap_ros2_and_rosbags(tmp_path):
+    store = _station_store()
+    p = tmp_path / "run.mcap"
+    with bag.BagWriter(p) as w:
+        ci = w.add_topic("/probe/imu", IMU, qos_profiles=[{"reliability": "best_effort"}])
+        cs = w.add_topic("/survey/station", STATION,
+                         qos_profiles=[{"durability": "transient_local", "depth": 1}])
+        for i in range(300):
+            w.write(ci, imu_cdr(i), T0 + i * 5_000_000, T0 + i * 5_000_000 - 10)
+            if i % 100 == 0:
+                w.write(cs, station_cdr(store, i // 100), T0 + i * 5_000_000 + 1)
+    assert w.message_counts() == {"/probe/imu": 300, "/survey/station": 3}
+
+    with open(p, "rb") as f:
+        reader = make_reader(f)
+        header = reader.get_header()
+        summary = reader.get_summary()
+        assert header.profile == "ros2"
+        assert summary.statistics.message_count == 303
+        assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+        assert {s.name for s in summary.schemas.values()} == {IMU, STATION}
+        for ch in summary.channels.values():
+            assert ch.message_encoding == "cdr"
+            assert ch.metadata["topic_type_hash"].startswith("RIHS01_")
+            assert ch.metadata["offered_qos_profiles"].startswith("- history:")
+        meta = list(reader.iter_metadata())
+        assert meta and meta[0].name == "rosbag2" and "serialized_metadata" in meta[0].metadata
+
+    decoded = list(read_ros2_messages(str(p)))
+    imu = [m for m in decoded if m.channel.topic == "/probe/imu"]
+    st = [m for m in decoded if m.channel.topic == "/survey/station"]
+    assert [m.ros_msg.angular_velocity.z for m in imu] == [float(i) for i in range(300)]
+    assert [m.ros_msg.station_id for m in st] == [0, 1, 2]
+    assert st[1].ros_msg.azimuth_reference == "true"
+    assert imu[3].log_time_ns - imu[3].publish_time_ns == 10
+
+    with AnyReader([p]) as r:
+        got = {}
+        for conn, _t, raw in r.messages():
+            got.setdefault(conn.topic, []).append(r.deserialize(raw, conn.msgtype))
+        assert len(got["/probe/imu"]) == 300 and len(got["/survey/station"]) == 3
+        assert got["/survey/station"][2].station_id == 2
+        qos = {c.topic: c.ext.offered_qos_profiles[0] for c in r.connections}
+        assert qos["/probe/imu"].reliability.name == "BEST_EFFORT"
+        assert qos["/survey/station"].durability.name == "TRANSIENT_LOCAL"
+
+    # our own reader
+    rd = bag.open_bag(p)
+    msgs = list(rd.messages())
+    assert rd.finalized and not rd.errors and len(msgs) == 303
+    assert rd.topics["/survey/station"].count == 3
+
+
+def test_directory_layout_rosbags_checks_hashes(tmp_path):
+    d = tmp_path / "survey1"
+    write_imu_bag(d, n=50)
+    assert (d / "metadata.yaml").is_file() and (d / "survey1_0.mcap").is_file()
+    with AnyReader([d]) as r:  # verifies type_description_hash against the embedded schema
+        conn = r.connections[0]
+        assert conn.digest == bag.type_hash(IMU)
+        assert sum(1 for _ in r.messages()) == 50
+    # a wrong hash in metadata.yaml is caught by rosbags: proves the check is live
+    bad = tmp_path / "bad"
+    shutil.copytree(d, bad)
+    (bad / "survey1_0.mcap").rename(bad / "bad_0.mcap")
+    text = (d / "metadata.yaml").read_text().replace(bag.type_hash(IMU), "RIHS01_" + "0" * 64)
+    (bad / "metadata.yaml").write_text(text.replace("survey1_0.mcap", "bad_0.mcap"))
+    with pytest.raises(Exception, match="hash mismatch"):
+        with AnyReader([bad]):
+            pass
+    assert sum(1 for _ in bag.open_bag(d).messages()) == 50
+
+
+def test_chunks_bounded_by_time_and_tick(tmp_path):
+    p = tmp_path / "t.mcap"
+    with bag.BagWriter(p, max_chunk_s=0.25, chunk_size=1 << 30) as w:
+        cid = w.add_topic("/probe/imu", IMU)
+        for i in range(200):  # 2 s of log time at 100 Hz
+            w.write(cid, imu_cdr(i), T0 + i * 10_000_000)
+        size_before = p.stat().st_size
+        w.write(cid, imu_cdr(999), time.time_ns())  # arms a chunk at "now"
+        assert not w.tick(time.time_ns())
+        assert w.tick(time.time_ns() + 300_000_000)  # idle: the timer closes it
+        assert p.stat().st_size > size_before  # ... and it is on disk already
+    with open(p, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert len(chunks) >= 8
+    for c in chunks:
+        assert c.message_end_time - c.message_start_time < 250_000_000
+
+
+def test_compressions(tmp_path):
+    assert "zstd" in bag.available_compressions()
+    for comp in bag.available_compressions():
+        p = tmp_path / f"c_{comp or 'none'}.mcap"
+        write_imu_bag(p, n=20, compression=comp or "none")
+        assert len(list(read_ros2_messages(str(p)))) == 20
+        assert len(list(bag.open_bag(p).messages())) == 20
+    with pytest.raises(ValueError):
+        bag.BagWriter(tmp_path / "x.mcap", compression="brotli")
+
+
+def test_never_overwrites(tmp_path):
+    p = tmp_path / "good.mcap"
+    write_imu_bag(p, n=10)
+    before = p.read_bytes()
+    with pytest.raises(FileExistsError):
+        bag.BagWriter(p)
+    assert p.read_bytes() == before
+    d = tmp_path / "dirbag"
+    write_imu_bag(d, n=10)
+    with pytest.raises(FileExistsError):
+        bag.BagWriter(d)
+    with pytest.raises(FileExistsError):
+        bag.recover(p, d)
+    assert len(list(bag.open_bag(d).messages())) == 10
+
+
+def test_unknown_type_recorded_without_definition(tmp_path):
+    p = tmp_path / "u.mcap"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with bag.BagWriter(p) as w:
+            cid = w.add_topic("/strange", "nopkg/msg/Nothing")
+            w.write(cid, b"\x00\x01\x00\x00abcd", T0)
+    assert any("nopkg/msg/Nothing" in str(c.message) for c in caught)
+    rd = bag.open_bag(p)
+    (m,) = list(rd.messages())
+    assert m.type == "nopkg/msg/Nothing" and m.data == b"\x00\x01\x00\x00abcd"
+    assert rd.topics["/strange"].definition == ""
+
+
+# ---------------------------------------------------------------------------------------------
+# damaged files
+
+
+def _chunk_layout(p):
+    with open(p, "rb") as f:
+        summary = make_reader(f).get_summary()
+    return sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+
+
+def _msgs_in(chunks, n, dt_ns):
+    times = [T0 + i * dt_ns for i in range(n)]
+    return sum(1 for t in times for c in chunks if c.message_start_time <= t <= c.message_end_time)
+
+
+def test_truncated_file_clear_error_and_recover(tmp_path):
+    n, dt = 600, 10_000_000
+    good = tmp_path / "good.mcap"
+    write_imu_bag(good, n=n, dt_ns=dt, max_chunk_s=0.5)
+    chunks = _chunk_layout(good)
+    assert len(chunks) >= 10
+    cut_chunk = chunks[6]
+    cut = cut_chunk.chunk_start_offset + cut_chunk.chunk_length // 2
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(good.read_bytes()[:cut])
+    expected = _msgs_in(chunks[:6], n, dt)
+    assert 0 < expected < n
+
+    rd = bag.open_bag(damaged)
+    got = []
+    with pytest.raises(bag.BagError) as exc:
+        for m in rd.messages():
+            got.append(m)
+    err = exc.value
+    assert err.path == str(damaged) and err.offset == cut_chunk.chunk_start_offset
+    assert "truncated CHUNK record" in str(err) and str(cut_chunk.chunk_start_offset) in str(err)
+    assert len(got) == expected  # everything before the damage was delivered
+    assert [TS.deserialize_cdr(m.data, IMU).angular_velocity.z for m in got] == \
+        [float(i) for i in range(expected)]
+
+    fixed = tmp_path / "fixed.mcap"
+    report = bag.recover(damaged, fixed)
+    assert report.saved == expected and report.errors and not report.finalized_source
+    assert report.per_topic == {"/probe/imu": expected}
+    assert len(list(read_ros2_messages(str(fixed)))) == expected
+    with AnyReader([fixed]) as r:
+        assert sum(1 for _ in r.messages()) == expected
+    rd2 = bag.open_bag(fixed)
+    assert len(list(rd2.messages())) == expected and rd2.finalized
+    # recovered into a directory: rosbags opens it through metadata.yaml (hash check too)
+    fixed_dir = tmp_path / "fixed_dir"
+    bag.recover(damaged, fixed_dir)
+    with AnyReader([fixed_dir]) as r:
+        assert sum(1 for _ in r.messages()) == expected
+
+
+def test_unfinalized_file_keeps_everything(tmp_path):
+    # a crash right after a chunk: no data-end, no summary
+    good = tmp_path / "good.mcap"
+    write_imu_bag(good, n=300, max_chunk_s=0.5)
+    chunks = _chunk_layout(good)
+    last = chunks[-1]
+    with open(good, "rb") as f:
+        data = f.read()
+    # end of the last chunk's message indexes = start of the next record after them
+    end = last.chunk_start_offset + last.chunk_length + last.message_index_length
+    crashed = tmp_path / "crashed.mcap"
+    crashed.write_bytes(data[:end])
+    rd = bag.open_bag(crashed)
+    got = list(rd.messages(strict=False))
+    assert len(got) == 300
+    assert rd.errors and "not finalized" in str(rd.errors[0])
+    with pytest.raises(bag.BagError, match="not finalized"):
+        list(bag.open_bag(crashed).messages())
+    assert bag.recover(crashed, tmp_path / "ok.mcap").saved == 300
+
+
+def test_corrupt_chunk_skipped_rest_kept(tmp_path):
+    n, dt = 400, 10_000_000
+    good = tmp_path / "good.mcap"
+    write_imu_bag(good, n=n, dt_ns=dt, max_chunk_s=0.5)
+    chunks = _chunk_layout(good)
+    bad_chunk = chunks[3]
+    data = bytearray(good.read_bytes())
+    pos = bad_chunk.chunk_start_offset + bad_chunk.chunk_length - 20  # inside compressed data
+    data[pos] ^= 0xFF
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(bytes(data))
+    expected = n - _msgs_in([bad_chunk], n, dt)
+    rd = bag.open_bag(corrupt)
+    got = list(rd.messages(strict=False))
+    assert len(got) == expected
+    assert len(rd.errors) == 1 and rd.errors[0].offset == bad_chunk.chunk_start_offset
+    assert "damaged chunk" in str(rd.errors[0])
+    report = bag.recover(corrupt, tmp_path / "r.mcap")
+    assert report.saved == expected
+
+
+def test_not_an_mcap(tmp_path):
+    p = tmp_path / "junk.mcap"
+    p.write_bytes(b"hello world, definitely not mcap")
+    with pytest.raises(bag.BagError, match="not an MCAP file") as exc:
+        bag.open_bag(p)
+    assert exc.value.offset == 0
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    with pytest.raises(bag.BagError):
+        bag.open_bag(empty)
