@@ -302,20 +302,29 @@ class Nonlinearity(Effect):
 
 @dataclass
 class CrossCoupling(Effect):
-    """Accelerometer cross-axis coupling: y_i += k_i·s_j·s_k / 1 g (j, k the other two axes)."""
+    """Accelerometer cross-coupling (the IEEE accelerometer model's K_ip, K_io, K_po terms).
+
+    For output axis i with the other axes j < k:  y_i += (k_ij·s_i·s_j + k_ik·s_i·s_k + k_jk·s_j·s_k) / 1 g.
+    Coefficients are dimensionless (error as a fraction of 1 g at 1 g × 1 g).
+    """
 
     name: ClassVar[str] = "cross_coupling"
     stage: ClassVar[str] = "gain"
     sensors: ClassVar[tuple] = ("acc",)
-    specs: ClassVar[tuple] = (_spec("k", "1", "1", 5e-4, 0.0, "g_j·g_k coefficient at 1 g"),)
+    specs: ClassVar[tuple] = (
+        _spec("k_ij", "1", "1", 5e-4, 0.0, "s_i·s_j (input × first other axis)"),
+        _spec("k_ik", "1", "1", 5e-4, 0.0, "s_i·s_k (input × second other axis)"),
+        _spec("k_jk", "1", "1", 5e-4, 0.0, "s_j·s_k (the two other axes)"),
+    )
 
     def _apply(self, v, ctx):
         fs = FULL_SCALE["acc"]
         src = v.copy()
-        for j, a in enumerate(self.axes):
+        for n, a in enumerate(self.axes):
             i = AXIS_INDEX[a]
-            o = [n for n in range(3) if n != i]
-            v[:, i] += self.values["k"][j] * src[:, o[0]] * src[:, o[1]] / fs
+            j, k = [m for m in range(3) if m != i]
+            v[:, i] += (self.values["k_ij"][n] * src[:, i] * src[:, j] + self.values["k_ik"][n] * src[:, i] * src[:, k]
+                        + self.values["k_jk"][n] * src[:, j] * src[:, k]) / fs
 
 
 # ---------------------------------------------------------------------------------------------

@@ -45,10 +45,11 @@ def test_nonlinearity_quadratic_and_cubic_at_full_scale():
     np.testing.assert_allclose(out[:, 1], [50000 + 50 + 100, -25000 + 50000 * (1e-3 * 0.25 - 2e-3 * 0.125)])
 
 
-def test_cross_coupling_uses_the_product_of_the_other_axes():
-    e = fx.make_effect("cross_coupling", "acc", "z", k=0.01)
+def test_cross_coupling_uses_the_ieee_products():
+    e = fx.make_effect("cross_coupling", "acc", "z", k_ij=0.01, k_ik=0.02, k_jk=0.03)
     out = e.apply(V, CTX)
-    np.testing.assert_allclose(out[:, 2], V[:, 2] + 0.01 * V[:, 0] * V[:, 1] / 9.80665)
+    x, y, z = V.T
+    np.testing.assert_allclose(out[:, 2], z + (0.01 * z * x + 0.02 * z * y + 0.03 * x * y) / 9.80665)
 
 
 def test_bias_drift_is_per_hour():

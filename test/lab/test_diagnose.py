@@ -3,6 +3,7 @@ held-out validation error to within 1.2× of the true model's on the same data."
 import pytest
 
 from inclinometer_calib import lab
+from inclinometer_calib.lab.diagnose import orientation_scatter_deg
 
 # (hidden effect as given to the simulator, expected name, expected sensor)
 HIDDEN = [
@@ -65,11 +66,15 @@ def test_clean_data_gives_no_false_alarm(sim_factory, seed):
     assert "No significant structure left" in dg.verdict
 
 
-def test_structure_no_catalogue_effect_explains_is_reported_as_such(sim_factory):
+def test_random_stand_pose_errors_are_reported_as_unstructured_scatter_of_the_right_size(sim_factory):
     data, truth, site = sim_factory(43, ["stand_pose_error=0.05"])
     dg = lab.diagnose(data, site=site)
-    assert dg.significant_structure_left and dg.recommended is None
-    assert "no catalogue effect lowers the held-out error" in dg.verdict
+    assert dg.recommended is None
+    assert "unstructured" in dg.verdict and "stand_pose_error" in dg.verdict
+    sc = orientation_scatter_deg(dg.model, data)
+    # 0.05° per axis rms; across a vector two axes count: sqrt(2/2)·0.05
+    assert sc["acc"] == pytest.approx(0.05, rel=0.3)
+    assert sc["mag"] == pytest.approx(0.05, rel=0.3)
 
 
 def test_misalignment_is_reported_untestable_with_the_reason(sim_factory):
