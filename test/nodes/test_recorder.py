@@ -43,7 +43,7 @@ PUBLISHER = textwrap.dedent("""
     c.id = "cal-42"
     c.probe_id = "P1"
     c.accel_offset = [0.1, 0.2, 0.3]
-    c.poses_used = [0, 1, 2]
+    c.poses_used = [1, 2, 3]
     latched.publish(c)
     status = node.create_publisher(CalibrationStatus, "/calibration/status", 10)
     imu = node.create_publisher(Imu, "/probe/imu", qos_profile_sensor_data)

@@ -1,0 +1,220 @@
+"""Calibration node: live twelve-pose capture from the probe's streams; publishes the coefficients.
+
+Subscribes ``/probe/imu``, ``/probe/mag`` (paired by header stamp) and ``/probe/temperature``;
+feeds the static detector (:class:`streaming.StaticDetector`), offers every closed static segment
+to the capture session (:class:`capture.CaptureSession`) and, when all twelve poses are in:
+
+* publishes ``inclinometer_calib/CalibrationCoefficients`` on ``/calibration/coefficients``
+  (reliable, transient local: late joiners get the latest set);
+* writes the coefficient record (YAML) to the ``output`` parameter's path (atomically).
+
+``/calibration/status`` (``CalibrationStatus``) is published on every change and at
+``status_rate_hz``.  Pose numbers in messages and services are those of the paper's Table 1
+(1..12), as everywhere in the package.  Services: ``~/reset`` (std_srvs/Trigger)
+discards all captures; ``~/recapture`` (RecapturePose) discards one pose so that it is captured
+again (the coefficients are re-solved and re-published once it is).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, MagneticField, Temperature
+from std_srvs.srv import Trigger
+
+from ..capture import CaptureSession
+from ..streaming import StaticDetector
+from ..twelve_position import POSES
+from . import common as c
+from inclinometer_calib.msg import CalibrationCoefficients, CalibrationStatus
+from inclinometer_calib.srv import RecapturePose
+
+
+class CalibrationNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("calibration", **kwargs)
+        p = c.Params(self)
+        self.frame_id = p.declare("frame_id", "probe", "frame_id of the published messages", read_only=True)
+        self.output = p.declare("output", "", "Write the coefficient record (YAML) here when solved; empty: "
+                                "do not write", check=self._check_output)
+        self.probe_id = p.declare("probe_id", "probe", "Id / serial number of the probe", read_only=True)
+        self.status_rate = p.declare("status_rate_hz", 1.0, "Periodic status publication rate, Hz",
+                                     read_only=True, range=(0.1, 100.0))
+        self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
+                                    "arrived for this long (wall clock), s; 0 disables", read_only=True,
+                                    range=(0.0, 60.0))
+        self.max_warnings = p.declare("max_warnings", 10, "Most recent warnings carried in the status",
+                                      range=(0, 50))
+        min_capture = p.declare("min_capture_s", 1.0, "Shortest accepted capture, s (log time)",
+                                read_only=True, range=(0.05, 600.0))
+        max_acc = p.declare("max_scatter_acc", 0.02, "Per-axis scatter above which the probe moved during "
+                            "a capture, m/s^2", read_only=True, range=(1e-6, 10.0))
+        max_mag = p.declare("max_scatter_mag", 150.0, "Per-axis scatter above which the probe moved during "
+                            "a capture, nT", read_only=True, range=(1e-3, 1e5))
+        pose_tol = p.declare("pose_tolerance_deg", 15.0, "How far the measured gravity may be from a "
+                             "Table 1 pose, deg", read_only=True, range=(1.0, 44.0))
+        rounds = p.declare("rounds", False, "Accept repeated poses as extra rounds (else ignore them)",
+                           read_only=True)
+        site = c.declare_site(p)
+        det = c.declare_detector(p, max_duration_s=600.0)
+        qos = c.declare_qos(p)
+
+        self.detector = StaticDetector(**det)
+        self.session = CaptureSession(site=site, min_capture_s=min_capture, max_scatter_acc=max_acc,
+                                      max_scatter_mag=max_mag, pose_tolerance_deg=pose_tol, rounds=rounds,
+                                      probe_id=self.probe_id)
+        self.pairer = c.StreamPairer()
+        self._temp = c.NAN
+        self._last = None            # latest paired sample (t, f, m)
+        self._last_wall = None       # monotonic time of the latest sample
+        self._live_pose = -1
+        self.coefficients = None     # latest published message
+
+        self.pub_status = self.create_publisher(CalibrationStatus, c.TOPIC_STATUS, c.reliable_qos(10))
+        self.pub_coeffs = self.create_publisher(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, c.latched_qos())
+        self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos)
+        self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos)
+        self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(RecapturePose, "~/recapture", self._on_recapture)
+        self.create_timer(1.0 / self.status_rate, self._on_timer)
+        self.add_post_set_parameters_callback(self._after_set)
+        self.get_logger().info(f"waiting for the twelve poses on {c.TOPIC_IMU} + {c.TOPIC_MAG}"
+                               + (f"; coefficients will be written to {self.output}" if self.output else ""))
+
+    @staticmethod
+    def _check_output(path):
+        if path:
+            d = os.path.dirname(os.path.abspath(path))
+            if not os.path.isdir(d):
+                return f"directory {d!r} does not exist"
+        return None
+
+    def _after_set(self, params):
+        for prm in params:
+            if prm.name in ("output", "max_warnings"):
+                setattr(self, prm.name, prm.value)
+
+    # ---- samples ---------------------------------------------------------------------------
+    def _on_imu(self, msg):
+        s = msg.header.stamp
+        got = self.pairer.add_imu((s.sec, s.nanosec), c.specific_force(msg))
+        if got is not None:
+            self._sample(*got)
+
+    def _on_mag(self, msg):
+        s = msg.header.stamp
+        got = self.pairer.add_mag((s.sec, s.nanosec), c.field_nt(msg))
+        if got is not None:
+            self._sample(*got)
+
+    def _on_temp(self, msg):
+        self._temp = msg.temperature
+
+    def _sample(self, t, f, m):
+        self._last = (t, f, m)
+        self._last_wall = time.monotonic()
+        seg = self.detector.update(t, f, m, self._temp)
+        if seg is not None:
+            self._offer(seg)
+
+    def _offer(self, seg):
+        s = self.session
+        if s.state == "done" and not s.recapture and not s.rounds:
+            return  # solved: later stations (the survey) are not calibration poses
+        n_warn = len(self.session.warnings)
+        result = self.session.offer(seg)
+        for w in self.session.warnings[n_warn:]:
+            self.get_logger().warning(w)
+        if result == "accepted":
+            self.get_logger().info(f"captured pose {self.session.current_pose}; pending {self.session.pending}")
+        if result == "solved":
+            self._publish_coefficients()
+        elif self.session.state == "error":
+            self.get_logger().error(self.session.message)
+        self._publish_status()
+
+    def _publish_coefficients(self):
+        cal = self.session.calibration
+        msg = c.coefficients_to_msg(cal, CalibrationCoefficients, self.get_clock().now().to_msg(), self.frame_id)
+        self.pub_coeffs.publish(msg)
+        self.coefficients = msg
+        self.get_logger().info(f"solved: {self.session.message}; published coefficients {cal.id}")
+        if self.output:
+            try:
+                cal.save(self.output)
+                self.get_logger().info(f"wrote {self.output}")
+            except OSError as exc:
+                self.get_logger().error(f"cannot write {self.output}: {exc}")
+
+    # ---- status ----------------------------------------------------------------------------
+    def _on_timer(self):
+        # End of stream: close a static interval nobody will close (no sample after it).
+        if (self.idle_flush > 0 and self._last_wall is not None
+                and time.monotonic() - self._last_wall > self.idle_flush):
+            self._last_wall = None
+            seg = self.detector.flush()
+            if seg is not None:
+                self._offer(seg)
+                return
+        # Live pose while static (the session only identifies closed segments).
+        if self._last is not None and self.detector.static_for_s > 0:
+            pose, _ = self.session.identify(tuple(-x for x in self._last[1]), self._last[2])  # g = -f
+            self._live_pose = pose if pose is not None else -1
+        else:
+            self._live_pose = -1
+        self._publish_status()
+
+    def _publish_status(self):
+        s = self.session
+        msg = CalibrationStatus()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.frame_id
+        msg.total_poses = len(POSES)
+        redo = set(s.recapture)
+        msg.captured = [q for q in s.captured if q not in redo]
+        msg.pending = sorted(set(s.pending) | redo)
+        pose = self._live_pose if self._live_pose > 0 else s.current_pose
+        msg.current_pose = pose if pose > 0 else -1
+        msg.is_static = self.detector.is_static
+        min_s = max(s.min_capture_s, self.detector.min_duration_s)
+        msg.capture_progress = float(min(self.detector.static_for_s / min_s, 1.0)) if s.state == "collecting" else 0.0
+        msg.warnings = list(s.warnings[-self.max_warnings:]) if self.max_warnings else []
+        msg.state = s.state
+        msg.message = s.message or (f"{len(s.captured)} of {len(POSES)} poses captured" if s.state == "collecting"
+                                    else "")
+        self.pub_status.publish(msg)
+
+    # ---- services --------------------------------------------------------------------------
+    def _on_reset(self, request, response):
+        self.session.reset()
+        self.detector.reset()
+        self.pairer.reset()
+        self._live_pose = -1
+        response.success = True
+        response.message = "all captures discarded; collecting the twelve poses again"
+        self.get_logger().info(response.message)
+        self._publish_status()
+        return response
+
+    def _on_recapture(self, request, response):
+        pose = int(request.pose)
+        if pose not in POSES:
+            response.success = False
+            response.message = f"pose {pose} out of range (1..{len(POSES)})"
+            return response
+        response.message = self.session.request_recapture(pose)
+        response.success = True
+        self.get_logger().info(response.message)
+        self._publish_status()
+        return response
+
+
+def main(args=None):
+    return c.run(CalibrationNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

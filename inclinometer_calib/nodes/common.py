@@ -1,0 +1,433 @@
+"""Helpers shared by the nodes: parameters, QoS, message <-> core conversions, stream pairing.
+
+Boundary conventions (converted here, once):
+
+* ``sensor_msgs/Imu.linear_acceleration`` is REP-145 specific force in m/s^2; it is passed to the
+  core as is (the core's :class:`streaming.StaticDetector` turns it into the gravity vector).
+* ``sensor_msgs/MagneticField`` is in tesla; the core works in nT (``NT_PER_TESLA``).
+* Header stamps become float seconds (``sec + 1e-9 nanosec``).
+
+Per-sample helpers work on plain floats and tuples: no numpy arrays are allocated per message.
+"""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from ..coeffs import Calibration
+from ..frames import NT_PER_TESLA, Site
+from ..survey import Tolerances
+
+TESLA_PER_NT = 1.0 / NT_PER_TESLA
+NAN = float("nan")
+
+# Topic names of the graph (one place, so the launcher, the nodes and the tests agree).
+TOPIC_IMU = "/probe/imu"
+TOPIC_MAG = "/probe/mag"
+TOPIC_TEMPERATURE = "/probe/temperature"
+TOPIC_REFERENCE = "/probe/reference"
+TOPIC_IMU_CORRECTED = "/probe/imu_corrected"
+TOPIC_MAG_CORRECTED = "/probe/mag_corrected"
+TOPIC_COEFFICIENTS = "/calibration/coefficients"
+TOPIC_STATUS = "/calibration/status"
+TOPIC_STATION = "/survey/station"
+TOPIC_DIAGNOSTICS = "/diagnostics"
+
+
+# --------------------------------------------------------------------------------------------
+# Running a node
+# --------------------------------------------------------------------------------------------
+def run(node_factory, args=None) -> int:
+    """Create the node, spin it, shut down cleanly; the body of every node's ``main()``.
+
+    Spins until Ctrl-C/SIGTERM (exit 0), or until the node's ``done`` future (if it has one)
+    completes (exit with its result).  A bad parameter or unusable input ends the node with a
+    one-line error on stderr and exit status 2.
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_factory()
+        done = getattr(node, "done", None)
+        if done is None:
+            rclpy.spin(node)
+            return 0
+        rclpy.spin_until_future_complete(node, done)
+        return int(done.result() or 0) if done.done() else 0
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    except (ParameterException, ValueError, OSError) as exc:
+        name = node.get_name() if node is not None else getattr(node_factory, "__name__", "node")
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+# --------------------------------------------------------------------------------------------
+# Parameters
+# --------------------------------------------------------------------------------------------
+class Params:
+    """Declares a node's parameters (description, range, read-only) and validates changes.
+
+    Every parameter gets a :class:`ParameterDescriptor`.  Numeric ranges are enforced by rclpy
+    from the descriptor; choices and custom checks by the set-parameters callback registered
+    here *before* the first declaration, so a bad value from a params file or the command line
+    is rejected at start-up (``InvalidParameterValueException``) just like a bad ``ros2 param
+    set`` later.  Nothing is silently replaced by a default.
+    """
+
+    def __init__(self, node):
+        self.node = node
+        self._checks = {}
+        node.add_on_set_parameters_callback(self._on_set)
+
+    def declare(self, name, default, description, *, read_only=False, range=None, choices=None,
+                check=None, ptype=None):
+        """Declare ``name`` and return its value.
+
+        ``range`` = (lo, hi) inclusive (int or float parameters); ``choices`` = allowed values
+        (string parameters); ``check(value) -> str | None`` returns the reason a value is bad;
+        ``ptype`` is needed for an empty-list default (e.g. ``Parameter.Type.STRING_ARRAY``).
+        """
+        desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
+        if choices:
+            desc.additional_constraints = "one of: " + ", ".join(map(str, choices))
+        if range is not None:
+            lo, hi = range
+            if isinstance(default, bool):
+                raise TypeError(f"{name}: a range makes no sense for a bool parameter")
+            if isinstance(default, int):
+                desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+            else:
+                desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                                step=0.0)]
+        checks = []
+        if choices:
+            allowed = tuple(choices)
+            checks.append(lambda v: None if v in allowed else
+                          f"{v!r} is not allowed (one of: {', '.join(map(str, allowed))})")
+        if check is not None:
+            checks.append(check)
+        if checks:
+            self._checks[name] = checks
+        if ptype is not None and isinstance(default, (list, tuple)) and len(default) == 0:
+            # rclpy infers BYTE_ARRAY from []: declare typed (writable), give it the empty value,
+            # then apply the real (possibly read-only) descriptor
+            writable = ParameterDescriptor(name=name, description=description,
+                                           additional_constraints=desc.additional_constraints)
+            self.node.declare_parameter(name, ptype, writable)
+            if self.node.get_parameter_or(name).type_ == Parameter.Type.NOT_SET:
+                self.node.set_parameters([Parameter(name, ptype, [])])
+            desc.type = ptype.value
+            self.node.set_descriptor(name, desc)
+        else:
+            self.node.declare_parameter(name, default, desc)
+        return self.node.get_parameter(name).value
+
+    def get(self, name):
+        return self.node.get_parameter(name).value
+
+    def _on_set(self, params):
+        for p in params:
+            if p.value is None:  # declared without a value yet (typed declaration)
+                continue
+            for chk in self._checks.get(p.name, ()):
+                reason = chk(p.value)
+                if reason:
+                    return SetParametersResult(successful=False, reason=f"parameter {p.name}: {reason}")
+        return SetParametersResult(successful=True)
+
+
+def declare_site(params: Params, site: Site = Site(), prefix: str = "site") -> Site:
+    """Site reference field parameters (read-only: the reference of a run does not change)."""
+    p = prefix
+    s = Site(
+        total_field_nt=params.declare(f"{p}.total_field_nt", float(site.total_field_nt),
+                                      "Reference total magnetic field |B|, nT", read_only=True,
+                                      range=(1000.0, 100000.0)),
+        dip_deg=params.declare(f"{p}.dip_deg", float(site.dip_deg),
+                               "Reference magnetic dip, degrees, positive down", read_only=True,
+                               range=(-90.0, 90.0)),
+        declination_deg=params.declare(f"{p}.declination_deg", float(site.declination_deg),
+                                       "Magnetic declination, degrees east of true north (0: azimuths "
+                                       "are magnetic)", read_only=True, range=(-180.0, 180.0)),
+        gravity_mps2=params.declare(f"{p}.gravity_mps2", float(site.gravity_mps2),
+                                    "Reference local gravity |g|, m/s^2", read_only=True,
+                                    range=(9.7, 9.9)),
+    )
+    return s
+
+
+def declare_tolerances(params: Params, prefix: str = "tolerances") -> Tolerances:
+    """Survey QC tolerances (defaults: 300 nT, 0.25 deg, 0.0981 m/s^2)."""
+    d = Tolerances()
+    p = prefix
+    return Tolerances(
+        field_nt=params.declare(f"{p}.field_nt", d.field_nt,
+                                "QC tolerance on |B| minus the site reference, nT", range=(0.0, 10000.0)),
+        dip_deg=params.declare(f"{p}.dip_deg", d.dip_deg,
+                               "QC tolerance on dip minus the site reference, degrees", range=(0.0, 10.0)),
+        gravity_mps2=params.declare(f"{p}.gravity_mps2", d.gravity_mps2,
+                                    "QC tolerance on |g| minus the site reference, m/s^2", range=(0.0, 2.0)),
+        min_drift_deg=params.declare(f"{p}.min_drift_deg", d.min_drift_deg,
+                                     "Azimuth is undefined below this drift, degrees", range=(0.0, 10.0)),
+        gravity_toolface_min_drift_deg=params.declare(
+            f"{p}.gravity_toolface_min_drift_deg", d.gravity_toolface_min_drift_deg,
+            "Above this drift the gravity toolface is reported, below it the magnetic one, degrees",
+            range=(0.0, 20.0)),
+    )
+
+
+DETECTOR_FIELDS = ("noise_acc", "noise_mag", "k_sigma", "min_duration_s", "settle_s", "max_duration_s")
+
+
+def declare_detector(params: Params, prefix: str = "detector", **defaults) -> dict:
+    """Static-detector settings (keyword arguments of :class:`streaming.StaticDetector`)."""
+    p = prefix
+    spec = {
+        "noise_acc": (0.002, "Accelerometer noise per sample (1 sigma), m/s^2", (1e-6, 1.0)),
+        "noise_mag": (20.0, "Magnetometer noise per sample (1 sigma), nT", (1e-3, 5000.0)),
+        "k_sigma": (6.0, "A sample further than k_sigma*noise from the running mean ends a static "
+                         "interval", (1.0, 100.0)),
+        "min_duration_s": (1.0, "Shortest static interval reported as a station, s (log time)", (0.05, 600.0)),
+        "settle_s": (0.2, "Samples discarded after motion stops, s (log time)", (0.0, 60.0)),
+        "max_duration_s": (30.0, "Long static intervals are closed (reported) after this, s", (0.1, 1e6)),
+    }
+    out = {}
+    for key, (default, desc, rng) in spec.items():
+        out[key] = params.declare(f"{p}.{key}", float(defaults.get(key, default)), desc, read_only=True,
+                                  range=rng)
+    return out
+
+
+def declare_qos(params: Params, prefix: str = "qos", reliability: str = "best_effort",
+                depth: int = 1000) -> QoSProfile:
+    """QoS of the raw sensor streams from parameters (sensor-data profile by default)."""
+    rel = params.declare(f"{prefix}.reliability", reliability,
+                         "Reliability of the raw sensor streams: best_effort (sensor-data QoS) or "
+                         "reliable", read_only=True, choices=("best_effort", "reliable"))
+    dep = params.declare(f"{prefix}.depth", int(depth),
+                         "History depth (keep last) of the raw sensor streams", read_only=True,
+                         range=(1, 100000))
+    return sensor_qos(dep, rel)
+
+
+def sensor_qos(depth: int = 1000, reliability: str = "best_effort") -> QoSProfile:
+    """Sensor-data QoS (best effort, volatile, keep last ``depth``), or reliable if asked."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=depth, durability=DurabilityPolicy.VOLATILE,
+        reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
+
+
+def latched_qos() -> QoSProfile:
+    """Transient-local, reliable, keep last 1: late joiners get the latest value (coefficients)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+def reliable_qos(depth: int = 100) -> QoSProfile:
+    """Reliable, volatile, keep last ``depth``: events that must not be lost (stations, status)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, durability=DurabilityPolicy.VOLATILE,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+# --------------------------------------------------------------------------------------------
+# Stamps and per-sample conversion (plain floats)
+# --------------------------------------------------------------------------------------------
+def stamp_to_sec(stamp) -> float:
+    return stamp.sec + 1e-9 * stamp.nanosec
+
+
+def stamp_key(stamp) -> tuple:
+    return (stamp.sec, stamp.nanosec)
+
+
+def set_stamp(stamp, t: float) -> None:
+    """Write float seconds ``t`` (>= 0) into a builtin_interfaces/Time in place."""
+    sec = math.floor(t)
+    ns = int(round((t - sec) * 1e9))
+    if ns >= 1_000_000_000:
+        sec, ns = sec + 1, ns - 1_000_000_000
+    stamp.sec = int(sec)
+    stamp.nanosec = ns
+
+
+def specific_force(imu_msg) -> tuple:
+    """REP-145 specific force (m/s^2) of an Imu message as a tuple of floats."""
+    a = imu_msg.linear_acceleration
+    return (a.x, a.y, a.z)
+
+
+def field_nt(mag_msg) -> tuple:
+    """Magnetic field of a MagneticField message converted tesla -> nT, as a tuple of floats."""
+    f = mag_msg.magnetic_field
+    return (f.x * NT_PER_TESLA, f.y * NT_PER_TESLA, f.z * NT_PER_TESLA)
+
+
+class StreamPairer:
+    """Pairs Imu and MagneticField samples of the same header stamp, cheaply and in time order.
+
+    ``add_imu``/``add_mag`` return ``(t, f, m)`` when the stamp's partner is already there,
+    else None.  Unpaired samples wait in small insertion-ordered dicts (the oldest is evicted
+    beyond ``max_pending``); a completed pair older than the last one emitted is dropped
+    (``out_of_order``), so consumers always see increasing times.
+    """
+
+    __slots__ = ("_imu", "_mag", "max_pending", "last_t", "paired", "unpaired", "out_of_order")
+
+    def __init__(self, max_pending: int = 64):
+        self._imu = {}
+        self._mag = {}
+        self.max_pending = max_pending
+        self.last_t = -math.inf
+        self.paired = 0
+        self.unpaired = 0
+        self.out_of_order = 0
+
+    def reset(self):
+        self._imu.clear()
+        self._mag.clear()
+        self.last_t = -math.inf
+
+    def _add(self, key, value, mine, other, imu_first):
+        partner = other.pop(key, None)
+        if partner is None:
+            mine[key] = value
+            if len(mine) > self.max_pending:
+                del mine[next(iter(mine))]
+                self.unpaired += 1
+            return None
+        t = key[0] + 1e-9 * key[1]
+        if t <= self.last_t:
+            self.out_of_order += 1
+            return None
+        self.last_t = t
+        self.paired += 1
+        return (t, value, partner) if imu_first else (t, partner, value)
+
+    def add_imu(self, key, f):
+        return self._add(key, f, self._imu, self._mag, True)
+
+    def add_mag(self, key, m):
+        return self._add(key, m, self._mag, self._imu, False)
+
+
+# --------------------------------------------------------------------------------------------
+# Calibration coefficients <-> CalibrationCoefficients
+# --------------------------------------------------------------------------------------------
+_PARAM_UNITS = {"acc": {"bias": "m/s^2", "scale": "1", "e": "1"}, "mag": {"bias": "nT", "scale": "1", "e": "1"}}
+
+
+def _param_unit(sensor, name):
+    kind = "bias" if name.startswith("bias") else "scale" if name.startswith("scale") else "e"
+    return _PARAM_UNITS[sensor][kind]
+
+
+def _residuals(cal: Calibration, sensor: str, sign: float):
+    diag = cal.diagnostics.get(sensor) or {}
+    per_pose = diag.get("per_pose") or {}
+    poses = sorted(int(p) for p in per_pose)
+    res = []
+    for p in poses:
+        r = per_pose.get(p, per_pose.get(str(p)))
+        res.extend(sign * float(x) for x in r["residual"])
+    return poses, res
+
+
+def coefficients_to_msg(cal: Calibration, msg_type, stamp_msg=None, frame_id: str = "probe"):
+    """A ``CalibrationCoefficients`` message from a :class:`coeffs.Calibration`.
+
+    The message's model is ``corrected = matrix·(raw - offset)``: matrix = ``C = (K·E)^-1`` and
+    offset = the bias ``B``.  Its accelerometer fields are REP-145 (specific force): the matrix is
+    the same as in the core's gravity-vector convention, the offset and the bias parameters change
+    sign (``f = -g``), as do the residuals.  ``coefficients_yaml`` carries the core record
+    unchanged (gravity-vector convention, stated in the record).
+    """
+    m = msg_type()
+    if stamp_msg is not None:
+        m.header.stamp = stamp_msg
+    m.header.frame_id = frame_id
+    m.id = cal.id
+    m.probe_id = cal.probe_id
+    m.created = cal.created
+    for sensor, prefix, sign in (("acc", "accel", -1.0), ("mag", "mag", 1.0)):
+        t = cal.triad(sensor)
+        setattr(m, f"{prefix}_correction_matrix", [float(x) for x in t.correction_matrix.reshape(9)])
+        # message model: corrected = matrix·(raw - offset), so the offset is the bias itself
+        setattr(m, f"{prefix}_offset", [sign * float(x) for x in t.bias])
+        params = t.parameters()
+        names = list(params)
+        setattr(m, f"{prefix}_parameter_names", names)
+        setattr(m, f"{prefix}_parameter_values",
+                [(sign if n.startswith("bias") else 1.0) * float(params[n]) for n in names])
+        setattr(m, f"{prefix}_parameter_units", [_param_unit(sensor, n) for n in names])
+        poses, res = _residuals(cal, sensor, sign)
+        setattr(m, f"{prefix}_residuals", res)
+        setattr(m, f"{prefix}_residual_units", "m/s^2" if sensor == "acc" else "nT")
+        setattr(m, f"{prefix}_rms_residual",
+                float(math.sqrt(sum(r * r for r in res) / len(res))) if res else NAN)
+        setattr(m, f"{prefix}_model_effects", list(cal.effects))
+        if sensor == "acc":
+            m.poses_used = list(poses)  # Table 1 numbering, 1..12
+    m.coefficients_yaml = cal.to_yaml()
+    return m
+
+
+def coefficients_from_msg(msg) -> Calibration:
+    """The :class:`coeffs.Calibration` carried by a message (checked; raises CoefficientError)."""
+    return Calibration.from_yaml(msg.coefficients_yaml, source=f"CalibrationCoefficients {msg.id!r}")
+
+
+@dataclass
+class FastCorrection:
+    """Calibration correction as plain floats for per-sample use (no numpy per sample).
+
+    ``f`` is REP-145 specific force (m/s^2), ``m`` field in nT.  In the gravity convention
+    ``g_c = C·(g - B)``; with ``f = -g`` this is ``f_c = C·(f + B)``.
+    """
+
+    ca: tuple
+    ba: tuple
+    cm: tuple
+    bm: tuple
+
+    @classmethod
+    def from_calibration(cls, cal: Calibration):
+        return cls(tuple(float(x) for x in cal.acc.correction_matrix.reshape(9)),
+                   tuple(float(x) for x in cal.acc.bias),
+                   tuple(float(x) for x in cal.mag.correction_matrix.reshape(9)),
+                   tuple(float(x) for x in cal.mag.bias))
+
+    @staticmethod
+    def _apply(c, x, y, z):
+        return (c[0] * x + c[1] * y + c[2] * z, c[3] * x + c[4] * y + c[5] * z, c[6] * x + c[7] * y + c[8] * z)
+
+    def specific_force(self, f):
+        b = self.ba
+        return self._apply(self.ca, f[0] + b[0], f[1] + b[1], f[2] + b[2])
+
+    def field(self, m):
+        b = self.bm
+        return self._apply(self.cm, m[0] - b[0], m[1] - b[1], m[2] - b[2])
+
+
+def finite_or_nan(x) -> float:
+    x = float(x)
+    return x if math.isfinite(x) else NAN
+
+
+def as_list(a) -> list:
+    return [float(x) for x in np.asarray(a, float).ravel()]

@@ -1,0 +1,282 @@
+"""Correction node: applies the latest calibration and publishes quality-checked survey stations.
+
+Inputs: ``/probe/imu`` + ``/probe/mag`` (paired by header stamp), ``/probe/temperature``,
+``/probe/reference`` (optional reference attitudes), and the coefficients: the latched topic
+``/calibration/coefficients`` (transient-local subscription; ``use_topic``) and/or a coefficient
+YAML file (``coeffs_file``, may be changed at run time: the file is checked before it is
+accepted).  The most recently received set is applied.
+
+Outputs:
+
+* ``/survey/station`` (``SurveyStation``, reliable): one per static interval closed by the
+  static detector, corrected with the current coefficients and evaluated against the site
+  reference (:class:`streaming.SurveyProcessor`);
+* ``/probe/imu_corrected``, ``/probe/mag_corrected`` (``publish_corrected``): the corrected
+  streams, sample by sample, once coefficients are known;
+* ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): G-total, B-total and dip of the latest
+  station against the site reference and the configured tolerances (per station and at 1 Hz).
+
+Per-sample work is a few float operations and one static-detector update; stations (a few per
+minute) do the heavier evaluation.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import sys
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.node import Node
+from sensor_msgs.msg import Imu, MagneticField, Temperature
+
+from ..coeffs import Calibration, CoefficientError
+from ..streaming import StaticDetector, SurveyProcessor
+from . import common as c
+from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
+
+_LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
+                DiagnosticStatus.STALE: "STALE"}
+
+
+class CorrectionNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("correction", **kwargs)
+        p = c.Params(self)
+        self.frame_id = p.declare("frame_id", "probe", "frame_id of the published messages", read_only=True)
+        self.probe_id = p.declare("probe_id", "probe", "Hardware id in the diagnostics", read_only=True)
+        coeffs_file = p.declare("coeffs_file", "", "Coefficient record (YAML) to apply; empty: wait for "
+                                "the topic. May be changed while running (checked first)",
+                                check=self._check_coeffs_file)
+        self.use_topic = p.declare("use_topic", True, f"Apply coefficients received on {c.TOPIC_COEFFICIENTS}",
+                                   read_only=True)
+        self.publish_corrected = p.declare("publish_corrected", False, "Publish the corrected streams "
+                                           f"{c.TOPIC_IMU_CORRECTED} and {c.TOPIC_MAG_CORRECTED}")
+        self.publish_short = p.declare("publish_short", False, "Also publish static intervals shorter "
+                                       "than detector.min_duration_s (is_static = false)")
+        self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
+                                    "arrived for this long (wall clock), s; 0 disables", read_only=True,
+                                    range=(0.0, 60.0))
+        self.site = c.declare_site(p)
+        self.tol = c.declare_tolerances(p)
+        det = c.declare_detector(p)
+        qos = c.declare_qos(p)
+        self.add_post_set_parameters_callback(self._after_set)
+
+        self.detector = StaticDetector(**det)
+        self.processor = SurveyProcessor(self.site, self.tol)
+        self.pairer = c.StreamPairer()
+        self.fast = None
+        self._temp = c.NAN
+        self._have_temp = False
+        self._last_wall = None
+        self._ref_t, self._ref_v = [], []
+        self._last_diag = None
+        self.azimuth_reference = (SurveyStation.AZIMUTH_REFERENCE_TRUE if self.site.declination_deg
+                                  else SurveyStation.AZIMUTH_REFERENCE_MAGNETIC)
+        if coeffs_file:
+            self._apply(Calibration.load(coeffs_file), f"file {coeffs_file}")
+
+        self.pub_station = self.create_publisher(SurveyStation, c.TOPIC_STATION, c.reliable_qos(100))
+        self.pub_diag = self.create_publisher(DiagnosticArray, c.TOPIC_DIAGNOSTICS, c.reliable_qos(10))
+        self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU_CORRECTED, qos)
+        self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG_CORRECTED, qos)
+        self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos)
+        self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos)
+        self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
+        self.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100))
+        if self.use_topic:
+            self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
+                                     c.latched_qos())
+        self.create_timer(1.0, self._on_timer)
+
+    # ---- coefficients ----------------------------------------------------------------------
+    @staticmethod
+    def _check_coeffs_file(path):
+        if not path:
+            return None
+        try:
+            Calibration.load(path)
+        except (OSError, CoefficientError) as exc:
+            return f"cannot use {path!r}: {exc}"
+        return None
+
+    def _after_set(self, params):
+        for prm in params:
+            if prm.name == "coeffs_file" and prm.value:
+                self._apply(Calibration.load(prm.value), f"file {prm.value}")
+            elif prm.name in ("publish_corrected", "publish_short"):
+                setattr(self, prm.name, prm.value)
+
+    def _apply(self, cal: Calibration, origin: str):
+        self.processor.set_calibration(cal)
+        self.fast = c.FastCorrection.from_calibration(cal)
+        self.get_logger().info(f"applying coefficients {cal.id} (probe {cal.probe_id}) from {origin}")
+
+    def _on_coefficients(self, msg):
+        try:
+            cal = c.coefficients_from_msg(msg)
+        except CoefficientError as exc:
+            self.get_logger().error(f"coefficients rejected, keeping the previous ones: {exc}")
+            return
+        if self.processor.calibration is None or cal.id != self.processor.calibration.id:
+            self._apply(cal, c.TOPIC_COEFFICIENTS)
+
+    # ---- samples ---------------------------------------------------------------------------
+    def _on_imu(self, msg):
+        s = msg.header.stamp
+        f = c.specific_force(msg)
+        got = self.pairer.add_imu((s.sec, s.nanosec), f)
+        if got is not None:
+            self._sample(*got)
+        if self.publish_corrected and self.fast is not None:
+            la = msg.linear_acceleration
+            la.x, la.y, la.z = self.fast.specific_force(f)
+            self.pub_imu.publish(msg)
+
+    def _on_mag(self, msg):
+        s = msg.header.stamp
+        m = c.field_nt(msg)
+        got = self.pairer.add_mag((s.sec, s.nanosec), m)
+        if got is not None:
+            self._sample(*got)
+        if self.publish_corrected and self.fast is not None:
+            x, y, z = self.fast.field(m)
+            mf = msg.magnetic_field
+            mf.x, mf.y, mf.z = x * c.TESLA_PER_NT, y * c.TESLA_PER_NT, z * c.TESLA_PER_NT
+            self.pub_mag.publish(msg)
+
+    def _on_temp(self, msg):
+        self._temp = msg.temperature
+        self._have_temp = True
+
+    def _on_reference(self, msg):
+        t = c.stamp_to_sec(msg.header.stamp)
+        v = (msg.vector.x, msg.vector.y, msg.vector.z)
+        k = bisect.bisect_right(self._ref_t, t)
+        self._ref_t.insert(k, t)
+        self._ref_v.insert(k, v)
+        if len(self._ref_t) > 2000:
+            del self._ref_t[:1000], self._ref_v[:1000]
+
+    def _reference_at(self, t):
+        k = bisect.bisect_right(self._ref_t, t) - 1
+        return self._ref_v[k] if k >= 0 else (c.NAN, c.NAN, c.NAN)
+
+    def _sample(self, t, f, m):
+        self._last_wall = time.monotonic()
+        seg = self.detector.update(t, f, m, self._temp)
+        if seg is not None:
+            self._station(seg)
+
+    # ---- stations --------------------------------------------------------------------------
+    def _station(self, seg):
+        if seg.short and not self.publish_short:
+            return
+        ref = self._reference_at(0.5 * (seg.t_start + seg.t_end))
+        has_ref = all(math.isfinite(x) for x in ref)
+        rec = self.processor.process(seg, ref=ref if has_ref else None)
+        v = rec.values
+        msg = SurveyStation()
+        c.set_stamp(msg.header.stamp, seg.t_end)
+        msg.header.frame_id = self.frame_id
+        msg.station_id = rec.station_id
+        msg.drift_deg = c.finite_or_nan(v["drift_deg"])
+        msg.azimuth_deg = c.NAN if v["azimuth_undefined"] else c.finite_or_nan(v["azimuth_deg"])
+        msg.azimuth_reference = self.azimuth_reference
+        msg.toolface_deg = c.finite_or_nan(v["toolface_deg"])
+        msg.toolface_type = (SurveyStation.TOOLFACE_GRAVITY if v["toolface_is_gravity"]
+                             else SurveyStation.TOOLFACE_MAGNETIC)
+        # defined down to the azimuth threshold; it is *reported* (toolface_deg) above the switch-over
+        msg.gravity_toolface_deg = (c.NAN if v["azimuth_undefined"] else c.finite_or_nan(v["gravity_toolface_deg"]))
+        msg.magnetic_toolface_deg = c.finite_or_nan(v["magnetic_toolface_deg"])
+        msg.total_gravity_mps2 = float(v["total_gravity"])
+        msg.total_field_nt = float(v["total_field"])
+        msg.dip_deg = c.finite_or_nan(v["dip_deg"])
+        msg.delta_g_mps2 = float(v["delta_g"])
+        msg.delta_b_nt = float(v["delta_b"])
+        msg.delta_dip_deg = c.finite_or_nan(v["delta_dip"])
+        msg.status = int(v["status"])
+        msg.is_static = not seg.short
+        msg.interference_suspected = bool(v["interference_suspected"])
+        msg.azimuth_undefined = bool(v["azimuth_undefined"])
+        msg.gravity_out_of_tolerance = bool(v["gravity_out_of_tolerance"])
+        msg.samples_averaged = int(seg.n)
+        msg.duration_s = float(seg.duration_s)
+        msg.temperature_c = float(seg.temp_c) if self._have_temp else c.NAN
+        msg.coefficients_id = rec.coefficients_id if self.processor.calibration is not None else ""
+        msg.reference_drift_deg, msg.reference_azimuth_deg, msg.reference_toolface_deg = (
+            (float(ref[0]), float(ref[1]), float(ref[2])) if has_ref else (c.NAN, c.NAN, c.NAN))
+        self.pub_station.publish(msg)
+        self._last_diag = self._diagnostics(msg)
+        self.pub_diag.publish(self._last_diag)
+        self.get_logger().info(
+            f"station {msg.station_id}: drift {msg.drift_deg:.3f} azimuth {msg.azimuth_deg:.3f} toolface "
+            f"{msg.toolface_deg:.2f} deg; dG {msg.delta_g_mps2:+.4f} m/s^2 dB {msg.delta_b_nt:+.0f} nT "
+            f"ddip {msg.delta_dip_deg:+.3f} deg; status {msg.status}"
+            + (f"; ref drift {ref[0]:g} azimuth {ref[1]:g}" if has_ref else ""))
+
+    def _diagnostics(self, st):
+        tol = self.tol
+
+        def check(name, measured, reference, delta, tolerance, unit, bad_level):
+            s = DiagnosticStatus(name=f"inclinometer_calib: {name}", hardware_id=self.probe_id)
+            ok = math.isfinite(delta) and abs(delta) <= tolerance
+            s.level = DiagnosticStatus.OK if ok else bad_level
+            s.message = (f"{name} {measured:.5g} {unit} (reference {reference:.5g}, delta {delta:+.4g}, "
+                         f"tolerance {tolerance:g})")
+            s.values = [KeyValue(key="measured", value=f"{measured:.6g}"),
+                        KeyValue(key="reference", value=f"{reference:.6g}"),
+                        KeyValue(key="delta", value=f"{delta:.6g}"),
+                        KeyValue(key="tolerance", value=f"{tolerance:g}"),
+                        KeyValue(key="unit", value=unit),
+                        KeyValue(key="station_id", value=str(st.station_id))]
+            return s
+
+        site = self.site
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [
+            check("total gravity", st.total_gravity_mps2, site.gravity_mps2, st.delta_g_mps2, tol.gravity_mps2,
+                  "m/s^2", DiagnosticStatus.ERROR),
+            check("total field", st.total_field_nt, site.total_field_nt, st.delta_b_nt, tol.field_nt, "nT",
+                  DiagnosticStatus.WARN),
+            check("dip", st.dip_deg, site.dip_deg, st.delta_dip_deg, tol.dip_deg, "deg", DiagnosticStatus.WARN),
+        ]
+        summary = DiagnosticStatus(name="inclinometer_calib: station", hardware_id=self.probe_id)
+        summary.level = max(s.level for s in arr.status)
+        summary.message = (f"station {st.station_id}: {_LEVEL_NAMES[summary.level]}; coefficients "
+                           f"{st.coefficients_id or 'none (raw)'}")
+        summary.values = [KeyValue(key="drift_deg", value=f"{st.drift_deg:.4f}"),
+                          KeyValue(key="azimuth_deg", value=f"{st.azimuth_deg:.4f}"),
+                          KeyValue(key="toolface_deg", value=f"{st.toolface_deg:.3f}"),
+                          KeyValue(key="coefficients_id", value=st.coefficients_id)]
+        arr.status.append(summary)
+        return arr
+
+    def _on_timer(self):
+        if (self.idle_flush > 0 and self._last_wall is not None
+                and time.monotonic() - self._last_wall > self.idle_flush):
+            self._last_wall = None  # end of stream: close the last station
+            seg = self.detector.flush()
+            if seg is not None:
+                self._station(seg)
+                return
+        if self._last_diag is None:
+            arr = DiagnosticArray()
+            arr.header.stamp = self.get_clock().now().to_msg()
+            arr.status = [DiagnosticStatus(level=DiagnosticStatus.STALE, name="inclinometer_calib: station",
+                                           hardware_id=self.probe_id, message="no survey station yet")]
+            self.pub_diag.publish(arr)
+        else:
+            self._last_diag.header.stamp = self.get_clock().now().to_msg()
+            self.pub_diag.publish(self._last_diag)
+
+
+def main(args=None):
+    return c.run(CorrectionNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,418 @@
+"""Probe node: publishes a probe's raw streams from the simulator, a probe-log CSV or an MCAP bag.
+
+Publishes (sensor-data QoS unless ``qos.reliability`` says otherwise), all three with the same
+header stamp per sample:
+
+* ``/probe/imu`` (``sensor_msgs/Imu``): REP-145 specific force in m/s^2 (a resting probe reads
+  -gravity); ``orientation_covariance[0] = angular_velocity_covariance[0] = -1`` (the probe
+  measures neither); ``linear_acceleration_covariance`` diagonal = ``noise_acc^2``;
+* ``/probe/mag`` (``sensor_msgs/MagneticField``): tesla, covariance diagonal from ``noise_mag``;
+* ``/probe/temperature`` (``sensor_msgs/Temperature``): degrees Celsius;
+* ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, reliable): the known reference attitude
+  (x = drift, y = azimuth, z = toolface, degrees), piecewise constant from ``header.stamp`` on;
+  NaN = no reference (the probe is moving or the attitude is unknown).  Published when it changes.
+
+The whole log is prepared at start-up (simulated, read or decoded) and then published sample by
+sample from a timer that follows the log's time line scaled by ``speed`` (several samples per
+tick at high rates).  Stamps are the log time (``stamp:=log``, a simulation time base starting
+at the log's first sample) or the wall-clock time the sample is due (``stamp:=now``).  At the
+end: ``on_end:=stop`` exits with status 0, ``on_end:=idle`` keeps the node alive.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+
+import numpy as np
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.task import Future
+from sensor_msgs.msg import Imu, MagneticField, Temperature
+
+from .. import effects as fx
+from .. import simulate as sim
+from ..coeffs import Calibration
+from ..probelog import ProbeLog, atomic_write_text, read_csv, segment_stations
+from . import common as c
+
+SOURCES = ("simulate", "csv", "mcap")
+KNOWN_BAG_TOPICS = {
+    c.TOPIC_IMU: "sensor_msgs/msg/Imu",
+    c.TOPIC_MAG: "sensor_msgs/msg/MagneticField",
+    c.TOPIC_TEMPERATURE: "sensor_msgs/msg/Temperature",
+    c.TOPIC_REFERENCE: "geometry_msgs/msg/Vector3Stamped",
+}
+
+
+def _check_effects(values):
+    known = set(fx.CATALOGUE) | set(sim.PROBE_EFFECTS)
+    for text in values:
+        try:
+            name = sim.parse_effect_arg(text)[0]
+        except ValueError as exc:
+            return str(exc)
+        if name not in known:
+            return f"unknown effect {name!r} in {text!r}; known: {', '.join(sorted(known))}"
+    return None
+
+
+def _check_finite_list(lo, hi):
+    def check(values):
+        bad = [v for v in values if not (math.isfinite(v) and lo <= v <= hi)]
+        return f"values {bad} outside {lo}..{hi}" if bad else None
+    return check
+
+
+class ProbeNode(Node):
+    def __init__(self, **kwargs):
+        super().__init__("probe", **kwargs)
+        p = c.Params(self)
+        self.source = p.declare("source", "simulate", "Where the samples come from: simulate, csv or mcap",
+                                read_only=True, choices=SOURCES)
+        self.path = p.declare("path", "", "Input file for source:=csv (probe-log CSV) or source:=mcap (bag)",
+                              read_only=True)
+        self.speed = p.declare("speed", 1.0, "Playback speed factor (log time / wall time); may be changed "
+                               "while running", range=(0.01, 1000.0))
+        self.stamp_mode = p.declare("stamp", "log", "Header stamps: log (the log's time base) or now (wall "
+                                    "clock when the sample is due)", read_only=True, choices=("log", "now"))
+        self.on_end = p.declare("on_end", "stop", "At the end of the script: stop (exit 0) or idle",
+                                choices=("stop", "idle"))
+        self.frame_id = p.declare("frame_id", "probe", "frame_id of the published messages", read_only=True)
+        self.max_batch = p.declare("max_batch", 2000, "Most samples published per timer tick",
+                                   range=(1, 100000))
+        self.wait_subs = p.declare("wait_for_subscribers", 0, "Start publishing once /probe/imu and "
+                                   "/probe/mag each have this many subscribers (0: start at once)",
+                                   read_only=True, range=(0, 100))
+        self.wait_timeout = p.declare("wait_timeout_s", 30.0, "Start anyway after this long waiting for "
+                                      "subscribers, s", read_only=True, range=(0.0, 3600.0))
+        self.start_delay = p.declare("start_delay_s", 0.5, "Pause before the first sample (after the "
+                                     "subscribers are there), s", read_only=True, range=(0.0, 60.0))
+        self.truth_file = p.declare("truth_file", "", "source:=simulate: write the simulator truth (probe "
+                                    "model, stations) to this JSON file, plus truth_coeffs.yaml beside it",
+                                    read_only=True)
+        # simulation
+        self.rate_hz = p.declare("rate_hz", 100.0, "Simulated sample rate, Hz", read_only=True,
+                                 range=(1.0, 10000.0))
+        self.seed = p.declare("seed", 7, "Simulator seed (probe errors and noise)", read_only=True,
+                              range=(0, 2**31 - 1))
+        self.effects = p.declare("effects", [], "Extra simulated effects, NAME[:sensor[:axes]]=V[,V...] "
+                                 "(e.g. axial_interference=300)", read_only=True, check=_check_effects,
+                                 ptype=Parameter.Type.STRING_ARRAY)
+        self.severity = p.declare("severity", 1.0, "Scale of the random probe errors", read_only=True,
+                                  range=(0.0, 10.0))
+        self.noise_acc = p.declare("noise_acc", 0.002, "Accelerometer noise (1 sigma), m/s^2; also the "
+                                   "published covariance", read_only=True, range=(0.0, 1.0))
+        self.noise_mag = p.declare("noise_mag", 20.0, "Magnetometer noise (1 sigma), nT; also the "
+                                   "published covariance", read_only=True, range=(0.0, 5000.0))
+        self.site = c.declare_site(p)
+        self.calibrate = p.declare("calibration_session", True, "Simulate the twelve-pose calibration "
+                                   "first", read_only=True)
+        self.cal_temps = p.declare("calibration_temperatures_c", [25.0], "One round of the twelve poses "
+                                   "per temperature, degC", read_only=True,
+                                   check=_check_finite_list(-40.0, 200.0))
+        self.station_s = p.declare("station_duration_s", 2.0, "Time held at each station, s",
+                                   read_only=True, range=(0.1, 600.0))
+        self.move_s = p.declare("move_s", 1.0, "Time of each move between stations, s", read_only=True,
+                                range=(0.0, 600.0))
+        self.survey = p.declare("survey", "well_path", "Survey after the calibration: stand_grid, well_path "
+                                "or none", read_only=True, choices=("stand_grid", "well_path", "none"))
+        self.survey_gap = p.declare("survey_gap_s", 2.0, "Pause between calibration and survey, s",
+                                    read_only=True, range=(0.0, 3600.0))
+        self.grid_drifts = p.declare("grid.drifts_deg", [float(x) for x in sim.VAL_DRIFTS],
+                                     "Stand grid set drifts, deg", read_only=True,
+                                     check=_check_finite_list(0.0, 180.0))
+        self.grid_azimuths = p.declare("grid.azimuths_deg", [float(x) for x in sim.VAL_AZIMUTHS],
+                                       "Stand grid set azimuths, deg", read_only=True,
+                                       check=_check_finite_list(0.0, 360.0))
+        self.grid_toolfaces = p.declare("grid.toolfaces_deg", [float(x) for x in sim.VAL_TOOLFACES],
+                                        "Stand grid set toolfaces, deg", read_only=True,
+                                        check=_check_finite_list(0.0, 360.0))
+        self.well_n = p.declare("well.n_stations", 30, "Stations down the synthetic well path",
+                                read_only=True, range=(1, 100000))
+        self.well_build = p.declare("well.build_deg_per_station", 3.0, "Drift build per station, deg",
+                                    read_only=True, range=(0.0, 90.0))
+        self.well_kickoff = p.declare("well.kickoff_deg", 0.0, "Drift of the first station, deg",
+                                      read_only=True, range=(0.0, 180.0))
+        qos = c.declare_qos(p)
+        self.add_post_set_parameters_callback(self._after_set)
+
+        self.log, self.noise = self._load()  # raises ValueError/OSError on bad input
+        self._t = self.log.t_s.tolist()
+        self._acc = self.log.acc.tolist()
+        self._mag = (self.log.mag * c.TESLA_PER_NT).tolist()
+        self._temp = self.log.temp_c.tolist()
+        self._ref_changes = self._reference_changes(self.log.ref)
+
+        self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU, qos)
+        self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG, qos)
+        self.pub_temp = self.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
+        self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, c.reliable_qos(100))
+        self._init_messages()
+
+        self.done = Future()
+        self._i = 0
+        self._next_ref = 0
+        self._state = "waiting"
+        self._created = time.monotonic()
+        self._wall0 = self._log0 = 0.0
+        self._stamp0 = 0.0
+        period = min(max(1.0 / (self.rate_hz * self.speed), 0.002), 0.02)
+        self._timer = self.create_timer(period, self._tick)
+        dur = (self._t[-1] - self._t[0]) if self._t else 0.0
+        self.get_logger().info(
+            f"source={self.source}: {len(self._t)} samples over {dur:.1f} s of log time; speed {self.speed:g} "
+            f"-> about {dur / self.speed:.1f} s; timer {1e3 * period:.1f} ms")
+
+    # ---- preparation -----------------------------------------------------------------------
+    def _load(self):
+        if self.source == "simulate":
+            return self._simulate()
+        if not self.path:
+            raise ValueError(f"source:={self.source} needs the parameter path")
+        if self.source == "csv":
+            log, rejections = read_csv(self.path)
+            for r in rejections[:10]:
+                self.get_logger().warning(f"{self.path}: {r}")
+            if rejections:
+                self.get_logger().warning(f"{self.path}: {len(rejections)} rows rejected")
+            return log, (self.noise_acc, self.noise_mag)
+        return self._read_bag(self.path)
+
+    def _simulate(self):
+        specs = [sim.parse_effect_arg(e) for e in self.effects]
+        probe = sim.build_probe(self.seed, specs, severity=self.severity, noise_acc=self.noise_acc,
+                                noise_mag=self.noise_mag)
+        rng = np.random.default_rng(self.seed + 1)
+        logs, t0 = [], 0.0
+        if self.calibrate:
+            # The stand is set up against magnetic north (rotated by the declination in NED).
+            stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s,
+                                               azimuth_deg=self.site.declination_deg)
+            logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
+                                        move_s=self.move_s, t0=t0, survey=False))
+            t0 = logs[-1].t_s[-1] + 1.0 / self.rate_hz + self.survey_gap
+        if self.survey == "stand_grid":
+            stations = sim.stand_grid_session(self.grid_drifts, self.grid_azimuths, self.grid_toolfaces,
+                                              duration_s=self.station_s)
+        elif self.survey == "well_path":
+            stations = sim.well_path_session(self.well_n, kickoff_deg=self.well_kickoff,
+                                             build_deg_per_station=self.well_build,
+                                             duration_s=self.station_s, seed=self.seed)
+        else:
+            stations = []
+        if stations:
+            logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
+                                        move_s=self.move_s, t0=t0, survey=True))
+        if not logs:
+            raise ValueError("nothing to simulate: calibration_session is false and survey is none")
+        log = ProbeLog.concatenate(logs)
+        if self.truth_file:
+            self._write_truth(probe, log)
+        return log, (self.noise_acc, self.noise_mag)
+
+    def _write_truth(self, probe, log):
+        stations, _ = segment_stations(log, min_samples=1)
+        truth_cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id=f"sim-{self.seed}",
+                                method="simulator truth", site=self.site)
+        truth = {
+            "source": "simulate", "seed": self.seed, "effects": list(self.effects),
+            "severity": self.severity, "rate_hz": self.rate_hz, "site": self.site.to_dict(),
+            "probe": probe.to_dict(),
+            "coefficients": {s: {"parameters": truth_cal.triad(s).parameters(),
+                                 "correction_matrix": c.as_list(truth_cal.triad(s).correction_matrix),
+                                 "offset": c.as_list(truth_cal.triad(s).correction_offset),
+                                 "convention": "gravity vector (acc), nT (mag)"} for s in ("acc", "mag")},
+            "stations": [{"pose": st.pose, "ref": [None if not math.isfinite(x) else float(x) for x in st.ref],
+                          "t_start": st.t_start, "t_end": st.t_end} for st in stations],
+            "samples": len(log),
+        }
+        d = os.path.dirname(os.path.abspath(self.truth_file))
+        os.makedirs(d, exist_ok=True)
+        atomic_write_text(self.truth_file, json.dumps(truth, indent=1) + "\n")
+        truth_cal.save(os.path.join(d, "truth_coeffs.yaml"))
+        self.get_logger().info(f"wrote {self.truth_file} and truth_coeffs.yaml")
+
+    def _read_bag(self, path):
+        """Samples of a recorded bag: imu, mag (and temperature, reference) paired by stamp."""
+        from mcap.reader import make_reader
+        from mcap_ros2.decoder import DecoderFactory
+
+        with open(path, "rb") as fh:
+            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+            summary = reader.get_summary()
+            if summary is None:
+                raise ValueError(f"{path}: no summary section (file not finalized?)")
+            topics = []
+            for ch in summary.channels.values():
+                schema = summary.schemas.get(ch.schema_id)
+                type_name = schema.name if schema else "?"
+                want = KNOWN_BAG_TOPICS.get(ch.topic)
+                if want is None:
+                    self.get_logger().warning(f"{path}: topic {ch.topic} ({type_name}) is not replayed: skipped")
+                elif type_name != want:
+                    self.get_logger().warning(f"{path}: topic {ch.topic} has type {type_name}, expected "
+                                              f"{want}: skipped")
+                else:
+                    topics.append(ch.topic)
+            imu, mag, temp, ref = {}, {}, {}, []
+            cov_acc = cov_mag = None
+            for _, channel, _, msg in reader.iter_decoded_messages(topics=topics, log_time_order=True):
+                key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+                if channel.topic == c.TOPIC_IMU:
+                    a = msg.linear_acceleration
+                    imu[key] = (a.x, a.y, a.z)
+                    cov_acc = msg.linear_acceleration_covariance
+                elif channel.topic == c.TOPIC_MAG:
+                    f = msg.magnetic_field
+                    mag[key] = (f.x * 1e9, f.y * 1e9, f.z * 1e9)
+                    cov_mag = msg.magnetic_field_covariance
+                elif channel.topic == c.TOPIC_TEMPERATURE:
+                    temp[key] = msg.temperature
+                else:
+                    v = msg.vector
+                    ref.append((key[0] + 1e-9 * key[1], (v.x, v.y, v.z)))
+        keys = sorted(set(imu) & set(mag))
+        if not keys:
+            raise ValueError(f"{path}: no {c.TOPIC_IMU} and {c.TOPIC_MAG} samples with matching stamps")
+        lost = len(set(imu) ^ set(mag))
+        if lost:
+            self.get_logger().warning(f"{path}: {lost} imu/mag samples without a partner: skipped")
+        t = np.array([k[0] + 1e-9 * k[1] for k in keys])
+        refs = np.full((len(keys), 3), np.nan)
+        ref.sort(key=lambda x: x[0])
+        for k, (t_r, v) in enumerate(ref):
+            t_next = ref[k + 1][0] if k + 1 < len(ref) else np.inf
+            refs[(t >= t_r - 1e-10) & (t < t_next - 1e-10)] = v
+        log = ProbeLog(t, np.array([imu[k] for k in keys]), np.array([mag[k] for k in keys]),
+                       np.array([temp.get(k, np.nan) for k in keys]), np.zeros(len(keys), dtype=int), refs)
+        noise = (math.sqrt(cov_acc[0]) if cov_acc is not None and cov_acc[0] > 0 else self.noise_acc,
+                 math.sqrt(cov_mag[0]) * 1e9 if cov_mag is not None and cov_mag[0] > 0 else self.noise_mag)
+        self.get_logger().info(f"{path}: {len(keys)} samples, {len(ref)} reference changes")
+        return log, noise
+
+    @staticmethod
+    def _reference_changes(ref):
+        """(sample index, (drift, azimuth, toolface)) wherever the reference changes (NaN = none)."""
+        out, prev = [], None
+        for i, row in enumerate(ref.tolist()):
+            key = tuple(None if not math.isfinite(x) else x for x in row)
+            if key != prev:
+                out.append((i, tuple(row)))
+                prev = key
+        if out and all(not math.isfinite(x) for x in out[0][1]):
+            out.pop(0)  # no reference at the start: nothing to announce
+        return out
+
+    def _init_messages(self):
+        na, nm = self.noise
+        self.m_imu = Imu()
+        self.m_imu.header.frame_id = self.frame_id
+        self.m_imu.orientation_covariance[0] = -1.0
+        self.m_imu.angular_velocity_covariance[0] = -1.0
+        for k in (0, 4, 8):
+            self.m_imu.linear_acceleration_covariance[k] = na * na
+        self.m_mag = MagneticField()
+        self.m_mag.header.frame_id = self.frame_id
+        var = (nm * c.TESLA_PER_NT) ** 2
+        for k in (0, 4, 8):
+            self.m_mag.magnetic_field_covariance[k] = var
+        self.m_temp = Temperature()
+        self.m_temp.header.frame_id = self.frame_id
+        self.m_temp.variance = 0.0
+
+    # ---- publishing ------------------------------------------------------------------------
+    def _after_set(self, params):
+        for prm in params:
+            if prm.name == "speed":
+                self._anchor()  # keep the current log position, continue at the new speed
+                self.speed = prm.value
+            elif prm.name in ("on_end", "max_batch"):
+                setattr(self, prm.name, prm.value)
+
+    def _anchor(self):
+        now = time.monotonic()
+        if self._state == "running":
+            self._log0 = self._log0 + (now - self._wall0) * self.speed
+            self._stamp0 = self._stamp0 + (now - self._wall0)
+        self._wall0 = now
+
+    def _start(self):
+        self._state = "running"
+        self._wall0 = time.monotonic()
+        self._log0 = self._t[0] if self._t else 0.0
+        self._stamp0 = self.get_clock().now().nanoseconds * 1e-9
+        self.get_logger().info("publishing")
+
+    def _tick(self):
+        if self._state == "running":
+            self._publish_due()
+        elif self._state == "waiting":
+            waited = time.monotonic() - self._created
+            subs = min(self.pub_imu.get_subscription_count(), self.pub_mag.get_subscription_count())
+            if subs >= self.wait_subs and waited >= self.start_delay:
+                self._start()
+            elif waited > self.wait_timeout + self.start_delay:
+                self.get_logger().warning(f"only {subs} of {self.wait_subs} subscribers after "
+                                          f"{self.wait_timeout:g} s: starting anyway")
+                self._start()
+        elif self._state == "ending" and time.monotonic() >= self._end_at:
+            self._state = "ended"
+            if self.on_end == "stop":
+                self.done.set_result(0)
+            else:
+                self.get_logger().info("script finished; idling (on_end:=idle)")
+
+    def _publish_due(self):
+        now = time.monotonic()
+        target = self._log0 + (now - self._wall0) * self.speed
+        t, n, i, n_max = self._t, len(self._t), self._i, self.max_batch
+        end = i
+        while end < n and t[end] <= target and end - i < n_max:
+            end += 1
+        now_stamps = self.stamp_mode == "now"
+        for k in range(i, end):
+            tk = t[k]
+            if now_stamps:
+                tk = self._stamp0 + (tk - self._log0) / self.speed
+            self._publish_sample(k, tk)
+        self._i = end
+        if end >= n:
+            self._state = "ending"
+            self._end_at = time.monotonic() + 0.5  # let the last samples go out
+            self.get_logger().info(f"end of script: {n} samples published (on_end:={self.on_end})")
+
+    def _publish_sample(self, k, stamp_s):
+        if self._next_ref < len(self._ref_changes) and self._ref_changes[self._next_ref][0] <= k:
+            ref = Vector3Stamped()
+            ref.header.frame_id = self.frame_id
+            c.set_stamp(ref.header.stamp, stamp_s)
+            ref.vector.x, ref.vector.y, ref.vector.z = self._ref_changes[self._next_ref][1]
+            self.pub_ref.publish(ref)
+            self._next_ref += 1
+        mi, mm, mt = self.m_imu, self.m_mag, self.m_temp
+        c.set_stamp(mi.header.stamp, stamp_s)
+        mm.header.stamp = mt.header.stamp = mi.header.stamp
+        a = self._acc[k]
+        la = mi.linear_acceleration
+        la.x, la.y, la.z = a
+        m = self._mag[k]
+        mf = mm.magnetic_field
+        mf.x, mf.y, mf.z = m
+        self.pub_imu.publish(mi)
+        self.pub_mag.publish(mm)
+        tc = self._temp[k]
+        if tc == tc:  # not NaN
+            mt.temperature = tc
+            self.pub_temp.publish(mt)
+
+
+def main(args=None):
+    return c.run(ProbeNode, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,176 @@
+"""The ROS graph as a graph: nodes as separate processes over real DDS (own ROS_DOMAIN_ID,
+discovery on localhost only), started by the launcher; results checked from the recorded MCAP
+with an independent reader (``mcap_ros2``; the launcher's summary uses ``rosbags``, the recorder
+writes with ``inclinometer_calib.bag``).
+
+1. a simulated twelve-pose calibration + well-path survey at 4x speed: coefficients against the
+   simulator truth, survey angles against the reference attitudes;
+2. regression: replaying the recorded bag through probe(source:=mcap) -> correction (coefficients
+   from the recorded coeffs.yaml) reproduces the recorded SurveyStation values.
+
+Run with the environment of scripts/env.sh.  Takes about a minute.
+"""
+import json
+import math
+import subprocess
+import sys
+import time
+
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
+pytest.importorskip("mcap_ros2")
+
+from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.frames import wrap180  # noqa: E402
+
+N_STATIONS = 12
+SPEED = 4.0
+
+# Recovery tolerances of the twelve-position fit at the simulator's default noise (0.002 m/s^2,
+# 20 nT per sample; ~180 samples per pose): about 10x the errors seen (acc bias ~1e-4 m/s^2,
+# scale/e ~1e-5; mag bias ~1 nT, scale/e ~4e-5).
+TOL = {"acc": {"bias": 1e-3, "scale": 2e-4, "e": 2e-4, "C": 3e-4},
+       "mag": {"bias": 10.0, "scale": 3e-4, "e": 3e-4, "C": 5e-4}}
+# Survey angle tolerances (errors seen: drift max 0.002 deg, azimuth max 0.02 deg).  Uncorrected,
+# the same probe is off by degrees.
+DRIFT_TOL_DEG = 0.05
+AZIMUTH_TOL_DEG = 0.2
+
+
+def read_mcap(path, topics):
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out = {t: [] for t in topics}
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for _, channel, _, msg in reader.iter_decoded_messages(topics=list(topics)):
+            out[channel.topic].append(msg)
+    return out
+
+
+def stamp(msg):
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+def launch(args, env, timeout):
+    cmd = [sys.executable, "-m", "inclinometer_calib.launcher", *args]
+    t0 = time.monotonic()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
+    return proc, time.monotonic() - t0
+
+
+@pytest.fixture(scope="module")
+def sim_run(domain_env, tmp_path_factory):
+    env, _ = domain_env
+    out = tmp_path_factory.mktemp("graph") / "run"
+    # --reliable: lossless raw streams, so that what the correction node saw live is exactly what
+    # the recorder stored, and the replay regression below is deterministic on a loaded machine
+    proc, seconds = launch(["--out", str(out), "--speed", str(SPEED), "--stations", str(N_STATIONS),
+                            "--seed", "11", "--reliable", "--timeout", "150"], env, timeout=200)
+    print(f"simulated calibration + survey through the launcher: {seconds:.1f} s")
+    if proc.returncode != 0:
+        pytest.fail(f"launcher exit status {proc.returncode}\n--- output ---\n{proc.stdout[-6000:]}\n"
+                    f"{proc.stderr[-3000:]}")
+    return out, proc, seconds
+
+
+def test_launcher_leaves_the_run_files(sim_run):
+    out, proc, seconds = sim_run
+    for name in ("survey.mcap", "coeffs.yaml", "truth.json", "summary.json"):
+        assert (out / name).is_file(), f"{name} missing; output:\n{proc.stdout[-3000:]}"
+    assert "=== run summary ===" in proc.stdout
+    assert seconds < 90, f"the 4x run took {seconds:.0f} s"
+    # every node stopped cleanly on SIGINT
+    for node in ("probe", "calibration", "correction", "recorder"):
+        assert f"[launch] {node} stopped (exit status 0)" in proc.stdout, node
+
+
+def test_coefficients_match_the_simulator_truth(sim_run):
+    out, _, _ = sim_run
+    bag = read_mcap(out / "survey.mcap", ["/calibration/coefficients"])
+    msgs = bag["/calibration/coefficients"]
+    assert len(msgs) == 1, "one coefficient set expected (published once, transient local)"
+    msg = msgs[0]
+    cal = Calibration.from_yaml(msg.coefficients_yaml)
+    assert cal.id == msg.id == Calibration.load(out / "coeffs.yaml").id
+    truth = Calibration.load(out / "truth_coeffs.yaml")
+    for s in ("acc", "mag"):
+        est, true = cal.triad(s).parameters(), truth.triad(s).parameters()
+        for k in est:
+            kind = "bias" if k.startswith("bias") else "scale" if k.startswith("scale") else "e"
+            assert abs(est[k] - true[k]) <= TOL[s][kind], f"{s} {k}: {est[k]:.6g} vs truth {true[k]:.6g}"
+        dc = abs(cal.triad(s).correction_matrix - truth.triad(s).correction_matrix).max()
+        assert dc <= TOL[s]["C"], f"{s} correction matrix off by {dc:.2e}"
+    # the message's flat fields follow its own model: corrected = matrix·(raw - offset), REP-145 acc
+    import numpy as np
+
+    f_raw = np.array([0.3, -9.7, 0.8])  # some specific force reading
+    c_msg = np.array(msg.accel_correction_matrix, float).reshape(3, 3)
+    f_corr = c_msg @ (f_raw - np.array(msg.accel_offset, float))
+    g_corr, _ = cal.correct(-f_raw, np.array([2e4, 0.0, 4e4]))
+    assert np.allclose(f_corr, -g_corr, atol=1e-9)
+    b_raw = np.array([2e4, 1e3, 4e4])
+    b_msg = np.array(msg.mag_correction_matrix, float).reshape(3, 3) @ (b_raw - np.array(msg.mag_offset, float))
+    assert np.allclose(b_msg, cal.correct(-f_raw, b_raw)[1], atol=1e-6)
+    assert list(msg.poses_used) == list(range(1, 13))
+    assert len(msg.accel_residuals) == 36 and msg.accel_residual_units == "m/s^2"
+
+
+def test_survey_angles_within_tolerance(sim_run):
+    out, _, _ = sim_run
+    bag = read_mcap(out / "survey.mcap", ["/survey/station", "/calibration/coefficients"])
+    cal_id = bag["/calibration/coefficients"][0].id
+    stations = bag["/survey/station"]
+    surveyed = [s for s in stations if math.isfinite(s.reference_drift_deg)]
+    assert len(surveyed) == N_STATIONS, [s.station_id for s in stations]
+    assert all(s.coefficients_id == cal_id for s in surveyed), "survey stations must be corrected"
+    # the twelve calibration poses came before the coefficients: reported raw
+    raw = [s for s in stations if not s.coefficients_id]
+    assert len(raw) == 12
+    assert [s.station_id for s in stations] == list(range(len(stations)))
+    for s in surveyed:
+        assert abs(s.drift_deg - s.reference_drift_deg) < DRIFT_TOL_DEG, (s.station_id, s.drift_deg)
+        if s.azimuth_undefined:
+            assert math.isnan(s.azimuth_deg) and s.status == 1
+            continue
+        assert abs(wrap180(s.azimuth_deg - s.reference_azimuth_deg)) < AZIMUTH_TOL_DEG, \
+            (s.station_id, s.azimuth_deg, s.reference_azimuth_deg)
+        assert s.status == 0 and not s.interference_suspected and not s.gravity_out_of_tolerance
+        assert abs(s.delta_b_nt) < 300 and abs(s.delta_dip_deg) < 0.25
+        assert s.samples_averaged > 100 and s.duration_s > 1.0
+        assert 24.0 < s.temperature_c < 61.0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["survey"]["stations"] == N_STATIONS
+    assert summary["survey"]["drift_max_abs_deg"] < DRIFT_TOL_DEG
+    assert summary["survey"]["azimuth_max_abs_deg"] < AZIMUTH_TOL_DEG
+    assert summary["coeffs_yaml_matches_bag"] is True
+
+
+def test_replaying_the_bag_reproduces_the_stations(sim_run, ros_env, tmp_path):
+    out, _, _ = sim_run
+    replay = tmp_path / "replay"
+    proc, seconds = launch(["--out", str(replay), "--source", "mcap", "--input", str(out / "survey.mcap"),
+                            "--coeffs", str(out / "coeffs.yaml"), "--no-calibration", "--speed", "8",
+                            "--reliable", "--timeout", "120"], ros_env, timeout=180)
+    print(f"bag replay through probe(source:=mcap) -> correction: {seconds:.1f} s")
+    assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-2000:]
+    assert "is not replayed: skipped" in proc.stdout  # /survey/station etc. in the input bag
+    cal_id = Calibration.load(out / "coeffs.yaml").id
+    recorded = [s for s in read_mcap(out / "survey.mcap", ["/survey/station"])["/survey/station"]
+                if s.coefficients_id == cal_id]
+    replayed = {round(stamp(s), 6): s
+                for s in read_mcap(replay / "survey.mcap", ["/survey/station"])["/survey/station"]}
+    assert len(recorded) == N_STATIONS
+    fields = ("drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg", "magnetic_toolface_deg",
+              "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt", "delta_dip_deg",
+              "reference_drift_deg", "reference_azimuth_deg", "reference_toolface_deg", "duration_s")
+    for s in recorded:
+        r = replayed.get(round(stamp(s), 6))
+        assert r is not None, f"station {s.station_id} at t={stamp(s):.3f} not reproduced"
+        assert (r.station_id, r.status, r.samples_averaged, r.coefficients_id, r.toolface_type) == \
+            (s.station_id, s.status, s.samples_averaged, s.coefficients_id, s.toolface_type)
+        for f in fields:
+            a, b = getattr(s, f), getattr(r, f)
+            assert (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-9 * max(1.0, abs(a)), (s.station_id, f, a, b)

@@ -1,0 +1,243 @@
+"""Fast node-level tests (in-process rclpy, own ROS_DOMAIN_ID): parameter validation, services,
+message conventions, stream pairing, and the probe publishing what it says."""
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
+
+from rclpy.exceptions import InvalidParameterValueException  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+
+from inclinometer_calib import simulate as sim  # noqa: E402
+from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.frames import Site  # noqa: E402
+from inclinometer_calib.nodes import common as c  # noqa: E402
+from inclinometer_calib.nodes.calibration import CalibrationNode  # noqa: E402
+from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
+from inclinometer_calib.nodes.probe import ProbeNode  # noqa: E402
+
+
+@pytest.fixture
+def ros(ros_env):
+    rclpy.init()
+    nodes = []
+    try:
+        yield nodes
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
+
+
+@pytest.fixture
+def spinning(ros):
+    """Start an executor thread spinning the given nodes; returns a function adding nodes."""
+    ex = SingleThreadedExecutor()
+    stop = threading.Event()
+
+    def spin():
+        while not stop.is_set():
+            ex.spin_once(timeout_sec=0.05)
+
+    th = threading.Thread(target=spin, daemon=True)
+
+    def add(node):
+        ros.append(node)
+        ex.add_node(node)
+        if not th.is_alive():
+            th.start()
+        return node
+
+    yield add
+    stop.set()
+    th.join(2.0)
+    ex.shutdown()
+
+
+def _truth_calibration(seed=3):
+    probe = sim.build_probe(seed)
+    return Calibration(acc=probe.acc, mag=probe.mag, probe_id="t", site=Site())
+
+
+# ---- parameters --------------------------------------------------------------------------
+def test_bad_parameter_values_are_rejected(ros, tmp_path):
+    node = CorrectionNode()
+    ros.append(node)
+    res = node.set_parameters([Parameter("tolerances.field_nt", value=-5.0)])[0]
+    assert not res.successful and "out of range" in res.reason.lower()
+    res = node.set_parameters([Parameter("coeffs_file", value=str(tmp_path / "missing.yaml"))])[0]
+    assert not res.successful and "cannot use" in res.reason
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("format: something-else\n")
+    res = node.set_parameters([Parameter("coeffs_file", value=str(bad))])[0]
+    assert not res.successful and "format" in res.reason
+    res = node.set_parameters([Parameter("site.dip_deg", value=10.0)])[0]
+    assert not res.successful and "read-only" in res.reason
+    res = node.set_parameters([Parameter("tolerances.field_nt", value=500)])[0]  # int for a double
+    assert not res.successful and "type" in res.reason.lower()
+    # a good value is accepted and applied
+    good = tmp_path / "good.yaml"
+    cal = _truth_calibration()
+    cal.save(good)
+    assert node.set_parameters([Parameter("coeffs_file", value=str(good))])[0].successful
+    assert node.processor.calibration.id == cal.id
+    assert node.set_parameters([Parameter("tolerances.field_nt", value=500.0)])[0].successful
+
+
+def test_bad_start_up_parameters_stop_the_node(ros):
+    with pytest.raises(InvalidParameterValueException, match="not allowed"):
+        ProbeNode(parameter_overrides=[Parameter("source", value="bogus")])
+    with pytest.raises(InvalidParameterValueException, match="unknown effect"):
+        ProbeNode(parameter_overrides=[Parameter("effects", value=["no_such_effect=1"])])
+    with pytest.raises(InvalidParameterValueException, match="one of"):
+        CalibrationNode(parameter_overrides=[Parameter("qos.reliability", value="sometimes")])
+    with pytest.raises(InvalidParameterValueException):
+        CalibrationNode(parameter_overrides=[Parameter("site.gravity_mps2", value=1.0)])
+
+
+def test_probe_speed_can_change_while_running(ros):
+    node = ProbeNode(parameter_overrides=[Parameter("survey", value="none"),
+                                          Parameter("effects", value=["axial_interference=300"])])
+    ros.append(node)
+    assert node.effects == ["axial_interference=300"]
+    assert node.set_parameters([Parameter("speed", value=20.0)])[0].successful
+    assert node.speed == 20.0
+    assert not node.set_parameters([Parameter("speed", value=0.0)])[0].successful
+    assert not node.set_parameters([Parameter("rate_hz", value=50.0)])[0].successful  # read-only
+
+
+# ---- services ----------------------------------------------------------------------------
+def _call(node, client, request, timeout=10.0):
+    assert client.wait_for_service(timeout_sec=timeout)
+    fut = client.call_async(request)
+    end = time.monotonic() + timeout
+    while not fut.done() and time.monotonic() < end:
+        time.sleep(0.01)
+    assert fut.done(), "service call timed out"
+    return fut.result()
+
+
+def test_recapture_and_reset_services(spinning):
+    from std_srvs.srv import Trigger
+
+    from inclinometer_calib.msg import CalibrationStatus
+    from inclinometer_calib.srv import RecapturePose
+
+    cal_node = spinning(CalibrationNode())
+    client_node = spinning(rclpy.create_node("test_client"))
+    statuses = []
+    client_node.create_subscription(CalibrationStatus, c.TOPIC_STATUS, statuses.append, c.reliable_qos(10))
+    recapture = client_node.create_client(RecapturePose, "/calibration/recapture")
+    reset = client_node.create_client(Trigger, "/calibration/reset")
+
+    # feed two simulated poses straight into the node's sample path (no DDS needed for that)
+    probe = sim.build_probe(5)
+    log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0)[:2],
+                          np.random.default_rng(1), rate_hz=100.0)
+    for t, f, m in zip(log.t_s, log.acc, log.mag):
+        cal_node._sample(float(t), tuple(f), tuple(m))
+    cal_node._offer(cal_node.detector.flush())
+    assert cal_node.session.captured == [1, 2]
+
+    res = _call(client_node, recapture, RecapturePose.Request(pose=13))
+    assert not res.success and "out of range" in res.message
+    res = _call(client_node, recapture, RecapturePose.Request(pose=2))  # Table 1 numbering
+    assert res.success, res.message
+    assert cal_node.session.recapture == {2}
+    end = time.monotonic() + 5
+    while time.monotonic() < end and not any(list(s.pending)[:2] == [2, 3] for s in statuses):
+        time.sleep(0.05)
+    last = statuses[-1]
+    assert list(last.captured) == [1] and list(last.pending)[:2] == [2, 3] and last.total_poses == 12
+
+    res = _call(client_node, reset, Trigger.Request())
+    assert res.success
+    assert cal_node.session.captured == [] and cal_node.session.state == "collecting"
+
+
+# ---- conversions -------------------------------------------------------------------------
+def test_coefficient_message_conventions():
+    from inclinometer_calib.msg import CalibrationCoefficients
+
+    cal = _truth_calibration()
+    msg = c.coefficients_to_msg(cal, CalibrationCoefficients)
+    assert Calibration.from_yaml(msg.coefficients_yaml).id == msg.id == cal.id
+    rng = np.random.default_rng(0)
+    g_raw, b_raw = rng.normal(0, 5, 3), rng.normal(0, 3e4, 3)
+    g_c, b_c = cal.correct(g_raw, b_raw)
+    f_c = np.reshape(msg.accel_correction_matrix, (3, 3)) @ (-g_raw - np.asarray(msg.accel_offset))
+    assert np.allclose(f_c, -g_c, atol=1e-12)
+    b_m = np.reshape(msg.mag_correction_matrix, (3, 3)) @ (b_raw - np.asarray(msg.mag_offset))
+    assert np.allclose(b_m, b_c, atol=1e-6)
+    names = list(msg.accel_parameter_names)
+    assert msg.accel_parameter_values[names.index("bias_x")] == -cal.acc.bias[0]  # REP-145 sign
+    assert msg.accel_parameter_units[names.index("bias_x")] == "m/s^2"
+    # the fast per-sample correction agrees with the core
+    fast = c.FastCorrection.from_calibration(cal)
+    assert np.allclose(fast.specific_force(tuple(-g_raw)), -g_c, atol=1e-12)
+    assert np.allclose(fast.field(tuple(b_raw)), b_c, atol=1e-6)
+
+
+def test_stream_pairer_pairs_by_stamp_in_order():
+    p = c.StreamPairer(max_pending=4)
+    assert p.add_imu((1, 0), "f1") is None
+    assert p.add_imu((2, 0), "f2") is None
+    assert p.add_mag((2, 0), "m2") == (2.0, "f2", "m2")
+    assert p.add_mag((1, 0), "m1") is None and p.out_of_order == 1  # older than the last pair
+    assert p.add_mag((3, 500_000_000), "m3") is None
+    assert p.add_imu((3, 500_000_000), "f3") == (3.5, "f3", "m3")
+    for k in range(10):
+        p.add_imu((10 + k, 0), k)
+    assert len(p._imu) <= 4 and p.unpaired >= 6
+
+
+def test_stamp_round_trip():
+    from builtin_interfaces.msg import Time
+
+    for t in (0.0, 1.0, 12.3456789, 1e9 + 0.999999999):
+        s = Time()
+        c.set_stamp(s, t)
+        assert 0 <= s.nanosec < 1_000_000_000
+        assert math.isclose(c.stamp_to_sec(s), t, abs_tol=2e-9)
+
+
+# ---- the probe's messages over DDS ---------------------------------------------------------
+def test_probe_publishes_rep145_tesla_and_shared_stamps(spinning):
+    from sensor_msgs.msg import Imu, MagneticField, Temperature
+
+    got = {"imu": [], "mag": [], "temp": []}
+    sub = spinning(rclpy.create_node("test_sub"))
+    qos = c.sensor_qos(1000, "reliable")
+    sub.create_subscription(Imu, c.TOPIC_IMU, got["imu"].append, qos)
+    sub.create_subscription(MagneticField, c.TOPIC_MAG, got["mag"].append, qos)
+    sub.create_subscription(Temperature, c.TOPIC_TEMPERATURE, got["temp"].append, qos)
+    probe = spinning(ProbeNode(parameter_overrides=[
+        Parameter("survey", value="none"), Parameter("speed", value=10.0),
+        Parameter("wait_for_subscribers", value=1), Parameter("start_delay_s", value=0.2),
+        Parameter("qos.reliability", value="reliable")]))
+    end = time.monotonic() + 30
+    while not probe.done.done() and time.monotonic() < end:
+        time.sleep(0.05)
+    assert probe.done.done(), "probe did not finish"
+    n = len(probe.log)
+    end = time.monotonic() + 10
+    while time.monotonic() < end and min(len(v) for v in got.values()) < n:
+        time.sleep(0.05)
+    assert len(got["imu"]) == n and len(got["mag"]) == n and len(got["temp"]) == n
+    imu, mag, temp = got["imu"][50], got["mag"][50], got["temp"][50]
+    assert (imu.header.stamp.sec, imu.header.stamp.nanosec) == (mag.header.stamp.sec, mag.header.stamp.nanosec) \
+        == (temp.header.stamp.sec, temp.header.stamp.nanosec)
+    assert math.isclose(c.stamp_to_sec(imu.header.stamp), probe.log.t_s[50], abs_tol=1e-9)
+    a = np.array([imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z])
+    assert 9.0 < np.linalg.norm(a) < 10.6
+    assert np.allclose(a, probe.log.acc[50])  # REP-145 as simulated: a resting probe reads -g
+    b = np.array([mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z])
+    assert 3e-5 < np.linalg.norm(b) < 7e-5  # tesla
+    assert imu.orientation_covariance[0] == -1.0
+    assert math.isclose(imu.linear_acceleration_covariance[0], 0.002 ** 2)
+    assert math.isclose(mag.magnetic_field_covariance[4], (20e-9) ** 2)
