@@ -67,6 +67,8 @@ class Effect:
     specs: ClassVar[tuple] = ()
     default_axes: ClassVar[str] = "xyz"
     description: ClassVar[str] = ""
+    #: The nearest ISCWSA MWD error-model terms, per sensor (for users who think in those codes).
+    iscwsa: ClassVar[dict] = {}
 
     def __post_init__(self):
         if self.sensor not in self.sensors:
@@ -140,6 +142,7 @@ def _spec(name, unit_acc, unit_mag, typ_acc, typ_mag, doc=""):
 class Bias(Effect):
     """Zero bias B (paper eqs. 3–4)."""
 
+    iscwsa: ClassVar[dict] = {"acc": "ABXY-TI1S/ABZ", "mag": "MBXY/MBZ"}
     name: ClassVar[str] = "bias"
     stage: ClassVar[str] = "output"
     specs: ClassVar[tuple] = (_spec("b", "m/s^2", "nT", 0.004, 70.0, "zero bias"),)
@@ -152,6 +155,7 @@ class Bias(Effect):
 class Scale(Effect):
     """Scale-factor error: K = 1 + k (paper eqs. 3–4)."""
 
+    iscwsa: ClassVar[dict] = {"acc": "ASXY/ASZ", "mag": "MSXY/MSZ"}
     name: ClassVar[str] = "scale"
     stage: ClassVar[str] = "gain"
     specs: ClassVar[tuple] = (_spec("k", "1", "1", 0.0005, 0.0016, "scale-factor error (K-1)"),)
@@ -212,6 +216,7 @@ class Misalignment(Effect):
     so on its own it is absorbed by the base model; it matters when the base model is restricted.
     """
 
+    iscwsa: ClassVar[dict] = {"acc": "XYM1/XYM2", "mag": "XYM1/XYM2"}
     name: ClassVar[str] = "misalignment"
     stage: ClassVar[str] = "axes"
     specs: ClassVar[tuple] = (_spec("angle", "rad", "rad", 0.0017, 0.0017, "rotation about the axis"),)
@@ -229,6 +234,7 @@ class Misalignment(Effect):
 class TriadMisalignment(Misalignment):
     """Magnetometer axes rotated against the accelerometer axes (small angles about x, y, z)."""
 
+    iscwsa: ClassVar[dict] = {}
     name: ClassVar[str] = "triad_misalignment"
     sensors: ClassVar[tuple] = ("mag",)
 
@@ -240,6 +246,7 @@ class AxialInterference(Effect):
     Typically present in survey data only, not in the non-magnetic lab stand.
     """
 
+    iscwsa: ClassVar[dict] = {"mag": "AMIL"}
     name: ClassVar[str] = "axial_interference"
     stage: ClassVar[str] = "tool"
     sensors: ClassVar[tuple] = ("mag",)
