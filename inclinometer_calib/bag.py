@@ -829,6 +829,13 @@ class BagReader:
                 pass
         return {t.topic: t for t in self._topics.values()}
 
+    def topic_info(self, topic: str) -> Optional[TopicInfo]:
+        """The channel of ``topic`` as read so far (during or after :meth:`messages`), or None."""
+        for t in self._topics.values():
+            if t.topic == topic:
+                return t
+        return None
+
     # -- messages --------------------------------------------------------------------------
     def messages(self, topics: Optional[Iterable[str]] = None, *,
                  strict: bool = True) -> Iterator[BagMessage]:

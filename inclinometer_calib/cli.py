@@ -93,7 +93,7 @@ def cmd_simulate(args):
     site = Site(args.total_field, args.dip, args.declination, args.gravity)
     rng = np.random.default_rng(args.seed + 1)
     temps = [float(t) for t in args.cal_temps.split(",")]
-    cal_session = sim.twelve_pose_session(temps, duration_s=args.station_seconds, azimuth_deg=args.stand_azimuth)
+    cal_session = sim.twelve_pose_session(temps, duration_s=args.pose_seconds, azimuth_deg=args.stand_azimuth)
     cal = sim.run_session(probe, site, cal_session, rng, rate_hz=args.rate, survey=False)
     try:
         val_temps = [float(x) for x in args.val_temp.split(":")]
@@ -131,6 +131,8 @@ def run_twelve_position(cal_path, site, probe_id, quiet=False):
         result = solve_stations(stations, site)
     except (ValueError, np.linalg.LinAlgError) as exc:
         raise UserError(f"{cal_path}: {exc}") from None
+    for note in result.notes:  # refused (mislabelled / moved) stations, duplicated poses
+        _warn(f"{cal_path}: {note}")
     return result, to_calibration(result, site, probe_id)
 
 
@@ -193,7 +195,8 @@ def format_station_csv(stations, res) -> str:
         flags += ["moved_during_capture"] if st.warnings else []
         err = (lambda n: res[n][k] if n in res else None)
         row = [str(st.index), str(st.pose or ""), f(st.t_start, 3), f(st.t_end, 3), str(st.n), f(st.temp_c, 2),
-               f(res["drift_deg"][k]), f(res["azimuth_deg"][k]), f(res["toolface_deg"][k]),
+               f(res["drift_deg"][k]), "" if res["azimuth_undefined"][k] else f(res["azimuth_deg"][k]),
+               f(res["toolface_deg"][k]),
                "gravity" if res["toolface_is_gravity"][k] else "magnetic",
                f(res["gravity_toolface_deg"][k]), f(res["magnetic_toolface_deg"][k]),
                f(res["total_gravity"][k], 5), f(res["total_field"][k], 1), f(res["dip_deg"][k]),
@@ -264,6 +267,53 @@ def cmd_demo(args):
     print("after:  " + _summary_line(s_a))
     atomic_write_text(os.path.join(out, "stations.csv"), format_station_csv(st_a, res_a))
     print(f"outputs in {out}/ (cal.csv, val.csv, coeffs.yaml, stations.csv, truth.json)")
+    return 0
+
+
+def cmd_reprocess(args):
+    """Offline reprocessing of a recorded bag (see :mod:`inclinometer_calib.reprocess`).
+
+    Exit status 0; 1 when the input bag is damaged (everything readable was processed and
+    written, the damage is reported as ``error:``); 2 when nothing could be done.
+    """
+    from .bag import BagError
+    from .reprocess import TOPIC_STATION, ReprocessError, reprocess
+    from .streaming import StaticDetector
+
+    cal = load_calibration(args.coeffs)
+    site = load_site(args.site) if args.site else (cal.site if cal else Site())
+    tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+    if not args.min_static_s > 0:
+        raise UserError(f"--min-static-s {args.min_static_s}: must be > 0")
+    det = StaticDetector(min_duration_s=args.min_static_s)
+    try:
+        rep = reprocess(args.bag, args.output, cal, site, tol, det, compression=args.compression,
+                        warn=_warn)
+    except FileExistsError as exc:
+        raise UserError(str(exc)) from None
+    except FileNotFoundError as exc:
+        raise UserError(str(exc)) from None
+    except (BagError, ReprocessError) as exc:
+        raise UserError(str(exc)) from None
+    for w in rep.warnings():
+        if not w.startswith("skipped topic"):  # those were warned as they were met
+            _warn(f"{args.bag}: {w}")
+    n = len(rep.stations)
+    flagged = {k: sum(bool(s[k]) for s in rep.stations)
+               for k in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance")}
+    speed = rep.log_span_s / rep.seconds if rep.seconds > 0 else float("inf")
+    print(f"{rep.messages_read} messages read, {rep.pairs} imu/mag pairs, {n} stations "
+          f"(coefficients {cal.id if cal else 'none'}); flagged: "
+          + ", ".join(f"{k} {v}" for k, v in flagged.items()))
+    print(f"wrote {args.output} ({n} {TOPIC_STATION} messages, "
+          f"{sum(rep.copied.values())} input messages copied); {rep.log_span_s:.1f} s of log in "
+          f"{rep.seconds:.2f} s ({speed:.0f}× real time)")
+    if rep.bag_errors:
+        for e in rep.bag_errors:
+            print(f"error: {e}", file=sys.stderr)
+        print(f"error: {args.bag} is damaged; the {rep.messages_read} readable messages before/around "
+              f"the damage were processed and written to {args.output}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -418,7 +468,8 @@ def build_parser():
     s.add_argument("--noise-acc", type=float, default=0.002, help="accelerometer white noise, m/s^2 1σ")
     s.add_argument("--noise-mag", type=float, default=20.0, help="magnetometer white noise, nT 1σ")
     s.add_argument("--rate", type=float, default=100.0, help="sample rate, Hz")
-    s.add_argument("--station-seconds", type=float, default=1.0, help="time held at each station, s")
+    s.add_argument("--pose-seconds", type=float, default=3.0, help="time held in each calibration pose, s")
+    s.add_argument("--station-seconds", type=float, default=1.0, help="time held at each validation station, s")
     s.add_argument("--cal-temps", default="25", help="temperature of each calibration round, °C (comma list)")
     s.add_argument("--val-temp", default="25:45:30",
                    help="validation temperature profile T1:T2[:T3..] (piecewise linear over the stations), °C")
@@ -453,6 +504,17 @@ def build_parser():
     d.add_argument("--out", default="demo_out")
     d.add_argument("--seed", type=int, default=1)
     d.set_defaults(func=cmd_demo)
+    r = sub.add_parser("reprocess", help="re-run station detection and correction on a recorded bag (MCAP)")
+    r.add_argument("bag", help="recorded bag: .mcap file or bag directory (/probe/imu, /probe/mag, ...)")
+    r.add_argument("--coeffs", required=True, help="coefficient YAML, or 'none' for uncorrected figures")
+    r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist)")
+    r.add_argument("--site", help="site reference YAML (default: the calibration's site)")
+    r.add_argument("--min-static-s", type=float, default=1.0, help="shortest static interval reported, s")
+    r.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    r.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
+    r.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
+    r.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
+    r.set_defaults(func=cmd_reprocess)
     _lab_parser(sub)
     return p
 

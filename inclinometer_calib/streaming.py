@@ -9,6 +9,7 @@ here once to the gravity vector; magnetometer in nT (a node converts from tesla 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,6 +67,7 @@ class StaticDetector:
     _sq_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _sq_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _sum_t: float = 0.0
+    _n_t: int = 0
     _settle_until: float = -np.inf
     too_short: int = 0
 
@@ -80,6 +82,7 @@ class StaticDetector:
         self._sq_f[:] = 0
         self._sq_m[:] = 0
         self._sum_t = 0.0
+        self._n_t = 0
 
     @property
     def is_static(self) -> bool:
@@ -120,7 +123,9 @@ class StaticDetector:
         self._sum_m += m
         self._sq_f += f * f
         self._sq_m += m * m
-        self._sum_t += temp_c if np.isfinite(temp_c) else 0.0
+        if math.isfinite(temp_c):  # the mean is over the samples that had a temperature
+            self._sum_t += temp_c
+            self._n_t += 1
 
     def _close(self, t, restart):
         seg = None
@@ -133,7 +138,7 @@ class StaticDetector:
             short = dur < self.min_duration_s
             self.too_short += short
             seg = StaticSegment(self._t0, self._t_last, n, -mf, mm, np.sqrt(vf), np.sqrt(vm),
-                                self._sum_t / n, short=short)
+                                self._sum_t / self._n_t if self._n_t else float("nan"), short=short)
         self.reset()
         if restart is not None:
             self._add(*restart)

@@ -148,3 +148,214 @@ def format_table5(before: dict | None, after: dict) -> str:
             cells = "".join(f"{v:>{w}.2f}" if np.isfinite(v) else f"{'-':>{w}}" for v in t["cells"][r])
             lines.append(f"{i:>5g} {name:<7}" + cells + f"{t['rms_err'][r]:>{w + 1}.2f}")
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Batch correction of raw samples (vectorized core)
+# --------------------------------------------------------------------------------------------
+#: Bits of the ``flags`` array returned by :func:`correct_samples`.
+FLAG_AZIMUTH_UNDEFINED = 1
+FLAG_INTERFERENCE = 2
+FLAG_GRAVITY_OUT_OF_TOLERANCE = 4
+FLAG_TOOLFACE_IS_GRAVITY = 8
+FLAG_NOT_FINITE = 16
+
+BATCH_KEYS = ("drift_deg", "azimuth_deg", "toolface_deg", "total_gravity", "total_field", "dip_deg")
+
+
+def correct_samples(f, m_nt, calibration=None, site: Site = Site(), tol: Tolerances = Tolerances(), *,
+                    block: int = 16384, out: dict | None = None) -> dict:
+    """Correct and evaluate raw samples in bulk: both triads, angles and QC per sample.
+
+    Parameters
+    ----------
+    f : (N, 3) float64 — accelerometer, REP-145 specific force, m/s² (converted here to the
+        gravity vector ``g = -f``, as :func:`streaming.StaticDetector` does for a stream).
+    m_nt : (N, 3) float64 — magnetometer, nT.
+    calibration : :class:`coeffs.Calibration` or None (uncorrected).
+    site, tol : reference and tolerances, as for :func:`evaluate`.
+    block : samples per block: the work runs block by block so that every temporary stays in
+        the CPU cache and the arrays of N samples are read once and written once.
+    out : optional dict of preallocated output arrays (keys as returned) to write into.
+
+    Returns
+    -------
+    dict of (N,) arrays: ``drift_deg``, ``azimuth_deg`` (with the site declination, [0, 360)),
+    ``toolface_deg`` (gravity toolface from ``tol.gravity_toolface_min_drift_deg`` on, magnetic
+    below), ``total_gravity`` (m/s²), ``total_field`` (nT), ``dip_deg``, float64; ``flags`` uint8
+    (bits ``FLAG_*``), ``status`` uint8 (0 ok, 1 warn, 2 error, as :func:`evaluate`).
+
+    The arithmetic is that of ``evaluate(*calibration.correct(-f, m_nt), site, tol)`` operation
+    for operation (same correction product, same formulas and evaluation order), so the values
+    agree with it exactly; only the intermediate storage differs.
+    """
+    f = np.asarray(f, dtype=np.float64)
+    m = np.asarray(m_nt, dtype=np.float64)
+    if f.ndim != 2 or f.shape[1] != 3 or m.shape != f.shape:
+        raise ValueError(f"correct_samples: f and m_nt must both be (N, 3), got {f.shape} and {m.shape}")
+    n = len(f)
+    if out is None:
+        out = {k: np.empty(n) for k in BATCH_KEYS}
+        out["flags"] = np.empty(n, dtype=np.uint8)
+        out["status"] = np.empty(n, dtype=np.uint8)
+    blk = max(1, min(int(block), n)) if n else 1
+    if calibration is not None:
+        # g = -f; (g - bias_a)·Caᵀ == (f + bias_a)·(-Ca)ᵀ exactly (IEEE rounding is sign-symmetric)
+        ba = np.tile(np.asarray(calibration.acc.bias, dtype=np.float64), blk)
+        neg_ca = np.ascontiguousarray(-calibration.acc.correction_matrix)
+        bm = np.tile(np.asarray(calibration.mag.bias, dtype=np.float64), blk)
+        cm = np.ascontiguousarray(calibration.mag.correction_matrix)
+    else:
+        ba = neg_ca = bm = cm = None
+    a3 = np.empty(3 * blk)
+    gt = np.empty((3, blk))
+    bt = np.empty((3, blk))
+    t = np.empty((6, blk))
+    masks = np.empty((4, blk), dtype=bool)
+    u8 = np.empty((2, blk), dtype=np.uint8)
+    decl = float(site.declination_deg)
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN/inf samples are flagged, not warned
+        for s in range(0, n, blk):
+            _correct_block(f, m, s, min(s + blk, n), out, calibration, ba, neg_ca, bm, cm, a3,
+                           gt, bt, t, masks, u8, site, tol, decl)
+    return out
+
+
+def _correct_block(f, m, s, e, out, calibration, ba, neg_ca, bm, cm, a3, gt, bt, t, masks, u8,
+                   site, tol, decl):
+    rad2deg = np.degrees
+    thr_tf = tol.gravity_toolface_min_drift_deg
+    k = e - s
+    gx, gy, gz = gt[:, :k]
+    bx, by, bz = bt[:, :k]
+    if calibration is not None:
+        # the product of TriadModel.inverse, (h - bias) @ C.T, computed transposed as C @ (h - bias).T
+        # straight into component rows (same dot products); the bias is added on the flat block
+        a = a3[:3 * k]
+        np.add(f[s:e].reshape(-1), ba[:3 * k], out=a)
+        np.matmul(neg_ca, a.reshape(k, 3).T, out=gt[:, :k])
+        np.subtract(m[s:e].reshape(-1), bm[:3 * k], out=a)
+        np.matmul(cm, a.reshape(k, 3).T, out=bt[:, :k])
+    else:
+        np.negative(f[s:e].T, out=gt[:, :k])
+        np.copyto(bt[:, :k], m[s:e].T)
+    t1, t2, t3, t4, h2, sb = t[:, :k]
+    drift, az, tf = out["drift_deg"][s:e], out["azimuth_deg"][s:e], out["toolface_deg"][s:e]
+    gn, bn, dip = out["total_gravity"][s:e], out["total_field"][s:e], out["dip_deg"][s:e]
+    # |g| = sqrt((gx² + gy²) + gz²), |b| likewise                    (norm over the last axis)
+    np.multiply(gx, gx, out=h2)
+    np.multiply(gy, gy, out=t1)
+    np.add(h2, t1, out=h2)
+    # drift = atan2(sqrt(gx² + gy²), gz)                               (frames.drift_deg)
+    np.sqrt(h2, out=t1)
+    np.arctan2(t1, gz, out=drift)
+    rad2deg(drift, out=drift)
+    np.multiply(gz, gz, out=t1)
+    np.add(h2, t1, out=gn)
+    np.sqrt(gn, out=gn)
+    np.multiply(bx, bx, out=sb)
+    np.multiply(by, by, out=t1)
+    np.add(sb, t1, out=sb)
+    np.multiply(bz, bz, out=t1)
+    np.add(sb, t1, out=bn)
+    np.sqrt(bn, out=bn)
+    # azimuth = atan2(|g|(by gx - bx gy), bz(gx² + gy²) - gz(bx gx + by gy))  (frames.azimuth_deg)
+    np.multiply(by, gx, out=t1)
+    np.multiply(bx, gy, out=t2)
+    np.subtract(t1, t2, out=t1)
+    np.multiply(gn, t1, out=t1)
+    np.multiply(bx, gx, out=t2)
+    np.multiply(by, gy, out=t3)
+    np.add(t2, t3, out=t2)                 # bx gx + by gy, reused for the dip
+    np.multiply(gz, t2, out=t3)
+    np.multiply(bz, h2, out=t4)
+    np.subtract(t4, t3, out=t4)
+    is_g, m1, m2, m3 = masks[:, :k]
+    np.arctan2(t1, t4, out=az)
+    rad2deg(az, out=az)
+    _wrap_atan2_deg(az, m1, t4)
+    if decl:
+        np.add(az, decl, out=az)
+        if abs(decl) < 360.0:   # az in (-360, 720): +360 below 0 (as np.mod), -360 from 360 on
+            np.less(az, 0.0, out=m1)                  # (exact by Sterbenz, as fmod)
+            np.multiply(m1, 360.0, out=t3)
+            np.add(az, t3, out=az)
+            np.greater_equal(az, 360.0, out=m1)
+            np.multiply(m1, 360.0, out=t3)
+            np.subtract(az, t3, out=az)
+            _fix360(az, m1)
+        else:
+            _wrap360_inplace(az)
+    # dip = asin(clip((gx bx + gy by + gz bz) / (|g| |b|)))          (frames.dip_deg)
+    np.multiply(gz, bz, out=t3)
+    np.add(t2, t3, out=t3)
+    np.multiply(gn, bn, out=t4)
+    np.divide(t3, t4, out=t3)
+    np.clip(t3, -1.0, 1.0, out=t3)
+    np.arcsin(t3, out=dip)
+    rad2deg(dip, out=dip)
+    # toolface: gravity atan2(gy, -gx) where drift >= threshold, else magnetic atan2(-by, bx)
+    np.greater_equal(drift, thr_tf, out=is_g)
+    np.negative(gx, out=t1)
+    np.arctan2(gy, t1, out=tf)
+    rad2deg(tf, out=tf)
+    _wrap_atan2_deg(tf, m1, t2)
+    if not is_g.all():
+        idx = np.flatnonzero(~is_g)
+        mt = np.degrees(np.arctan2(-by[idx], bx[idx]))
+        tf[idx] = _wrap360_inplace(mt)
+    # QC flags (survey.evaluate); booleans viewed as 0/1 bytes and shifted into their bits
+    fl, st = out["flags"][s:e], out["status"][s:e]
+    tmp = u8[0, :k]
+    np.less(drift, tol.min_drift_deg, out=m1)                 # azimuth undefined
+    np.copyto(fl, m1.view(np.uint8))
+    np.subtract(bn, site.total_field_nt, out=t1)
+    np.abs(t1, out=t1)
+    np.greater(t1, tol.field_nt, out=m2)
+    np.subtract(dip, site.dip_deg, out=t1)
+    np.abs(t1, out=t1)
+    np.greater(t1, tol.dip_deg, out=m3)
+    np.logical_or(m2, m3, out=m2)                             # interference suspected
+    np.logical_or(m1, m2, out=m1)                             # warn
+    np.left_shift(m2.view(np.uint8), 1, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.subtract(gn, site.gravity_mps2, out=t1)
+    np.abs(t1, out=t1)
+    np.greater(t1, tol.gravity_mps2, out=m2)                  # gravity out of tolerance
+    np.left_shift(m2.view(np.uint8), 2, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.left_shift(is_g.view(np.uint8), 3, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.multiply(gn, bn, out=t1)
+    np.isfinite(t1, out=m3)
+    np.logical_not(m3, out=m3)                                # a component NaN/inf
+    np.left_shift(m3.view(np.uint8), 4, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.logical_or(m2, m3, out=m2)                             # error
+    np.left_shift(m2.view(np.uint8), 1, out=st)               # 2 where error ...
+    np.maximum(st, m1.view(np.uint8), out=st)                 # ... else 1 where warn
+
+
+def _wrap_atan2_deg(w, mask, tmp):
+    """frames.wrap360 in place for values in (-360, 360) such as atan2 in degrees: adding 360 to
+    the negatives is exactly what ``np.mod`` does there (fmod is the identity); adding 0.0 to the
+    others changes nothing.  Branch-free, so it vectorizes."""
+    np.less(w, 0.0, out=mask)
+    np.multiply(mask, 360.0, out=tmp)
+    np.add(w, tmp, out=w)
+    _fix360(w, mask)
+    return w
+
+
+def _fix360(w, mask):
+    """360.0 (a tiny negative plus 360, rounded) → 0.0, as frames.wrap360."""
+    np.greater_equal(w, 360.0, out=mask)
+    if mask.any():
+        w[mask] = 0.0
+
+
+def _wrap360_inplace(w):
+    """frames.wrap360 in place: mod 360, and 360.0 (from rounding of tiny negatives) → 0."""
+    np.mod(w, 360.0, out=w)
+    w[w >= 360.0] = 0.0
+    return w

@@ -17,7 +17,7 @@ average of the per-round solutions), and the round-to-round spread per pose is r
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -114,6 +114,11 @@ def solve_closed_form(h: np.ndarray, vertical_ref: float) -> TriadModel:
         # (p1 + p2 - p3 - p4) / (4 Md): column j of K·E — the diagonal is K_j (eqs. 6, 10, 14),
         # the off-diagonals are K_i·e_ji (eqs. 7–8, 11–12, 15–16 before dividing by K_i).
         a[:, j] = (p1 + p2 - p3 - p4) / (4.0 * vertical_ref)
+        if a[j, j] == 0.0:
+            axis = "xyz"[j]
+            raise ValueError(f"scale K_{axis} = 0 (from poses {_GROUPS[j]}): the {axis} axis output does not "
+                             f"change between its up and down poses — a dead or stuck axis, or poses "
+                             f"{_GROUPS[j]} not taken as labelled; no coefficients written")
     return TriadModel.from_matrix(a, bias)
 
 
@@ -173,10 +178,61 @@ class TriadSolution:
         return float(np.sqrt(np.mean(self.residuals ** 2)))
 
 
-def solve_triad(stations_by_pose: dict, vertical_ref: float) -> TriadSolution:
+#: A solution whose sensitivity matrix K·E has a larger condition number is refused.
+MAX_CONDITION = 1e3
+#: A pose whose residual exceeds this fraction of the reference's magnitude is refused: that
+#: station was not taken in the pose its label says (or the stand was not in it).
+MAX_RESIDUAL_FRACTION = 0.2
+#: Plausible scale factors K when outputs and reference share a unit (m/s², nT).
+PLAUSIBLE_SCALE = (0.5, 2.0)
+_GROUPS = {0: "1-4", 1: "5-8", 2: "9-12"}
+
+
+def check_solution(sol: "TriadSolution", name: str = "triad", scale_range=None, unit: str = "") -> None:
+    """Refuse an absurd twelve-position solution with a message naming the axis or pose.
+
+    Checks: each scale K within ``scale_range`` (if given; only meaningful when outputs and
+    reference share a unit); the condition number of K·E at most :data:`MAX_CONDITION`; no pose
+    residual above :data:`MAX_RESIDUAL_FRACTION` of the reference magnitude.  Raises ValueError.
+    """
+    model = sol.model
+    if scale_range is not None:
+        lo, hi = scale_range
+        for j, axis in enumerate("xyz"):
+            k = float(model.scale[j])
+            if not lo <= k <= hi:
+                raise ValueError(
+                    f"{name}: scale K_{axis} = {k:.4g} is outside the plausible {lo:g}..{hi:g} "
+                    f"(from poses {_GROUPS[j]}): a dead or stuck {axis} axis, wrong units, or poses "
+                    f"{_GROUPS[j]} not taken as labelled; no coefficients written")
+    cond = float(np.linalg.cond(model.A))
+    if not np.isfinite(cond) or cond > MAX_CONDITION:
+        raise ValueError(f"{name}: the sensitivity matrix K·E is singular or ill-conditioned (condition "
+                         f"number {cond:.3g} > {MAX_CONDITION:g}): poses duplicated or mislabelled, or an axis "
+                         "dead; no coefficients written")
+    ref = float(np.linalg.norm(sol.reference_ned))
+    frac = np.linalg.norm(sol.residuals, axis=1) / ref if ref > 0 else np.full(12, np.inf)
+    bad = [POSES[i] for i in np.flatnonzero(~(frac <= MAX_RESIDUAL_FRACTION))]
+    if bad:
+        i = int(np.nanargmax(np.where(np.isfinite(frac), frac, np.inf)))
+        spread = sol.round_spread[i]
+        sp = (f"; its round-to-round spread is {np.max(spread):.3g} {unit}".rstrip()
+              if np.all(np.isfinite(spread)) else "")
+        raise ValueError(
+            f"{name}: pose {POSES[i]} does not fit the twelve-pose model: residual "
+            f"{np.linalg.norm(sol.residuals[i]):.4g} {unit} = {100 * frac[i]:.0f}% of the reference "
+            f"(limit {100 * MAX_RESIDUAL_FRACTION:.0f}%){sp}; pose(s) {bad} over the limit — a station "
+            "not taken in the pose its label says (mislabelled or duplicated pose), or the stand not in "
+            "it; no coefficients written")
+
+
+def solve_triad(stations_by_pose: dict, vertical_ref: float, *, name: str = "triad", scale_range=None,
+                unit: str = "") -> TriadSolution:
     """Solve one triad from ``{pose: [mean vector of each station in that pose, ...]}``.
 
-    Every pose 1..12 needs at least one station; all stations are used.
+    Every pose 1..12 needs at least one station; all stations are used.  The solution is checked
+    with :func:`check_solution` (``name``, ``scale_range`` and ``unit`` go to its messages and
+    checks): an ill-conditioned or absurd solve raises ValueError instead of returning.
     """
     missing = [p for p in POSES if not stations_by_pose.get(p)]
     if missing:
@@ -188,13 +244,18 @@ def solve_triad(stations_by_pose: dict, vertical_ref: float) -> TriadSolution:
     means = np.array([v.mean(axis=0) for v in per_pose])
     spread = np.array([v.std(axis=0, ddof=1) if len(v) > 1 else np.full(3, np.nan) for v in per_pose])
     rounds = np.array([len(v) for v in per_pose])
-    model = solve_closed_form(means, vertical_ref)
+    try:
+        model = solve_closed_form(means, vertical_ref)
+    except ValueError as exc:
+        raise ValueError(f"{name}: {exc}") from None
     # Residuals: estimate the reference vector in the stand frame from the corrected data (this
     # recovers the horizontal components the closed form never needed), then predict each pose.
     corrected = model.inverse(means)
     ref_est = np.mean([pose_matrix(p) @ corrected[i] for i, p in enumerate(POSES)], axis=0)
     predicted = model.forward(np.array([pose_reference(p, ref_est) for p in POSES]))
-    return TriadSolution(model, means, means - predicted, spread, rounds, ref_est)
+    sol = TriadSolution(model, means, means - predicted, spread, rounds, ref_est)
+    check_solution(sol, name, scale_range, unit)
+    return sol
 
 
 @dataclass
@@ -203,6 +264,7 @@ class TwelvePositionResult:
 
     acc: TriadSolution
     mag: TriadSolution
+    notes: list = field(default_factory=list)   # stations refused and other warnings, as text
 
     def implied_site(self) -> dict:
         """Total field and dip implied by the corrected magnetometer (a check on the stand/site)."""
@@ -215,27 +277,112 @@ class TwelvePositionResult:
                 "stand_tilt_deg": tilt}
 
 
-def solve(acc_by_pose: dict, mag_by_pose: dict, gravity: float, field_down: float) -> TwelvePositionResult:
-    """Solve both triads.  ``gravity`` = g_d (m/s² or counts), ``field_down`` = M_d (nT or counts)."""
-    return TwelvePositionResult(acc=solve_triad(acc_by_pose, gravity), mag=solve_triad(mag_by_pose, field_down))
+def solve(acc_by_pose: dict, mag_by_pose: dict, gravity: float, field_down: float,
+          scale_range=None) -> TwelvePositionResult:
+    """Solve both triads.  ``gravity`` = g_d (m/s² or counts), ``field_down`` = M_d (nT or counts).
+
+    ``scale_range``: plausible scale factors, checked only if given (outputs in the reference's
+    unit; e.g. :data:`PLAUSIBLE_SCALE`)."""
+    return TwelvePositionResult(
+        acc=solve_triad(acc_by_pose, gravity, name="accelerometer", scale_range=scale_range, unit="m/s^2"),
+        mag=solve_triad(mag_by_pose, field_down, name="magnetometer", scale_range=scale_range, unit="nT"))
 
 
 # --------------------------------------------------------------------------------------------
 # From stations; to a coefficient record; tables laid out like the paper's
 # --------------------------------------------------------------------------------------------
-def solve_stations(stations, site, field_down: float | None = None) -> TwelvePositionResult:
+def _station_where(st) -> str:
+    first, n = getattr(st, "first_row", None), getattr(st, "n", None)
+    if first is not None and n:
+        return f"station at rows {first}-{first + n - 1}"
+    return f"station {getattr(st, 'index', '?')}"
+
+
+def _gravity_says(st, good, tolerance_deg) -> str:
+    """Which pose(s) a station's gravity points to, resolved by the field of correctly labelled
+    stations where gravity alone leaves two (each vertical axis direction fits two poses)."""
+    cands = _gravity_candidates(st.g, tolerance_deg)
+    if not cands:
+        return "gravity matches no pose of Table 1"
+    if len(cands) > 1:
+        b = np.asarray(st.b, float)
+        best, best_ang = None, 30.0
+        for o in good:
+            if o.pose in cands:
+                ob = np.asarray(o.b, float)
+                ang = np.degrees(np.arccos(np.clip(b @ ob / (np.linalg.norm(b) * np.linalg.norm(ob)), -1, 1)))
+                if ang < best_ang:
+                    best, best_ang = o.pose, ang
+        if best is not None:
+            cands = [best]
+    return "gravity says pose " + " or ".join(str(c) for c in cands)
+
+
+def check_pose_labels(stations, tolerance_deg: float = 30.0):
+    """Split pose-labelled stations into those whose measured gravity fits their label and those
+    that do not.  Returns ``(kept, refused)`` with ``refused`` a list of messages such as
+    ``"station at rows 101-150: labelled pose 5 but gravity says pose 7; refused"``.
+
+    Gravity (uncalibrated: a few degrees off at most) tells which tool axis is vertical and which
+    way; that fixes the pose up to the pair sharing it, which is all the closed form needs (it
+    uses the sum of each pair).  Stations flagged as moved during the capture are refused too.
+    """
+    good, bad = [], []
+    for st in stations:
+        if not st.pose:
+            continue
+        if st.pose not in _gravity_candidates(st.g, tolerance_deg):
+            bad.append(st)
+        else:
+            good.append(st)
+    refused = [f"{_station_where(st)}: labelled pose {st.pose} but {_gravity_says(st, good, tolerance_deg)}; "
+               "station refused (mislabelled pose)" for st in bad]
+    kept = []
+    for st in good:
+        if getattr(st, "warnings", None):
+            refused.append(f"{_station_where(st)} (pose {st.pose}): the probe moved during the capture; "
+                           "station refused")
+        else:
+            kept.append(st)
+    return kept, refused
+
+
+def solve_stations(stations, site, field_down: float | None = None, check_labels: bool = True) -> TwelvePositionResult:
     """Solve from :class:`probelog.Station` objects labelled with poses (all rounds are used).
 
     ``g_d`` is the site gravity; ``M_d`` the site's vertical field component unless given (the
-    paper notes M_d need not be exact: it only scales the magnetometer).
+    paper notes M_d need not be exact: it only scales the magnetometer).  With ``check_labels``,
+    stations whose gravity contradicts their pose label, or taken while the probe moved, are
+    refused (:func:`check_pose_labels`); the result's ``notes`` say which, and also flag poses
+    captured more often than the others (a duplicated label?).  A pose left without a station is
+    an error whose message includes the refusals.  Scale factors must lie in
+    :data:`PLAUSIBLE_SCALE` (stations are in m/s² and nT).
     """
+    notes = []
+    if check_labels:
+        stations, notes = check_pose_labels(stations)
     acc, mag = {}, {}
     for st in stations:
         if st.pose:
             acc.setdefault(st.pose, []).append(st.g)
             mag.setdefault(st.pose, []).append(st.b)
+    counts = {p: len(v) for p, v in acc.items()}
+    if counts:
+        usual = int(np.median(list(counts.values())))
+        extra = sorted(p for p, c in counts.items() if c > usual)
+        if extra:
+            notes.append("pose(s) " + ", ".join(f"{p} ×{counts[p]}" for p in extra) +
+                         f" captured more often than the others (×{usual}): their means average every "
+                         "capture; check for a duplicated pose label")
     md = float(site.field_ned()[2]) if field_down is None else float(field_down)
-    return solve(acc, mag, gravity=float(site.gravity_mps2), field_down=md)
+    try:
+        res = solve(acc, mag, gravity=float(site.gravity_mps2), field_down=md, scale_range=PLAUSIBLE_SCALE)
+    except ValueError as exc:
+        if notes:
+            raise ValueError(f"{exc}; " + "; ".join(notes)) from None
+        raise
+    res.notes = notes
+    return res
 
 
 def _diagnostics(sol: TriadSolution, unit: str) -> dict:

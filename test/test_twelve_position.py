@@ -130,3 +130,20 @@ def test_identify_pose_uses_the_field_to_resolve_the_roll():
         pose, misfit = tp.identify_pose_with_field(g, b, site.field_ned())
         assert pose == p and misfit < 1e-6
     assert tp.identify_pose_with_field([1.0, 1.0, 1.0], [1.0, 0, 0], site.field_ned())[0] is None
+
+
+def test_ill_conditioned_solution_is_refused():
+    # two sensor axes (nearly) parallel: K·E is close to singular
+    a = np.array([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    truth = TriadModel.from_matrix(a, np.zeros(3))
+    h = np.array([truth.forward(TABLE1_M[p]) for p in tp.POSES])
+    with pytest.raises(ValueError, match="singular or ill-conditioned \\(condition number"):
+        tp.solve_triad({p: [h[i]] for i, p in enumerate(tp.POSES)}, MD)
+
+
+def test_pose_far_off_the_model_is_refused_naming_it():
+    truth = TriadModel(scale=np.ones(3), bias=np.zeros(3), e={})
+    data = {p: [truth.forward(TABLE1_M[p])] for p in tp.POSES}
+    data[11] = [truth.forward(TABLE1_M[12])]      # pose 11 captured in pose 12's orientation
+    with pytest.raises(ValueError, match="magnetometer: pose 1[12] does not fit the twelve-pose model"):
+        tp.solve_triad(data, MD, name="magnetometer", unit="nT")

@@ -1,0 +1,445 @@
+"""Offline reprocessing of a recorded bag: read → pair → detect stations → correct → write.
+
+ROS-free on purpose (no rclpy, no generated message modules): the probe's messages are decoded
+from their CDR bytes here, the output ``SurveyStation`` messages are serialized with the
+``rosbags`` type store (our ``msg/SurveyStation.msg`` registered), and the bag is read and
+written with :mod:`inclinometer_calib.bag`.  It does offline what the correction node does live:
+
+* ``/probe/imu`` (``sensor_msgs/Imu``: REP-145 specific force, m/s²) and ``/probe/mag``
+  (``sensor_msgs/MagneticField``: tesla, converted once to nT) are paired by header stamp;
+* ``/probe/temperature`` (``sensor_msgs/Temperature``) gives the temperature of later samples;
+* ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, drift/azimuth/toolface in degrees,
+  NaN = none), if present, is copied into the stations' ``reference_*`` fields;
+* each pair goes through :class:`streaming.StaticDetector`; every closed static interval is
+  corrected and checked by :class:`streaming.SurveyProcessor` and written as one
+  ``/survey/station`` message (fields as the correction node fills them).
+
+The input messages of those four topics are copied through unchanged (same bytes, log and publish
+times), so the output bag can be replayed again.  Other topics are skipped with a warning that
+names them and their type (e.g. a previous run's ``/survey/station``, which the new one replaces).
+
+Damage does not lose data: a truncated or corrupt input is read up to the damage (and past a bad
+chunk when the framing allows), everything readable is processed and written, and the report's
+``bag_errors`` say where the damage is (file and byte offset).  Per-message problems (a message
+that does not decode, a pair whose stamp goes backwards, an implausible field) are counted and
+reported with the topic and the log time of the first one.
+"""
+from __future__ import annotations
+
+import bisect
+import math
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
+from .frames import NT_PER_TESLA, Site
+from .streaming import StaticDetector, StationRecord, SurveyProcessor
+from .survey import Tolerances
+
+TOPIC_IMU = "/probe/imu"
+TOPIC_MAG = "/probe/mag"
+TOPIC_TEMPERATURE = "/probe/temperature"
+TOPIC_REFERENCE = "/probe/reference"
+TOPIC_STATION = "/survey/station"
+
+IMU_TYPE = "sensor_msgs/msg/Imu"
+MAG_TYPE = "sensor_msgs/msg/MagneticField"
+TEMPERATURE_TYPE = "sensor_msgs/msg/Temperature"
+REFERENCE_TYPE = "geometry_msgs/msg/Vector3Stamped"
+STATION_TYPE = "inclinometer_calib/msg/SurveyStation"
+
+#: Input topics read (and copied through) and the type each must have.
+INPUT_TOPICS = {TOPIC_IMU: IMU_TYPE, TOPIC_MAG: MAG_TYPE, TOPIC_TEMPERATURE: TEMPERATURE_TYPE,
+                TOPIC_REFERENCE: REFERENCE_TYPE}
+
+NAN = float("nan")
+#: |B| (after the tesla → nT conversion) outside this range is implausible for a probe on Earth.
+FIELD_RANGE_NT = (5000.0, 100000.0)
+
+
+class ReprocessError(ValueError):
+    """The input cannot be reprocessed at all (no probe samples, wrong units throughout...)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# CDR decoding of the probe's fixed-layout messages (faster than a generic deserializer)
+
+_LE = (struct.Struct("<iiI"), struct.Struct("<ddd"), struct.Struct("<d"))
+_BE = (struct.Struct(">iiI"), struct.Struct(">ddd"), struct.Struct(">d"))
+# Imu after its header: orientation (4), orientation_covariance (9), angular_velocity (3),
+# angular_velocity_covariance (9) float64, then linear_acceleration.
+_IMU_ACC_OFFSET = 8 * (4 + 9 + 3 + 9)
+
+
+def _header(data):
+    """(stamp sec, nanosec, CDR offset of the first 8-byte-aligned field after the header, structs).
+
+    CDR: 4-byte encapsulation header (byte 1: 0 big-endian, 1 little-endian), then the message;
+    alignment is relative to the end of the encapsulation header.
+    """
+    structs = _LE if data[1] == 1 else _BE
+    sec, nsec, n = structs[0].unpack_from(data, 4)
+    if sec < 0 or nsec >= 1_000_000_000 and nsec != 0xFFFFFFFF:
+        raise ValueError(f"invalid header stamp {sec}.{nsec:09d}")
+    pos = 12 + n                       # relative to the body: 4 (sec) + 4 (nanosec) + 4 (len) + n
+    pos = (pos + 7) & ~7
+    return sec, nsec, 4 + pos, structs
+
+
+def decode_imu(data):
+    """``((sec, nanosec), (fx, fy, fz))`` from the CDR bytes of a ``sensor_msgs/Imu``."""
+    sec, nsec, pos, s = _header(data)
+    return (sec, nsec), s[1].unpack_from(data, pos + _IMU_ACC_OFFSET)
+
+
+def decode_vector3(data):
+    """``((sec, nanosec), (x, y, z))`` of a message whose first field after the header is a
+    Vector3 (``sensor_msgs/MagneticField``, ``geometry_msgs/Vector3Stamped``)."""
+    sec, nsec, pos, s = _header(data)
+    return (sec, nsec), s[1].unpack_from(data, pos)
+
+
+def decode_temperature(data):
+    """``((sec, nanosec), temperature °C)`` of a ``sensor_msgs/Temperature``."""
+    sec, nsec, pos, s = _header(data)
+    return (sec, nsec), s[2].unpack_from(data, pos)[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# SurveyStation serialization (rosbags type store, our .msg registered)
+
+class StationEncoder:
+    """Serializes ``SurveyStation`` messages to CDR without rclpy (``rosbags`` type store)."""
+
+    def __init__(self, definitions: Optional[MessageDefinitions] = None):
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+        defs = definitions or MessageDefinitions()
+        self.store = get_typestore(Stores.ROS2_JAZZY)
+        self.store.register(get_types_from_msg(defs.text(STATION_TYPE), STATION_TYPE))
+        self._cls = self.store.types[STATION_TYPE]
+        self._header = self.store.types["std_msgs/msg/Header"]
+        self._time = self.store.types["builtin_interfaces/msg/Time"]
+        self.constants = self._cls
+
+    def encode(self, stamp_ns: int, frame_id: str, fields: dict) -> bytes:
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        msg = self._cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id),
+                        **fields)
+        return bytes(self.store.serialize_cdr(msg, STATION_TYPE))
+
+
+def _finite_or_nan(x) -> float:
+    x = float(x)
+    return x if math.isfinite(x) else NAN
+
+
+def station_fields(rec: StationRecord, ref, azimuth_reference: str, have_temperature: bool,
+                   calibrated: bool) -> dict:
+    """The ``SurveyStation`` fields of a processed station, filled as the correction node does."""
+    v, seg = rec.values, rec.segment
+    has_ref = ref is not None and all(math.isfinite(x) for x in ref)
+    return dict(
+        station_id=int(rec.station_id),
+        drift_deg=_finite_or_nan(v["drift_deg"]),
+        azimuth_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["azimuth_deg"]),
+        azimuth_reference=azimuth_reference,
+        toolface_deg=_finite_or_nan(v["toolface_deg"]),
+        toolface_type="gravity" if v["toolface_is_gravity"] else "magnetic",
+        gravity_toolface_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["gravity_toolface_deg"]),
+        magnetic_toolface_deg=_finite_or_nan(v["magnetic_toolface_deg"]),
+        total_gravity_mps2=float(v["total_gravity"]),
+        total_field_nt=float(v["total_field"]),
+        dip_deg=_finite_or_nan(v["dip_deg"]),
+        delta_g_mps2=float(v["delta_g"]),
+        delta_b_nt=float(v["delta_b"]),
+        delta_dip_deg=_finite_or_nan(v["delta_dip"]),
+        status=int(v["status"]),
+        is_static=not seg.short,
+        interference_suspected=bool(v["interference_suspected"]),
+        azimuth_undefined=bool(v["azimuth_undefined"]),
+        gravity_out_of_tolerance=bool(v["gravity_out_of_tolerance"]),
+        samples_averaged=int(seg.n),
+        duration_s=float(seg.duration_s),
+        temperature_c=float(seg.temp_c) if have_temperature else NAN,
+        coefficients_id=rec.coefficients_id if calibrated else "",
+        reference_drift_deg=float(ref[0]) if has_ref else NAN,
+        reference_azimuth_deg=float(ref[1]) if has_ref else NAN,
+        reference_toolface_deg=float(ref[2]) if has_ref else NAN,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class _Issue:
+    """A kind of per-message problem: how often, and where it happened first."""
+
+    count: int = 0
+    first: str = ""
+
+    def add(self, where: str) -> None:
+        if not self.count:
+            self.first = where
+        self.count += 1
+
+
+@dataclass
+class ReprocessReport:
+    """What :func:`reprocess` read, produced and had to skip."""
+
+    source: Path
+    destination: Path
+    stations: List[dict] = field(default_factory=list)    # SurveyStation fields per station
+    messages_read: int = 0
+    copied: Dict[str, int] = field(default_factory=dict)  # input messages copied, per topic
+    skipped_topics: Dict[str, str] = field(default_factory=dict)  # topic -> "type: reason"
+    pairs: int = 0
+    short_intervals: int = 0                               # static but shorter than min_duration_s
+    issues: Dict[str, _Issue] = field(default_factory=dict)
+    bag_errors: List[BagError] = field(default_factory=list)
+    log_span_s: float = 0.0                                # log time covered by the input
+    seconds: float = 0.0                                   # wall time of the run
+
+    def _issue(self, kind: str, where: str) -> None:
+        self.issues.setdefault(kind, _Issue()).add(where)
+
+    def warnings(self) -> List[str]:
+        out = [f"skipped topic {t} ({why})" for t, why in self.skipped_topics.items()]
+        for kind, iss in self.issues.items():
+            out.append(f"{iss.count} × {kind} (first: {iss.first})")
+        if self.short_intervals:
+            out.append(f"{self.short_intervals} static interval(s) shorter than the minimum duration "
+                       "not reported as stations (static window too short)")
+        return out
+
+
+def _where(topic: str, log_time: int) -> str:
+    return f"{topic} at log time {log_time / 1e9:.9f} s"
+
+
+def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Tolerances = Tolerances(),
+              detector: Optional[StaticDetector] = None, *, compression: str = "zstd",
+              frame_id: str = "probe", copy_input: bool = True,
+              warn: Optional[Callable[[str], None]] = None) -> ReprocessReport:
+    """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten).
+
+    ``calibration``: a :class:`coeffs.Calibration` or None (uncorrected figures).  ``detector``:
+    a configured :class:`streaming.StaticDetector` (default settings if None).  ``warn`` is
+    called with a message for each skipped topic as soon as it is seen.  Returns a
+    :class:`ReprocessReport`; damage to ``src`` is in ``report.bag_errors`` (not raised).
+    Raises :class:`FileExistsError` if ``dst`` exists, :class:`bag.BagError` if ``src`` is not a
+    bag at all, :class:`ReprocessError` if it holds no probe samples.
+    """
+    t_wall = time.perf_counter()
+    reader = open_bag(src)                      # BagError: not an MCAP / unreadable header
+    report = ReprocessReport(Path(src), Path(dst))
+    det = detector if detector is not None else StaticDetector()
+    proc = SurveyProcessor(site, tolerances, calibration)
+    encoder = StationEncoder()
+    az_ref = "true" if site.declination_deg else "magnetic"
+    calibrated = calibration is not None
+    lo_b, hi_b = FIELD_RANGE_NT
+
+    writer = BagWriter(dst, compression=compression)   # FileExistsError before anything is read
+    station_cid = writer.add_topic(TOPIC_STATION, STATION_TYPE,
+                                   qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)])
+    out_cid: Dict[str, Optional[int]] = {}     # input topic -> output channel, None = skipped
+    pending_imu: Dict[tuple, tuple] = {}
+    pending_mag: Dict[tuple, tuple] = {}
+    last_t = -math.inf
+    temp = NAN
+    have_temp = False
+    ref_t: List[float] = []
+    ref_v: List[tuple] = []
+    first_log = last_log = None
+    stations = report.stations
+    copied = report.copied
+    issue = report._issue
+
+    def emit(seg, log_time):
+        if seg.short:
+            report.short_intervals += 1
+            return
+        ref = None
+        if ref_t:
+            k = bisect.bisect_right(ref_t, 0.5 * (seg.t_start + seg.t_end)) - 1
+            ref = ref_v[k] if k >= 0 else None
+        has_ref = ref is not None and all(math.isfinite(x) for x in ref)
+        rec = proc.process(seg, ref=ref if has_ref else None)
+        fields = station_fields(rec, ref, az_ref, have_temp, calibrated)
+        writer.write(station_cid, encoder.encode(int(round(seg.t_end * 1e9)), frame_id, fields), log_time)
+        stations.append(fields)
+
+    def sample(t, f, m, log_time):
+        seg = det.update(t, f, m, temp)
+        if seg is not None:
+            emit(seg, log_time)
+
+    def register(m) -> Optional[int]:
+        want = INPUT_TOPICS.get(m.topic)
+        if want is None:
+            why = f"{m.type or 'unknown type'}: not a probe input topic (reads {', '.join(INPUT_TOPICS)})"
+            if m.topic == TOPIC_STATION:
+                why = f"{m.type}: stations of an earlier run, replaced by the reprocessed ones"
+        elif m.type != want:
+            why = f"{m.type or 'unknown type'}: expected {want}"
+        else:
+            cid = -1
+            if copy_input:
+                info = reader.topic_info(m.topic)
+                cid = writer.add_topic(m.topic, m.type, qos_yaml=info.qos_yaml, type_hash=info.type_hash,
+                                       definition=info.definition,
+                                       schema_encoding=info.schema_encoding or "ros2msg")
+            out_cid[m.topic] = cid
+            copied[m.topic] = 0
+            return cid
+        report.skipped_topics[m.topic] = why
+        out_cid[m.topic] = None
+        if warn is not None:
+            warn(f"{src}: skipped topic {m.topic} ({why})")
+        return None
+
+    try:
+        for m in reader.messages(strict=False):
+            report.messages_read += 1
+            topic, log_time = m.topic, m.log_time
+            if first_log is None:
+                first_log = log_time
+            last_log = log_time
+            cid = out_cid[topic] if topic in out_cid else register(m)
+            if cid is None:
+                continue
+            if cid >= 0:
+                writer.write(cid, m.data, log_time, m.publish_time)
+                copied[topic] += 1
+            try:
+                if topic == TOPIC_IMU:
+                    key, f = decode_imu(m.data)
+                    partner = pending_mag.pop(key, None)
+                    if partner is None:
+                        pending_imu[key] = f
+                        if len(pending_imu) > 64:
+                            del pending_imu[next(iter(pending_imu))]
+                            issue("unpaired imu sample (no mag with the same stamp)", _where(topic, log_time))
+                        continue
+                    mm = partner
+                elif topic == TOPIC_MAG:
+                    key, b = decode_vector3(m.data)
+                    mm = (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA)
+                    f = pending_imu.pop(key, None)
+                    if f is None:
+                        pending_mag[key] = mm
+                        if len(pending_mag) > 64:
+                            del pending_mag[next(iter(pending_mag))]
+                            issue("unpaired mag sample (no imu with the same stamp)", _where(topic, log_time))
+                        continue
+                elif topic == TOPIC_TEMPERATURE:
+                    _, temp = decode_temperature(m.data)
+                    have_temp = True
+                    continue
+                else:  # reference
+                    key, v = decode_vector3(m.data)
+                    t = key[0] + 1e-9 * key[1]
+                    k = bisect.bisect_right(ref_t, t)
+                    ref_t.insert(k, t)
+                    ref_v.insert(k, v)
+                    continue
+            except (struct.error, ValueError, IndexError) as exc:
+                issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
+                continue
+            # a complete imu/mag pair
+            t = key[0] + 1e-9 * key[1]
+            if t <= last_t:
+                issue(f"non-monotonic timestamp (pair stamp not after the previous one), pair dropped",
+                      _where(topic, log_time) + f", stamp {t:.9f} s after {last_t:.9f} s")
+                continue
+            b2 = mm[0] * mm[0] + mm[1] * mm[1] + mm[2] * mm[2]
+            if not (math.isfinite(b2) and math.isfinite(f[0] + f[1] + f[2])):
+                issue("non-finite (NaN/inf) sample, pair dropped", _where(topic, log_time))
+                continue
+            if not lo_b * lo_b <= b2 <= hi_b * hi_b:
+                bt = math.sqrt(b2) / NT_PER_TESLA
+                hint = (" — the field looks like nT written into a tesla field; MagneticField carries "
+                        "tesla (multiply nT by 1e-9)" if 1.0 < bt < 1e6 else "")
+                issue(f"implausible |B| (expected {lo_b:g}..{hi_b:g} nT), pair dropped{hint}",
+                      _where(topic, log_time) + f", |B| = {bt:.4g} T")
+                continue
+            last_t = t
+            report.pairs += 1
+            sample(t, f, mm, log_time)
+        seg = det.flush()
+        if seg is not None:
+            emit(seg, last_log or 0)
+    finally:
+        writer.close()
+    report.bag_errors = list(reader.errors)
+    report.log_span_s = (last_log - first_log) / 1e9 if first_log is not None else 0.0
+    report.seconds = time.perf_counter() - t_wall
+    if not report.pairs:
+        reasons = "; ".join(report.warnings() + [str(e) for e in report.bag_errors]) or "no messages"
+        raise ReprocessError(f"{src}: no usable {TOPIC_IMU}/{TOPIC_MAG} sample pairs ({reasons}); "
+                             f"{dst} holds the copied input only")
+    return report
+
+
+# ---------------------------------------------------------------------------------------------
+# Probe log (CSV / simulator) → bag, as the probe node would have recorded it
+
+def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, frame_id: str = "probe",
+                    reference: bool = True, compression: str = "zstd", latency_ns: int = 0) -> Dict[str, int]:
+    """Write a :class:`probelog.ProbeLog` as a bag of ``/probe/imu``, ``/probe/mag``,
+    ``/probe/temperature`` (one of each per sample, same header stamp ``epoch + t_s``) and, if
+    ``reference``, ``/probe/reference`` at every change of the log's ``ref`` (NaN = none).
+
+    Serialized with the ``rosbags`` type store (no ROS needed).  Accelerometer as REP-145 specific
+    force (m/s², as in the log), magnetometer converted nT → tesla.  Returns messages per topic.
+    """
+    import numpy as np
+    from rosbags.typesys import Stores, get_typestore
+
+    st = get_typestore(Stores.ROS2_JAZZY)
+    T = st.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    Vec, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    Imu, Mag, Temp, V3S = (T[IMU_TYPE], T[MAG_TYPE], T[TEMPERATURE_TYPE], T[REFERENCE_TYPE])
+    ser = st.serialize_cdr
+    z9 = np.zeros(9)
+    unknown_cov = np.zeros(9)
+    unknown_cov[0] = -1.0          # REP-145: orientation not provided
+    q0 = Quat(x=0.0, y=0.0, z=0.0, w=1.0)
+    v0 = Vec(x=0.0, y=0.0, z=0.0)
+    with BagWriter(path, compression=compression) as w:
+        sensor_qos = [dict(DEFAULT_QOS_PROFILE, reliability="best_effort", depth=1000)]
+        c_imu = w.add_topic(TOPIC_IMU, IMU_TYPE, qos_profiles=sensor_qos)
+        c_mag = w.add_topic(TOPIC_MAG, MAG_TYPE, qos_profiles=sensor_qos)
+        c_tmp = w.add_topic(TOPIC_TEMPERATURE, TEMPERATURE_TYPE, qos_profiles=sensor_qos)
+        c_ref = w.add_topic(TOPIC_REFERENCE, REFERENCE_TYPE,
+                            qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)]) if reference else None
+        stamps = epoch_ns + np.round(np.asarray(log.t_s, float) * 1e9).astype(np.int64)
+        mag_t = np.asarray(log.mag, float) / NT_PER_TESLA
+        last_ref = None
+        for i in range(len(log)):
+            ns = int(stamps[i])
+            sec, nsec = divmod(ns, 1_000_000_000)
+            hdr = Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=frame_id)
+            lt = ns + latency_ns
+            if c_ref is not None:
+                r = tuple(float(x) for x in log.ref[i])
+                if last_ref is None or any(a != b and not (a != a and b != b) for a, b in zip(r, last_ref)):
+                    w.write(c_ref, bytes(ser(V3S(header=hdr, vector=Vec(x=r[0], y=r[1], z=r[2])), REFERENCE_TYPE)), lt)
+                    last_ref = r
+            f = log.acc[i]
+            w.write(c_imu, bytes(ser(Imu(header=hdr, orientation=q0, orientation_covariance=unknown_cov,
+                                         angular_velocity=v0, angular_velocity_covariance=unknown_cov,
+                                         linear_acceleration=Vec(x=float(f[0]), y=float(f[1]), z=float(f[2])),
+                                         linear_acceleration_covariance=z9), IMU_TYPE)), lt)
+            b = mag_t[i]
+            w.write(c_mag, bytes(ser(Mag(header=hdr, magnetic_field=Vec(x=float(b[0]), y=float(b[1]), z=float(b[2])),
+                                         magnetic_field_covariance=z9), MAG_TYPE)), lt)
+            w.write(c_tmp, bytes(ser(Temp(header=hdr, temperature=float(log.temp_c[i]), variance=0.0),
+                                     TEMPERATURE_TYPE)), lt)
+        return w.message_counts()

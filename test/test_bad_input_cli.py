@@ -1,0 +1,331 @@
+"""Bad input fed to the CLI: a clear error or flag naming what and where, no crash, and the good
+data around it still used.
+
+Parse-level rejections are pinned in test_probelog.py, record checks in test_coeffs.py, and a
+NaN calibration row / a missing pose / an edited offset in test_cli.py; here each remaining case
+goes through ``inclinometer_calib.cli.main`` in-process.
+"""
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from inclinometer_calib.cli import main
+
+N_VAL = 198      # stand-grid stations of the simulated validation log
+
+
+@pytest.fixture(scope="module")
+def simdir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("bad")
+    assert main(["simulate", "--out", str(d), "--seed", "4", "--station-seconds", "0.5",
+                 "--cal-temps", "25,30"]) == 0          # two rounds of the twelve poses
+    return d
+
+
+class Log:
+    """A probe-log CSV as editable rows of fields (row k = data row k, file line k + 1)."""
+
+    def __init__(self, path):
+        lines = path.read_text().splitlines()
+        self.header, self.rows = lines[0], [ln.split(",") for ln in lines[1:]]
+
+    def write(self, path):
+        path.write_text("\n".join([self.header] + [",".join(r) for r in self.rows]) + "\n")
+        return str(path)
+
+    def station_rows(self, pose=None, ref=None, nth=0):
+        """Indices of the nth run of consecutive rows with this pose label (or ref_drift)."""
+        runs, cur = [], []
+        for i, r in enumerate(self.rows):
+            hit = (r[8] == str(pose)) if pose is not None else (r[9] != "" and float(r[9]) == ref)
+            if hit:
+                cur.append(i)
+            elif cur:
+                runs.append(cur)
+                cur = []
+        if cur:
+            runs.append(cur)
+        return runs[nth]
+
+
+def _run(capsys, argv):
+    capsys.readouterr()
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _twelve(capsys, cal, tmp_path):
+    out = tmp_path / "c.yaml"
+    code, stdout, err = _run(capsys, ["twelve-position", cal, "-o", str(out), "--site", str(out.parent / "site.yaml")])
+    return code, stdout, err, out
+
+
+def _correct_json(capsys, log, simdir, *extra):
+    code, stdout, err = _run(capsys, ["correct", log, "--coeffs", str(simdir / "truth_coeffs.yaml"), "--json", *extra])
+    return code, (json.loads(stdout) if code == 0 else None), err
+
+
+@pytest.fixture
+def site(simdir, tmp_path):
+    (tmp_path / "site.yaml").write_text((simdir / "site.yaml").read_text())
+
+
+# ---- samples ---------------------------------------------------------------------------------
+def test_inf_and_nan_samples_in_a_survey_log_are_rejected_by_row_and_every_station_still_comes_out(simdir, tmp_path,
+                                                                                                   capsys):
+    log = Log(simdir / "val.csv")
+    i = log.station_rows(ref=30.0)[10]
+    log.rows[i][6] = "inf"
+    log.rows[i + 1][2] = "NaN"
+    code, summ, err = _correct_json(capsys, log.write(tmp_path / "v.csv"), simdir)
+    assert code == 0
+    assert f"row {i + 1} (line {i + 2}): mz not finite (NaN/inf)" in err
+    assert f"row {i + 2} (line {i + 3}): ay not finite (NaN/inf)" in err
+    assert summ["stations"] == N_VAL and summ["drift_rms_deg"] < 0.05
+
+
+def test_saturated_axis_is_rejected_naming_axis_and_row_and_the_calibration_still_solves(simdir, tmp_path, site,
+                                                                                        capsys):
+    log = Log(simdir / "cal.csv")
+    i = log.station_rows(pose=3)[2]
+    log.rows[i][3] = "-19.6"                      # az at the accelerometer's 2 g full scale
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 0 and out.exists()
+    assert f"row {i + 1} (line {i + 2}): az=-19.6 m/s² is saturated" in err
+
+
+@pytest.mark.parametrize("value,reason", [("0", "total field 0 nT is implausible"),
+                                          ("", "is not a number")])
+def test_zero_or_absent_field_is_rejected_and_the_calibration_still_solves(simdir, tmp_path, site, capsys, value,
+                                                                          reason):
+    log = Log(simdir / "cal.csv")
+    i = log.station_rows(pose=9)[3]
+    log.rows[i][4:7] = [value] * 3
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 0 and out.exists()
+    assert f"row {i + 1} (line {i + 2}): " in err and reason in err
+
+
+def test_magnetometer_in_tesla_is_refused_with_the_unit_hint(simdir, tmp_path, site, capsys):
+    log = Log(simdir / "cal.csv")
+    for r in log.rows:
+        r[4:7] = [f"{float(v) * 1e-9:.6e}" for v in r[4:7]]
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 2 and not out.exists()
+    assert "no usable rows" in err and "row 1 (line 2)" in err
+    assert "look like tesla; multiply by 1e9" in err
+
+
+def test_non_monotonic_timestamp_is_rejected_naming_the_row_and_the_rest_is_used(simdir, tmp_path, capsys):
+    log = Log(simdir / "val.csv")
+    i = log.station_rows(ref=50.0)[20]
+    log.rows[i][0] = log.rows[i - 5][0]
+    code, summ, err = _correct_json(capsys, log.write(tmp_path / "v.csv"), simdir)
+    assert code == 0 and summ["stations"] == N_VAL
+    assert f"row {i + 1} (line {i + 2}): time t_s=" in err and "non-monotonic timestamp" in err
+
+
+# ---- poses -----------------------------------------------------------------------------------
+def test_duplicated_pose_is_used_and_warned(simdir, tmp_path, site, capsys):
+    log = Log(simdir / "cal.csv")
+    idx = log.station_rows(pose=6, nth=0)
+    t_end = float(log.rows[-1][0])
+    extra = [list(log.rows[i]) for i in idx]
+    for k, r in enumerate(extra):                  # pose 6 captured a third time, at the end
+        r[0] = f"{t_end + 1.0 + 0.01 * k:.4f}"
+    log.rows += extra
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 0 and out.exists()
+    assert "pose(s) 6 ×3 captured more often than the others (×2)" in err
+
+
+def test_mislabelled_pose_is_refused_naming_rows_label_and_gravity_and_the_rest_solves(simdir, tmp_path, site,
+                                                                                      capsys):
+    log = Log(simdir / "cal.csv")
+    idx = log.station_rows(pose=7, nth=1)          # second round: pose 7 labelled as 5
+    for i in idx:
+        log.rows[i][8] = "5"
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 0 and out.exists()              # round 1 still has pose 7
+    assert f"station at rows {idx[0] + 1}-{idx[-1] + 1}: labelled pose 5 but gravity says pose 7" in err
+    assert "station refused (mislabelled pose)" in err
+
+
+def test_mislabelled_pose_that_leaves_a_pose_missing_is_an_error_naming_both(simdir, tmp_path, site, capsys):
+    log = Log(simdir / "cal.csv")
+    runs = [log.station_rows(pose=7, nth=nth) for nth in (0, 1)]
+    for i in runs[0] + runs[1]:
+        log.rows[i][8] = "5"
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 2 and not out.exists()
+    assert "pose(s) [7] missing" in err and "labelled pose 5 but gravity says pose 7" in err
+
+
+def test_probe_moved_during_a_capture_is_refused_and_the_rest_solves(simdir, tmp_path, site, capsys):
+    log = Log(simdir / "cal.csv")
+    idx = log.station_rows(pose=10, nth=0)
+    for k, i in enumerate(idx):                    # the probe rolls while pose 10 is captured
+        log.rows[i][1] = f"{float(log.rows[i][1]) + 2.0 * k / len(idx):.6f}"
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 0 and out.exists()
+    assert "(pose 10, rows from" in err and "moved during the capture" in err
+    assert "(pose 10): the probe moved during the capture; station refused" in err
+
+
+def test_static_window_too_short_is_dropped_naming_the_station_and_the_others_come_out(simdir, tmp_path, capsys):
+    log = Log(simdir / "val.csv")
+    idx = log.station_rows(ref=60.0)
+    for i in idx[3:]:                              # only 3 rows keep their labels
+        log.rows[i][9:12] = ["", "", ""]
+    code, summ, err = _correct_json(capsys, log.write(tmp_path / "v.csv"), simdir)
+    assert code == 0 and summ["stations"] == N_VAL - 1
+    assert f"station at rows {idx[0] + 1}-{idx[0] + 3}" in err and "static window too short, dropped" in err
+
+
+# ---- survey QC ---------------------------------------------------------------------------------
+def test_near_vertical_station_is_flagged_azimuth_undefined_and_left_out_of_azimuth_stats(simdir, tmp_path, capsys):
+    # a vertical station: the stand grid's first drift set to 0 (the data are those of drift 2°
+    # stations, so take the simulator's true vertical vectors instead)
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.coeffs import Calibration
+    from inclinometer_calib.frames import Site
+    from inclinometer_calib.probelog import write_csv
+
+    truth = Calibration.load(simdir / "truth_coeffs.yaml")
+    probe = sim.build_probe(4)
+    sess = sim.stand_grid_session(drifts=(0, 0.2, 20), azimuths=(0, 120), toolfaces=(0,), duration_s=0.5)
+    log = sim.run_session(probe, Site(**yaml.safe_load((simdir / "site.yaml").read_text())["site"]), sess,
+                          np.random.default_rng(0))
+    p = tmp_path / "vertical.csv"
+    write_csv(p, log)
+    st = tmp_path / "st.csv"
+    code, stdout, err = _run(capsys, ["correct", str(p), "--coeffs", str(simdir / "truth_coeffs.yaml"),
+                                      "--json", "-o", str(st)])
+    assert code == 0 and truth.id
+    summ = json.loads(stdout)
+    assert summ["flagged"]["azimuth_undefined"] == 4
+    assert summ["azimuth_stations"] == 2 and summ["azimuth_rms_deg"] < 0.5   # only the 20° stations
+    rows = [r.split(",") for r in st.read_text().splitlines()]
+    head = rows[0]
+    for r in rows[1:]:
+        if float(r[head.index("ref_drift_deg")]) < 0.5:
+            assert "azimuth_undefined" in r[head.index("flags")] and r[head.index("status")] == "warn"
+            assert r[head.index("azimuth_err_deg")] == ""           # no azimuth error computed
+            assert r[head.index("toolface_type")] == "magnetic"
+
+
+def test_magnetic_interference_is_flagged_on_that_station_only(simdir, tmp_path, capsys):
+    log = Log(simdir / "val.csv")
+    idx = log.station_rows(ref=40.0, nth=0)
+    for i in idx:
+        log.rows[i][6] = f"{float(log.rows[i][6]) + 800.0:.3f}"   # a steel object near the probe
+    st = tmp_path / "st.csv"
+    code, summ, err = _correct_json(capsys, log.write(tmp_path / "v.csv"), simdir, "-o", str(st))
+    assert code == 0 and summ["stations"] == N_VAL
+    assert summ["flagged"]["interference_suspected"] == 1
+    rows = [r.split(",") for r in st.read_text().splitlines()]
+    head = rows[0]
+    hit = [r for r in rows[1:] if "interference_suspected" in r[head.index("flags")]]
+    assert len(hit) == 1 and float(hit[0][head.index("t_start_s")]) == pytest.approx(float(log.rows[idx[0]][0]))
+    assert abs(float(hit[0][head.index("delta_b_nt")])) > 300 and hit[0][head.index("status")] == "warn"
+
+
+# ---- singular / ill-conditioned fit -----------------------------------------------------------
+def test_dead_axis_is_refused_naming_the_axis_and_no_coefficients_are_written(simdir, tmp_path, site, capsys):
+    log = Log(simdir / "cal.csv")
+    for r in log.rows:
+        r[5] = "21000.000"                          # my stuck at a constant
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 2 and not out.exists()
+    assert "magnetometer: scale K_y = 0 (from poses 5-8): the y axis output does not change" in err
+
+
+def test_two_physically_identical_poses_are_refused_naming_the_pose(simdir, tmp_path, site, capsys):
+    # pose 2 (X down, rolled 180°) recorded in pose 1's orientation in both rounds: gravity cannot
+    # tell (X is down in both), the field's horizontal part can
+    log = Log(simdir / "cal.csv")
+    for nth in (0, 1):
+        src, dst = log.station_rows(pose=1, nth=nth), log.station_rows(pose=2, nth=nth)
+        for k, i in enumerate(dst):
+            log.rows[i][1:7] = log.rows[src[k % len(src)]][1:7]
+    code, _, err, out = _twelve(capsys, log.write(tmp_path / "cal.csv"), tmp_path)
+    assert code == 2 and not out.exists()
+    assert "magnetometer: pose" in err and "does not fit the twelve-pose model" in err
+    assert "mislabelled or duplicated pose" in err
+
+
+# ---- coefficient files -----------------------------------------------------------------------
+@pytest.mark.parametrize("edit,msg", [
+    (lambda r: r["accelerometer"].update(correction_matrix=[[1, 0, 0], [0, 1, 0]]),
+     "accelerometer.correction_matrix has shape (2, 3), expected 3×3"),
+    (lambda r: r["magnetometer"]["units"].update(input="uT"), "magnetometer.units.input is 'uT', expected 'nT'"),
+    (lambda r: r.update(format_version=2), "format_version 2 is not supported"),
+])
+def test_malformed_coefficient_file_is_refused_by_correct_naming_file_and_field(simdir, tmp_path, capsys, edit, msg):
+    rec = yaml.safe_load((simdir / "truth_coeffs.yaml").read_text())
+    edit(rec)
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(rec))
+    code, stdout, err = _run(capsys, ["correct", str(simdir / "val.csv"), "--coeffs", str(p), "--json"])
+    assert code == 2 and stdout == ""
+    assert f"error: {p}: " in err and msg in err
+
+
+def test_coefficient_file_that_is_not_yaml_is_refused(simdir, tmp_path, capsys):
+    p = tmp_path / "garbage.yaml"
+    p.write_text("format: [inclinometer_calib\n  : :")
+    code, _, err = _run(capsys, ["correct", str(simdir / "val.csv"), "--coeffs", str(p)])
+    assert code == 2 and f"{p}: not valid YAML" in err
+
+
+# ---- bags --------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def bag(simdir, tmp_path_factory):
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.frames import Site
+    from inclinometer_calib.reprocess import write_probe_bag
+
+    d = tmp_path_factory.mktemp("badbag")
+    site = Site(**yaml.safe_load((simdir / "site.yaml").read_text())["site"])
+    sess = sim.stand_grid_session(drifts=(10, 45), azimuths=(0, 90, 180, 270), toolfaces=(0,), duration_s=2.0)
+    log = sim.run_session(sim.build_probe(4), site, sess, np.random.default_rng(0))
+    p = d / "in.mcap"
+    write_probe_bag(log, p, compression="")
+    return p, log
+
+
+def test_corrupt_mcap_chunk_is_an_error_naming_the_offset_and_the_other_stations_come_out(simdir, bag, tmp_path,
+                                                                                          capsys):
+    from inclinometer_calib.bag import open_bag
+
+    src, _ = bag
+    data = bytearray(src.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 64] = bytes(64)                 # zero a stretch inside a chunk
+    bad = tmp_path / "corrupt.mcap"
+    bad.write_bytes(bytes(data))
+    out = tmp_path / "out.mcap"
+    code, stdout, err = _run(capsys, ["reprocess", str(bad), "--coeffs", str(simdir / "truth_coeffs.yaml"),
+                                      "-o", str(out)])
+    assert code == 1
+    assert f"error: {bad}: " in err and "byte offset" in err and "were processed and written" in err
+    res = open_bag(out)
+    n = sum(1 for _ in res.messages(["/survey/station"]))
+    assert 4 <= n <= 8                              # a chunk (≤ 1 s of log) is lost, not the stations
+    assert 0 < sum(1 for _ in res.messages(["/probe/imu"])) < len(bag[1])
+
+
+def test_field_in_nT_written_as_tesla_in_a_bag_is_refused_with_the_unit_hint(simdir, bag, tmp_path, capsys):
+    from inclinometer_calib.reprocess import write_probe_bag
+
+    _, log = bag
+    wrong = type(log)(log.t_s, log.acc, log.mag * 1e9, log.temp_c, log.pose, log.ref)   # nT ×1e9 → "tesla" = nT
+    p = tmp_path / "nt.mcap"
+    write_probe_bag(wrong, p, compression="")
+    code, _, err = _run(capsys, ["reprocess", str(p), "--coeffs", "none", "-o", str(tmp_path / "o.mcap")])
+    assert code == 2
+    assert "no usable /probe/imu//probe/mag sample pairs" in err
+    assert "looks like nT written into a tesla field" in err and "/probe/mag at log time" in err

@@ -1,0 +1,183 @@
+"""Offline reprocessing of a recorded bag (ROS-free): read → pair → stations → correct → write."""
+import math
+import os
+
+import numpy as np
+import pytest
+
+from inclinometer_calib import simulate as sim
+from inclinometer_calib.bag import BagWriter, open_bag
+from inclinometer_calib.cli import main
+from inclinometer_calib.coeffs import Calibration
+from inclinometer_calib.frames import Site
+from inclinometer_calib.reprocess import (IMU_TYPE, MAG_TYPE, STATION_TYPE, decode_imu, decode_temperature,
+                                          decode_vector3, reprocess, write_probe_bag)
+
+SITE = Site(total_field_nt=52000.0, dip_deg=50.0, declination_deg=0.0)
+DRIFTS = (0, 3, 10, 45, 90)
+AZIMUTHS = (30, 150, 270)
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    """A simulated stand survey (15 stations, 2 s each at 100 Hz) recorded as a bag, plus the
+    simulator's true coefficients."""
+    d = tmp_path_factory.mktemp("reprocess")
+    probe = sim.build_probe(5, [("temperature_bias", "mag", None, [2.0])])
+    sess = sim.stand_grid_session(drifts=DRIFTS, azimuths=AZIMUTHS, toolfaces=(60,), duration_s=2.0,
+                                  temp_profile_c=(25, 35))
+    log = sim.run_session(probe, SITE, sess, np.random.default_rng(2), rate_hz=100)
+    bag = d / "survey.mcap"
+    counts = write_probe_bag(log, bag)
+    truth = Calibration(acc=probe.acc, mag=probe.mag, probe_id="sim-5", site=SITE)
+    coeffs = d / "truth.yaml"
+    truth.save(coeffs)
+    return {"dir": d, "bag": bag, "log": log, "counts": counts, "cal": truth, "coeffs": coeffs,
+            "n_stations": len(sess)}
+
+
+def _stations(path):
+    from mcap_ros2.reader import read_ros2_messages  # decodes with the definitions in the file
+    return [m.ros_msg for m in read_ros2_messages(str(path), topics=["/survey/station"])]
+
+
+def test_stations_match_the_reference_after_correction_with_the_true_coefficients(survey, tmp_path):
+    out = tmp_path / "out.mcap"
+    rep = reprocess(survey["bag"], out, survey["cal"], SITE)
+    assert rep.bag_errors == [] and rep.skipped_topics == {}
+    assert rep.pairs == len(survey["log"])
+    st = _stations(out)
+    assert len(st) == len(rep.stations) == survey["n_stations"]
+    for s in st:
+        assert s.reference_drift_deg in DRIFTS
+        assert abs(s.drift_deg - s.reference_drift_deg) < 0.05
+        assert s.samples_averaged > 150 and s.is_static
+        assert s.coefficients_id == survey["cal"].id
+        assert 25 <= s.temperature_c <= 35
+        if s.reference_drift_deg == 0:      # near vertical: azimuth undefined, flagged, NaN
+            assert s.azimuth_undefined and math.isnan(s.azimuth_deg) and s.status == 1
+            assert s.toolface_type == "magnetic"
+        else:
+            err = (s.azimuth_deg - s.reference_azimuth_deg + 180) % 360 - 180
+            assert abs(err) < 0.5, (s.reference_drift_deg, s.reference_azimuth_deg, s.azimuth_deg)
+            assert s.status == 0 and not s.interference_suspected
+    # input messages are copied through unchanged
+    counts = {k: v.count for k, v in open_bag(out).topics.items()}
+    for topic, n in survey["counts"].items():
+        assert counts[topic] == n
+    src = [m.data for m in open_bag(survey["bag"]).messages(["/probe/imu"])][:50]
+    dst = [m.data for m in open_bag(out).messages(["/probe/imu"])][:50]
+    assert src == dst
+
+
+def test_uncorrected_is_worse_than_corrected(survey, tmp_path):
+    raw = reprocess(survey["bag"], tmp_path / "raw.mcap", None, SITE)
+    err = [abs((s["azimuth_deg"] - s["reference_azimuth_deg"] + 180) % 360 - 180)
+           for s in raw.stations if not s["azimuth_undefined"]]
+    assert max(err) > 1.0
+    assert all(s["coefficients_id"] == "" for s in raw.stations)
+
+
+def test_cli_reprocess_and_never_overwrites(survey, tmp_path, capsys):
+    out = tmp_path / "o.mcap"
+    assert main(["reprocess", str(survey["bag"]), "--coeffs", str(survey["coeffs"]), "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert f"{survey['n_stations']} stations" in text and "real time" in text
+    size = out.stat().st_size
+    assert main(["reprocess", str(survey["bag"]), "--coeffs", "none", "-o", str(out)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert out.stat().st_size == size
+
+
+def test_truncated_bag_is_an_error_naming_file_and_offset_and_the_readable_part_is_processed(survey, tmp_path,
+                                                                                             capsys):
+    data = survey["bag"].read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    out = tmp_path / "cut_out.mcap"
+    assert main(["reprocess", str(cut), "--coeffs", str(survey["coeffs"]), "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert f"error: {cut}" in err and "byte offset" in err and "truncated" in err
+    assert "were processed and written" in err
+    st = _stations(out)
+    assert 3 <= len(st) < survey["n_stations"]          # the stations before the damage
+    assert all(abs(s.drift_deg - s.reference_drift_deg) < 0.05 for s in st)
+
+
+def test_unknown_topics_and_types_are_skipped_with_a_warning_naming_them(survey, tmp_path, capsys):
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    String = store.types["std_msgs/msg/String"]
+    src = tmp_path / "mixed.mcap"
+    with BagWriter(src) as w:
+        ids = {}
+        for m in open_bag(survey["bag"]).messages():
+            if m.topic not in ids:
+                ids[m.topic] = w.add_topic(m.topic, m.type)
+            w.write(ids[m.topic], m.data, m.log_time, m.publish_time)
+        chat = w.add_topic("/chatter", "std_msgs/msg/String")
+        wrong = w.add_topic("/probe/imu_raw_counts", "std_msgs/msg/String")
+        for k in range(5):
+            w.write(chat, bytes(store.serialize_cdr(String(data=f"hello {k}"), "std_msgs/msg/String")), 10 + k)
+            w.write(wrong, bytes(store.serialize_cdr(String(data="x"), "std_msgs/msg/String")), 10 + k)
+    out = tmp_path / "mixed_out.mcap"
+    assert main(["reprocess", str(src), "--coeffs", str(survey["coeffs"]), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "skipped topic /chatter (std_msgs/msg/String: not a probe input topic" in err
+    assert "skipped topic /probe/imu_raw_counts" in err
+    topics = open_bag(out).topics
+    assert "/chatter" not in topics and len(_stations(out)) == survey["n_stations"]
+
+
+def test_input_topic_with_the_wrong_type_is_skipped_naming_the_expected_type(survey, tmp_path, capsys):
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    String = store.types["std_msgs/msg/String"]
+    src = tmp_path / "wrongtype.mcap"
+    with BagWriter(src) as w:
+        ids = {}
+        for m in open_bag(survey["bag"]).messages(["/probe/imu", "/probe/mag"]):
+            if m.topic not in ids:
+                ids[m.topic] = w.add_topic(m.topic, m.type)
+            w.write(ids[m.topic], m.data, m.log_time, m.publish_time)
+        t = w.add_topic("/probe/temperature", "std_msgs/msg/String")
+        w.write(t, bytes(store.serialize_cdr(String(data="25"), "std_msgs/msg/String")), 1)
+    out = tmp_path / "wrongtype_out.mcap"
+    assert main(["reprocess", str(src), "--coeffs", "none", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "skipped topic /probe/temperature (std_msgs/msg/String: expected sensor_msgs/msg/Temperature)" in err
+    st = _stations(out)
+    assert len(st) == survey["n_stations"] and all(math.isnan(s.temperature_c) for s in st)
+
+
+@pytest.mark.parametrize("frame_id", ["", "p", "probe", "probe_frame_1234"])
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_fast_decoders_agree_with_rosbags(frame_id, little_endian):
+    from rosbags.typesys import Stores, get_typestore
+
+    st = get_typestore(Stores.ROS2_JAZZY)
+    T = st.types
+    hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1700000123, nanosec=450000000),
+                                   frame_id=frame_id)
+    V = T["geometry_msgs/msg/Vector3"]
+    imu = T[IMU_TYPE](header=hdr, orientation=T["geometry_msgs/msg/Quaternion"](x=1.0, y=2.0, z=3.0, w=4.0),
+                      orientation_covariance=np.arange(9.0), angular_velocity=V(x=5.0, y=6.0, z=7.0),
+                      angular_velocity_covariance=np.arange(9.0) + 10, linear_acceleration=V(x=0.1, y=-0.2, z=-9.8),
+                      linear_acceleration_covariance=np.arange(9.0) + 20)
+    mag = T[MAG_TYPE](header=hdr, magnetic_field=V(x=2e-5, y=-1e-6, z=4e-5), magnetic_field_covariance=np.zeros(9))
+    tmp = T["sensor_msgs/msg/Temperature"](header=hdr, temperature=31.5, variance=0.1)
+    ser = (lambda m, t: bytes(st.serialize_cdr(m, t, little_endian=little_endian)))
+    assert decode_imu(ser(imu, IMU_TYPE)) == ((1700000123, 450000000), (0.1, -0.2, -9.8))
+    assert decode_vector3(ser(mag, MAG_TYPE)) == ((1700000123, 450000000), (2e-5, -1e-6, 4e-5))
+    assert decode_temperature(ser(tmp, "sensor_msgs/msg/Temperature")) == ((1700000123, 450000000), 31.5)
+
+
+def test_station_messages_carry_our_definition_and_hash(survey, tmp_path):
+    out = tmp_path / "h.mcap"
+    reprocess(survey["bag"], out, None, SITE)
+    info = open_bag(out).topics["/survey/station"]
+    assert info.type == STATION_TYPE and info.type_hash.startswith("RIHS01_")
+    assert "uint32 station_id" in info.definition
+    assert os.path.getsize(out) > 0
