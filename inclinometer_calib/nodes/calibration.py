@@ -66,6 +66,7 @@ class CalibrationNode(Node):
                                       max_scatter_mag=max_mag, pose_tolerance_deg=pose_tol, rounds=rounds,
                                       probe_id=self.probe_id)
         self.pairer = c.StreamPairer()
+        self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
         self._temp = c.NAN
         self._last = None            # latest paired sample (t, f, m)
         self._last_wall = None       # monotonic time of the latest sample
@@ -100,20 +101,33 @@ class CalibrationNode(Node):
     # ---- samples ---------------------------------------------------------------------------
     def _on_imu(self, msg):
         s = msg.header.stamp
+        ooo = self.pairer.out_of_order
         got = self.pairer.add_imu((s.sec, s.nanosec), c.specific_force(msg))
         if got is not None:
             self._sample(*got)
+        elif self.pairer.out_of_order != ooo:
+            self._warn_order(c.TOPIC_IMU, s)
 
     def _on_mag(self, msg):
         s = msg.header.stamp
+        ooo = self.pairer.out_of_order
         got = self.pairer.add_mag((s.sec, s.nanosec), c.field_nt(msg))
         if got is not None:
             self._sample(*got)
+        elif self.pairer.out_of_order != ooo:
+            self._warn_order(c.TOPIC_MAG, s)
 
     def _on_temp(self, msg):
         self._temp = msg.temperature
 
+    def _warn_order(self, topic, stamp):
+        self.get_logger().warning(c.out_of_order_text(topic, (stamp.sec, stamp.nanosec), self.pairer.last_t,
+                                                      self.pairer.out_of_order), throttle_duration_sec=2.0)
+
     def _sample(self, t, f, m):
+        if not c.sample_is_finite(f, m):
+            self.bad_samples += 1
+            self.get_logger().warning(c.bad_sample_text(t, f, m, self.bad_samples), throttle_duration_sec=2.0)
         self._last = (t, f, m)
         self._last_wall = time.monotonic()
         seg = self.detector.update(t, f, m, self._temp)

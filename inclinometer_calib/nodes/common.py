@@ -277,6 +277,24 @@ def field_nt(mag_msg) -> tuple:
     return (f.x * NT_PER_TESLA, f.y * NT_PER_TESLA, f.z * NT_PER_TESLA)
 
 
+def sample_is_finite(f, m) -> bool:
+    """True when all six components are finite (one addition chain: NaN and inf propagate)."""
+    return math.isfinite(f[0] + f[1] + f[2] + m[0] + m[1] + m[2])
+
+
+def bad_sample_text(t: float, f, m, count: int) -> str:
+    """Warning for a non-finite sample: what (which sensor, the values) and where (stamp)."""
+    which = [name for name, v in (("/probe/imu", f), ("/probe/mag", m)) if not all(map(math.isfinite, v))]
+    return (f"non-finite sample at t={t:.3f} s on {' and '.join(which)} (acc {tuple(f)} m/s^2, mag "
+            f"{tuple(m)} nT): ignored, it closes the current static interval; {count} so far")
+
+
+def out_of_order_text(topic: str, stamp, last_t: float, count: int) -> str:
+    """Warning for a sample whose stamp is not after the previous pair's (non-monotonic time)."""
+    return (f"{topic}: sample stamped t={stamp[0] + 1e-9 * stamp[1]:.3f} s is not after the previous one "
+            f"(t={last_t:.3f} s): non-monotonic timestamps, dropped; {count} so far")
+
+
 class StreamPairer:
     """Pairs Imu and MagneticField samples of the same header stamp, cheaply and in time order.
 

@@ -67,6 +67,8 @@ class CorrectionNode(Node):
         self.detector = StaticDetector(**det)
         self.processor = SurveyProcessor(self.site, self.tol)
         self.pairer = c.StreamPairer()
+        self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
+        self._unpaired_seen = self._paired_seen = 0
         self.fast = None
         self._temp = c.NAN
         self._have_temp = False
@@ -126,10 +128,13 @@ class CorrectionNode(Node):
     # ---- samples ---------------------------------------------------------------------------
     def _on_imu(self, msg):
         s = msg.header.stamp
+        ooo = self.pairer.out_of_order
         f = c.specific_force(msg)
         got = self.pairer.add_imu((s.sec, s.nanosec), f)
         if got is not None:
             self._sample(*got)
+        elif self.pairer.out_of_order != ooo:
+            self._warn_order(c.TOPIC_IMU, s)
         if self.publish_corrected and self.fast is not None:
             la = msg.linear_acceleration
             la.x, la.y, la.z = self.fast.specific_force(f)
@@ -137,10 +142,13 @@ class CorrectionNode(Node):
 
     def _on_mag(self, msg):
         s = msg.header.stamp
+        ooo = self.pairer.out_of_order
         m = c.field_nt(msg)
         got = self.pairer.add_mag((s.sec, s.nanosec), m)
         if got is not None:
             self._sample(*got)
+        elif self.pairer.out_of_order != ooo:
+            self._warn_order(c.TOPIC_MAG, s)
         if self.publish_corrected and self.fast is not None:
             x, y, z = self.fast.field(m)
             mf = msg.magnetic_field
@@ -164,7 +172,14 @@ class CorrectionNode(Node):
         k = bisect.bisect_right(self._ref_t, t) - 1
         return self._ref_v[k] if k >= 0 else (c.NAN, c.NAN, c.NAN)
 
+    def _warn_order(self, topic, stamp):
+        self.get_logger().warning(c.out_of_order_text(topic, (stamp.sec, stamp.nanosec), self.pairer.last_t,
+                                                      self.pairer.out_of_order), throttle_duration_sec=2.0)
+
     def _sample(self, t, f, m):
+        if not c.sample_is_finite(f, m):
+            self.bad_samples += 1
+            self.get_logger().warning(c.bad_sample_text(t, f, m, self.bad_samples), throttle_duration_sec=2.0)
         self._last_wall = time.monotonic()
         seg = self.detector.update(t, f, m, self._temp)
         if seg is not None:
@@ -255,7 +270,19 @@ class CorrectionNode(Node):
         arr.status.append(summary)
         return arr
 
+    def _check_pairing(self):
+        """Warn when samples of one stream find no partner of the other (absent field or imu)."""
+        pr = self.pairer
+        new = pr.unpaired - self._unpaired_seen
+        if new > 0 and pr.paired == self._paired_seen:
+            lone, other = ((c.TOPIC_IMU, c.TOPIC_MAG) if len(pr._imu) >= len(pr._mag)
+                           else (c.TOPIC_MAG, c.TOPIC_IMU))
+            self.get_logger().warning(f"{new} samples on {lone} without a {other} partner (same stamp) since the "
+                                      f"last check: {other} absent or stamped differently; no stations from them")
+        self._unpaired_seen, self._paired_seen = pr.unpaired, pr.paired
+
     def _on_timer(self):
+        self._check_pairing()
         if (self.idle_flush > 0 and self._last_wall is not None
                 and time.monotonic() - self._last_wall > self.idle_flush):
             self._last_wall = None  # end of stream: close the last station

@@ -237,44 +237,66 @@ class ProbeNode(Node):
         self.get_logger().info(f"wrote {self.truth_file} and truth_coeffs.yaml")
 
     def _read_bag(self, path):
-        """Samples of a recorded bag: imu, mag (and temperature, reference) paired by stamp."""
-        from mcap.reader import make_reader
-        from mcap_ros2.decoder import DecoderFactory
+        """Samples of a recorded bag: imu, mag (and temperature, reference) paired by stamp.
 
-        with open(path, "rb") as fh:
-            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-            summary = reader.get_summary()
-            if summary is None:
-                raise ValueError(f"{path}: no summary section (file not finalized?)")
-            topics = []
-            for ch in summary.channels.values():
-                schema = summary.schemas.get(ch.schema_id)
-                type_name = schema.name if schema else "?"
-                want = KNOWN_BAG_TOPICS.get(ch.topic)
-                if want is None:
-                    self.get_logger().warning(f"{path}: topic {ch.topic} ({type_name}) is not replayed: skipped")
-                elif type_name != want:
-                    self.get_logger().warning(f"{path}: topic {ch.topic} has type {type_name}, expected "
-                                              f"{want}: skipped")
-                else:
-                    topics.append(ch.topic)
-            imu, mag, temp, ref = {}, {}, {}, []
-            cov_acc = cov_mag = None
-            for _, channel, _, msg in reader.iter_decoded_messages(topics=topics, log_time_order=True):
-                key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
-                if channel.topic == c.TOPIC_IMU:
-                    a = msg.linear_acceleration
-                    imu[key] = (a.x, a.y, a.z)
-                    cov_acc = msg.linear_acceleration_covariance
-                elif channel.topic == c.TOPIC_MAG:
-                    f = msg.magnetic_field
-                    mag[key] = (f.x * 1e9, f.y * 1e9, f.z * 1e9)
-                    cov_mag = msg.magnetic_field_covariance
-                elif channel.topic == c.TOPIC_TEMPERATURE:
-                    temp[key] = msg.temperature
-                else:
-                    v = msg.vector
-                    ref.append((key[0] + 1e-9 * key[1], (v.x, v.y, v.z)))
+        Read with the tolerant reader (:func:`bag.open_bag`): a truncated or damaged file (a
+        recorder that was killed) is replayed up to its last readable chunk, with a warning naming
+        the file and byte offset of the damage.  Topics other than the four probe topics, or with
+        another type, are skipped with a warning naming them; a message that does not decode is
+        skipped with a warning naming topic and log time.
+        """
+        from rclpy.serialization import deserialize_message
+
+        from ..bag import BagError, open_bag
+
+        types = {c.TOPIC_IMU: Imu, c.TOPIC_MAG: MagneticField, c.TOPIC_TEMPERATURE: Temperature,
+                 c.TOPIC_REFERENCE: Vector3Stamped}
+        try:
+            reader = open_bag(path)
+        except BagError as exc:
+            raise ValueError(str(exc)) from None
+        log = self.get_logger()
+        skipped, undecodable = {}, {}
+        imu, mag, temp, ref = {}, {}, {}, []
+        cov_acc = cov_mag = None
+        for m in reader.messages(strict=False):
+            want = KNOWN_BAG_TOPICS.get(m.topic)
+            if want is None or m.type != want:
+                if m.topic not in skipped:
+                    skipped[m.topic] = 0
+                    log.warning(f"{path}: topic {m.topic} ({m.type or '?'}) is not replayed: skipped"
+                                if want is None else
+                                f"{path}: topic {m.topic} has type {m.type or '?'}, expected {want}: skipped")
+                skipped[m.topic] += 1
+                continue
+            try:
+                msg = deserialize_message(m.data, types[m.topic])
+            except (RuntimeError, ValueError, TypeError) as exc:  # rclpy's deserializer errors
+                if m.topic not in undecodable:
+                    log.warning(f"{path}: {m.topic} message at log time {m.log_time} ns does not decode "
+                                f"({type(exc).__name__}: {exc}): skipped")
+                undecodable[m.topic] = undecodable.get(m.topic, 0) + 1
+                continue
+            key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+            if m.topic == c.TOPIC_IMU:
+                a = msg.linear_acceleration
+                imu[key] = (a.x, a.y, a.z)
+                cov_acc = msg.linear_acceleration_covariance
+            elif m.topic == c.TOPIC_MAG:
+                f = msg.magnetic_field
+                mag[key] = (f.x * 1e9, f.y * 1e9, f.z * 1e9)
+                cov_mag = msg.magnetic_field_covariance
+            elif m.topic == c.TOPIC_TEMPERATURE:
+                temp[key] = msg.temperature
+            else:
+                v = msg.vector
+                ref.append((key[0] + 1e-9 * key[1], (v.x, v.y, v.z)))
+        for err in reader.errors:
+            log.warning(f"{err}; replaying the messages read before it")
+        for topic, n in skipped.items():
+            log.warning(f"{path}: {n} messages on {topic} skipped")
+        for topic, n in undecodable.items():
+            log.warning(f"{path}: {n} undecodable messages on {topic} skipped")
         keys = sorted(set(imu) & set(mag))
         if not keys:
             raise ValueError(f"{path}: no {c.TOPIC_IMU} and {c.TOPIC_MAG} samples with matching stamps")
