@@ -10,7 +10,7 @@ here once to the gravity vector; magnetometer in nT (a node converts from tesla 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -62,25 +62,25 @@ class StaticDetector:
     _n: int = 0
     _t0: float = 0.0
     _t_last: float = 0.0
-    _sum_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    _sum_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    _sq_f: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    _sq_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     _sum_t: float = 0.0
     _n_t: int = 0
-    _settle_until: float = -np.inf
+    _settle_until: float = -math.inf
     too_short: int = 0
 
     def __post_init__(self):
         self._tol_f = max(self.k_sigma * self.noise_acc, self.acc_floor)
         self._tol_m = max(self.k_sigma * self.noise_mag, self.mag_floor)
+        # Per-axis accumulators as plain floats (this is the per-sample path of the live nodes:
+        # no numpy per sample).  Sums are of deviations from the candidate's first sample, which
+        # keeps the variance free of cancellation for fields of 50 000 nT.
+        self._x0 = [0.0] * 6
+        self._s1 = [0.0] * 6
+        self._s2 = [0.0] * 6
 
     def reset(self):
         self._n = 0
-        self._sum_f[:] = 0
-        self._sum_m[:] = 0
-        self._sq_f[:] = 0
-        self._sq_m[:] = 0
+        self._s1 = [0.0] * 6
+        self._s2 = [0.0] * 6
         self._sum_t = 0.0
         self._n_t = 0
 
@@ -94,35 +94,41 @@ class StaticDetector:
 
     def update(self, t: float, f, m, temp_c: float = float("nan")):
         """Feed one sample (specific force m/s², field nT).  Returns a closed segment or None."""
-        f = np.asarray(f, dtype=float)
-        m = np.asarray(m, dtype=float)
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(m)) and np.isfinite(t)):
+        fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
+        mx, my, mz = float(m[0]), float(m[1]), float(m[2])
+        t = float(t)
+        if not math.isfinite(fx + fy + fz + mx + my + mz + t):
             return self._close(t, restart=None)  # a bad sample breaks the station
         if t < self._settle_until:
             return None
-        out = None
-        if self._n:
-            mf = self._sum_f / self._n
-            mm = self._sum_m / self._n
-            if np.any(np.abs(f - mf) > self._tol_f) or np.any(np.abs(m - mm) > self._tol_m):
+        x = (fx, fy, fz, mx, my, mz)
+        n = self._n
+        if n:
+            x0, s1 = self._x0, self._s1
+            tf, tm = self._tol_f, self._tol_m
+            # deviation of the sample from the candidate's running mean, axis by axis
+            if (abs(fx - x0[0] - s1[0] / n) > tf or abs(fy - x0[1] - s1[1] / n) > tf
+                    or abs(fz - x0[2] - s1[2] / n) > tf or abs(mx - x0[3] - s1[3] / n) > tm
+                    or abs(my - x0[4] - s1[4] / n) > tm or abs(mz - x0[5] - s1[5] / n) > tm):
                 out = self._close(t, restart=None)
                 self._settle_until = t + self.settle_s
                 return out
             if t - self._t0 >= self.max_duration_s:
-                out = self._close(t, restart=(t, f, m, temp_c))
-                return out
-        self._add(t, f, m, temp_c)
-        return out
+                return self._close(t, restart=(t, x, temp_c))
+        self._add(t, x, temp_c)
+        return None
 
-    def _add(self, t, f, m, temp_c):
+    def _add(self, t, x, temp_c):
         if self._n == 0:
             self._t0 = t
+            self._x0 = list(x)
         self._n += 1
         self._t_last = t
-        self._sum_f += f
-        self._sum_m += m
-        self._sq_f += f * f
-        self._sq_m += m * m
+        x0, s1, s2 = self._x0, self._s1, self._s2
+        for k in range(6):
+            d = x[k] - x0[k]
+            s1[k] += d
+            s2[k] += d * d
         if math.isfinite(temp_c):  # the mean is over the samples that had a temperature
             self._sum_t += temp_c
             self._n_t += 1
@@ -132,12 +138,14 @@ class StaticDetector:
         dur = self._t_last - self._t0
         if self._n >= 2 and dur >= min(self.short_report_s, self.min_duration_s):
             n = self._n
-            mf, mm = self._sum_f / n, self._sum_m / n
-            vf = np.maximum(self._sq_f / n - mf * mf, 0) * n / (n - 1)
-            vm = np.maximum(self._sq_m / n - mm * mm, 0) * n / (n - 1)
+            s1 = np.array(self._s1)
+            mean_d = s1 / n
+            var = np.maximum(np.array(self._s2) / n - mean_d * mean_d, 0.0) * n / (n - 1)
+            mean = np.array(self._x0) + mean_d
+            std = np.sqrt(var)
             short = dur < self.min_duration_s
             self.too_short += short
-            seg = StaticSegment(self._t0, self._t_last, n, -mf, mm, np.sqrt(vf), np.sqrt(vm),
+            seg = StaticSegment(self._t0, self._t_last, n, -mean[:3], mean[3:], std[:3], std[3:],
                                 self._sum_t / self._n_t if self._n_t else float("nan"), short=short)
         self.reset()
         if restart is not None:
