@@ -93,3 +93,32 @@ def correct(g, b, site: Site, settings: AxialSettings = AxialSettings()) -> dict
     return {"azimuth_deg": frames.wrap360(az + site.declination_deg), "axial_field_nt": delta,
             "axial_field_sigma_nt": sigma, "azimuth_sigma_deg": az_sigma,
             "degenerate": az_sigma > settings.max_azimuth_sigma_deg, "field": bp}
+
+
+def evaluate_with_axial(g, b, site: Site, tol=None, ref=None, settings: AxialSettings = AxialSettings()) -> dict:
+    """``survey.evaluate`` with the azimuth from the short-collar corrected field.
+
+    Quality control (|B|, dip: interference suspected) stays on the *measured* field — it is what
+    shows the interference; after the correction the field matches the reference by construction.
+    Where the correction is degenerate the ordinary azimuth is kept and ``axial_degenerate`` set
+    (status at least warn).  Adds ``axial_field_nt``, ``axial_field_sigma_nt``,
+    ``azimuth_sigma_deg`` and ``azimuth_method`` ('short_collar' or 'standard').
+    """
+    from .survey import Tolerances, evaluate
+
+    tol = tol or Tolerances()
+    res = evaluate(g, b, site, tol, ref=ref)
+    ax = correct(g, b, site, settings)
+    use = ~ax["degenerate"] & ~res["azimuth_undefined"]
+    res["azimuth_deg"] = np.where(use, ax["azimuth_deg"], res["azimuth_deg"])
+    res["axial_field_nt"] = ax["axial_field_nt"]
+    res["axial_field_sigma_nt"] = ax["axial_field_sigma_nt"]
+    res["azimuth_sigma_deg"] = ax["azimuth_sigma_deg"]
+    res["axial_degenerate"] = ax["degenerate"]
+    res["azimuth_method"] = np.where(use, "short_collar", "standard")
+    res["status"] = np.where(ax["degenerate"] & (res["status"] == 0), 1, res["status"])
+    if ref is not None and "azimuth_err" in res:
+        ref = np.atleast_2d(np.asarray(ref, dtype=float))
+        res["azimuth_err"] = np.where(res["azimuth_undefined"], np.nan,
+                                      frames.wrap180(res["azimuth_deg"] - ref[:, 1]))
+    return res

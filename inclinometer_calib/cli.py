@@ -162,8 +162,11 @@ def cmd_twelve_position(args):
     return 0
 
 
-def correct_log(log_path, cal, site, tol, quiet=False):
-    """Evaluate every static station of a log; returns (stations, result, summary)."""
+def correct_log(log_path, cal, site, tol, quiet=False, axial=False):
+    """Evaluate every static station of a log; returns (stations, result, summary).
+
+    ``axial``: azimuths from the short-collar correction of axial drill-string interference.
+    """
     _, stations, _, _ = load_stations(log_path, quiet=quiet)
     if not stations:
         raise UserError(f"{log_path}: no static stations found")
@@ -173,7 +176,11 @@ def correct_log(log_path, cal, site, tol, quiet=False):
         g, b = cal.correct(g, b)
     ref = np.array([s.ref for s in stations])
     has_ref = np.all(np.isfinite(ref), axis=1)
-    res = evaluate(g, b, site, tol, ref=ref if has_ref.any() else None)
+    if axial:
+        from .axial import evaluate_with_axial
+        res = evaluate_with_axial(g, b, site, tol, ref=ref if has_ref.any() else None)
+    else:
+        res = evaluate(g, b, site, tol, ref=ref if has_ref.any() else None)
     return stations, res, summarize(res)
 
 
@@ -191,7 +198,8 @@ def format_station_csv(stations, res) -> str:
         return "" if v is None or not np.isfinite(v) else f"{v:.{p}f}"
 
     for k, st in enumerate(stations):
-        flags = [n for n in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance") if res[n][k]]
+        flags = [n for n in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance",
+                             "axial_degenerate") if n in res and res[n][k]]
         flags += ["moved_during_capture"] if st.warnings else []
         err = (lambda n: res[n][k] if n in res else None)
         row = [str(st.index), str(st.pose or ""), f(st.t_start, 3), f(st.t_end, 3), str(st.n), f(st.temp_c, 2),
@@ -211,12 +219,14 @@ def cmd_correct(args):
     cal = load_calibration(args.coeffs)
     site = load_site(args.site) if args.site else (cal.site if cal else Site())
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
-    stations, res, summ = correct_log(args.log, cal, site, tol)
+    stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction)
     if args.output:
         atomic_write_text(args.output, format_station_csv(stations, res))
     summ["coefficients"] = cal.id if cal else "none"
-    summ["flagged"] = {n: int(np.sum(res[n])) for n in ("azimuth_undefined", "interference_suspected",
-                                                         "gravity_out_of_tolerance")}
+    flags = ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance") + \
+        (("axial_degenerate",) if args.axial_correction else ())
+    summ["flagged"] = {n: int(np.sum(res[n])) for n in flags}
+    summ["azimuth_method"] = "short_collar" if args.axial_correction else "standard"
     if args.json:
         print(json.dumps(summ, indent=2))
         return 0
@@ -498,6 +508,9 @@ def build_parser():
     c.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     c.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
     c.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
+    c.add_argument("--axial-correction", action="store_true",
+                   help="short-collar correction of axial drill-string interference (azimuth from the site's "
+                        "total field and dip; degenerate stations flagged and left uncorrected)")
     c.set_defaults(func=cmd_correct)
 
     d = sub.add_parser("demo", help="offline demo: simulate, calibrate, correct, before/after tables")

@@ -86,3 +86,15 @@ def test_module_runs_as_a_program(simdir):
                         "--coeffs", "none", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["coefficients"] == "none"
+
+
+def test_axial_correction_removes_survey_interference(tmp_path, capsys):
+    d = tmp_path / "ai"
+    assert main(["simulate", "--out", str(d), "--seed", "5", "--effect", "axial_interference=400"]) == 0
+    truth = str(d / "truth_coeffs.yaml")
+    plain = _json(capsys, ["correct", str(d / "val.csv"), "--coeffs", truth, "--json"])
+    fixed = _json(capsys, ["correct", str(d / "val.csv"), "--coeffs", truth, "--json", "--axial-correction"])
+    assert plain["flagged"]["interference_suspected"] > 0
+    assert fixed["azimuth_method"] == "short_collar"
+    assert fixed["azimuth_rms_deg"] < 0.3 * plain["azimuth_rms_deg"]
+    assert fixed["flagged"]["axial_degenerate"] < fixed["stations"] // 2  # the stand grid avoids east-west at 90°
