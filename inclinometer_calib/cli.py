@@ -343,7 +343,7 @@ def _lab_setup(args):
             print(f"plug-in {plug}: {', '.join(names)}", file=sys.stderr)
     site = load_site(args.site)
     try:
-        data = lab.load_logs(args.cal, args.val, warn=_warn)
+        data = lab.load_logs(args.cal, args.val, warn=_warn, free_paths=args.free or ())
         model = build_model(site, args.effects, fit_heading=args.fit_heading)
     except OSError as exc:
         raise UserError(f"{exc.filename}: {exc.strerror}") from None
@@ -438,6 +438,8 @@ def _lab_parser(sub):
     def common(p, effects_help):
         p.add_argument("--cal", required=True, help="calibration log CSV (twelve poses and/or stand stations)")
         p.add_argument("--val", help="validation / survey log CSV (reference angles)")
+        p.add_argument("--free", action="append", help="log CSV without labels (probe turned by hand): its static "
+                       "intervals constrain the model through |g|, |B| and dip only (repeatable)")
         p.add_argument("--effects", help=effects_help)
         p.add_argument("--plugin", action="append", help="Python file defining extra effects (repeatable)")
         p.add_argument("--site", help="site reference YAML")

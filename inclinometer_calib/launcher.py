@@ -329,6 +329,88 @@ def coefficient_errors(cal, truth):
     return out
 
 
+def raw_station_means(bag_path, stations):
+    """Uncorrected mean specific force (m/s²) and field (nT) over each station's averaging window,
+    re-derived from the raw /probe/imu and /probe/mag streams of the bag (an independent path:
+    the bag's raw samples, not the node's arithmetic)."""
+    from pathlib import Path
+
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    t_imu, f, t_mag, m = [], [], [], []
+    with AnyReader([Path(bag_path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [x for x in reader.connections if x.topic in ("/probe/imu", "/probe/mag")]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+            if conn.topic == "/probe/imu":
+                a = msg.linear_acceleration
+                t_imu.append(t)
+                f.append((a.x, a.y, a.z))
+            else:
+                v = msg.magnetic_field
+                t_mag.append(t)
+                m.append((v.x * 1e9, v.y * 1e9, v.z * 1e9))
+    t_imu, f, t_mag, m = np.array(t_imu), np.array(f), np.array(t_mag), np.array(m)
+    out = []
+    for s in stations:
+        t1 = s["stamp"]
+        t0 = t1 - s["duration_s"] - 1e-6
+        si = (t_imu >= t0) & (t_imu <= t1 + 1e-6)
+        sm = (t_mag >= t0) & (t_mag <= t1 + 1e-6)
+        out.append((f[si].mean(axis=0) if si.any() else np.full(3, np.nan),
+                    m[sm].mean(axis=0) if sm.any() else np.full(3, np.nan)))
+    return out
+
+
+def before_after(bag_path, stations, cal):
+    """Station errors before (raw sensors) and after (the node's corrected stations) calibration."""
+    from .frames import gravity_from_specific_force, wrap180
+    from .survey import evaluate
+
+    sel = [s for s in stations if math.isfinite(s["reference_drift_deg"]) and s["coefficients_id"]]
+    if not sel or cal is None:
+        return []
+    raw = raw_station_means(bag_path, sel)
+    g = gravity_from_specific_force(np.array([r[0] for r in raw]))
+    b = np.array([r[1] for r in raw])
+    ref = np.array([[s["reference_drift_deg"], s["reference_azimuth_deg"], s["reference_toolface_deg"]] for s in sel])
+    before = evaluate(g, b, cal.site, ref=ref)
+    rows = []
+    for k, s in enumerate(sel):
+        az_after = float(wrap180(s["azimuth_deg"] - ref[k, 1])) if math.isfinite(s["azimuth_deg"]) else float("nan")
+        rows.append({"ref_drift_deg": float(ref[k, 0]), "ref_azimuth_deg": float(ref[k, 1]),
+                     "drift_err_before": float(before["drift_err"][k]),
+                     "drift_err_after": float(s["drift_deg"] - ref[k, 0]),
+                     # no azimuth to compare where the reference itself is (near) vertical
+                     "azimuth_err_before": float(before["azimuth_err"][k]) if ref[k, 0] >= 0.5 else float("nan"),
+                     "azimuth_err_after": az_after if ref[k, 0] >= 0.5 else float("nan")})
+    return rows
+
+
+def format_before_after(rows) -> list:
+    if not rows:
+        return []
+
+    def rms(key):
+        x = np.array([r[key] for r in rows], dtype=float)
+        x = x[np.isfinite(x)]
+        return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
+
+    def fmt(v):
+        return f"{v:>9.3f}" if math.isfinite(v) else f"{'-':>9}"
+
+    lines = ["", "before/after calibration (errors against the reference, deg; 'before' from the bag's raw streams)",
+             f"{'drift':>7} {'azimuth':>8} {'Δdrift before':>14} {'after':>9} {'Δazimuth before':>16} {'after':>9}"]
+    for r in rows:
+        lines.append(f"{r['ref_drift_deg']:>7.1f} {r['ref_azimuth_deg']:>8.1f} {fmt(r['drift_err_before']):>14} "
+                     f"{fmt(r['drift_err_after'])} {fmt(r['azimuth_err_before']):>16} {fmt(r['azimuth_err_after'])}")
+    lines.append(f"{'RMS':>16} {rms('drift_err_before'):>14.3f} {rms('drift_err_after'):>9.4f} "
+                 f"{rms('azimuth_err_before'):>16.3f} {rms('azimuth_err_after'):>9.4f}")
+    return lines
+
+
 def summarize_run(out, print_fn=print) -> dict:
     """Build (and print) the run summary from the files in ``out``; writes summary.json."""
     from .coeffs import Calibration, CoefficientError
@@ -368,10 +450,17 @@ def summarize_run(out, print_fn=print) -> dict:
             truth = json.load(fh)
         summary["coefficient_errors"] = coefficient_errors(cal, truth)
     summary["survey"] = station_errors(stations, cal.id if cal is not None else None)
+    rows = []
+    if stations and cal is not None:
+        try:
+            rows = before_after(bag, stations, cal)
+        except (OSError, ValueError, KeyError) as exc:
+            print_fn(f"[summary] before/after not available: {exc}")
+    summary["before_after"] = rows
     summary["raw_stations"] = sum(1 for s in stations if not s["coefficients_id"])
     from .probelog import atomic_write_text
     atomic_write_text(os.path.join(out, "summary.json"), json.dumps(summary, indent=1, default=float) + "\n")
-    lines = format_summary(summary)
+    lines = format_summary(summary) + format_before_after(rows)
     atomic_write_text(os.path.join(out, "report.md"), format_report(summary, lines, cal, stations))
     for line in lines:
         print_fn(line)

@@ -36,7 +36,7 @@ from typing import Callable, Dict, List, Optional
 
 from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
 from .frames import NT_PER_TESLA, Site
-from .streaming import StaticDetector, StationRecord, SurveyProcessor
+from .streaming import StaticDetector, StationRecord, SurveyProcessor, station_fields
 from .survey import Tolerances
 
 TOPIC_IMU = "/probe/imu"
@@ -130,46 +130,6 @@ class StationEncoder:
         msg = self._cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id),
                         **fields)
         return bytes(self.store.serialize_cdr(msg, STATION_TYPE))
-
-
-def _finite_or_nan(x) -> float:
-    x = float(x)
-    return x if math.isfinite(x) else NAN
-
-
-def station_fields(rec: StationRecord, ref, azimuth_reference: str, have_temperature: bool,
-                   calibrated: bool) -> dict:
-    """The ``SurveyStation`` fields of a processed station, filled as the correction node does."""
-    v, seg = rec.values, rec.segment
-    has_ref = ref is not None and all(math.isfinite(x) for x in ref)
-    return dict(
-        station_id=int(rec.station_id),
-        drift_deg=_finite_or_nan(v["drift_deg"]),
-        azimuth_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["azimuth_deg"]),
-        azimuth_reference=azimuth_reference,
-        toolface_deg=_finite_or_nan(v["toolface_deg"]),
-        toolface_type="gravity" if v["toolface_is_gravity"] else "magnetic",
-        gravity_toolface_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["gravity_toolface_deg"]),
-        magnetic_toolface_deg=_finite_or_nan(v["magnetic_toolface_deg"]),
-        total_gravity_mps2=float(v["total_gravity"]),
-        total_field_nt=float(v["total_field"]),
-        dip_deg=_finite_or_nan(v["dip_deg"]),
-        delta_g_mps2=float(v["delta_g"]),
-        delta_b_nt=float(v["delta_b"]),
-        delta_dip_deg=_finite_or_nan(v["delta_dip"]),
-        status=int(v["status"]),
-        is_static=not seg.short,
-        interference_suspected=bool(v["interference_suspected"]),
-        azimuth_undefined=bool(v["azimuth_undefined"]),
-        gravity_out_of_tolerance=bool(v["gravity_out_of_tolerance"]),
-        samples_averaged=int(seg.n),
-        duration_s=float(seg.duration_s),
-        temperature_c=float(seg.temp_c) if have_temperature else NAN,
-        coefficients_id=rec.coefficients_id if calibrated else "",
-        reference_drift_deg=float(ref[0]) if has_ref else NAN,
-        reference_azimuth_deg=float(ref[1]) if has_ref else NAN,
-        reference_toolface_deg=float(ref[2]) if has_ref else NAN,
-    )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .frames import Site
+from .axial import evaluate_with_axial
 from .survey import Tolerances, evaluate
 
 
@@ -168,12 +169,17 @@ class StationRecord:
 
 
 class SurveyProcessor:
-    """Corrects closed static segments with the current calibration and checks them against the site."""
+    """Corrects closed static segments with the current calibration and checks them against the site.
 
-    def __init__(self, site: Site, tolerances: Tolerances = Tolerances(), calibration=None):
+    ``axial=True``: azimuths from the short-collar correction of axial drill-string interference
+    (:func:`axial.evaluate_with_axial`); QC stays on the measured field.
+    """
+
+    def __init__(self, site: Site, tolerances: Tolerances = Tolerances(), calibration=None, axial: bool = False):
         self.site = site
         self.tolerances = tolerances
         self.calibration = calibration
+        self.axial = axial
         self._next_id = 0
 
     def set_calibration(self, calibration):
@@ -187,9 +193,90 @@ class SurveyProcessor:
 
     def process(self, seg: StaticSegment, ref=None) -> StationRecord:
         g, b = self.correct_vectors(seg.g, seg.b)
-        res = evaluate(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
+        if self.axial:
+            res = evaluate_with_axial(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
+        else:
+            res = evaluate(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
         values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
         rec = StationRecord(self._next_id, seg, values,
                             self.calibration.id if self.calibration is not None else "none")
         self._next_id += 1
         return rec
+
+
+NAN = float("nan")
+
+
+def _finite_or_nan(x) -> float:
+    x = float(x)
+    return x if math.isfinite(x) else NAN
+
+
+def station_fields(rec: StationRecord, ref, azimuth_reference: str, have_temperature: bool,
+                   calibrated: bool) -> dict:
+    """The fields of a ``SurveyStation`` message (all but the header) for a processed station.
+
+    Plain Python values, shared by the correction node (rclpy message) and offline reprocessing
+    (rosbags type store), so both publish the same thing.  Undefined values are NaN, never 0.
+    """
+    v, seg = rec.values, rec.segment
+    has_ref = ref is not None and all(math.isfinite(x) for x in ref)
+    axial = "azimuth_method" in v
+    return dict(
+        station_id=int(rec.station_id),
+        drift_deg=_finite_or_nan(v["drift_deg"]),
+        azimuth_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["azimuth_deg"]),
+        azimuth_reference=azimuth_reference,
+        azimuth_method=str(v["azimuth_method"]) if axial else "standard",
+        axial_field_nt=_finite_or_nan(v["axial_field_nt"]) if axial else NAN,
+        azimuth_sigma_deg=_finite_or_nan(v["azimuth_sigma_deg"]) if axial else NAN,
+        axial_degenerate=bool(v["axial_degenerate"]) if axial else False,
+        toolface_deg=_finite_or_nan(v["toolface_deg"]),
+        toolface_type="gravity" if v["toolface_is_gravity"] else "magnetic",
+        # defined down to the azimuth threshold; it is *reported* (toolface_deg) above the switch-over
+        gravity_toolface_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["gravity_toolface_deg"]),
+        magnetic_toolface_deg=_finite_or_nan(v["magnetic_toolface_deg"]),
+        total_gravity_mps2=float(v["total_gravity"]),
+        total_field_nt=float(v["total_field"]),
+        dip_deg=_finite_or_nan(v["dip_deg"]),
+        delta_g_mps2=float(v["delta_g"]),
+        delta_b_nt=float(v["delta_b"]),
+        delta_dip_deg=_finite_or_nan(v["delta_dip"]),
+        status=int(v["status"]),
+        is_static=not seg.short,
+        interference_suspected=bool(v["interference_suspected"]),
+        azimuth_undefined=bool(v["azimuth_undefined"]),
+        gravity_out_of_tolerance=bool(v["gravity_out_of_tolerance"]),
+        samples_averaged=int(seg.n),
+        duration_s=float(seg.duration_s),
+        temperature_c=float(seg.temp_c) if have_temperature else NAN,
+        coefficients_id=rec.coefficients_id if calibrated else "",
+        reference_drift_deg=float(ref[0]) if has_ref else NAN,
+        reference_azimuth_deg=float(ref[1]) if has_ref else NAN,
+        reference_toolface_deg=float(ref[2]) if has_ref else NAN,
+    )
+
+
+def detect_stations(log, detector: StaticDetector | None = None) -> list:
+    """Static stations of a whole log found by the detector, ignoring any labels ('free' stations).
+
+    For logs recorded without a stand (the probe turned by hand through many attitudes): each
+    closed, long-enough static interval becomes a :class:`probelog.Station` with no pose and no
+    reference; only the site invariants constrain it.
+    """
+    from .probelog import Station
+
+    det = detector or StaticDetector()
+    segs = []
+    for i in range(len(log)):
+        seg = det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i])
+        if seg is not None and not seg.short:
+            segs.append(seg)
+    seg = det.flush()
+    if seg is not None and not seg.short:
+        segs.append(seg)
+    first_rows = np.searchsorted(log.t_s, [s.t_start for s in segs]) + 1
+    nan3 = np.full(3, np.nan)
+    return [Station(index=k, pose=0, ref=nan3.copy(), g=s.g, b=s.b, temp_c=s.temp_c, t_start=s.t_start,
+                    t_end=s.t_end, n=s.n, g_std=s.g_std, b_std=s.b_std, first_row=int(r))
+            for k, (s, r) in enumerate(zip(segs, first_rows))]

@@ -284,6 +284,8 @@ def test_coefficient_file_that_is_not_yaml_is_refused(simdir, tmp_path, capsys):
 # ---- bags --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def bag(simdir, tmp_path_factory):
+    pytest.importorskip("mcap")
+    pytest.importorskip("rosbags")
     from inclinometer_calib import simulate as sim
     from inclinometer_calib.frames import Site
     from inclinometer_calib.reprocess import write_probe_bag

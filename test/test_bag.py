@@ -59,7 +59,7 @@ def station_cdr(store, i: int) -> bytes:
         "header": t["std_msgs/msg/Header"](
             stamp=t["builtin_interfaces/msg/Time"](sec=i, nanosec=0), frame_id="probe"),
         "station_id": i, "azimuth_reference": "true", "toolface_type": "gravity",
-        "coefficients_id": "cal-1", "status": 0,
+        "coefficients_id": "cal-1", "status": 0, "azimuth_method": "standard", "axial_degenerate": False,
     }
     for name in cls.__dataclass_fields__:
         if name in fields:

@@ -5,12 +5,16 @@ import os
 import numpy as np
 import pytest
 
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.bag import BagWriter, open_bag
-from inclinometer_calib.cli import main
-from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.frames import Site
-from inclinometer_calib.reprocess import (IMU_TYPE, MAG_TYPE, STATION_TYPE, decode_imu, decode_temperature,
+pytest.importorskip("mcap")
+pytest.importorskip("rosbags")  # reprocessing is ROS-free but needs these two readers/writers
+
+from inclinometer_calib import simulate as sim  # noqa: E402
+from inclinometer_calib.bag import BagWriter, open_bag  # noqa: E402
+from inclinometer_calib.cli import main  # noqa: E402
+from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.frames import Site  # noqa: E402
+from inclinometer_calib.reprocess import (IMU_TYPE,  # noqa: E402
+                                          MAG_TYPE, STATION_TYPE, decode_imu, decode_temperature,
                                           decode_vector3, reprocess, write_probe_bag)
 
 SITE = Site(total_field_nt=52000.0, dip_deg=50.0, declination_deg=0.0)

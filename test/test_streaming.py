@@ -69,3 +69,26 @@ def test_processor_corrects_and_evaluates_a_segment():
     assert abs(rec.values["azimuth_err"]) < 0.05
     assert rec.values["status"] == 0
     assert rec.coefficients_id == proc.calibration.id
+
+
+def test_station_fields_carry_the_short_collar_azimuth_when_enabled():
+    from inclinometer_calib.coeffs import Calibration
+    from inclinometer_calib.streaming import station_fields
+
+    probe = sim.build_probe(2, [("axial_interference", None, None, [400.0])])
+    site = Site()
+    log = sim.run_session(probe, site, sim.stand_grid_session(drifts=(60,), azimuths=(30,), toolfaces=(0,),
+                                                               duration_s=3.0), np.random.default_rng(0),
+                          survey=True)
+    segs, _ = _segments(log)
+    cal = Calibration(acc=probe.acc, mag=probe.mag)
+    ref = (60.0, 30.0, 0.0)
+    plain = station_fields(SurveyProcessor(site, calibration=cal).process(segs[0], ref=ref), ref, "magnetic",
+                           True, True)
+    fixed = station_fields(SurveyProcessor(site, calibration=cal, axial=True).process(segs[0], ref=ref), ref,
+                           "magnetic", True, True)
+    assert plain["azimuth_method"] == "standard" and np.isnan(plain["axial_field_nt"])
+    assert plain["interference_suspected"] and fixed["interference_suspected"]  # QC on the measured field
+    assert fixed["azimuth_method"] == "short_collar"
+    assert fixed["axial_field_nt"] == pytest.approx(400.0, abs=15.0)
+    assert abs(fixed["azimuth_deg"] - 30.0) < 0.05 < abs(plain["azimuth_deg"] - 30.0)

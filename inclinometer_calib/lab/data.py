@@ -112,9 +112,25 @@ def from_stations(stations, role: str, source: str = "", use_ref: bool = True) -
         source=np.full(n, source))
 
 
-def load_logs(cal_path=None, val_path=None, min_samples: int = 5, warn=None) -> LabData:
-    """Read CAL and VAL probe logs (CSV) into one LabData; rejections go to ``warn`` (callable)."""
+def load_logs(cal_path=None, val_path=None, min_samples: int = 5, warn=None, free_paths=()) -> LabData:
+    """Read CAL and VAL probe logs (CSV) into one LabData; rejections go to ``warn`` (callable).
+
+    ``free_paths``: logs without labels (the probe turned by hand through many attitudes); their
+    static intervals are found by :func:`streaming.detect_stations` and enter as ``free``
+    stations (role ``cal``), constrained by the site invariants only.
+    """
+    from ..streaming import detect_stations
+
     parts = []
+    for path in free_paths or ():
+        log, rejections = read_csv(path)
+        if warn:
+            for r in rejections[:10]:
+                warn(f"{path}: {r}")
+        stations = detect_stations(log)
+        if not stations:
+            raise ValueError(f"{path}: no static intervals found (need ≥ 1 s still at each attitude)")
+        parts.append(from_stations(stations, "cal", source=str(path), use_ref=False))
     for path, role in ((cal_path, "cal"), (val_path, "val")):
         if path is None:
             continue

@@ -32,6 +32,13 @@ NOT_FROM_STATIC = {
     "misalignment": "a rigid rotation of a triad is inside the base model's K·E",
     "triad_misalignment": "a rotation of the magnetometer against the accelerometer is inside the base model's K·E",
 }
+#: Whole-probe effects of the simulator, not fitted as effects, and how the diagnosis treats them.
+PROBE_LEVEL = {
+    "stand_pose_error": "random per-station orientation errors are not a fittable signature: they show as "
+                        "unstructured excess scatter, reported with its size as an equivalent stand pose error",
+    "time_skew": "a sampling offset between the triads is invisible in static stations: it needs data "
+                 "recorded while the probe rotates",
+}
 Z_RMS_LIMIT = 1.3
 
 
@@ -245,7 +252,7 @@ def diagnose(data, model: LabModel | None = None, site=None, k_folds: int = 4, m
     base_score = base_cv.get("pointing_rms_deg", float("nan"))
     structure = residual_structure(model, data)
     pairs = candidate_effects(model, candidates)
-    untestable = [{"effect": n, "reason": r} for n, r in NOT_FROM_STATIC.items()]
+    untestable = [{"effect": n, "reason": r} for n, r in {**NOT_FROM_STATIC, **PROBE_LEVEL}.items()]
     ranked = []
     for i, (eff, scope) in enumerate(pairs):
         trial = model.with_effect(eff, scope)

@@ -32,7 +32,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..coeffs import Calibration, CoefficientError
-from ..streaming import StaticDetector, SurveyProcessor
+from ..streaming import StaticDetector, SurveyProcessor, station_fields
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
 
@@ -53,6 +53,9 @@ class CorrectionNode(Node):
                                    read_only=True)
         self.publish_corrected = p.declare("publish_corrected", False, "Publish the corrected streams "
                                            f"{c.TOPIC_IMU_CORRECTED} and {c.TOPIC_MAG_CORRECTED}")
+        axial = p.declare("axial_correction", False, "Azimuths from the short-collar correction of axial "
+                          "drill-string interference (site total field and dip); QC stays on the measured "
+                          "field; degenerate stations keep the standard azimuth and are flagged")
         self.publish_short = p.declare("publish_short", False, "Also publish static intervals shorter "
                                        "than detector.min_duration_s (is_static = false)")
         self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
@@ -65,7 +68,7 @@ class CorrectionNode(Node):
         self.add_post_set_parameters_callback(self._after_set)
 
         self.detector = StaticDetector(**det)
-        self.processor = SurveyProcessor(self.site, self.tol)
+        self.processor = SurveyProcessor(self.site, self.tol, axial=axial)
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
         self._unpaired_seen = self._paired_seen = 0
@@ -192,37 +195,12 @@ class CorrectionNode(Node):
         ref = self._reference_at(0.5 * (seg.t_start + seg.t_end))
         has_ref = all(math.isfinite(x) for x in ref)
         rec = self.processor.process(seg, ref=ref if has_ref else None)
-        v = rec.values
         msg = SurveyStation()
         c.set_stamp(msg.header.stamp, seg.t_end)
         msg.header.frame_id = self.frame_id
-        msg.station_id = rec.station_id
-        msg.drift_deg = c.finite_or_nan(v["drift_deg"])
-        msg.azimuth_deg = c.NAN if v["azimuth_undefined"] else c.finite_or_nan(v["azimuth_deg"])
-        msg.azimuth_reference = self.azimuth_reference
-        msg.toolface_deg = c.finite_or_nan(v["toolface_deg"])
-        msg.toolface_type = (SurveyStation.TOOLFACE_GRAVITY if v["toolface_is_gravity"]
-                             else SurveyStation.TOOLFACE_MAGNETIC)
-        # defined down to the azimuth threshold; it is *reported* (toolface_deg) above the switch-over
-        msg.gravity_toolface_deg = (c.NAN if v["azimuth_undefined"] else c.finite_or_nan(v["gravity_toolface_deg"]))
-        msg.magnetic_toolface_deg = c.finite_or_nan(v["magnetic_toolface_deg"])
-        msg.total_gravity_mps2 = float(v["total_gravity"])
-        msg.total_field_nt = float(v["total_field"])
-        msg.dip_deg = c.finite_or_nan(v["dip_deg"])
-        msg.delta_g_mps2 = float(v["delta_g"])
-        msg.delta_b_nt = float(v["delta_b"])
-        msg.delta_dip_deg = c.finite_or_nan(v["delta_dip"])
-        msg.status = int(v["status"])
-        msg.is_static = not seg.short
-        msg.interference_suspected = bool(v["interference_suspected"])
-        msg.azimuth_undefined = bool(v["azimuth_undefined"])
-        msg.gravity_out_of_tolerance = bool(v["gravity_out_of_tolerance"])
-        msg.samples_averaged = int(seg.n)
-        msg.duration_s = float(seg.duration_s)
-        msg.temperature_c = float(seg.temp_c) if self._have_temp else c.NAN
-        msg.coefficients_id = rec.coefficients_id if self.processor.calibration is not None else ""
-        msg.reference_drift_deg, msg.reference_azimuth_deg, msg.reference_toolface_deg = (
-            (float(ref[0]), float(ref[1]), float(ref[2])) if has_ref else (c.NAN, c.NAN, c.NAN))
+        for name, value in station_fields(rec, ref if has_ref else None, self.azimuth_reference, self._have_temp,
+                                          self.processor.calibration is not None).items():
+            setattr(msg, name, value)
         self.pub_station.publish(msg)
         self._last_diag = self._diagnostics(msg)
         self.pub_diag.publish(self._last_diag)

@@ -67,3 +67,25 @@ def test_model_correction_inverts_the_forward_model(sim_factory):
     g, b = model.correct(d)
     np.testing.assert_allclose(g, g_t, atol=1e-9)
     np.testing.assert_allclose(b, b_t, atol=1e-6)
+
+
+def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(tmp_path, sim_factory):
+    """A hand-turned log: labels dropped, static intervals found by the detector."""
+    import numpy as np
+
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.probelog import write_csv
+
+    data, truth, site = sim_factory(21)
+    probe = sim.build_probe(21)
+    rng = np.random.default_rng(5)
+    attitudes = [sim.Stationary(sim.orientation_matrix(*rng.uniform([0, 0, 0], [180, 360, 360])), 2.0)
+                 for _ in range(40)]
+    log = sim.run_session(probe, site, attitudes, rng)
+    log.pose[:] = 0
+    write_csv(tmp_path / "free.csv", log)
+    both = lab.load_logs(free_paths=[tmp_path / "free.csv"])
+    assert 35 <= len(both) <= 40 and set(both.kind) == {"free"}
+    # the free log alone fixes the triads up to a common rotation; with the poses it fits to the noise
+    res = lab.fit(lab.LabModel.base(site), lab.LabData.concatenate([data.subset(data.role == "cal"), both]))
+    assert res.success and res.z_rms < 1.3
