@@ -18,6 +18,7 @@ Adding an effect means adding one class here and registering it in :data:`CATALO
 """
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -51,7 +52,7 @@ class Context:
 
 
 @dataclass
-class Effect:
+class Effect(abc.ABC):
     """Base class.  Subclasses set ``name``, ``stage``, ``sensors``, ``specs`` and ``_apply``.
 
     ``values`` maps each parameter name to an array with one entry per acted-on axis.
@@ -122,8 +123,9 @@ class Effect:
         self._apply(out, ctx)
         return out
 
-    def _apply(self, v, ctx):  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abc.abstractmethod
+    def _apply(self, v, ctx):
+        """Change the (N, 3) signal ``v`` in place (one value per acted-on axis in ``self.values``)."""
 
     def describe(self) -> str:
         vals = ", ".join(f"{s.name}={np.array2string(self.values[s.name], precision=6)} {s.unit[self.sensor]}"

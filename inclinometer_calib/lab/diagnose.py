@@ -40,6 +40,8 @@ PROBE_LEVEL = {
                  "recorded while the probe rotates",
 }
 Z_RMS_LIMIT = 1.3
+#: Pseudo-effect: a heading offset between the stand's north and the site reference's north.
+HEADING = "heading_offset"
 
 
 @dataclass
@@ -254,6 +256,15 @@ def diagnose(data, model: LabModel | None = None, site=None, k_folds: int = 4, m
     pairs = candidate_effects(model, candidates)
     untestable = [{"effect": n, "reason": r} for n, r in {**NOT_FROM_STATIC, **PROBE_LEVEL}.items()]
     ranked = []
+    def score(trial, name, sensor, axes, scope):
+        f_all = fit(trial, data, uncertainty=False)
+        cv = cross_validate(trial, data, folds) if folds else val_metrics(trial, data)
+        sc = cv.get("pointing_rms_deg", float("nan"))
+        gain = 1.0 - sc / base_score if base_score > 0 else 0.0
+        dbic = f_all.bic() - base_fit.bic()
+        ranked.append(Candidate(name, sensor, axes, scope, cv, sc, gain, dbic,
+                                significant=bool(gain >= min_gain and dbic < -10.0), fit_all=f_all))
+
     for i, (eff, scope) in enumerate(pairs):
         trial = model.with_effect(eff, scope)
         hints = [h for h in physical_hints(trial, data) if h.parameter == eff.key]
@@ -262,13 +273,15 @@ def diagnose(data, model: LabModel | None = None, site=None, k_folds: int = 4, m
                                "reason": hints[0].reason})
             continue
         say(f"candidate {i + 1}/{len(pairs)}: {eff.key}" + ("" if scope == "all" else f"@{scope}"))
-        f_all = fit(trial, data, uncertainty=False)
-        cv = cross_validate(trial, data, folds) if folds else val_metrics(trial, data)
-        score = cv.get("pointing_rms_deg", float("nan"))
-        gain = 1.0 - score / base_score if base_score > 0 else 0.0
-        dbic = f_all.bic() - base_fit.bic()
-        ranked.append(Candidate(eff.name, eff.sensor, eff.axes, scope, cv, score, gain, dbic,
-                                significant=bool(gain >= min_gain and dbic < -10.0), fit_all=f_all))
+        score(trial, eff.name, eff.sensor, eff.axes, scope)
+    # Not a sensor effect but a frequent cause of a constant azimuth error: the stand's north (or
+    # the declination used) differs from the site reference's.
+    has_ref = np.any((data.kind == "ref"))
+    if not model.fit_heading and has_ref and (candidates is None or HEADING in candidates):
+        say("candidate: heading offset of the stand / declination")
+        trial = copy.deepcopy(model)
+        trial.fit_heading = True
+        score(trial, HEADING, "site", "", "all")
     ranked.sort(key=lambda c: (not np.isfinite(c.score), c.score, c.delta_bic))
     misfit = base_fit.z_rms > Z_RMS_LIMIT
     best = ranked[0] if ranked and ranked[0].significant else None
@@ -308,6 +321,8 @@ _SIGNATURES = {
     "nonlinearity": "residuals following input² / input³",
     "cross_coupling": "accelerometer residuals following products of the other axes' inputs",
     "bias_drift": "residuals following time",
+    HEADING: "a constant azimuth error: the stand's north (or the declination) differs from the site "
+             "reference's — check the declination in the site file, or keep the offset fitted (--fit-heading)",
 }
 
 
@@ -363,6 +378,10 @@ def ladder(data, site, max_steps: int = 4, k_folds: int = 4, progress=None, cand
         rec = dg.recommended
         if rec is None:
             break
+        if rec.effect == HEADING:
+            model = copy.deepcopy(dg.model)
+            model.fit_heading = True
+            continue
         eff = fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)
         model = copy.deepcopy(dg.model).with_effect(eff, rec.scope)
     return steps

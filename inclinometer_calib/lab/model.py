@@ -84,7 +84,7 @@ class LabModel:
         return [t for t in self.terms if t.effect.name not in BASE_NAMES]
 
     def labels(self) -> list:
-        return [t.label for t in self.extra_terms]
+        return [t.label for t in self.extra_terms] + (["heading_offset"] if self.fit_heading else [])
 
     # ---- parameter vector --------------------------------------------------------------------
     def param_names(self) -> list:
@@ -197,7 +197,10 @@ class LabModel:
         """Corrected angles of the stations and, for those with a reference, their errors."""
         g, b = self.correct(data)
         kw = {} if tol is None else {"tol": tol}
-        return evaluate(g, b, self.site, ref=data.ref, **kw)
+        # azimuths from the stand's north: the site declination plus any fitted heading offset
+        site = Site(self.site.total_field_nt, self.site.dip_deg, self.site.declination_deg + self.heading_deg,
+                    self.site.gravity_mps2)
+        return evaluate(g, b, site, ref=data.ref, **kw)
 
     def describe(self) -> str:
         extra = ", ".join(self.labels()) or "none"

@@ -81,3 +81,24 @@ def test_misalignment_is_reported_untestable_with_the_reason(sim_factory):
     data, truth, site = sim_factory(41)
     dg = lab.diagnose(data, site=site)
     assert any(u["effect"] == "misalignment" and "K·E" in u["reason"] for u in dg.untestable)
+
+
+def test_declination_missing_from_the_site_is_found_as_a_heading_offset(tmp_path):
+    """Data of a site with a 2° declination, analysed with a site reference that has none."""
+    import contextlib
+    import io
+
+    from inclinometer_calib.cli import main
+    from inclinometer_calib.frames import Site
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["simulate", "--out", str(tmp_path), "--seed", "44", "--declination", "2"]) == 0
+    data = lab.load_logs(tmp_path / "cal.csv", tmp_path / "val.csv")
+    site = Site()  # declination 0: wrong by 2°
+    dg = lab.diagnose(data, site=site)
+    assert dg.recommended is not None and dg.recommended.effect == "heading_offset", dg.verdict
+    assert "declination" in dg.verdict
+    steps = lab.ladder(data, site, max_steps=1)
+    assert steps[-1].model.fit_heading
+    assert abs(steps[-1].model.heading_deg - 2.0) < 0.01
+    assert steps[-1].base_val["azimuth_rms_deg"] < 0.05

@@ -341,9 +341,9 @@ def test_nan_interference_near_vertical_over_dds(ros_env, coeffs_file, tmp_path)
             pub_imu.publish(mi)
             pub_mag.publish(mm)
             pub_temp.publish(mt)
-            if k % 200 == 199:
-                time.sleep(0.02)  # about 10x real time
-        end = time.monotonic() + 15
+            if k % 100 == 99:
+                time.sleep(0.02)  # about 5x real time: a loaded CI machine must keep up
+        end = time.monotonic() + 30
         while time.monotonic() < end and len(stations) < 6:
             time.sleep(0.05)
         time.sleep(0.3)
