@@ -4,50 +4,28 @@ on this machine only, child processes, and per-process CPU time and RSS from ``/
 Nothing here imports rclpy (the children do)."""
 from __future__ import annotations
 
-import fcntl
 import os
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, "config")
-_LOCK_DIR = os.path.join(tempfile.gettempdir(), "inclinometer_calib-ros-domain-ids")  # shared with the tests
+sys.path.insert(0, ROOT)
+from inclinometer_calib.rosenv import isolated_env, reserve_domain_id  # noqa: E402
 _CLK_TCK = os.sysconf("SC_CLK_TCK")
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 
 
-def reserve_domain(lo: int = 101, hi: int = 232):
-    """(domain id, lock file): an id no test or other benchmark holds (flock, as in test/ros/conftest.py)."""
-    os.makedirs(_LOCK_DIR, exist_ok=True)
-    span = hi - lo + 1
-    start = (os.getpid() * 13) % span
-    for k in range(span):
-        d = lo + (start + k) % span
-        fh = open(os.path.join(_LOCK_DIR, f"{d}.lock"), "a+")
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            continue
-        return d, fh
-    raise RuntimeError(f"no free ROS_DOMAIN_ID in [{lo}, {hi}]")
+def reserve_domain():
+    """(domain id, lock file): an id no test or other benchmark holds (``rosenv``)."""
+    return reserve_domain_id()
 
 
 def ros_env(domain_id: int) -> dict:
     """Environment of the children: own domain, discovery on localhost only, source tree first."""
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               RMW_IMPLEMENTATION=env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp"), PYTHONUNBUFFERED="1")
-    for key in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "FASTRTPS_DEFAULT_PROFILES_FILE",
-                "FASTDDS_DEFAULT_PROFILES_FILE", "ROS_DISCOVERY_SERVER"):
-        env.pop(key, None)
-    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
-    if ROOT not in paths:
-        env["PYTHONPATH"] = os.pathsep.join([ROOT] + paths)
-    return env
+    return isolated_env(domain_id)
 
 
 def node_cmd(name: str, params: dict, config: bool = True) -> list:

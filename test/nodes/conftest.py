@@ -12,30 +12,13 @@ _ros = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_ros)
 
 ros_env = _ros.ros_env  # re-exported fixture (function scope)
-
-REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-
-
-def make_env(domain_id: int) -> dict:
-    """Environment for ROS child processes in their own domain, discovery on localhost only."""
-    env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST",
-               RMW_IMPLEMENTATION=env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp"), PYTHONUNBUFFERED="1")
-    for key in ("ROS_LOCALHOST_ONLY", "ROS_STATIC_PEERS", "FASTRTPS_DEFAULT_PROFILES_FILE",
-                "FASTDDS_DEFAULT_PROFILES_FILE", "ROS_DISCOVERY_SERVER"):
-        env.pop(key, None)
-    # child processes must import the source tree first (as scripts/env.sh arranges)
-    paths = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
-    if REPO not in paths:
-        env["PYTHONPATH"] = os.pathsep.join([REPO] + paths)
-    return env
-
+from inclinometer_calib.rosenv import isolated_env, reserve_domain_id  # noqa: E402  (path set by _ros)
 
 @pytest.fixture(scope="module")
 def domain_env():
     """(env dict, domain id) reserved for a whole test module (released at its end)."""
-    domain_id, lock = _ros._reserve_domain_id()
+    domain_id, lock = reserve_domain_id()
     try:
-        yield make_env(domain_id), domain_id
+        yield isolated_env(domain_id), domain_id
     finally:
         lock.close()
