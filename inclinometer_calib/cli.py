@@ -126,19 +126,29 @@ def cmd_simulate(args):
 
 
 def run_twelve_position(cal_path, site, probe_id, quiet=False):
+    """Solve a twelve-pose log.  ``site`` None: the site reference is taken from the data (dip and
+    the horizontal field's direction on the stand; the total field in the scale M_d sets)."""
     _, stations, _, _ = load_stations(cal_path, quiet=quiet)
+    measured = site is None
     try:
-        result = solve_stations(stations, site)
+        result = solve_stations(stations, Site() if measured else site)
     except (ValueError, np.linalg.LinAlgError) as exc:
         raise UserError(f"{cal_path}: {exc}") from None
     for note in result.notes:  # refused (mislabelled / moved) stations, duplicated poses
         _warn(f"{cal_path}: {note}")
+    if measured:
+        site = result.site_estimate(Site().gravity_mps2)
+        if not quiet:
+            _warn(f"{cal_path}: no --site given: site reference taken from the calibration data — dip "
+                  f"{site.dip_deg:.3f}°, horizontal field {site.declination_deg:+.3f}° from the stand's north "
+                  f"(azimuths will be reported from the stand's north), total field {site.total_field_nt:.0f} "
+                  f"in the scale of the assumed vertical component; give --site for a survey elsewhere")
     return result, to_calibration(result, site, probe_id)
 
 
 def cmd_twelve_position(args):
-    site = load_site(args.site)
-    result, cal = run_twelve_position(args.cal, site, args.probe_id)
+    result, cal = run_twelve_position(args.cal, load_site(args.site) if args.site else None, args.probe_id)
+    site = cal.site
     cal.save(args.output)
     print(format_table2(cal.acc, cal.mag))
     print()
@@ -341,7 +351,7 @@ def _lab_setup(args):
             raise UserError(str(exc)) from None
         if not args.json:
             print(f"plug-in {plug}: {', '.join(names)}", file=sys.stderr)
-    site = load_site(args.site)
+    site = load_site(args.site) if args.site else _site_from_calibration(args.cal)
     try:
         data = lab.load_logs(args.cal, args.val, warn=_warn, free_paths=args.free or ())
         model = build_model(site, args.effects, fit_heading=args.fit_heading)
@@ -350,6 +360,18 @@ def _lab_setup(args):
     except ValueError as exc:
         raise UserError(str(exc)) from None
     return lab, site, data, model
+
+
+def _site_from_calibration(cal_path):
+    """Site reference measured by a twelve-pose log (see :func:`run_twelve_position`), or the default
+    when the log has no complete set of poses."""
+    try:
+        _, cal = run_twelve_position(cal_path, None, "probe", quiet=True)
+    except UserError:
+        return Site()
+    _warn(f"{cal_path}: no --site given: using the site reference the twelve poses measure (dip "
+          f"{cal.site.dip_deg:.3f}°, horizontal field {cal.site.declination_deg:+.3f}° from the stand's north)")
+    return cal.site
 
 
 def _progress(args):

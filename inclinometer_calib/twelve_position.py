@@ -273,8 +273,23 @@ class TwelvePositionResult:
         b = float(np.linalg.norm(m))
         dip = float(np.degrees(np.arcsin(np.clip(m @ g / (b * np.linalg.norm(g)), -1, 1))))
         tilt = float(np.degrees(np.arctan2(np.hypot(g[0], g[1]), g[2])))
+        heading = float(np.degrees(np.arctan2(m[1], m[0])))
         return {"total_field": b, "dip_deg": dip, "gravity": float(np.linalg.norm(g)),
-                "stand_tilt_deg": tilt}
+                "stand_tilt_deg": tilt, "field_heading_deg": heading}
+
+    def site_estimate(self, gravity_mps2: float):
+        """The site reference as the calibration data itself measure it, for when none is given.
+
+        Dip and the direction of the horizontal field in the stand frame (``field_heading_deg``:
+        declination plus the stand's heading offset) are independent of the assumed M_d; the total
+        field is in the scale that M_d sets.  Azimuths corrected with this site are measured from
+        the stand's north — the frame of the stand's reference angles.
+        """
+        from .frames import Site
+
+        imp = self.implied_site()
+        return Site(total_field_nt=imp["total_field"], dip_deg=imp["dip_deg"],
+                    declination_deg=imp["field_heading_deg"], gravity_mps2=gravity_mps2)
 
 
 def solve(acc_by_pose: dict, mag_by_pose: dict, gravity: float, field_down: float,

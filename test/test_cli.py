@@ -98,3 +98,19 @@ def test_axial_correction_removes_survey_interference(tmp_path, capsys):
     assert fixed["azimuth_method"] == "short_collar"
     assert fixed["azimuth_rms_deg"] < 0.3 * plain["azimuth_rms_deg"]
     assert fixed["flagged"]["axial_degenerate"] < fixed["stations"] // 2  # the stand grid avoids east-west at 90°
+
+
+def test_without_a_site_file_the_site_is_taken_from_the_calibration_data(tmp_path, capsys):
+    """A site with another dip and a declination, calibrated and corrected without --site: the
+    azimuths come out in the stand's frame and no station is falsely flagged."""
+    d = tmp_path / "decl"
+    assert main(["simulate", "--out", str(d), "--seed", "9", "--declination", "3", "--dip", "62",
+                 "--total-field", "47000"]) == 0
+    coeffs = tmp_path / "c.yaml"
+    assert main(["twelve-position", str(d / "cal.csv"), "-o", str(coeffs)]) == 0
+    assert "no --site given" in capsys.readouterr().err
+    rec = yaml.safe_load(coeffs.read_text())
+    assert abs(rec["site"]["dip_deg"] - 62.0) < 0.01 and abs(rec["site"]["declination_deg"] - 3.0) < 0.01
+    out = _json(capsys, ["correct", str(d / "val.csv"), "--coeffs", str(coeffs), "--json"])
+    assert out["azimuth_rms_deg"] < 0.05
+    assert out["flagged"]["interference_suspected"] == 0
