@@ -106,7 +106,7 @@ class CalibrationNode(Node):
         if got is not None:
             self._sample(*got)
         elif self.pairer.out_of_order != ooo:
-            self._warn_order(c.TOPIC_IMU, s)
+            c.warn_out_of_order(self, c.TOPIC_IMU, s, self.pairer)
 
     def _on_mag(self, msg):
         s = msg.header.stamp
@@ -115,19 +115,13 @@ class CalibrationNode(Node):
         if got is not None:
             self._sample(*got)
         elif self.pairer.out_of_order != ooo:
-            self._warn_order(c.TOPIC_MAG, s)
+            c.warn_out_of_order(self, c.TOPIC_MAG, s, self.pairer)
 
     def _on_temp(self, msg):
         self._temp = msg.temperature
 
-    def _warn_order(self, topic, stamp):
-        self.get_logger().warning(c.out_of_order_text(topic, (stamp.sec, stamp.nanosec), self.pairer.last_t,
-                                                      self.pairer.out_of_order), throttle_duration_sec=2.0)
-
     def _sample(self, t, f, m):
-        if not c.sample_is_finite(f, m):
-            self.bad_samples += 1
-            self.get_logger().warning(c.bad_sample_text(t, f, m, self.bad_samples), throttle_duration_sec=2.0)
+        c.note_bad_sample(self, t, f, m)
         self._last = (t, f, m)
         self._last_wall = time.monotonic()
         seg = self.detector.update(t, f, m, self._temp)

@@ -295,6 +295,19 @@ def out_of_order_text(topic: str, stamp, last_t: float, count: int) -> str:
             f"(t={last_t:.3f} s): non-monotonic timestamps, dropped; {count} so far")
 
 
+def warn_out_of_order(node, topic: str, stamp, pairer) -> None:
+    """Log (rate-limited) a sample dropped for a non-monotonic stamp: which topic, where, how many."""
+    node.get_logger().warning(out_of_order_text(topic, (stamp.sec, stamp.nanosec), pairer.last_t,
+                                                pairer.out_of_order), throttle_duration_sec=2.0)
+
+
+def note_bad_sample(node, t: float, f, m) -> None:
+    """Count and log (rate-limited) a non-finite sample on ``node.bad_samples``; cheap when fine."""
+    if not sample_is_finite(f, m):
+        node.bad_samples += 1
+        node.get_logger().warning(bad_sample_text(t, f, m, node.bad_samples), throttle_duration_sec=2.0)
+
+
 class StreamPairer:
     """Pairs Imu and MagneticField samples of the same header stamp, cheaply and in time order.
 

@@ -137,7 +137,7 @@ class CorrectionNode(Node):
         if got is not None:
             self._sample(*got)
         elif self.pairer.out_of_order != ooo:
-            self._warn_order(c.TOPIC_IMU, s)
+            c.warn_out_of_order(self, c.TOPIC_IMU, s, self.pairer)
         if self.publish_corrected and self.fast is not None:
             la = msg.linear_acceleration
             la.x, la.y, la.z = self.fast.specific_force(f)
@@ -151,7 +151,7 @@ class CorrectionNode(Node):
         if got is not None:
             self._sample(*got)
         elif self.pairer.out_of_order != ooo:
-            self._warn_order(c.TOPIC_MAG, s)
+            c.warn_out_of_order(self, c.TOPIC_MAG, s, self.pairer)
         if self.publish_corrected and self.fast is not None:
             x, y, z = self.fast.field(m)
             mf = msg.magnetic_field
@@ -175,14 +175,8 @@ class CorrectionNode(Node):
         k = bisect.bisect_right(self._ref_t, t) - 1
         return self._ref_v[k] if k >= 0 else (c.NAN, c.NAN, c.NAN)
 
-    def _warn_order(self, topic, stamp):
-        self.get_logger().warning(c.out_of_order_text(topic, (stamp.sec, stamp.nanosec), self.pairer.last_t,
-                                                      self.pairer.out_of_order), throttle_duration_sec=2.0)
-
     def _sample(self, t, f, m):
-        if not c.sample_is_finite(f, m):
-            self.bad_samples += 1
-            self.get_logger().warning(c.bad_sample_text(t, f, m, self.bad_samples), throttle_duration_sec=2.0)
+        c.note_bad_sample(self, t, f, m)
         self._last_wall = time.monotonic()
         seg = self.detector.update(t, f, m, self._temp)
         if seg is not None:

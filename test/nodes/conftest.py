@@ -22,3 +22,18 @@ def domain_env():
         yield isolated_env(domain_id), domain_id
     finally:
         lock.close()
+
+
+@pytest.fixture
+def ros(ros_env):
+    """rclpy initialised in this test's private domain; append nodes to the list to have them destroyed."""
+    import rclpy
+
+    rclpy.init()
+    nodes = []
+    try:
+        yield nodes
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()

@@ -47,18 +47,6 @@ class Collect:
         self.msgs.append(msg)
 
 
-@pytest.fixture
-def ros(ros_env):
-    rclpy.init()
-    nodes = []
-    try:
-        yield nodes
-    finally:
-        for n in nodes:
-            n.destroy_node()
-        rclpy.try_shutdown()
-
-
 @pytest.fixture(scope="module")
 def coeffs_file(tmp_path_factory):
     probe = sim.build_probe(SEED)

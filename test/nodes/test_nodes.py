@@ -23,18 +23,6 @@ from inclinometer_calib.nodes.probe import ProbeNode  # noqa: E402
 
 
 @pytest.fixture
-def ros(ros_env):
-    rclpy.init()
-    nodes = []
-    try:
-        yield nodes
-    finally:
-        for n in nodes:
-            n.destroy_node()
-        rclpy.try_shutdown()
-
-
-@pytest.fixture
 def spinning(ros):
     """Start an executor thread spinning the given nodes; returns a function adding nodes."""
     ex = SingleThreadedExecutor()
