@@ -17,7 +17,7 @@ import yaml
 from . import simulate as sim
 from .coeffs import Calibration, CoefficientError
 from .frames import Site
-from .probelog import Limits, atomic_write_text, read_csv, segment_stations, write_csv
+from .probelog import Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
 from .survey import Tolerances, evaluate, format_table4, format_table5, summarize, table4, table5
 from .twelve_position import format_table2, format_table3, solve_stations, to_calibration
 
@@ -52,12 +52,7 @@ def load_stations(path, min_samples=5, quiet=False):
         raise UserError(str(exc)) from None
     stations, problems = segment_stations(log, min_samples=min_samples)
     if not quiet:
-        for r in rejections[:20]:
-            _warn(f"{path}: {r}")
-        if len(rejections) > 20:
-            _warn(f"{path}: ... and {len(rejections) - 20} more rejected rows")
-        for p in problems:
-            _warn(f"{path}: {p}")
+        report(path, rejections, problems, _warn)
     if rejections:
         _warn(f"{path}: {len(rejections)} of {len(rejections) + len(log)} rows rejected; "
               f"{len(log)} rows kept")

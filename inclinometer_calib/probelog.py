@@ -205,6 +205,16 @@ def _parse_labels(fields):
     return pose, ref, None
 
 
+def report(path, rejections, problems, warn, limit: int = 20) -> None:
+    """Pass rejected rows (the first ``limit``) and station problems to ``warn``, naming the file."""
+    for r in rejections[:limit]:
+        warn(f"{path}: {r}")
+    if len(rejections) > limit:
+        warn(f"{path}: ... and {len(rejections) - limit} more rejected rows")
+    for p in problems:
+        warn(f"{path}: {p}")
+
+
 def read_csv(path, limits: Limits = Limits()):
     """Read a probe-log CSV file.  Returns ``(ProbeLog, [Rejection, ...])``."""
     with open(path, encoding="utf-8") as fh:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..frames import orientation_matrix
-from ..probelog import read_csv, segment_stations
+from ..probelog import read_csv, report, segment_stations
 from ..twelve_position import pose_matrix
 
 #: Floors of the per-station noise estimate (std/√n): m/s², nT.
@@ -125,8 +125,7 @@ def load_logs(cal_path=None, val_path=None, min_samples: int = 5, warn=None, fre
     for path in free_paths or ():
         log, rejections = read_csv(path)
         if warn:
-            for r in rejections[:10]:
-                warn(f"{path}: {r}")
+            report(path, rejections, [], warn)
         stations = detect_stations(log)
         if not stations:
             raise ValueError(f"{path}: no static intervals found (need ≥ 1 s still at each attitude)")
@@ -137,12 +136,7 @@ def load_logs(cal_path=None, val_path=None, min_samples: int = 5, warn=None, fre
         log, rejections = read_csv(path)
         stations, problems = segment_stations(log, min_samples=min_samples)
         if warn:
-            for r in rejections[:10]:
-                warn(f"{path}: {r}")
-            if len(rejections) > 10:
-                warn(f"{path}: ... {len(rejections) - 10} more rejected rows")
-            for p in problems:
-                warn(f"{path}: {p}")
+            report(path, rejections, problems, warn)
         moved = [s for s in stations if s.warnings]
         stations = [s for s in stations if not s.warnings]  # a capture taken while moving is not used
         if moved and warn:
