@@ -430,7 +430,7 @@ def cmd_lab_diagnose(args):
           f"{b.get('azimuth_rms_deg', float('nan')):>10.4f}{dg.base_score:>10.4f}")
     for c in dg.ranked:
         print(f"{c.label:<40}{c.val.get('drift_rms_deg', float('nan')):>10.4f}{c.val.get('azimuth_rms_deg', float('nan')):>10.4f}"
-              f"{c.score:>10.4f}{100 * c.gain:>6.0f}%{c.delta_bic:>10.0f}{'  *' if c.significant else ''}")
+              f"{c.score:>10.4f}{round(100 * c.gain) + 0:>6d}%{c.delta_bic:>10.0f}{'  *' if c.significant else ''}")
     for u in dg.untestable:
         print(f"not testable here: {u['effect']}: {u['reason']}")
     return 0

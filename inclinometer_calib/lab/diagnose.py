@@ -59,6 +59,8 @@ class Candidate:
 
     @property
     def label(self):
+        if self.sensor == "site":
+            return self.effect
         return f"{self.effect}:{self.sensor}:{self.axes}" + ("" if self.scope == "all" else f"@{self.scope}")
 
     def to_json(self):
@@ -339,10 +341,13 @@ def _verdict(model, base_fit, base_cv, structure, best, ranked, misfit, scatter=
                      f"(R² {s['r2']:.2f}, p {s['p']:.1e}).")
     if best is not None:
         sig = _SIGNATURES.get(best.effect, "the residual structure above")
-        lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; adding it lowers the "
-                     f"held-out azimuth RMS from {base_cv.get('azimuth_rms_deg', float('nan')):.3f}° to "
-                     f"{best.val.get('azimuth_rms_deg', float('nan')):.3f}° and drift RMS from "
-                     f"{base_cv.get('drift_rms_deg', float('nan')):.4f}° to {best.val.get('drift_rms_deg', float('nan')):.4f}° "
+        changes = []
+        for key, name, digits in (("azimuth_rms_deg", "azimuth", 3), ("drift_rms_deg", "drift", 4)):
+            before, after = base_cv.get(key, float("nan")), best.val.get(key, float("nan"))
+            if np.isfinite(before) and np.isfinite(after) and abs(after - before) > 0.05 * before:
+                changes.append(f"the held-out {name} RMS from {before:.{digits}f}° to {after:.{digits}f}°")
+        lowers = " and ".join(changes) if changes else "the held-out pointing error"
+        lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; adding it lowers {lowers} "
                      f"(pointing error −{100 * best.gain:.0f} %, ΔBIC {best.delta_bic:.0f}).")
         if len(ranked) > 1:
             runner = ranked[1]
