@@ -85,7 +85,8 @@ def test_restarted_correction_node_gets_latched_coefficients(ros_env, tmp_path):
         rcs = [_stop(p) for p in procs[::-1]]
     cal_text = open(tmp_path / "calibration.log").read()
     assert cal_text.count("published coefficients") == 1  # nothing was republished for the new node
-    ids = [s.coefficients_id for s in stations[n_before:]]
+    after = stations[n_before:]
+    ids = [s.coefficients_id for s in after]
     # A station the new node closes before the latched coefficients reach it (DDS discovery of the
     # calibration node can lag the probe's under load) is published uncorrected, marked by an empty
     # coefficients_id; from the moment they arrive every station carries them.
@@ -93,6 +94,6 @@ def test_restarted_correction_node_gets_latched_coefficients(ros_env, tmp_path):
     assert all(x == "" for x in ids[:k]), ids
     assert len(ids) - k >= 4 and all(x == coeff_id for x in ids[k:]), ids
     assert after[0].station_id == 0  # a new node, numbering from 0
-    survey = [s for s in after if s.drift_deg > 4.0 and s.status == 0]
+    survey = [s for s in after[k:] if s.drift_deg > 4.0 and s.status == 0]
     assert len(survey) >= 3
     assert rcs[0] == 0 and time.monotonic() > killed_at
