@@ -8,7 +8,7 @@ CSV format (the header line is literal)::
   reads -gravity).  Converted once, in :func:`segment_stations`, to the seed paper's gravity
   vector (down positive) with :func:`frames.gravity_from_specific_force`.
 * ``mx..mz``: magnetometer in nT, uncalibrated.
-* ``temp_c``: probe temperature, °C.
+* ``temp_c``: probe temperature, °C; empty (or ``nan``) when the probe has no sensor.
 * ``pose``: 1..12 while the probe sits in that pose of the paper's Table 1, empty otherwise.
 * ``ref_*``: the stand's set orientation where known, empty otherwise.  Rows recorded while the
   probe moves have all four of ``pose`` and ``ref_*`` empty.
@@ -111,7 +111,7 @@ def _check_row(acc, mag, temp, limits: Limits):
     if not limits.mag_total_range[0] <= m <= limits.mag_total_range[1]:
         return (f"total field {m:.4g} nT is implausible (expected "
                 f"{limits.mag_total_range[0]:g}..{limits.mag_total_range[1]:g} nT)")
-    if not limits.temp_range_c[0] <= temp <= limits.temp_range_c[1]:
+    if math.isfinite(temp) and not limits.temp_range_c[0] <= temp <= limits.temp_range_c[1]:
         return f"temp_c={temp:g} °C is implausible"
     return None
 
@@ -138,12 +138,14 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>"):
             rejections.append(Rejection(k, line, f"{len(fields)} fields, expected {len(HEADER)}"))
             continue
         try:
-            nums = [float(f) for f in fields[:8]]
+            # an empty temp_c is an unknown temperature (a probe without a sensor), not a bad row
+            nums = [float(f) for f in fields[:7]] + [float(fields[7]) if fields[7].strip() else math.nan]
         except ValueError:
             bad = next(n for n, f in zip(HEADER, fields) if not _is_float(f))
             rejections.append(Rejection(k, line, f"{bad}={fields[HEADER.index(bad)]!r} is not a number"))
             continue
-        nonfinite = [n for n, v in zip(HEADER, nums) if not math.isfinite(v)]
+        nonfinite = [n for n, v in zip(HEADER, nums) if not math.isfinite(v)
+                     and not (n == "temp_c" and math.isnan(v))]
         if nonfinite:
             rejections.append(Rejection(k, line, f"{', '.join(nonfinite)} not finite (NaN/inf)"))
             continue
@@ -335,11 +337,17 @@ def segment_stations(log: ProbeLog, min_samples: int = 5, max_motion_sigma: floa
         g, b = g_all[s:e], log.mag[s:e]
         stations.append(Station(
             index=len(stations), pose=int(log.pose[s]), ref=log.ref[s].copy(),
-            g=g.mean(axis=0), b=b.mean(axis=0), temp_c=float(log.temp_c[s:e].mean()),
+            g=g.mean(axis=0), b=b.mean(axis=0), temp_c=_mean_known(log.temp_c[s:e]),
             t_start=float(log.t_s[s]), t_end=float(log.t_s[e - 1]), n=int(e - s),
             g_std=g.std(axis=0, ddof=1), b_std=b.std(axis=0, ddof=1), first_row=int(s + 1)))
     _flag_motion(stations, max_motion_sigma, problems)
     return stations, problems
+
+
+def _mean_known(x) -> float:
+    """Mean of the finite values (temperatures may be unknown), NaN if none."""
+    ok = np.isfinite(x)
+    return float(x[ok].mean()) if ok.any() else float("nan")
 
 
 def _flag_motion(stations, k, problems):

@@ -100,3 +100,11 @@ def test_probe_moving_during_capture_is_flagged():
     stations, problems = segment_stations(log)
     assert stations[2].warnings and "moved during the capture" in stations[2].warnings[0]
     assert sum(bool(s.warnings) for s in stations) == 1
+
+
+def test_empty_temperature_is_unknown_not_a_bad_row():
+    log, rej = parse_csv(_csv(GOOD, "0.01,0.1,0.2,-9.8,20000,1000,40000,,1,,,\n"))
+    assert rej == [] and len(log) == 2
+    assert np.isnan(log.temp_c[1])
+    stations, _ = segment_stations(log, min_samples=2)
+    assert np.isnan(stations[0].temp_c)

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..effects import T_REF_C
 from ..frames import orientation_matrix
 from ..probelog import read_csv, report, segment_stations
 from ..twelve_position import pose_matrix
@@ -98,6 +99,12 @@ def from_stations(stations, role: str, source: str = "", use_ref: bool = True) -
         else:
             kind[i] = "free"
     cnt = np.array([max(st.n, 1) for st in stations], dtype=float)
+    temps = np.array([st.temp_c for st in stations], dtype=float)
+    if not np.all(np.isfinite(temps)):
+        # unknown temperature: the log's mean, else the effects' reference — temperature effects
+        # then see no span and are reported as not identifiable, instead of poisoning the fit
+        known = temps[np.isfinite(temps)]
+        temps = np.where(np.isfinite(temps), temps, known.mean() if len(known) else T_REF_C)
     g_sc = np.array([st.g_std for st in stations]).reshape(n, 3)
     b_sc = np.array([st.b_std for st in stations]).reshape(n, 3)
     return LabData(
@@ -105,7 +112,7 @@ def from_stations(stations, role: str, source: str = "", use_ref: bool = True) -
         g_sigma=np.maximum(np.nan_to_num(g_sc) / np.sqrt(cnt)[:, None], SIGMA_FLOOR["acc"]),
         b_sigma=np.maximum(np.nan_to_num(b_sc) / np.sqrt(cnt)[:, None], SIGMA_FLOOR["mag"]),
         g_scatter=g_sc, b_scatter=b_sc,
-        temp_c=np.array([st.temp_c for st in stations], dtype=float),
+        temp_c=temps,
         time_s=np.array([(st.t_start + st.t_end) / 2 for st in stations], dtype=float),
         rotation=rot, kind=kind.astype(str), role=np.full(n, role), pose=np.array([st.pose for st in stations]),
         ref=np.array([st.ref for st in stations], dtype=float).reshape(n, 3), n=cnt.astype(int),
