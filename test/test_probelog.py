@@ -107,4 +107,7 @@ def test_empty_temperature_is_unknown_not_a_bad_row():
     assert rej == [] and len(log) == 2
     assert np.isnan(log.temp_c[1])
     stations, _ = segment_stations(log, min_samples=2)
+    assert stations[0].temp_c == 25.0  # the mean of the known temperatures
+    log.temp_c[:] = np.nan
+    stations, _ = segment_stations(log, min_samples=2)
     assert np.isnan(stations[0].temp_c)
