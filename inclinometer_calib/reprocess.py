@@ -36,7 +36,7 @@ from typing import Callable, Dict, List, Optional
 
 from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
 from .frames import NT_PER_TESLA, Site
-from .streaming import StaticDetector, StationRecord, SurveyProcessor, station_fields
+from .streaming import StaticDetector, StationRecord, StreamPairer, SurveyProcessor, station_fields
 from .survey import Tolerances
 
 TOPIC_IMU = "/probe/imu"
@@ -208,9 +208,7 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     station_cid = writer.add_topic(TOPIC_STATION, STATION_TYPE,
                                    qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)])
     out_cid: Dict[str, Optional[int]] = {}     # input topic -> output channel, None = skipped
-    pending_imu: Dict[tuple, tuple] = {}
-    pending_mag: Dict[tuple, tuple] = {}
-    last_t = -math.inf
+    pairer = StreamPairer()  # the same pairing as the live nodes
     temp = NAN
     have_temp = False
     ref_t: List[float] = []
@@ -277,26 +275,24 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                 writer.write(cid, m.data, log_time, m.publish_time)
                 copied[topic] += 1
             try:
-                if topic == TOPIC_IMU:
-                    key, f = decode_imu(m.data)
-                    partner = pending_mag.pop(key, None)
-                    if partner is None:
-                        pending_imu[key] = f
-                        if len(pending_imu) > 64:
-                            del pending_imu[next(iter(pending_imu))]
-                            issue("unpaired imu sample (no mag with the same stamp)", _where(topic, log_time))
+                if topic in (TOPIC_IMU, TOPIC_MAG):
+                    n_unpaired, n_order = pairer.unpaired, pairer.out_of_order
+                    if topic == TOPIC_IMU:
+                        key, f = decode_imu(m.data)
+                        got = pairer.add_imu(key, f)
+                    else:
+                        key, b = decode_vector3(m.data)
+                        got = pairer.add_mag(key, (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA))
+                    if pairer.unpaired != n_unpaired:
+                        issue("unpaired sample (no partner on the other stream with the same stamp)",
+                              _where(topic, log_time))
+                    if got is None:
+                        if pairer.out_of_order != n_order:
+                            issue("non-monotonic timestamp (pair stamp not after the previous one), pair dropped",
+                                  _where(topic, log_time) + f", stamp {key[0] + 1e-9 * key[1]:.9f} s after "
+                                  f"{pairer.last_t:.9f} s")
                         continue
-                    mm = partner
-                elif topic == TOPIC_MAG:
-                    key, b = decode_vector3(m.data)
-                    mm = (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA)
-                    f = pending_imu.pop(key, None)
-                    if f is None:
-                        pending_mag[key] = mm
-                        if len(pending_mag) > 64:
-                            del pending_mag[next(iter(pending_mag))]
-                            issue("unpaired mag sample (no imu with the same stamp)", _where(topic, log_time))
-                        continue
+                    t, f, mm = got
                 elif topic == TOPIC_TEMPERATURE:
                     _, temp = decode_temperature(m.data)
                     have_temp = True
@@ -311,12 +307,7 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
             except (struct.error, ValueError, IndexError) as exc:
                 issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
                 continue
-            # a complete imu/mag pair
-            t = key[0] + 1e-9 * key[1]
-            if t <= last_t:
-                issue(f"non-monotonic timestamp (pair stamp not after the previous one), pair dropped",
-                      _where(topic, log_time) + f", stamp {t:.9f} s after {last_t:.9f} s")
-                continue
+            # a complete imu/mag pair, in time order
             b2 = mm[0] * mm[0] + mm[1] * mm[1] + mm[2] * mm[2]
             if not (math.isfinite(b2) and math.isfinite(f[0] + f[1] + f[2])):
                 issue("non-finite (NaN/inf) sample, pair dropped", _where(topic, log_time))
@@ -328,7 +319,6 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                 issue(f"implausible |B| (expected {lo_b:g}..{hi_b:g} nT), pair dropped{hint}",
                       _where(topic, log_time) + f", |B| = {bt:.4g} T")
                 continue
-            last_t = t
             report.pairs += 1
             sample(t, f, mm, log_time)
         seg = det.flush()

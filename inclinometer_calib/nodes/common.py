@@ -27,6 +27,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ..coeffs import Calibration
 from ..frames import NT_PER_TESLA, Site
 from ..survey import Tolerances
+from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-free, shared with reprocess)
 
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
@@ -306,54 +307,6 @@ def note_bad_sample(node, t: float, f, m) -> None:
     if not sample_is_finite(f, m):
         node.bad_samples += 1
         node.get_logger().warning(bad_sample_text(t, f, m, node.bad_samples), throttle_duration_sec=2.0)
-
-
-class StreamPairer:
-    """Pairs Imu and MagneticField samples of the same header stamp, cheaply and in time order.
-
-    ``add_imu``/``add_mag`` return ``(t, f, m)`` when the stamp's partner is already there,
-    else None.  Unpaired samples wait in small insertion-ordered dicts (the oldest is evicted
-    beyond ``max_pending``); a completed pair older than the last one emitted is dropped
-    (``out_of_order``), so consumers always see increasing times.
-    """
-
-    __slots__ = ("_imu", "_mag", "max_pending", "last_t", "paired", "unpaired", "out_of_order")
-
-    def __init__(self, max_pending: int = 64):
-        self._imu = {}
-        self._mag = {}
-        self.max_pending = max_pending
-        self.last_t = -math.inf
-        self.paired = 0
-        self.unpaired = 0
-        self.out_of_order = 0
-
-    def reset(self):
-        self._imu.clear()
-        self._mag.clear()
-        self.last_t = -math.inf
-
-    def _add(self, key, value, mine, other, imu_first):
-        partner = other.pop(key, None)
-        if partner is None:
-            mine[key] = value
-            if len(mine) > self.max_pending:
-                del mine[next(iter(mine))]
-                self.unpaired += 1
-            return None
-        t = key[0] + 1e-9 * key[1]
-        if t <= self.last_t:
-            self.out_of_order += 1
-            return None
-        self.last_t = t
-        self.paired += 1
-        return (t, value, partner) if imu_first else (t, partner, value)
-
-    def add_imu(self, key, f):
-        return self._add(key, f, self._imu, self._mag, True)
-
-    def add_mag(self, key, m):
-        return self._add(key, m, self._mag, self._imu, False)
 
 
 # --------------------------------------------------------------------------------------------
