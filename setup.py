@@ -2,9 +2,24 @@
 
 In a ROS 2 workspace the package is built by colcon through ``package.xml`` (build type
 ament_cmake, see ``CMakeLists.txt`` and ``docs/packaging.md``); this file serves plain
-``pip install .`` (core + CLI, no ROS needed) and the PyPI-based development environment.
+``pip install .`` (core + CLI, no ROS needed; ``pip install '.[all]'`` adds the optional parts, see
+``EXTRAS``) and the PyPI-based development environment.
 """
 from setuptools import find_packages, setup
+
+# Optional parts (pip install '.[report]', '.[bag]', '.[all]'); without them the commands that need
+# them stop with a one-line hint (inclinometer_calib/deps.py). The bag extra's lower bounds are the
+# versions of requirements/jazzy.lock, the tested environment (rosbags changes its API between minor
+# versions); test/test_extras.py checks the lock satisfies every bound.
+EXTRAS = {
+    # lab report: plots (inclinometer_calib/lab/report.py)
+    "report": ["matplotlib>=3.7"],
+    # reprocess, bags (inclinometer_calib/bag.py, reprocess.py, the launcher's summary): the MCAP
+    # writer, its chunk compressions, and rosbags (type store, CDR, reading for the summary)
+    "bag": ["mcap>=1.6", "zstandard>=0.25", "lz4>=4.4", "rosbags>=0.11.9"],
+}
+EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
+EXTRAS["test"] = ["pytest>=7", "hypothesis>=6"]
 
 setup(
     name="inclinometer_calib",
@@ -14,7 +29,7 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["inclinometer_calib", "inclinometer_calib.*"]),
     install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0"],
-    extras_require={"report": ["matplotlib>=3.7"], "test": ["pytest>=7", "hypothesis>=6"]},
+    extras_require=EXTRAS,
     entry_points={
         "console_scripts": [
             "inclinometer-calib = inclinometer_calib.cli:main",

@@ -30,7 +30,7 @@ from inclinometer_calib.cli import load_site, main as cli_main
 from inclinometer_calib.lab.diagnose import candidate_effects
 from inclinometer_calib.lab.model import LabModel
 from inclinometer_calib.probelog import read_csv, segment_stations
-from inclinometer_calib.twelve_position import solve_stations
+from inclinometer_calib.capture import CaptureSession
 
 ROWS_PER_HZ = 442          # rows of cal.csv + val.csv per Hz of rate with 1 s stations
 
@@ -48,6 +48,14 @@ def timed(fn):
     t = time.perf_counter()
     r = fn()
     return time.perf_counter() - t, r
+
+
+def solve_session(stations, site):
+    """The twelve-position solve as the CLI and the calibration node run it (gates, sequence, screen)."""
+    session = CaptureSession(site=site)
+    for st in stations:
+        session.offer(st)
+    return session.finish()
 
 
 def main(argv=None):
@@ -75,7 +83,7 @@ def main(argv=None):
                 return out
             t_read, segs = timed(read_both)
             n_st = sum(len(s[0]) for s in segs)
-            t_12, _ = timed(lambda: solve_stations(segs[0][0], site))
+            t_12, _ = timed(lambda: solve_session(segs[0][0], site))
             data = lab.load_logs(cal, val)
             model = LabModel.base(site)
             t_fit, res = timed(lambda: lab.fit(model, data))
@@ -85,7 +93,7 @@ def main(argv=None):
             rows.append([label, n_st, "read + segment CSV (baseline)", f"{t_read:.3f}", "1.00"])
             rows.append([label, n_st, "twelve-position solve (from stations)", f"{t_12 * 1e3:.2f} ms",
                          f"{t_12 / t_read:.4f}"])
-            t_12cli, _ = timed(lambda: solve_stations(segment_stations(read_csv(cal)[0])[0], site))
+            t_12cli, _ = timed(lambda: solve_session(segment_stations(read_csv(cal)[0])[0], site))
             rows.append([label, n_st, "twelve-position: read cal.csv + solve", f"{t_12cli:.3f}",
                          f"{t_12cli / t_read:.2f}"])
             rows.append([label, n_st, f"lab fit, base model ({len(res.values)} parameters)",

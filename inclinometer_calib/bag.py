@@ -3,7 +3,9 @@
 ROS-free on purpose: this module imports neither rclpy nor any generated message module, so
 bags can be written from CDR bytes and read back on machines without ROS (tests, analysis).
 It needs ``mcap`` (and its ``zstandard`` / ``lz4`` dependencies) and PyYAML; ``rosbags`` only as
-the fallback for computing type hashes that no installed ``.json`` type description holds.
+the fallback for computing type hashes that no installed ``.json`` type description holds. All of
+them come with the extra ``bag`` (``pip install 'inclinometer_calib[bag]'``); without them the
+functions that need them raise :class:`deps.MissingDependency`, which says so in one line.
 
 What makes the file a rosbag2 bag (what ``ros2 bag record`` with the mcap storage writes, and
 what ``rosbags`` and ``mcap_ros2`` need to decode it):
@@ -55,6 +57,8 @@ from pathlib import Path
 from typing import Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional, Sequence, Union
 
 import yaml
+
+from .deps import MissingDependency, require
 
 __all__ = [
     "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
@@ -278,6 +282,7 @@ class MessageDefinitions:
 
 
 def _compute_rihs01(type_name: str, definition: str) -> str:
+    require("rosbags.typesys", "bag", "computing a message type hash")
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     store = get_typestore(Stores.EMPTY)
@@ -481,6 +486,7 @@ class BagWriter:
     def __init__(self, path: PathLike, *, compression: str = "zstd", chunk_size: int = 1 << 20,
                  max_chunk_s: float = 1.0, fsync: bool = False, library: Optional[str] = None,
                  definitions: Optional[MessageDefinitions] = None):
+        require("mcap.writer", "bag", "writing a bag")
         from mcap.writer import CompressionType, Writer
 
         self.path = Path(path)
@@ -779,11 +785,11 @@ def _decompress(compression: str, data, size: int) -> bytes:
     if compression == "":
         return bytes(data)
     if compression == "zstd":
-        import zstandard
+        zstandard = require("zstandard", "bag", "reading a zstd-compressed bag")
         return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
     if compression == "lz4":
-        import lz4.frame
-        return lz4.frame.decompress(data)
+        lz4_frame = require("lz4.frame", "bag", "reading an lz4-compressed bag")
+        return lz4_frame.decompress(data)
     raise ValueError(f"unsupported chunk compression {compression!r}")
 
 
@@ -951,6 +957,8 @@ class BagReader:
             if crc and zlib.crc32(raw) != crc:
                 raise ValueError("CRC mismatch")
             return list(_records(memoryview(raw), 0, len(raw)))
+        except MissingDependency:
+            raise  # not damage: the chunk is fine, this environment cannot decompress it
         except (_Bad, struct.error, ValueError, Exception) as exc:  # noqa: BLE001
             reason = exc.reason if isinstance(exc, _Bad) else str(exc)
             self._err(pos, f"damaged chunk skipped ({type(exc).__name__}: {reason})")

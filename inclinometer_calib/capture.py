@@ -1,42 +1,41 @@
-"""Live twelve-pose capture: which pose the probe is in, what is captured, when to solve — ROS-free.
+"""Twelve-pose capture: which pose the probe is in, what is captured, when to solve — ROS-free.
 
-The calibration node feeds every closed static segment (from :class:`streaming.StaticDetector`)
-to :meth:`CaptureSession.offer`.  The session identifies the pose from the measured gravity
-direction (which tool axis is vertical, and its sign) and the field's horizontal direction (which
-of the two rolls about that axis: the stand is set up against magnetic north, as in the paper),
-keeps captures, warns on wrong/repeated/short/moving captures, and solves when all twelve are in.
+One session for every path: the calibration node offers each station its detector closes, the
+CLI (``twelve-position``) and offline reprocessing offer the stations of a log or a bag found by
+the same detector.  The session
+
+* **gates** each station (:mod:`gates`: in-hold motion, a flat/saturated axis, an implausible
+  |g|): a moved station is rejected, a sensor that failed is left out of that sensor's solve;
+* **identifies** the pose from the measured gravity direction (which tool axis is vertical, and
+  its sign) and the field's horizontal direction (which of the two rolls about that axis; the
+  stand is set up against magnetic north, as in the paper), and checks it against the log's
+  pose label when there is one;
+* follows **the sequence**: before the first solve any pending pose is accepted (out of order
+  with a warning), the pose just captured again is the same hold cut into pieces (merged) or a
+  retake, any other repeat is refused; after the first solve a new round must start at pose 1
+  and follow Table 1's order, otherwise the statics are survey stations, not poses (labelled
+  captures, from a stand's log, are used whatever their order);
+* **solves** when all twelve poses are in, again after every complete round, and at the end of
+  the data (:meth:`finish`) — screening out captures that do not fit and solving by least squares
+  when a pose is left without one (:func:`twelve_position.solve_captures`);
+* says every failure aloud: each gate, refusal and left-out capture is a message in
+  :attr:`warnings` (the node logs them at WARNING, the CLI prints them).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .frames import Site
-from .twelve_position import POSES, identify_pose_with_field, solve_stations, to_calibration
+from .gates import GateLimits, SaturationMonitor, apply_gates
+from .station import Station, merge_stations
+from .twelve_position import (POSES, CaptureSet, identify_pose_with_field, solve_captures, to_calibration,
+                              _gravity_candidates)
 
-
-@dataclass
-class Capture:
-    """One accepted capture of a pose (means in the gravity-vector convention and nT)."""
-
-    pose: int
-    g: np.ndarray
-    b: np.ndarray
-    temp_c: float
-    t_start: float
-    t_end: float
-    n: int
-    misfit_deg: float
-
-
-@dataclass
-class _StationView:
-    """Adapter giving captures the attributes ``twelve_position.solve_stations`` reads."""
-
-    pose: int
-    g: np.ndarray
-    b: np.ndarray
+#: Statics of the same pose closer in time than this (s) are pieces of one hold, merged.
+MERGE_GAP_S = 1.0
 
 
 @dataclass
@@ -47,40 +46,62 @@ class CaptureSession:
     ----------
     site : Site — reference field (the stand is assumed aligned with magnetic north).
     min_capture_s : a capture shorter than this is rejected ("too short").
-    max_scatter_acc / max_scatter_mag : per-axis standard deviation above which the probe is
-        taken to have moved during the capture (m/s², nT).
-    pose_tolerance_deg : how far from a Table 1 pose the measured gravity may be.
-    rounds : accept repeated poses as extra rounds (True) or ignore them with a warning (False).
+    pose_tolerance_deg : how far from a Table 1 pose the measured gravity may be (uncalibrated
+        sensors may be several degrees off).
+    rounds : after the first solve, accept further complete rounds in Table 1 order and solve
+        again with all of them (False: the first solve is final).
+    limits : the gates' limits (:class:`gates.GateLimits`).
     """
 
     site: Site = field(default_factory=Site)
-    min_capture_s: float = 1.0
-    max_scatter_acc: float = 0.02
-    max_scatter_mag: float = 150.0
+    min_capture_s: float = 0.5
     pose_tolerance_deg: float = 15.0
-    rounds: bool = False
+    rounds: bool = True
     probe_id: str = "probe"
+    limits: GateLimits = field(default_factory=GateLimits)
 
-    captures: dict = field(default_factory=dict)
-    warnings: list = field(default_factory=list)
+    captures: list = field(default_factory=list)      # accepted Stations (pose = the identified pose)
+    warnings: list = field(default_factory=list)      # every message for the user, in order
+    infos: list = field(default_factory=list)         # progress messages (not failures)
     current_pose: int = -1
     recapture: set = field(default_factory=set)
     result: object = None
     calibration: object = None
-    state: str = "collecting"
+    state: str = "collecting"                         # collecting | solving | done | error
     message: str = ""
+    solves: int = 0
 
+    def __post_init__(self):
+        self._round: list = []            # captures of a round in progress after the first solve
+        self._dirty = False               # captures added since the last solve
+        self._saturation = SaturationMonitor()
+        self._flat_seen = {}              # "accelerometer x" -> stations in which it was flat
+        self._flat_reported = {}
+
+    # ---- views -----------------------------------------------------------------------------
     @property
     def captured(self) -> list:
-        return [p for p in POSES if self.captures.get(p)]
+        have = {c.pose for c in self.captures}
+        return [p for p in POSES if p in have]
 
     @property
     def pending(self) -> list:
-        return [p for p in POSES if not self.captures.get(p)]
+        have = {c.pose for c in self.captures}
+        return [p for p in POSES if p not in have]
 
     @property
     def expected_next(self) -> int:
-        return self.pending[0] if self.pending else -1
+        """The pose the sequence expects next: in a round after the first solve, the one after the
+        last; before, the first pending pose after the last one captured (Table 1 order, wrapping)."""
+        if self.state == "done" and self._round:
+            last = self._round[-1].pose
+            return last + 1 if last < 12 else -1
+        pending = self.pending
+        if not pending:
+            return -1
+        last = self.captures[-1].pose if self.captures else 0
+        after = [p for p in pending if p > last]
+        return after[0] if after else pending[0]
 
     def _stand_field(self):
         # Stand frame = magnetic north/east/down (Table 1 is laid out against magnetic north).
@@ -92,46 +113,146 @@ class CaptureSession:
 
     def _warn(self, msg):
         self.warnings.append(msg)
-        del self.warnings[:-50]  # bounded history
+        del self.warnings[:-200]  # bounded history
         return msg
 
-    def offer(self, seg) -> str:
-        """Consider a closed static segment.  Returns 'accepted', 'rejected', 'ignored' or 'solved'."""
-        pose, misfit = self.identify(seg.g, seg.b)
+    def _info(self, msg):
+        self.infos.append(msg)
+        del self.infos[:-200]
+        return msg
+
+    # ---- offering stations -----------------------------------------------------------------
+    def offer(self, st: Station) -> str:
+        """Consider a closed station.  Returns 'accepted', 'merged', 'rejected', 'ignored' or 'solved'.
+
+        Everything refused is said in :attr:`warnings`.  A station carrying a pose label (from a
+        log) must agree with the pose its gravity shows; a station after the calibration that
+        does not continue a new round in order is a survey station: 'ignored' without a warning.
+        """
+        pose, misfit = self.identify(st.g, st.b)
+        # solved from every pose: later statics are new rounds or survey stations; solved without some
+        # poses (at the end of the data, least squares): those poses are still welcome
+        after_solve = self.state == "done" and not self.recapture and not self.pending
         self.current_pose = pose if pose is not None else -1
+        where = f"pose {pose} at {st.where}" if pose is not None else f"static at {st.where}"
         if pose is None:
-            self._warn(f"static at t={seg.t_start:.1f}-{seg.t_end:.1f} s is not one of the twelve poses "
-                       f"(no tool axis within {self.pose_tolerance_deg:g}° of vertical): ignored")
+            if not after_solve and st.duration_s >= self.min_capture_s:
+                self._warn(f"{where} is not one of the twelve poses (no tool axis within "
+                           f"{self.pose_tolerance_deg:g}° of vertical): ignored")
             return "ignored"
-        where = f"pose {pose} at t={seg.t_start:.1f}-{seg.t_end:.1f} s"
-        if getattr(seg, "short", False) or seg.duration_s < self.min_capture_s:
-            self._warn(f"{where}: capture too short ({seg.duration_s:.2f} s < {self.min_capture_s:g} s): rejected")
+        if after_solve and not self._continues_round(pose, st):
+            return "ignored"
+        if st.short or st.duration_s < self.min_capture_s:
+            self._warn(f"{where}: capture too short ({st.duration_s:.2f} s < {self.min_capture_s:g} s): rejected")
             return "rejected"
-        if np.max(seg.g_std) > self.max_scatter_acc or np.max(seg.b_std) > self.max_scatter_mag:
-            self._warn(f"{where}: probe moved during the capture (scatter acc {np.max(seg.g_std):.4f} m/s², "
-                       f"mag {np.max(seg.b_std):.1f} nT): rejected")
+        findings = apply_gates(st, self.limits, self.site.gravity_mps2)
+        for f in findings:
+            if f.code == "flat":   # the same stuck/clipped axis in every station: said twice, then counted
+                self._flat_seen[f.axis] = self._flat_seen.get(f.axis, 0) + 1
+                if self._flat_seen[f.axis] > 2:
+                    continue
+            self._warn(f.message)
+        for msg in self._saturation.add(st, findings):
+            self._warn(msg)
+        if st.moved:
+            return "rejected"
+        if len(st.unusable) == 2:
+            self._warn(f"{where}: neither sensor usable: rejected")
+            return "rejected"
+        if st.pose and st.pose != pose:
+            cands = _gravity_candidates(st.g, self.pose_tolerance_deg)
+            says = f"pose {pose}" + (f" (gravity alone: pose {' or '.join(map(str, cands))})" if len(cands) > 1 else "")
+            self._warn(f"station at {st.where}: labelled pose {st.pose} but its gravity and field say {says}: "
+                       "refused (mislabelled pose)")
             return "rejected"
         if misfit > 30.0:
             self._warn(f"{where}: field direction {misfit:.0f}° from the expected one — is the stand aligned "
                        f"with magnetic north? accepted on gravity")
-        cap = Capture(pose, np.asarray(seg.g), np.asarray(seg.b), seg.temp_c, seg.t_start, seg.t_end, seg.n, misfit)
-        if pose in self.recapture:
-            self.recapture.discard(pose)
-            self.captures[pose] = [cap]
-        elif self.captures.get(pose):
-            if not self.rounds:
-                self._warn(f"{where}: repeated pose (already captured); ignored — call recapture to replace it")
+        labelled = bool(st.pose)
+        st.pose = pose
+        return self._accept(st, labelled, after_solve)
+
+    def _continues_round(self, pose, st) -> bool:
+        """After the first solve: does this station start or continue a new round in order?"""
+        if not self.rounds:
+            return False
+        if st.pose:                      # a stand's log says it is a calibration pose (label checked next)
+            return True
+        if not self._round:
+            if pose == 1:
+                return True
+            return False
+        last = self._round[-1]
+        if pose == last.pose or pose == last.pose + 1:
+            return True
+        self._warn(f"round {self.solves + 1} abandoned after pose {last.pose}: the next static ({st.where}) is "
+                   f"pose {pose}, not pose {last.pose + 1} — the survey started? Its {len(self._round)} capture(s) "
+                   "are not used; the coefficients stay those of the complete rounds")
+        self._drop_round()
+        return pose == 1
+
+    def _drop_round(self):
+        ids = {id(c) for c in self._round}
+        self.captures = [c for c in self.captures if id(c) not in ids]
+        self._round = []
+
+    def _accept(self, st, labelled, after_solve) -> str:
+        last = self.captures[-1] if self.captures else None
+        had_pending = bool(self.pending)
+        # the same pose again right after: the hold was cut into pieces (or retaken) — one capture
+        if (last is not None and last.pose == st.pose and st.pose not in self.recapture
+                and st.t_start - last.t_end <= MERGE_GAP_S and set(last.unusable) == set(st.unusable)):
+            merged = merge_stations(last, st)
+            self.captures[-1] = merged
+            if self._round and self._round[-1] is last:
+                self._round[-1] = merged
+            self._info(f"pose {st.pose}: pieces of one hold merged ({last.where} + {st.where})")
+            self._dirty = True
+            return "merged"
+        where = f"pose {st.pose} at {st.where}"
+        if st.pose in self.recapture:
+            self.recapture.discard(st.pose)
+            self.captures = [c for c in self.captures if c.pose != st.pose]
+            self.captures.append(st)
+            self._info(f"{where}: replaces the earlier capture(s) (recapture)")
+            self._dirty = True
+            return self._maybe_solve(not self.recapture)
+        if after_solve:
+            self.captures.append(st)
+            self._dirty = True
+            if labelled:
+                return "accepted"        # a stand's labelled capture: used by the next solve (finish)
+            self._round.append(st)
+            if len({c.pose for c in self._round}) == 12:
+                self._info(f"round {self.solves + 1} complete: solving again with every round")
+                self._round = []
+                return self._maybe_solve(True)
+            return "accepted"
+        if st.pose in {c.pose for c in self.captures}:
+            if last is not None and last.pose == st.pose:
+                self._warn(f"{where}: pose {st.pose} captured again (retake): both captures are used")
+            elif labelled:
+                self._info(f"{where}: another capture of pose {st.pose} (labelled): used")
+            elif self.state == "done":
+                self._info(f"{where}: pose {st.pose} again after a solve without pose(s) {self.pending}: not used")
                 return "ignored"
-            self.captures[pose].append(cap)
-        else:
-            if pose != self.expected_next and self.state == "collecting":
-                self._warn(f"{where}: out of order (expected pose {self.expected_next} next); accepted")
-            self.captures[pose] = [cap]
-        if not self.pending and not self.recapture:
-            self.solve()
-            return "solved"
+            else:
+                self._warn(f"{where}: pose {st.pose} again, out of sequence (expected pose {self.expected_next}): "
+                           "ignored — call recapture to replace a pose")
+                return "ignored"
+        elif st.pose != self.expected_next:
+            self._warn(f"{where}: out of order (expected pose {self.expected_next} next); accepted")
+        self.captures.append(st)
+        self._dirty = True
+        # solve when this capture completes the twelve (later captures wait for a round or the end)
+        return self._maybe_solve(had_pending and not self.pending and not self.recapture)
+
+    def _maybe_solve(self, now: bool) -> str:
+        if now:
+            return "solved" if self.solve() is not None else "rejected"
         return "accepted"
 
+    # ---- control ---------------------------------------------------------------------------
     def request_recapture(self, pose: int) -> str:
         if pose not in POSES:
             raise ValueError(f"pose {pose} is not one of 1..12")
@@ -142,21 +263,83 @@ class CaptureSession:
     def reset(self):
         self.captures.clear()
         self.warnings.clear()
+        self.infos.clear()
         self.recapture.clear()
+        self._round = []
+        self._dirty = False
+        self._saturation = SaturationMonitor()
         self.result = self.calibration = None
-        self.state, self.message, self.current_pose = "collecting", "", -1
+        self.state, self.message, self.current_pose, self.solves = "collecting", "", -1, 0
 
-    def solve(self):
-        self.state = "solving"
-        views = [_StationView(c.pose, c.g, c.b) for caps in self.captures.values() for c in caps]
-        try:
-            self.result = solve_stations(views, self.site)
-            self.calibration = to_calibration(self.result, self.site, self.probe_id)
-        except (ValueError, np.linalg.LinAlgError) as exc:
-            self.state, self.message = "error", f"solve failed: {exc}"
+    def finish(self):
+        """End of the data: solve with what there is if anything changed since the last solve.
+
+        A round in progress after the first solve is not used (incomplete); labelled captures are.
+        Before any solve, the captures there are are solved if they determine the model (least
+        squares, poses missing) — else the session ends in 'error' with a message naming the
+        poses never captured.  Returns the calibration or None.
+        """
+        if self.state == "done" and self._round:
+            self._warn(f"round {self.solves + 1} incomplete at the end of the data (poses "
+                       f"{[c.pose for c in self._round]}): not used")
+            self._drop_round()
+            return self.calibration
+        if not self._dirty and self.state in ("done", "error"):
+            return self.calibration
+        if not self.captures:
+            self.state = "error"
+            self.message = "no twelve-position captures in the data: nothing to calibrate"
             self._warn(self.message)
             return None
+        return self.solve(final=True)
+
+    def capture_sets(self):
+        """The captures each triad may use, as :class:`twelve_position.CaptureSet` (acc, mag)."""
+        sets = []
+        for sensor in ("acc", "mag"):
+            use = [c for c in self.captures if sensor not in c.unusable]
+            means = [c.g if sensor == "acc" else c.b for c in use]
+            noise = [c.g_noise if sensor == "acc" else c.b_noise for c in use]
+            sig = [np.maximum(np.where(np.isfinite(nz), nz, sd), 1e-12) / math.sqrt(c.n)
+                   for c, nz, sd in zip(use, noise, [c.g_std if sensor == "acc" else c.b_std for c in use])]
+            sets.append(CaptureSet([c.pose for c in use], means, sig, [f"pose {c.pose} at {c.where}" for c in use]))
+        return sets
+
+    def solve(self, final: bool = False):
+        """Solve from the captures (see the module docstring).  Sets :attr:`state` and :attr:`message`."""
+        self.state = "solving"
+        self._dirty = False
+        for axis, k in self._flat_seen.items():
+            if k > 2 and self._flat_reported.get(axis) != k:
+                self._flat_reported[axis] = k
+                self._warn(f"{axis} was flat in {k} captures (the first two are named above); those captures' "
+                           f"{axis.split()[0]} data are not used")
+        acc, mag = self.capture_sets()
+        missing = self.pending
+        try:
+            self.result = solve_captures(acc, mag, self.site)
+            if missing:
+                self.result.notes.append(f"solved without pose(s) {missing} (never captured), by least squares "
+                                         "over the others")
+            self.calibration = to_calibration(self.result, self.site, self.probe_id)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.state = "error"
+            self.message = (f"solve failed: {exc}" + (f" (poses never captured: {missing})" if missing else ""))
+            self._warn(self.message)
+            return None
+        for note in self.result.notes:
+            self._warn(note)
+
+        counts = {p: sum(1 for c in self.captures if c.pose == p) for p in self.captured}
+        usual = int(np.median(list(counts.values())))
+        extra = sorted(p for p, k in counts.items() if k > usual)
+        if extra:
+            self._warn("pose(s) " + ", ".join(f"{p} ×{counts[p]}" for p in extra) + f" captured more often than the "
+                       f"others (×{usual}): their means average every capture; check for a duplicated pose label")
         self.state = "done"
-        self.message = (f"solved from {sum(len(v) for v in self.captures.values())} captures; RMS residual acc "
-                        f"{self.result.acc.rms_residual:.5f} m/s², mag {self.result.mag.rms_residual:.2f} nT")
+        self.solves += 1
+        n = len(self.captures)
+        self.message = (f"solved from {n} captures ({self.result.acc.method}); RMS residual acc "
+                        f"{self.result.acc.rms_residual:.5f} m/s², mag {self.result.mag.rms_residual:.2f} nT "
+                        f"({self.result.acc.z_rms:.1f}× and {self.result.mag.z_rms:.1f}× the noise)")
         return self.calibration

@@ -16,10 +16,13 @@ import yaml
 
 from . import simulate as sim
 from .coeffs import Calibration, CoefficientError
+from .deps import MissingDependency
 from .frames import Site
-from .probelog import Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
+from .capture import CaptureSession
+from .gates import apply_gates
+from .probelog import MAG_UNITS, Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
 from .survey import Tolerances, evaluate, format_table4, format_table5, summarize, table4, table5
-from .twelve_position import format_table2, format_table3, solve_stations, to_calibration
+from .twelve_position import format_table2, format_table3
 
 
 class UserError(Exception):
@@ -42,15 +45,29 @@ def load_site(path) -> Site:
         raise UserError(f"{path}: cannot read site reference: {exc}") from None
 
 
-def load_stations(path, min_samples=5, quiet=False):
-    """Read a log and segment it; print rejections and station problems as warnings."""
+def detector_from_args(args):
+    """A :class:`streaming.StaticDetector` from the common detector options (defaults: noise from
+    the data)."""
+    from .streaming import StaticDetector
+
     try:
-        log, rejections = read_csv(path, Limits())
+        return StaticDetector(noise_acc=getattr(args, "noise_acc_override", 0.0) or 0.0,
+                              noise_mag=getattr(args, "noise_mag_override", 0.0) or 0.0,
+                              k_sigma=getattr(args, "k_sigma", 6.0), min_duration_s=getattr(args, "min_static_s", 0.5))
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def load_stations(path, quiet=False, mag_unit="nT", detector=None, labels=True):
+    """Read a log and find its stations (the live nodes' detector); print rejections and
+    problems as warnings.  Returns ``(log, stations, rejections, problems)``."""
+    try:
+        log, rejections = read_csv(path, Limits(), mag_unit=mag_unit)
     except OSError as exc:
         raise UserError(f"{path}: {exc.strerror}") from None
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    stations, problems = segment_stations(log, min_samples=min_samples)
+    stations, problems = segment_stations(log, detector=detector, use_labels=labels)
     if not quiet:
         report(path, rejections, problems, _warn)
     if rejections:
@@ -88,18 +105,24 @@ def cmd_simulate(args):
     site = Site(args.total_field, args.dip, args.declination, args.gravity)
     rng = np.random.default_rng(args.seed + 1)
     temps = [float(t) for t in args.cal_temps.split(",")]
-    cal_session = sim.twelve_pose_session(temps, duration_s=args.pose_seconds, azimuth_deg=args.stand_azimuth)
-    cal = sim.run_session(probe, site, cal_session, rng, rate_hz=args.rate, survey=False)
+    cal_session = sim.twelve_pose_session(temps, duration_s=args.pose_seconds, azimuth_deg=args.stand_azimuth,
+                                          refs=args.pose_refs)
+    if not args.rate > 0 or args.move_seconds < 0:
+        raise UserError("--rate must be > 0 and --move-seconds >= 0")
+    cal = sim.run_session(probe, site, cal_session, rng, rate_hz=args.rate, survey=False, move_s=args.move_seconds)
     try:
         val_temps = [float(x) for x in args.val_temp.split(":")]
     except ValueError:
         raise UserError(f"--val-temp {args.val_temp!r}: expected temperatures separated by ':'") from None
     val_session = sim.stand_grid_session(duration_s=args.station_seconds, temp_profile_c=val_temps)
     val = sim.run_session(probe, site, val_session, rng, rate_hz=args.rate, t0=cal.t_s[-1] + 10.0,
-                          survey=not args.no_survey_effects)
+                          survey=not args.no_survey_effects, move_s=args.move_seconds)
+    if args.no_labels:  # a log as a probe without a stand system writes it: no pose, no reference
+        cal.pose[:] = 0
+        cal.ref[:] = np.nan
     os.makedirs(args.out, exist_ok=True)
-    write_csv(os.path.join(args.out, "cal.csv"), cal)
-    write_csv(os.path.join(args.out, "val.csv"), val)
+    write_csv(os.path.join(args.out, "cal.csv"), cal, mag_unit=args.mag_unit)
+    write_csv(os.path.join(args.out, "val.csv"), val, mag_unit=args.mag_unit)
     truth = {"seed": args.seed, "site": site.to_dict(), "probe": probe.to_dict(),
              "cal": {"stations": len(cal_session), "rows": len(cal), "temperatures_c": temps},
              "val": {"stations": len(val_session), "rows": len(val), "temperature_profile_c": val_temps,
@@ -120,72 +143,97 @@ def cmd_simulate(args):
     return 0
 
 
-def run_twelve_position(cal_path, site, probe_id, quiet=False):
-    """Solve a twelve-pose log.  ``site`` None: the site reference is taken from the data (dip and
-    the horizontal field's direction on the stand; the total field in the scale M_d sets)."""
-    _, stations, _, _ = load_stations(cal_path, quiet=quiet)
+def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", detector=None):
+    """Solve a twelve-pose log with the live calibration node's session (:class:`capture.CaptureSession`):
+    the same detector, gates, pose identification, sequence and solve.  Pose labels, when the log
+    has them, are checked against the poses gravity shows.  ``site`` None: the site reference is
+    taken from the data (dip and the horizontal field's direction on the stand; the total field
+    in the scale M_d sets).  Returns ``(session, calibration)``."""
+    _, stations, _, _ = load_stations(cal_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
     measured = site is None
-    try:
-        result = solve_stations(stations, Site() if measured else site)
-    except (ValueError, np.linalg.LinAlgError) as exc:
-        raise UserError(f"{cal_path}: {exc}") from None
-    for note in result.notes:  # refused (mislabelled / moved) stations, duplicated poses
-        _warn(f"{cal_path}: {note}")
+    session = CaptureSession(site=Site() if measured else site, probe_id=probe_id)
+    for st in stations:
+        session.offer(st)
+    session.finish()
+    if not quiet:
+        for w in session.warnings:
+            if session.calibration is None and w == session.message:
+                continue   # the error itself, said once below
+            _warn(f"{cal_path}: {w}")
+    if session.calibration is None:
+        raise UserError(f"{cal_path}: {session.message or 'calibration did not solve'}")
+    cal = session.calibration
     if measured:
-        site = result.site_estimate(Site().gravity_mps2)
+        site = session.result.site_estimate(Site().gravity_mps2)
         if not quiet:
             _warn(f"{cal_path}: no --site given: site reference taken from the calibration data — dip "
                   f"{site.dip_deg:.3f}°, horizontal field {site.declination_deg:+.3f}° from the stand's north "
                   f"(azimuths will be reported from the stand's north), total field {site.total_field_nt:.0f} "
                   f"in the scale of the assumed vertical component; give --site for a survey elsewhere")
-    return result, to_calibration(result, site, probe_id)
+        cal.site = site
+    return session, cal
 
 
 def cmd_twelve_position(args):
-    result, cal = run_twelve_position(args.cal, load_site(args.site) if args.site else None, args.probe_id)
+    session, cal = run_twelve_position(args.cal, load_site(args.site) if args.site else None, args.probe_id,
+                                       mag_unit=args.mag_unit, detector=detector_from_args(args))
+    result = session.result
     site = cal.site
     cal.save(args.output)
     print(format_table2(cal.acc, cal.mag))
     print()
     print(format_table3(cal.acc, cal.mag))
     print()
+    print(f"Solved by: accelerometer {result.acc.method}; magnetometer {result.mag.method}")
     print("Per-pose residuals (output minus model; acc m/s^2, mag nT) and round-to-round spread")
     print(f"{'pose':>4} {'rounds':>6} {'acc x':>9} {'acc y':>9} {'acc z':>9} {'mag x':>8} {'mag y':>8} "
           f"{'mag z':>8} {'spread acc':>11} {'spread mag':>11}")
+
+    def fmt(v, w, p):
+        return f"{v:>{w}.{p}f}" if np.isfinite(v) else f"{'-':>{w}}"
+
     for i in range(12):
         ra, rm = result.acc.residuals[i], result.mag.residuals[i]
         sa, sm = (float(np.max(sol.round_spread[i])) if sol.rounds[i] > 1 else float("nan")
                   for sol in (result.acc, result.mag))
-        fmt = (lambda v, w, p: f"{v:>{w}.{p}f}" if np.isfinite(v) else f"{'-':>{w}}")
-        print(f"{i + 1:>4} {result.acc.rounds[i]:>6} " + " ".join(f"{v:>9.5f}" for v in ra) + " " +
-              " ".join(f"{v:>8.2f}" for v in rm) + " " + fmt(sa, 11, 5) + " " + fmt(sm, 11, 2))
+        print(f"{i + 1:>4} {result.acc.rounds[i]:>6} " + " ".join(fmt(v, 9, 5) for v in ra) + " " +
+              " ".join(fmt(v, 8, 2) for v in rm) + " " + fmt(sa, 11, 5) + " " + fmt(sm, 11, 2))
     imp = result.implied_site()
-    print(f"RMS residual: acc {result.acc.rms_residual:.5f} m/s^2, mag {result.mag.rms_residual:.2f} nT")
+    print(f"RMS residual: acc {result.acc.rms_residual:.5f} m/s^2 ({result.acc.z_rms:.1f}× the noise), "
+          f"mag {result.mag.rms_residual:.2f} nT ({result.mag.z_rms:.1f}× the noise)")
     print(f"Implied by the corrected data: |B| {imp['total_field']:.1f} nT (site {site.total_field_nt:g}), "
           f"dip {imp['dip_deg']:.3f} deg (site {site.dip_deg:g}), stand tilt {imp['stand_tilt_deg']:.3f} deg")
     print(f"wrote {args.output} (id {cal.id})")
     return 0
 
 
-def correct_log(log_path, cal, site, tol, quiet=False, axial=False):
+def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT", detector=None):
     """Evaluate every static station of a log; returns (stations, result, summary).
 
-    ``axial``: azimuths from the short-collar correction of axial drill-string interference.
+    Stations are found by the live nodes' detector and checked by the gates (in-hold motion,
+    flat axes): a station that fails is kept in the output, flagged and left out of the error
+    statistics.  ``axial``: azimuths from the short-collar correction of axial drill-string
+    interference.
     """
-    _, stations, _, _ = load_stations(log_path, quiet=quiet)
+    _, stations, _, _ = load_stations(log_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
     if not stations:
         raise UserError(f"{log_path}: no static stations found")
+    for st in stations:
+        for f in apply_gates(st):   # corrected |G| is checked by the QC; the raw |g| gate is for captures
+            if not quiet:
+                _warn(f"{log_path}: {f.message}")
     g = np.array([s.g for s in stations])
     b = np.array([s.b for s in stations])
     if cal is not None:
         g, b = cal.correct(g, b)
     ref = np.array([s.ref for s in stations])
-    has_ref = np.all(np.isfinite(ref), axis=1)
+    ref_used = np.where(np.array([s.moved for s in stations])[:, None], np.nan, ref)  # moved: no error figures
+    has_ref = np.any(np.isfinite(ref_used), axis=1)
     if axial:
         from .axial import evaluate_with_axial
-        res = evaluate_with_axial(g, b, site, tol, ref=ref if has_ref.any() else None)
+        res = evaluate_with_axial(g, b, site, tol, ref=ref_used if has_ref.any() else None)
     else:
-        res = evaluate(g, b, site, tol, ref=ref if has_ref.any() else None)
+        res = evaluate(g, b, site, tol, ref=ref_used if has_ref.any() else None)
     return stations, res, summarize(res)
 
 
@@ -205,7 +253,8 @@ def format_station_csv(stations, res) -> str:
     for k, st in enumerate(stations):
         flags = [n for n in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance",
                              "axial_degenerate") if n in res and res[n][k]]
-        flags += ["moved_during_capture"] if st.warnings else []
+        flags += ["moved_during_capture"] if st.moved else []
+        flags += [f"{s}_unusable" for s in st.unusable]
         err = (lambda n: res[n][k] if n in res else None)
         row = [str(st.index), str(st.pose or ""), f(st.t_start, 3), f(st.t_end, 3), str(st.n), f(st.temp_c, 2),
                f(res["drift_deg"][k]), "" if res["azimuth_undefined"][k] else f(res["azimuth_deg"][k]),
@@ -224,7 +273,8 @@ def cmd_correct(args):
     cal = load_calibration(args.coeffs)
     site = load_site(args.site) if args.site else (cal.site if cal else Site())
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
-    stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction)
+    stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction, mag_unit=args.mag_unit,
+                                      detector=detector_from_args(args))
     if args.output:
         atomic_write_text(args.output, format_station_csv(stations, res))
     summ["coefficients"] = cal.id if cal else "none"
@@ -262,7 +312,7 @@ def cmd_demo(args):
     sim_args = build_parser().parse_args(["simulate", "--out", out, "--seed", str(args.seed)])
     cmd_simulate(sim_args)
     site = load_site(os.path.join(out, "site.yaml"))
-    result, cal = run_twelve_position(os.path.join(out, "cal.csv"), site, f"sim-{args.seed}")
+    _, cal = run_twelve_position(os.path.join(out, "cal.csv"), site, f"sim-{args.seed}")
     cal.save(os.path.join(out, "coeffs.yaml"))
     print()
     print(format_table2(cal.acc, cal.mag))
@@ -289,21 +339,22 @@ def cmd_reprocess(args):
     """Offline reprocessing of a recorded bag (see :mod:`inclinometer_calib.reprocess`).
 
     Exit status 0; 1 when the input bag is damaged (everything readable was processed and
-    written, the damage is reported as ``error:``); 2 when nothing could be done.
+    written, the damage is reported as ``error:``) or ``--calibrate`` did not solve; 2 when
+    nothing could be done.
     """
     from .bag import BagError
     from .reprocess import TOPIC_STATION, ReprocessError, reprocess
-    from .streaming import StaticDetector
 
+    if args.coeffs is None and not args.calibrate:
+        raise UserError("give --coeffs FILE (or 'none' for uncorrected figures), or --calibrate to calibrate "
+                        "from the bag's twelve poses as the live graph does")
     cal = load_calibration(args.coeffs)
     site = load_site(args.site) if args.site else (cal.site if cal else Site())
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
-    if not args.min_static_s > 0:
-        raise UserError(f"--min-static-s {args.min_static_s}: must be > 0")
-    det = StaticDetector(min_duration_s=args.min_static_s)
+    det = detector_from_args(args)
     try:
         rep = reprocess(args.bag, args.output, cal, site, tol, det, compression=args.compression,
-                        warn=_warn)
+                        warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id)
     except FileExistsError as exc:
         raise UserError(str(exc)) from None
     except FileNotFoundError as exc:
@@ -315,11 +366,26 @@ def cmd_reprocess(args):
             _warn(f"{args.bag}: {w}")
     n = len(rep.stations)
     flagged = {k: sum(bool(s[k]) for s in rep.stations)
-               for k in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance")}
+               for k in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance",
+                         "moved_during_capture")}
     speed = rep.log_span_s / rep.seconds if rep.seconds > 0 else float("inf")
+    used = rep.calibrations[-1].id if rep.calibrations else (cal.id if cal else "none")
     print(f"{rep.messages_read} messages read, {rep.pairs} imu/mag pairs, {n} stations "
-          f"(coefficients {cal.id if cal else 'none'}); flagged: "
-          + ", ".join(f"{k} {v}" for k, v in flagged.items()))
+          f"(coefficients {used}); flagged: " + ", ".join(f"{k} {v}" for k, v in flagged.items()))
+    if rep.noise is not None:
+        print(f"detector: {rep.noise.describe()}")
+    rc = 0
+    if args.calibrate:
+        if rep.calibrations:
+            print(f"calibration: {len(rep.calibrations)} solve(s), last {rep.calibrations[-1].id}: "
+                  f"{rep.calibration_message}")
+            if args.coeffs_out:
+                rep.calibrations[-1].save(args.coeffs_out)
+                print(f"wrote {args.coeffs_out}")
+        else:
+            print(f"error: calibration did not solve: {rep.calibration_message or 'no twelve-pose captures'}",
+                  file=sys.stderr)
+            rc = 1
     print(f"wrote {args.output} ({n} {TOPIC_STATION} messages, "
           f"{sum(rep.copied.values())} input messages copied); {rep.log_span_s:.1f} s of log in "
           f"{rep.seconds:.2f} s ({speed:.0f}× real time)")
@@ -329,6 +395,50 @@ def cmd_reprocess(args):
         print(f"error: {args.bag} is damaged; the {rep.messages_read} readable messages before/around "
               f"the damage were processed and written to {args.output}", file=sys.stderr)
         return 1
+    return rc
+
+
+def cmd_bag_recover(args):
+    """Rewrite the readable part of a damaged bag (a recorder killed mid-run) as a finalized one."""
+    from .bag import BagError, recover
+
+    try:
+        rep = recover(args.bag, args.output)
+    except FileExistsError as exc:
+        raise UserError(str(exc)) from None
+    except (FileNotFoundError, BagError) as exc:
+        raise UserError(str(exc)) from None
+    print(rep)
+    return 0
+
+
+def cmd_bag_from_csv(args):
+    """Write probe-log CSVs as one rosbag2 MCAP, as the probe node would have recorded them."""
+    from .probelog import ProbeLog
+    from .reprocess import write_probe_bag
+
+    logs = []
+    for path in args.logs:
+        try:
+            log, rejections = read_csv(path, Limits(), mag_unit=args.mag_unit)
+        except OSError as exc:
+            raise UserError(f"{path}: {exc.strerror}") from None
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
+        report(path, rejections, [], _warn)
+        if logs and len(log) and log.t_s[0] <= logs[-1].t_s[-1]:
+            # logs that each start at 0: the next one follows the previous after a pause
+            shift = logs[-1].t_s[-1] - log.t_s[0] + args.gap
+            _warn(f"{path}: its time starts at {log.t_s[0]:g} s, before the previous log ends: shifted by "
+                  f"{shift:g} s to follow it after {args.gap:g} s")
+            log.t_s = log.t_s + shift
+        logs.append(log)
+    log = ProbeLog.concatenate(logs)
+    try:
+        counts = write_probe_bag(log, args.output, compression=args.compression)
+    except FileExistsError as exc:
+        raise UserError(str(exc)) from None
+    print(f"wrote {args.output}: " + ", ".join(f"{n} {t}" for t, n in counts.items()))
     return 0
 
 
@@ -481,6 +591,21 @@ def _lab_parser(sub):
 
 
 # --------------------------------------------------------------------------------------------
+def _detector_options(p, mag_unit=True):
+    """Options of the static detector (all paths share it) and, for CSV inputs, the magnetometer unit."""
+    g = p.add_argument_group("static detection (defaults: thresholds from the noise the data show)")
+    g.add_argument("--noise-acc", dest="noise_acc_override", type=float, default=0.0, metavar="SIGMA",
+                   help="accelerometer noise per sample, m/s^2 1σ, instead of measuring it (0: measure)")
+    g.add_argument("--noise-mag", dest="noise_mag_override", type=float, default=0.0, metavar="SIGMA",
+                   help="magnetometer noise per sample, nT 1σ, instead of measuring it (0: measure)")
+    g.add_argument("--k-sigma", type=float, default=6.0,
+                   help="a sample further than this many σ from the hold's mean is motion (default 6)")
+    g.add_argument("--min-static-s", type=float, default=0.5, help="shortest hold reported as a station, s")
+    if mag_unit:
+        g.add_argument("--mag-unit", choices=list(MAG_UNITS), default="nT",
+                       help="unit of the log's magnetometer columns (default nT)")
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="inclinometer-calib",
                                 description="Calibrate magnetic borehole inclinometers and correct their surveys.")
@@ -509,6 +634,14 @@ def build_parser():
     s.add_argument("--gravity", type=float, default=Site.gravity_mps2, help="site gravity, m/s^2")
     s.add_argument("--no-survey-effects", action="store_true",
                    help="leave survey-only effects (axial interference) out of the validation log")
+    s.add_argument("--move-seconds", type=float, default=1.0, help="time of each move between stations, s")
+    s.add_argument("--pose-refs", action="store_true",
+                   help="give the calibration poses' set drift/azimuth/toolface too, as a stand's log does "
+                        "(vertical poses without azimuth)")
+    s.add_argument("--no-labels", action="store_true",
+                   help="write the calibration log without pose labels or references")
+    s.add_argument("--mag-unit", choices=list(MAG_UNITS), default="nT",
+                   help="unit of the written magnetometer columns (reading them then needs --mag-unit)")
     s.set_defaults(func=cmd_simulate)
 
     t = sub.add_parser("twelve-position", help="fit both triads from a twelve-pose calibration log")
@@ -516,6 +649,7 @@ def build_parser():
     t.add_argument("-o", "--output", required=True, help="coefficient YAML to write")
     t.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2)")
     t.add_argument("--probe-id", default="probe")
+    _detector_options(t)
     t.set_defaults(func=cmd_twelve_position)
 
     c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")
@@ -530,23 +664,45 @@ def build_parser():
     c.add_argument("--axial-correction", action="store_true",
                    help="short-collar correction of axial drill-string interference (azimuth from the site's "
                         "total field and dip; degenerate stations flagged and left uncorrected)")
+    _detector_options(c)
     c.set_defaults(func=cmd_correct)
 
     d = sub.add_parser("demo", help="offline demo: simulate, calibrate, correct, before/after tables")
-    d.add_argument("--out", default="demo_out")
+    d.add_argument("--out", default="demo_offline",
+                   help="output directory (default: ./demo_offline; scripts/demo.sh's live demo uses ./demo_out)")
     d.add_argument("--seed", type=int, default=1)
     d.set_defaults(func=cmd_demo)
-    r = sub.add_parser("reprocess", help="re-run station detection and correction on a recorded bag (MCAP)")
+    r = sub.add_parser("reprocess", help="re-run station detection, calibration and correction on a recorded bag (MCAP)")
     r.add_argument("bag", help="recorded bag: .mcap file or bag directory (/probe/imu, /probe/mag, ...)")
-    r.add_argument("--coeffs", required=True, help="coefficient YAML, or 'none' for uncorrected figures")
+    r.add_argument("--coeffs", help="coefficient YAML, or 'none' for uncorrected figures")
+    r.add_argument("--calibrate", action="store_true",
+                   help="calibrate from the bag's twelve poses as the live calibration node does (the coefficients "
+                        "are written into the output bag and applied to the stations after them)")
+    r.add_argument("--coeffs-out", help="with --calibrate: also write the last solve's coefficient YAML here")
+    r.add_argument("--probe-id", default="probe", help="with --calibrate: the probe's id in the record")
     r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist)")
     r.add_argument("--site", help="site reference YAML (default: the calibration's site)")
-    r.add_argument("--min-static-s", type=float, default=1.0, help="shortest static interval reported, s")
     r.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
     r.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     r.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
     r.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
+    _detector_options(r, mag_unit=False)
     r.set_defaults(func=cmd_reprocess)
+    b = sub.add_parser("bag", help="bag tools: recover a damaged recording, write probe-log CSVs as a bag")
+    bsub = b.add_subparsers(dest="bag_command", required=True)
+    br = bsub.add_parser("recover", help="rewrite the readable part of a damaged bag (e.g. a killed recorder's) "
+                                         "as a finalized bag that any reader opens")
+    br.add_argument("bag", help="the damaged .mcap file or bag directory")
+    br.add_argument("-o", "--output", required=True, help="bag to write (must not exist)")
+    br.set_defaults(func=cmd_bag_recover)
+    bc = bsub.add_parser("from-csv", help="write probe-log CSVs (one after the other) as one rosbag2 MCAP of "
+                                          "/probe/imu, /probe/mag, /probe/temperature, /probe/reference")
+    bc.add_argument("logs", nargs="+", help="probe-log CSV file(s), in time order")
+    bc.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist)")
+    bc.add_argument("--mag-unit", choices=list(MAG_UNITS), default="nT", help="unit of the logs' magnetometer columns")
+    bc.add_argument("--gap", type=float, default=2.0, help="pause inserted between logs whose times overlap, s")
+    bc.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    bc.set_defaults(func=cmd_bag_from_csv)
     _lab_parser(sub)
     return p
 
@@ -555,7 +711,7 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except UserError as exc:
+    except (UserError, MissingDependency) as exc:  # MissingDependency: an optional package, see deps.py
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -102,6 +103,8 @@ class Calibration:
                 rec[key]["diagnostics"] = diag
         if "implied_site" in self.diagnostics:
             rec["implied_site"] = self.diagnostics["implied_site"]
+        if self.diagnostics.get("notes"):
+            rec["notes"] = list(self.diagnostics["notes"])   # what the solve left out or warned about
         return rec
 
     def to_yaml(self) -> str:
@@ -169,6 +172,8 @@ class Calibration:
         diags = {s: d for s, (_, d) in triads.items() if d}
         if "implied_site" in rec:
             diags["implied_site"] = rec["implied_site"]
+        if rec.get("notes"):
+            diags["notes"] = [str(x) for x in rec["notes"]]
         cal = cls(acc=triads["acc"][0], mag=triads["mag"][0], probe_id=str(rec.get("probe_id", "probe")),
                   method=str(rec.get("method", "")), created=str(rec.get("created", "")), site=site,
                   effects=tuple(rec.get("model", {}).get("effects", ())), diagnostics=diags)
@@ -192,3 +197,59 @@ class Calibration:
         except yaml.YAMLError as exc:
             raise CoefficientError(f"{source}: not valid YAML: {exc}") from None
         return cls.from_record(rec, source=source)
+
+
+# --------------------------------------------------------------------------------------------
+# The CalibrationCoefficients message's fields (ROS-free: the nodes set them on an rclpy message,
+# offline reprocessing serializes them with rosbags)
+# --------------------------------------------------------------------------------------------
+_PARAM_UNITS = {"acc": {"bias": "m/s^2", "scale": "1", "e": "1"}, "mag": {"bias": "nT", "scale": "1", "e": "1"}}
+
+
+def _param_unit(sensor, name):
+    kind = "bias" if name.startswith("bias") else "scale" if name.startswith("scale") else "e"
+    return _PARAM_UNITS[sensor][kind]
+
+
+def _residuals(cal: Calibration, sensor: str, sign: float):
+    """Poses with residuals (Table 1 numbering) and their residuals, flattened x, y, z per pose."""
+    per_pose = (cal.diagnostics.get(sensor) or {}).get("per_pose") or {}
+    poses, res = [], []
+    for p in sorted(int(k) for k in per_pose):
+        r = per_pose.get(p, per_pose.get(str(p)))["residual"]
+        if any(x is None or not math.isfinite(float(x)) for x in r):
+            continue   # a pose the solve had no capture of
+        poses.append(p)
+        res.extend(sign * float(x) for x in r)
+    return poses, res
+
+
+def message_fields(cal: Calibration) -> dict:
+    """The fields of a ``CalibrationCoefficients`` message (all but the header), plain Python.
+
+    The message's model is ``corrected = matrix·(raw - offset)``: matrix = ``C = (K·E)^-1`` and
+    offset = the bias ``B``.  Its accelerometer fields are REP-145 (specific force): the matrix is
+    the same as in the core's gravity-vector convention, the offset and the bias parameters change
+    sign (``f = -g``), as do the residuals.  ``coefficients_yaml`` carries the core record
+    unchanged (gravity-vector convention, stated in the record).  ``poses_used``: the poses with
+    residuals (a least-squares solve may lack some), Table 1 numbering.
+    """
+    out = {"id": cal.id, "probe_id": cal.probe_id, "created": cal.created}
+    for sensor, prefix, sign in (("acc", "accel", -1.0), ("mag", "mag", 1.0)):
+        t = cal.triad(sensor)
+        out[f"{prefix}_correction_matrix"] = [float(x) for x in t.correction_matrix.reshape(9)]
+        out[f"{prefix}_offset"] = [sign * float(x) for x in t.bias]   # corrected = matrix·(raw - offset)
+        params = t.parameters()
+        names = list(params)
+        out[f"{prefix}_parameter_names"] = names
+        out[f"{prefix}_parameter_values"] = [(sign if n.startswith("bias") else 1.0) * float(params[n]) for n in names]
+        out[f"{prefix}_parameter_units"] = [_param_unit(sensor, n) for n in names]
+        poses, res = _residuals(cal, sensor, sign)
+        out[f"{prefix}_residuals"] = res
+        out[f"{prefix}_residual_units"] = UNITS[sensor]
+        out[f"{prefix}_rms_residual"] = float(math.sqrt(sum(r * r for r in res) / len(res))) if res else math.nan
+        out[f"{prefix}_model_effects"] = list(cal.effects)
+        if sensor == "acc":
+            out["poses_used"] = list(poses)
+    out["coefficients_yaml"] = cal.to_yaml()
+    return out

@@ -55,6 +55,25 @@ def orientation_matrix(drift_deg, azimuth_deg, toolface_deg):
     return rot_z(a) @ rot_y(i) @ rot_z(t)
 
 
+def attitude_angles(r, vertical_cone_deg: float = 0.5):
+    """(drift, azimuth, toolface) in degrees of a tool→NED rotation ``R = Rz(A)·Ry(I)·Rz(T)``.
+
+    Within ``vertical_cone_deg`` of the vertical (down or up) the azimuth is undefined (NaN) and
+    the toolface is the whole rotation about the vertical, as for azimuth 0 — what a stand's log
+    gives for its vertical poses.  Inverse of :func:`orientation_matrix` elsewhere.
+    """
+    r = np.asarray(r, dtype=float)
+    drift = float(np.degrees(np.arccos(np.clip(r[2, 2], -1.0, 1.0))))
+    if drift < vertical_cone_deg or drift > 180.0 - vertical_cone_deg:
+        # R ≈ Ry(I)·Rz(T): for I = 0 the top-left block is Rz(T); for I = 180, diag(-1, 1, -1)·Rz(T)
+        sign = 1.0 if drift < 90.0 else -1.0
+        tf = np.degrees(np.arctan2(r[1, 0], sign * r[0, 0]))
+        return drift, float("nan"), float(wrap360(tf))
+    az = np.degrees(np.arctan2(r[1, 2], r[0, 2]))
+    tf = np.degrees(np.arctan2(r[2, 1], -r[2, 0]))
+    return drift, float(wrap360(az)), float(wrap360(tf))
+
+
 def wrap360(angle_deg):
     """Wrap an angle to [0, 360) degrees."""
     w = np.mod(angle_deg, 360.0)
@@ -197,8 +216,10 @@ def azimuth_deg(g, b):
 
 
 def azimuth_defined(g, min_drift_deg: float = 0.5):
-    """True where the drift exceeds ``min_drift_deg`` so that the azimuth is meaningful."""
-    return drift_deg(g) >= min_drift_deg
+    """True where the tool is more than ``min_drift_deg`` from the vertical (down or up), so that
+    the azimuth is meaningful."""
+    d = drift_deg(g)
+    return (d >= min_drift_deg) & (d <= 180.0 - min_drift_deg)
 
 
 def total_gravity(g):

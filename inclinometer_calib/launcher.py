@@ -13,9 +13,35 @@ Then it prints a summary, read back from the recorded bag with ``rosbags`` (inde
 recorder's writer): the calibration coefficients against the simulator truth (``truth.json``
 written by the probe) and the survey station angles against their reference attitudes.
 
-``--out DIR`` leaves ``survey.mcap``, ``coeffs.yaml``, ``truth.json`` (+ ``truth_coeffs.yaml``)
-and ``summary.json``.  Exit status: 0 if the run completed, 1 if a node failed or the run timed
-out, 2 on a usage error, 130 when interrupted.
+``--out DIR`` leaves ``survey.mcap``, ``coeffs.yaml``, ``truth.json`` (+ ``truth_coeffs.yaml``),
+``correction_state.json`` and ``summary.json``.
+
+Recovery.  A recorder that dies while the graph runs is restarted at once into a new file in the
+same directory (``survey_1.mcap``, ``survey_2.mcap``, …: the bag writer never overwrites); the
+latched ``/calibration/coefficients`` reach the new recorder again (transient local).  The
+correction node is restarted the same way; it applies the calibration node's ``coeffs.yaml``
+(``fallback_coeffs_file``) until a record arrives on the topic and continues the station ids from
+``correction_state.json`` (``state_file``).  At most :data:`MAX_RESTARTS` restarts per node; a
+probe or calibration node that dies ends the run.  The summary is built from all bag parts in
+time order; a part the killed recorder left without its summary is first recovered
+(:func:`bag.recover`) into ``<part>.recovered.mcap`` and the summary says so.
+
+Domain.  Without ``--domain-id`` and without ``ROS_DOMAIN_ID`` in the environment the launcher
+reserves a free domain (:func:`rosenv.reserve_domain_id`) for the whole run and prints it; a
+given id (option or environment) is reserved exactly, and refused (exit 2) when another
+inclinometer_calib run holds it.  The graph runs on the probe's time base: with ``stamp:=log``
+the probe publishes ``/clock`` and the calibration and correction nodes get ``use_sim_time``.
+
+Exit status (the last line says why):
+
+* 0 — a clean run: every node ran to the end, the calibration (if it ran) solved, the input was
+  intact, the summary was written;
+* 1 — the run completed but is not clean: a node died (also when it was restarted), the
+  calibration node ran but no coefficients were recorded (it did not solve), the probe's MCAP
+  input was damaged (probe exit status 3; the readable part was replayed), the probe failed,
+  the run timed out, or the summary failed.  The graph is still drained and summarized;
+* 2 — usage error, ``--out`` in use, or the requested ROS_DOMAIN_ID is in use by another run;
+* 130 — interrupted (Ctrl-C / SIGTERM).
 """
 from __future__ import annotations
 
@@ -24,17 +50,31 @@ import importlib.util
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from .deps import MissingDependency, require
+
 NODES = ("probe", "calibration", "correction", "recorder")
 STOP_ORDER = ("probe", "calibration", "correction", "recorder")  # the recorder last: it records the others
+#: Nodes restarted when they die mid-run: they carry no state the run cannot rebuild (a new bag
+#: part; the coefficients from the latched topic or coeffs.yaml, station ids from the state file).
+#: The calibration node is not: its captured poses would be lost.
+RESTARTABLE = ("recorder", "correction")
+MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
+#: Exit status of the probe node when its MCAP input was damaged (it replayed the readable part).
+PROBE_INPUT_DAMAGED = 3
+BAG = "survey.mcap"  # the first bag part; later parts survey_1.mcap, survey_2.mcap, ...
+_PART_RE = re.compile(r"^survey(?:_(\d+))?\.mcap$")
+STATE_FILE = "correction_state.json"
 
 
 def config_dir():
@@ -142,7 +182,11 @@ def build_params(args, out):
     p["calibration"]["output"] = os.path.join(out, "coeffs.yaml")
     if args.coeffs:
         p["correction"]["coeffs_file"] = os.path.abspath(args.coeffs)
-    p["recorder"]["output"] = os.path.join(out, "survey.mcap")
+    if not args.no_calibration:
+        # a restarted correction node applies what the calibration node wrote until the topic speaks
+        p["correction"]["fallback_coeffs_file"] = os.path.join(out, "coeffs.yaml")
+    p["correction"]["state_file"] = os.path.join(out, STATE_FILE)  # station ids continue across restarts
+    p["recorder"]["output"] = os.path.join(out, BAG)
     if args.reliable:
         for n in ("probe", "calibration", "correction"):
             p[n]["qos.reliability"] = "reliable"
@@ -171,7 +215,63 @@ def recorder_available() -> bool:
         return False
 
 
-def run_graph(args, out, env) -> int:
+@dataclass
+class GraphResult:
+    """What the graph run itself says about the run (the summary adds its own checks)."""
+
+    interrupted: bool = False
+    problems: list = field(default_factory=list)  # why the run is not clean, one sentence each
+    calibration_ran: bool = False
+
+
+def _config_value(cfg, node, key, default):
+    """``key`` of ``config/<node>.yaml`` (``node: ros__parameters: ...``; dotted keys nest), else ``default``."""
+    import yaml
+
+    path = os.path.join(cfg, f"{node}.yaml") if cfg else None
+    if not path or not os.path.isfile(path):
+        return default
+    with open(path, encoding="utf-8") as fh:
+        value = ((yaml.safe_load(fh) or {}).get(node) or {}).get("ros__parameters") or {}
+    for part in key.split("."):
+        if not isinstance(value, dict) or part not in value:
+            return default
+        value = value[part]
+    return value
+
+
+def _exit_text(code) -> str:
+    """``-9`` -> ``"killed by SIGKILL"``; other codes as ``"exit status N"``."""
+    if code is not None and code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit status {code}"
+
+
+def bag_parts(out) -> list:
+    """The recorder's bag parts in ``out`` in the order they were written (= time order):
+    ``survey.mcap``, ``survey_1.mcap``, ``survey_2.mcap`` … (not the ``*.recovered.mcap`` copies)."""
+    found = []
+    for name in os.listdir(out) if os.path.isdir(out) else ():
+        m = _PART_RE.match(name)
+        if m:
+            found.append((int(m.group(1) or 0), os.path.join(out, name)))
+    return [p for _, p in sorted(found)]
+
+
+def next_bag_part(out) -> str:
+    """The first ``survey_<k>.mcap`` (k = 1, 2, …) that does not exist in ``out``."""
+    k = 1
+    while os.path.exists(os.path.join(out, f"survey_{k}.mcap")):
+        k += 1
+    return os.path.join(out, f"survey_{k}.mcap")
+
+
+def run_graph(args, out, env) -> GraphResult:
+    """Start the nodes, watch them (restarting the :data:`RESTARTABLE` ones that die), drain and
+    stop them; see the module docstring."""
     cfg = args.config or config_dir()
     params = build_params(args, out)
     names = ["probe", "calibration", "correction"]
@@ -182,11 +282,31 @@ def run_graph(args, out, env) -> int:
             names.append("recorder")
         else:
             print("[launch] recorder module not available: running without recording", flush=True)
-    params["probe"]["wait_for_subscribers"] = len(names) - 1  # every other node reads /probe/imu
+    consumers = [n for n in names if n != "probe"]
+    # every other node reads imu, mag and temperature; the reference goes to correction and recorder
+    params["probe"].setdefault("wait_for_subscribers", len(consumers))
+    params["probe"].setdefault("wait_for_reference_subscribers",
+                               sum(n in ("correction", "recorder") for n in consumers))
+    if params["probe"].get("stamp", _config_value(cfg, "probe", "stamp", "log")) == "log":
+        # one time base: the probe publishes /clock (log time), the others run on it
+        for n in ("calibration", "correction"):
+            params[n].setdefault("use_sim_time", True)
+    result = GraphResult(calibration_ran="calibration" in names)
     lock = threading.Lock()
     log = open(os.path.join(out, "launch.log"), "w", encoding="utf-8")
     children = {}
+    restarts = {n: 0 for n in RESTARTABLE}
     stop = {"requested": 0}
+
+    def say(text):
+        with lock:
+            print(f"[launch] {text}", flush=True)
+            log.write(f"[launch] {text}\n")
+
+    def start(name):
+        cmd = node_command(name, params[name], cfg)
+        children[name] = Child(name, cmd, env, lock, log)
+        say(f"starting {name} (pid {children[name].proc.pid}): {' '.join(cmd[1:])}")
 
     def on_signal(signum, _frame):
         stop["requested"] += 1
@@ -196,48 +316,65 @@ def run_graph(args, out, env) -> int:
                     ch.proc.kill()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
-    rc = 0
     t0 = time.monotonic()
     try:
         # the consumers first, so that they are up when the probe starts publishing
-        for name in [n for n in names if n != "probe"] + ["probe"]:
-            cmd = node_command(name, params[name], cfg)
-            with lock:
-                print(f"[launch] starting {name}: {' '.join(cmd[1:])}", flush=True)
-            children[name] = Child(name, cmd, env, lock, log)
+        for name in consumers + ["probe"]:
+            start(name)
         reason = None
+        drain_until = None  # set when the probe has finished: let the others close the last station
         while reason is None:
             time.sleep(0.1)
             if stop["requested"]:
-                reason, rc = "interrupted", 130
+                reason, result.interrupted = "interrupted", True
                 break
             if args.timeout and time.monotonic() - t0 > args.timeout:
-                reason, rc = f"timeout after {args.timeout:g} s", 1
+                reason = f"timeout after {args.timeout:g} s"
+                result.problems.append(f"the run timed out after {args.timeout:g} s")
                 break
-            for name, ch in children.items():
+            if drain_until is not None and time.monotonic() >= drain_until:
+                reason = "probe finished and the graph drained"
+                break
+            for name, ch in list(children.items()):
                 code = ch.poll()
-                if code is None:
+                if code is None or (name == "probe" and drain_until is not None):
                     continue
                 if name == "probe":
-                    reason = f"probe finished (exit status {code})"
-                    rc = 0 if code == 0 else 1
-                else:
-                    reason, rc = f"{name} exited unexpectedly (status {code})", 1
+                    if code == 0:
+                        say("probe finished")
+                    elif code == PROBE_INPUT_DAMAGED:
+                        say(f"probe finished (exit status {code}): its input bag was damaged")
+                        result.problems.append("the probe's input bag was damaged: only its readable part was "
+                                               "replayed (see the [probe] warnings for where)")
+                    else:
+                        reason = f"probe failed ({_exit_text(code)})"
+                        result.problems.append(reason)
+                        break
+                    drain_until = time.monotonic() + args.drain
+                    continue
+                died = f"{name} died unexpectedly ({_exit_text(code)})"
+                if name in restarts and restarts[name] < MAX_RESTARTS:
+                    restarts[name] += 1
+                    result.problems.append(f"{died}; restarted")
+                    if name == "recorder":
+                        params["recorder"]["output"] = next_bag_part(out)
+                        say(f"{died}: restarting it into {os.path.basename(params['recorder']['output'])} "
+                            f"(restart {restarts[name]} of at most {MAX_RESTARTS}); the run goes on")
+                    else:
+                        say(f"{died}: restarting it (restart {restarts[name]} of at most {MAX_RESTARTS}); "
+                            "the run goes on")
+                    start(name)
+                    continue
+                reason = died + (f" after {restarts[name]} restarts" if restarts.get(name) else "")
+                result.problems.append(reason)
                 break
-        with lock:
-            print(f"[launch] {reason}; stopping the graph", flush=True)
-        if rc == 0:
-            # let the consumers close the last station (idle flush) and the recorder record it
-            end = time.monotonic() + args.drain
-            while time.monotonic() < end and not stop["requested"]:
-                time.sleep(0.1)
+        say(f"{reason}; stopping the graph")
         for name in STOP_ORDER:
             if name in children:
                 code = children[name].stop()
-                with lock:
-                    print(f"[launch] {name} stopped (exit status {code})", flush=True)
-                if code not in (0, -signal.SIGINT) and rc == 0 and name != "probe":
-                    rc = 1
+                say(f"{name} stopped ({_exit_text(code)})")
+                if name != "probe" and code not in (0, -signal.SIGINT) and not result.interrupted:
+                    result.problems.append(f"{name} did not stop cleanly ({_exit_text(code)})")
     finally:
         for ch in children.values():
             if ch.poll() is None:
@@ -245,23 +382,25 @@ def run_graph(args, out, env) -> int:
         for s, h in old.items():
             signal.signal(s, h)
         log.close()
-    return rc
+    return result
 
 
 # --------------------------------------------------------------------------------------------
 # Summary (independent reader: rosbags)
 # --------------------------------------------------------------------------------------------
 def read_bag(path):
-    """Stations and coefficient messages of a bag as plain dicts, read with ``rosbags``."""
+    """Stations, coefficient messages and the last calibration status of a bag as plain dicts, read
+    with ``rosbags`` (in receive order)."""
     from pathlib import Path
 
+    require("rosbags.highlevel", "bag", "the run summary")
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
-    stations, coefficients = [], []
+    stations, coefficients, status = [], [], None
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = [x for x in reader.connections
-                 if x.topic in ("/survey/station", "/calibration/coefficients")]
+                 if x.topic in ("/survey/station", "/calibration/coefficients", "/calibration/status")]
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == "/survey/station":
@@ -273,11 +412,15 @@ def read_bag(path):
                     "reference_toolface_deg", "samples_averaged", "duration_s")}
                 d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
                 stations.append({k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()})
+            elif conn.topic == "/calibration/status":
+                status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
+                          "pending": [int(x) for x in msg.pending], "warnings": list(msg.warnings)}
             else:
                 coefficients.append({"id": msg.id, "coefficients_yaml": msg.coefficients_yaml,
+                                     "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
                                      "accel_correction_matrix": [float(x) for x in msg.accel_correction_matrix],
                                      "mag_correction_matrix": [float(x) for x in msg.mag_correction_matrix]})
-    return stations, coefficients
+    return stations, coefficients, status
 
 
 def station_errors(stations, coefficients_id=None):
@@ -329,30 +472,34 @@ def coefficient_errors(cal, truth):
     return out
 
 
-def raw_station_means(bag_path, stations):
+def raw_station_means(bag_paths, stations):
     """Uncorrected mean specific force (m/s²) and field (nT) over each station's averaging window,
     re-derived from the raw /probe/imu and /probe/mag streams of the bag (an independent path:
-    the bag's raw samples, not the node's arithmetic)."""
+    the bag's raw samples, not the node's arithmetic).  ``bag_paths``: one bag or the list of a
+    run's readable parts; a window no part holds samples of (lost while a recorder restarted)
+    gives NaN."""
     from pathlib import Path
 
+    require("rosbags.highlevel", "bag", "the run summary")
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     t_imu, f, t_mag, m = [], [], [], []
-    with AnyReader([Path(bag_path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        conns = [x for x in reader.connections if x.topic in ("/probe/imu", "/probe/mag")]
-        for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-            if conn.topic == "/probe/imu":
-                a = msg.linear_acceleration
-                t_imu.append(t)
-                f.append((a.x, a.y, a.z))
-            else:
-                v = msg.magnetic_field
-                t_mag.append(t)
-                m.append((v.x * 1e9, v.y * 1e9, v.z * 1e9))
-    t_imu, f, t_mag, m = np.array(t_imu), np.array(f), np.array(t_mag), np.array(m)
+    for bag_path in [bag_paths] if isinstance(bag_paths, (str, os.PathLike)) else bag_paths:
+        with AnyReader([Path(bag_path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+            conns = [x for x in reader.connections if x.topic in ("/probe/imu", "/probe/mag")]
+            for conn, _, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+                if conn.topic == "/probe/imu":
+                    a = msg.linear_acceleration
+                    t_imu.append(t)
+                    f.append((a.x, a.y, a.z))
+                else:
+                    v = msg.magnetic_field
+                    t_mag.append(t)
+                    m.append((v.x * 1e9, v.y * 1e9, v.z * 1e9))
+    t_imu, f, t_mag, m = np.array(t_imu), np.array(f).reshape(-1, 3), np.array(t_mag), np.array(m).reshape(-1, 3)
     out = []
     for s in stations:
         t1 = s["stamp"]
@@ -365,7 +512,8 @@ def raw_station_means(bag_path, stations):
 
 
 def before_after(bag_path, stations, cal):
-    """Station errors before (raw sensors) and after (the node's corrected stations) calibration."""
+    """Station errors before (raw sensors) and after (the node's corrected stations) calibration;
+    ``bag_path``: one bag or the list of a run's readable parts."""
     from .frames import gravity_from_specific_force, wrap180
     from .survey import evaluate
 
@@ -389,6 +537,18 @@ def before_after(bag_path, stations, cal):
     return rows
 
 
+DASH = "—"  # a value that does not exist (NaN: no reference, no azimuth near vertical, no data)
+
+
+def _num(value, spec: str) -> str:
+    """``format(value, spec)``, or an em dash for a missing value (None, NaN, inf)."""
+    try:
+        ok = value is not None and math.isfinite(value)
+    except TypeError:
+        ok = False
+    return format(value, spec) if ok else DASH
+
+
 def format_before_after(rows) -> list:
     if not rows:
         return []
@@ -398,40 +558,103 @@ def format_before_after(rows) -> list:
         x = x[np.isfinite(x)]
         return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
-    def fmt(v):
-        return f"{v:>9.3f}" if math.isfinite(v) else f"{'-':>9}"
+    def fmt(v, spec=".3f"):
+        return f"{_num(v, spec):>9}"
 
     lines = ["", "before/after calibration (errors against the reference, deg; 'before' from the bag's raw streams)",
              f"{'drift':>7} {'azimuth':>8} {'Δdrift before':>14} {'after':>9} {'Δazimuth before':>16} {'after':>9}"]
     for r in rows:
         lines.append(f"{r['ref_drift_deg']:>7.1f} {r['ref_azimuth_deg']:>8.1f} {fmt(r['drift_err_before']):>14} "
                      f"{fmt(r['drift_err_after'])} {fmt(r['azimuth_err_before']):>16} {fmt(r['azimuth_err_after'])}")
-    lines.append(f"{'RMS':>16} {rms('drift_err_before'):>14.3f} {rms('drift_err_after'):>9.4f} "
-                 f"{rms('azimuth_err_before'):>16.3f} {rms('azimuth_err_after'):>9.4f}")
+    lines.append(f"{'RMS':>16} {_num(rms('drift_err_before'), '.3f'):>14} {_num(rms('drift_err_after'), '.4f'):>9} "
+                 f"{_num(rms('azimuth_err_before'), '.3f'):>16} {_num(rms('azimuth_err_after'), '.4f'):>9}")
     return lines
 
 
+def readable_parts(out, print_fn=print) -> list:
+    """Every bag part of ``out`` (:func:`bag_parts`) with the file to read it from.
+
+    A part that is not a finalized, intact bag (a killed recorder leaves no summary section, which
+    ``rosbags`` refuses) is first rewritten with :func:`bag.recover` into ``<part>.recovered.mcap``
+    (the part itself is kept).  Returns one dict per part: ``file`` (its name), ``read`` (the path
+    to read, None if unreadable), and for a recovered part ``recovered_into``, ``messages_saved``
+    and ``problem`` (the first damage found); ``error`` when nothing could be read.
+    """
+    from .bag import BagError, open_bag, recover
+
+    parts = []
+    for path in bag_parts(out):
+        info = {"file": os.path.basename(path), "read": path}
+        parts.append(info)
+        try:
+            reader = open_bag(path)
+            for _ in reader.messages(strict=False):
+                pass
+            if reader.finalized and not reader.errors:
+                continue
+            dst = path[:-len(".mcap")] + ".recovered.mcap"
+            if os.path.exists(dst):
+                os.remove(dst)  # derived from the part, which is kept: rebuild it
+            report = recover(path, dst)
+        except (BagError, OSError) as exc:
+            info.update(read=None, error=str(exc))
+            print_fn(f"[summary] cannot read {path}: {exc}")
+            continue
+        info.update(read=dst, recovered_into=os.path.basename(dst), messages_saved=report.saved,
+                    problem=str(reader.errors[0]) if reader.errors else "not finalized")
+        print_fn(f"[summary] {info['file']} was not finalized (its recorder died): recovered "
+                 f"{report.saved} messages into {info['recovered_into']}")
+    return parts
+
+
 def summarize_run(out, print_fn=print) -> dict:
-    """Build (and print) the run summary from the files in ``out``; writes summary.json."""
+    """Build (and print) the run summary from the files in ``out``; writes summary.json and report.md.
+
+    Stations and coefficient messages come from all bag parts (:func:`readable_parts`), in the
+    order the parts were written, which is time order; a coefficient record that a restarted
+    recorder received again (latched) is counted once.
+    """
     from .coeffs import Calibration, CoefficientError
 
     summary = {"out": out}
-    bag = os.path.join(out, "survey.mcap")
-    stations, coef_msgs = [], []
-    if os.path.exists(bag):
+    stations, coef_msgs, status = [], [], None
+    parts = readable_parts(out, print_fn) if bag_parts(out) else []
+    if parts:
+        require("rosbags.highlevel", "bag", "the run summary")
         from rosbags.highlevel import AnyReaderError
         from rosbags.rosbag2 import ReaderError
         from rosbags.serde import SerdeError
-        try:
-            stations, coef_msgs = read_bag(bag)
-        except (AnyReaderError, ReaderError, SerdeError, OSError, ValueError) as exc:
-            summary["bag_error"] = f"{type(exc).__name__}: {exc}"
-            print_fn(f"[summary] cannot read {bag}: {summary['bag_error']}")
+        seen = set()
+        for part in parts:
+            if part["read"] is None:
+                continue
+            try:
+                st, co, stat = read_bag(part["read"])
+            except (AnyReaderError, ReaderError, SerdeError, OSError, ValueError) as exc:
+                part["error"] = f"{type(exc).__name__}: {exc}"
+                print_fn(f"[summary] cannot read {part['read']}: {part['error']}")
+                continue
+            stations += st
+            for m in co:
+                if (m["id"], m["stamp"]) not in seen:  # latched: re-delivered to a restarted recorder
+                    seen.add((m["id"], m["stamp"]))
+                    coef_msgs.append({**m, "part": part["file"]})
+            status = stat or status
+    errors = [f"{p['file']}: {p['error']}" for p in parts if "error" in p]
+    if errors:
+        summary["bag_error"] = "; ".join(errors)
+    summary["bag_parts"] = [{k: v for k, v in p.items() if k != "read"} for p in parts]
+    readable = [p["read"] for p in parts if p["read"] is not None and "error" not in p]
     summary["stations_recorded"] = len(stations)
     summary["coefficient_messages"] = len(coef_msgs)
+    if status is not None:
+        summary["calibration_status"] = status
+    ids = [s["station_id"] for s in stations]
+    summary["repeated_station_ids"] = sorted({i for i in ids if ids.count(i) > 1})
     cal = None
     if coef_msgs:
-        cal = Calibration.from_yaml(coef_msgs[-1]["coefficients_yaml"], source=f"{bag} /calibration/coefficients")
+        cal = Calibration.from_yaml(coef_msgs[-1]["coefficients_yaml"],
+                                    source=f"{coef_msgs[-1]['part']} /calibration/coefficients")
         summary["coefficients_source"] = "bag"
     elif os.path.exists(os.path.join(out, "coeffs.yaml")):
         try:
@@ -451,9 +674,9 @@ def summarize_run(out, print_fn=print) -> dict:
         summary["coefficient_errors"] = coefficient_errors(cal, truth)
     summary["survey"] = station_errors(stations, cal.id if cal is not None else None)
     rows = []
-    if stations and cal is not None:
+    if stations and cal is not None and readable:
         try:
-            rows = before_after(bag, stations, cal)
+            rows = before_after(readable, stations, cal)
         except (OSError, ValueError, KeyError) as exc:
             print_fn(f"[summary] before/after not available: {exc}")
     summary["before_after"] = rows
@@ -464,8 +687,20 @@ def summarize_run(out, print_fn=print) -> dict:
     atomic_write_text(os.path.join(out, "report.md"), format_report(summary, lines, cal, stations))
     for line in lines:
         print_fn(line)
-    print_fn(f"report: {os.path.join(out, 'report.md')}; bag: {bag}")
+    bags = ", ".join(p["file"] for p in parts) or "none"
+    print_fn(f"report: {os.path.join(out, 'report.md')}; bag: {bags}")
     return summary
+
+
+def station_label(s) -> str:
+    """The report's status of a station: QC verdict and flags for a corrected one; a station
+    published before the calibration solved (empty ``coefficients_id``: raw sensor values, e.g. the
+    stand poses themselves) is labelled uncorrected, without QC flags — its |B| and dip are off
+    the reference because it is uncorrected, not because of interference."""
+    if not s["coefficients_id"]:
+        return "uncorrected (before calibration)"
+    flags = [n for n in ("azimuth_undefined", "interference_suspected") if s.get(n)]
+    return ["ok", "warn", "error"][min(int(s["status"]), 2)] + (f" ({', '.join(flags)})" if flags else "")
 
 
 def format_report(summary, summary_lines, cal, stations) -> str:
@@ -489,38 +724,58 @@ def format_report(summary, summary_lines, cal, stations) -> str:
             ref_i, ref_a = s["reference_drift_deg"], s["reference_azimuth_deg"]
             di = s["drift_deg"] - ref_i if math.isfinite(ref_i) else float("nan")
             da = float(wrap180(s["azimuth_deg"] - ref_a)) if math.isfinite(ref_a) else float("nan")
-            flags = [n for n in ("azimuth_undefined", "interference_suspected") if s.get(n)]
-            status = ["ok", "warn", "error"][min(int(s["status"]), 2)] + (f" ({', '.join(flags)})" if flags else "")
-            out.append(f"| {s['station_id']} | {s['coefficients_id'] or 'none'} | {ref_i:.2f} | {ref_a:.2f} | "
-                       f"{s['drift_deg']:.3f} | {s['azimuth_deg']:.3f} | {di:+.4f} | {da:+.4f} | "
-                       f"{s['delta_b_nt']:+.0f} | {s['delta_dip_deg']:+.3f} | {status} |")
+            out.append(f"| {s['station_id']} | {s['coefficients_id'] or DASH} | {_num(ref_i, '.2f')} | "
+                       f"{_num(ref_a, '.2f')} | {_num(s['drift_deg'], '.3f')} | {_num(s['azimuth_deg'], '.3f')} | "
+                       f"{_num(di, '+.4f')} | {_num(da, '+.4f')} | {_num(s['delta_b_nt'], '+.0f')} | "
+                       f"{_num(s['delta_dip_deg'], '+.3f')} | {station_label(s)} |")
     return "\n".join(out) + "\n"
 
 
+def _part_text(p) -> str:
+    if "error" in p:
+        return f"{p['file']} (unreadable: {p['error']})"
+    if "recovered_into" in p:
+        return (f"{p['file']} (not finalized, its recorder died: {p['messages_saved']} messages recovered "
+                f"into {p['recovered_into']})")
+    return p["file"]
+
+
 def format_summary(s) -> list:
-    lines = ["", "=== run summary ===",
-             f"bag: {s['stations_recorded']} survey stations ({s['raw_stations']} uncorrected), "
-             f"{s['coefficient_messages']} coefficient message(s)"]
+    lines = ["", "=== run summary ==="]
+    parts = s.get("bag_parts") or []
+    if len(parts) > 1 or any("recovered_into" in p or "error" in p for p in parts):
+        lines.append(f"bag parts ({len(parts)}, in time order): " + "; ".join(_part_text(p) for p in parts))
+    lines.append(f"bag: {s['stations_recorded']} survey stations ({s['raw_stations']} uncorrected, before "
+                 f"calibration), {s['coefficient_messages']} coefficient message(s)")
+    if s.get("repeated_station_ids"):
+        lines.append(f"station ids recorded more than once: {s['repeated_station_ids']}")
     if "coefficients_id" in s:
         lines.append(f"coefficients {s['coefficients_id']} (from {s.get('coefficients_source')}; "
                      f"coeffs.yaml matches: {s.get('coeffs_yaml_matches_bag', 'n/a')})")
+    elif s.get("calibration_status"):
+        st = s["calibration_status"]
+        said = f"{len(st['captured'])} of 12 poses captured"
+        lines.append(f"calibration not solved: state {st['state']}, {said}, pending {st['pending']}"
+                     + (f" ({st['message']})" if st["message"] and st["message"] != said else ""))
     ce = s.get("coefficient_errors")
     if ce:
         lines.append("coefficients minus simulator truth (acc in the gravity-vector convention):")
         for sensor, unit in (("acc", "m/s^2"), ("mag", "nT")):
             e = ce[sensor]
-            lines.append(f"  {sensor}: bias [{', '.join(f'{v:+.3g}' for v in e['bias_err'])}] {unit}; "
-                         f"scale [{', '.join(f'{v:+.2e}' for v in e['scale_err'])}]; "
-                         f"max |e err| {e['max_abs_e_err']:.2e}; max |C err| {e['max_abs_correction_matrix_err']:.2e}")
+            lines.append(f"  {sensor}: bias [{', '.join(_num(v, '+.3g') for v in e['bias_err'])}] {unit}; "
+                         f"scale [{', '.join(_num(v, '+.2e') for v in e['scale_err'])}]; "
+                         f"max |e err| {_num(e['max_abs_e_err'], '.2e')}; "
+                         f"max |C err| {_num(e['max_abs_correction_matrix_err'], '.2e')}")
     sv = s.get("survey", {})
     if sv.get("stations"):
         lines.append(f"survey: {sv['stations']} corrected stations with a reference: drift RMS "
-                     f"{sv['drift_rms_deg']:.4f} max {sv['drift_max_abs_deg']:.4f} deg; azimuth RMS "
-                     f"{sv['azimuth_rms_deg']:.4f} max {sv['azimuth_max_abs_deg']:.4f} deg "
-                     f"({sv['azimuth_stations']} stations); toolface RMS {sv['toolface_rms_deg']:.4f} deg")
+                     f"{_num(sv['drift_rms_deg'], '.4f')} max {_num(sv['drift_max_abs_deg'], '.4f')} deg; azimuth RMS "
+                     f"{_num(sv['azimuth_rms_deg'], '.4f')} max {_num(sv['azimuth_max_abs_deg'], '.4f')} deg "
+                     f"({sv['azimuth_stations']} stations); toolface RMS {_num(sv['toolface_rms_deg'], '.4f')} deg")
         lines.append(f"  status ok/warn/error: {sv['status_counts']['0']}/{sv['status_counts']['1']}/"
-                     f"{sv['status_counts']['2']}; max |dB| {sv['max_abs_delta_b_nt']:.0f} nT, max |ddip| "
-                     f"{sv['max_abs_delta_dip_deg']:.3f} deg, max |dG| {sv['max_abs_delta_g_mps2']:.4f} m/s^2")
+                     f"{sv['status_counts']['2']}; max |dB| {_num(sv['max_abs_delta_b_nt'], '.0f')} nT, max |ddip| "
+                     f"{_num(sv['max_abs_delta_dip_deg'], '.3f')} deg, max |dG| "
+                     f"{_num(sv['max_abs_delta_g_mps2'], '.4f')} m/s^2")
     else:
         lines.append("survey: no corrected stations with a reference")
     return lines
@@ -548,48 +803,150 @@ def parse_args(argv=None):
     ap.add_argument("--param", action="append", default=[], metavar="NODE:NAME:=VALUE",
                     help="extra node parameter, e.g. correction:publish_corrected:=true")
     ap.add_argument("--config", help="directory with <node>.yaml parameter files (default: the package's config/)")
-    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for the graph (default: inherited)")
+    ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for the graph, reserved exactly (refused if another "
+                    "run holds it; default: ROS_DOMAIN_ID if set, else a free one)")
     ap.add_argument("--drain", type=float, default=3.0, help="seconds between the probe's end and stopping the rest")
     ap.add_argument("--timeout", type=float, default=0.0, help="stop the run after this many seconds (0: none)")
     return ap.parse_args(argv)
 
 
+def reserve_run_domain(args, env):
+    """The run's ROS_DOMAIN_ID and the lock that reserves it (None: the parent holds it).
+
+    ``--domain-id`` or ``ROS_DOMAIN_ID`` from the environment: exactly that id, refused with
+    :class:`rosenv.DomainInUse` when another run holds it — unless the environment says the
+    parent process reserved it for us (:data:`rosenv.RESERVED_BY_PARENT`, set by the tests'
+    and benchmarks' isolated environments).  Neither: a free id (:func:`rosenv.reserve_domain_id`).
+    Raises ValueError for an id that is not an integer in 0..232.
+    """
+    from . import rosenv
+
+    text = str(args.domain_id) if args.domain_id is not None else (env.get("ROS_DOMAIN_ID") or "").strip()
+    origin = "--domain-id" if args.domain_id is not None else "ROS_DOMAIN_ID"
+    if not text:
+        domain_id, lock = rosenv.reserve_domain_id()
+        return domain_id, lock, "a free domain, reserved for this run"
+    try:
+        domain_id = int(text)
+    except ValueError:
+        raise ValueError(f"{origin} {text!r} is not an integer") from None
+    if env.get(rosenv.RESERVED_BY_PARENT, "").strip() == str(domain_id):
+        return domain_id, None, f"from {origin}, reserved by the parent process"
+    return domain_id, rosenv.reserve_this_domain_id(domain_id), f"from {origin}, reserved for this run"
+
+
+def _lock_out_dir(out):
+    """Lock ``out`` for this run (an ``flock`` on ``out/.launch.lock``); None if another run holds it."""
+    import fcntl
+
+    fh = open(os.path.join(out, ".launch.lock"), "a+")
+    try:
+        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        return None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    return fh
+
+
+def run_files(out) -> list:
+    """Files of an earlier run in ``out`` that a new run would mix with (refused without --overwrite)."""
+    names = ["coeffs.yaml", "summary.json", "truth.json", STATE_FILE]
+    found = [os.path.basename(p) for p in bag_parts(out)]
+    return found + [f for f in names if os.path.exists(os.path.join(out, f))]
+
+
+def calibration_problems(out, summary) -> list:
+    """Why the calibration of a run in which the calibration node ran did not deliver (empty if it did)."""
+    solved_file = os.path.exists(os.path.join(out, "coeffs.yaml"))
+    recorded = bool(summary and summary.get("coefficient_messages"))
+    if recorded or (solved_file and summary is None):
+        return []
+    if solved_file:
+        return ["the calibration solved (coeffs.yaml was written) but no coefficient message was recorded"]
+    st = (summary or {}).get("calibration_status")
+    detail = ""
+    if st:
+        said = f"{len(st['captured'])} of 12 poses captured"
+        detail = (f" (last status: {st['state']}, {said}, pending {st['pending']}"
+                  + (f"; {st['message']}" if st["message"] and st["message"] != said else "") + ")")
+    return ["the calibration did not solve: the calibration node ran but no coefficients were recorded and no "
+            f"coeffs.yaml was written{detail}"]
+
+
 def main(argv=None) -> int:
+    from . import rosenv
+
     args = parse_args(argv)
     if args.source != "simulate" and not args.input:
         print("error: --source csv/mcap needs --input", file=sys.stderr)
         return 2
+    env = dict(os.environ)
+    try:
+        domain_id, domain_lock, how = reserve_run_domain(args, env)
+    except rosenv.DomainInUse as exc:
+        print(f"error: {exc}. Give another --domain-id (or ROS_DOMAIN_ID), or give neither to get a free one; "
+              "or wait for that run to end", file=sys.stderr)
+        return 2
+    except (ValueError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
-    existing = [f for f in ("survey.mcap", "coeffs.yaml", "summary.json", "truth.json")
-                if os.path.exists(os.path.join(out, f))]
-    if existing:
-        if not args.overwrite:
-            print(f"error: {out} already holds {', '.join(existing)} (use --overwrite or another --out)",
+    out_lock = _lock_out_dir(out)
+    try:
+        if out_lock is None:
+            print(f"error: another inclinometer-calib-launch is writing to {out}: choose another --out",
                   file=sys.stderr)
             return 2
-        for f in existing + ["truth_coeffs.yaml", "launch.log"]:
-            p = os.path.join(out, f)
-            if os.path.isdir(p):
-                shutil.rmtree(p)
-            elif os.path.exists(p):
-                os.remove(p)
-    env = dict(os.environ)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
-    env["PYTHONUNBUFFERED"] = "1"
-    if args.domain_id is not None:
-        env["ROS_DOMAIN_ID"] = str(args.domain_id)
-    t0 = time.monotonic()
-    rc = run_graph(args, out, env)
-    print(f"[launch] graph ran for {time.monotonic() - t0:.1f} s", flush=True)
-    if rc in (0, 130) and not args.no_recorder:
-        try:
-            summarize_run(out)
-        except (OSError, ValueError, KeyError) as exc:
-            print(f"[summary] failed: {type(exc).__name__}: {exc}", flush=True)
-            rc = rc or 1
-    return rc
-
+        existing = run_files(out)
+        if existing:
+            if not args.overwrite:
+                print(f"error: {out} already holds {', '.join(existing)} (use --overwrite or another --out)",
+                      file=sys.stderr)
+                return 2
+            recovered = [f for f in os.listdir(out) if f.endswith(".recovered.mcap")]
+            for f in existing + recovered + ["truth_coeffs.yaml", "launch.log", "report.md"]:
+                p = os.path.join(out, f)
+                if os.path.isdir(p):
+                    shutil.rmtree(p)
+                elif os.path.exists(p):
+                    os.remove(p)
+        env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") or "LOCALHOST"
+        env["PYTHONUNBUFFERED"] = "1"
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+        env[rosenv.RESERVED_BY_PARENT] = str(domain_id)  # this launcher holds it for its nodes
+        print(f"[launch] ROS_DOMAIN_ID={domain_id} ({how}); discovery range "
+              f"{env['ROS_AUTOMATIC_DISCOVERY_RANGE']}", flush=True)
+        t0 = time.monotonic()
+        result = run_graph(args, out, env)
+        print(f"[launch] graph ran for {time.monotonic() - t0:.1f} s", flush=True)
+        problems = list(result.problems)
+        summary = None
+        if not args.no_recorder:
+            try:
+                summary = summarize_run(out)
+            except (OSError, ValueError, KeyError, MissingDependency) as exc:
+                print(f"[summary] failed: {type(exc).__name__}: {exc}", flush=True)
+                problems.append(f"the summary failed ({type(exc).__name__}: {exc})")
+        if result.calibration_ran and not result.interrupted:
+            problems += calibration_problems(out, summary)
+    finally:
+        if out_lock is not None:
+            out_lock.close()
+        if domain_lock is not None:
+            domain_lock.close()
+    if result.interrupted:
+        print("[launch] exit status 130: interrupted", flush=True)
+        return 130
+    if problems:
+        print(f"[launch] exit status 1: the run is not clean: {'; '.join(problems)}", flush=True)
+        return 1
+    print("[launch] exit status 0: clean run", flush=True)
+    return 0
 
 if __name__ == "__main__":
     sys.exit(main())

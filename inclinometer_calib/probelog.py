@@ -5,32 +5,42 @@ CSV format (the header line is literal)::
     t_s,ax,ay,az,mx,my,mz,temp_c,pose,ref_drift_deg,ref_azimuth_deg,ref_toolface_deg
 
 * ``ax..az``: accelerometer as REP-145 *specific force* in m/s², uncalibrated (a resting probe
-  reads -gravity).  Converted once, in :func:`segment_stations`, to the seed paper's gravity
-  vector (down positive) with :func:`frames.gravity_from_specific_force`.
-* ``mx..mz``: magnetometer in nT, uncalibrated.
+  reads -gravity).  Converted once, where the samples enter the static detector
+  (:class:`streaming.StaticDetector`), to the seed paper's gravity vector (down positive).
+* ``mx..mz``: magnetometer, uncalibrated, in nT — or in the unit the reader is told
+  (``mag_unit``: nT, uT, mT, T, G, mG), converted to nT when read.
 * ``temp_c``: probe temperature, °C; empty (or ``nan``) when the probe has no sensor.
 * ``pose``: 1..12 while the probe sits in that pose of the paper's Table 1, empty otherwise.
 * ``ref_*``: the stand's set orientation where known, empty otherwise.  Rows recorded while the
-  probe moves have all four of ``pose`` and ``ref_*`` empty.
+  probe moves have all four of ``pose`` and ``ref_*`` empty.  A reference is used for what it
+  defines: a vertical pose gives drift and toolface but no azimuth (the azimuth of a vertical
+  tool is undefined; the toolface is then the rotation about the vertical, as for azimuth 0).
 
-Consecutive rows with the same pose (or the same ``ref_*`` triple) form one static station.
-Unusable rows are rejected with a message naming the row and the reason; the rest is kept.
+Stations are found by the same static detector as the live nodes (:func:`segment_stations`),
+with thresholds from the noise the data show; the labels of a station's rows name it.  Unusable
+rows are rejected with a message naming the row and the reason; the rest is kept.  A ``.gz``
+file is read decompressed.
 """
 from __future__ import annotations
 
 import csv
+import gzip
 import io
 import math
 import os
 import tempfile
-from dataclasses import dataclass, field
+from collections import Counter
+from dataclasses import dataclass
 
 import numpy as np
 
-from .frames import STANDARD_GRAVITY, gravity_from_specific_force
+from .frames import STANDARD_GRAVITY
+from .station import Station
 
 HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
           "ref_drift_deg", "ref_azimuth_deg", "ref_toolface_deg"]
+#: Magnetometer units a log may be written in, as nT per unit.
+MAG_UNITS = {"nT": 1.0, "uT": 1e3, "mT": 1e6, "T": 1e9, "G": 1e5, "mG": 1e2}
 
 
 @dataclass
@@ -92,8 +102,11 @@ class Limits:
     temp_range_c: tuple = (-40.0, 200.0)
 
 
-def _check_row(acc, mag, temp, limits: Limits):
-    """Reason a sample is unusable, or None."""
+def check_sample(acc, mag, temp, limits: Limits):
+    """Reason a sample is unusable (saturated, implausible totals or units), or None.
+
+    ``acc`` REP-145 specific force m/s², ``mag`` nT, ``temp`` °C or NaN.  Shared by the CSV
+    reader, offline reprocessing and the live nodes, so a sample is judged alike everywhere."""
     for name, v in zip(("ax", "ay", "az"), acc):
         if abs(v) >= 0.999 * limits.acc_full_scale:
             return f"{name}={v:g} m/s² is saturated (full scale ±{limits.acc_full_scale:g})"
@@ -106,8 +119,11 @@ def _check_row(acc, mag, temp, limits: Limits):
         return (f"total acceleration {a:.4g} m/s² is implausible (expected "
                 f"{limits.acc_total_range[0]:.3g}..{limits.acc_total_range[1]:.3g}; units must be m/s²)")
     if 0 < m < 1e-3:
-        return (f"total field {m:.3g} is implausible for nT — the magnetometer columns look like tesla; "
-                f"multiply by 1e9 to give nT")
+        return (f"total field {m:.3g} nT is implausible — the magnetometer columns look like tesla: give the "
+                f"unit (--mag-unit T) or write nT")
+    if 5e-3 < m < 1.0:
+        return (f"total field {m:.3g} nT is implausible — the magnetometer columns look like gauss: give the "
+                f"unit (--mag-unit G) or write nT")
     if not limits.mag_total_range[0] <= m <= limits.mag_total_range[1]:
         return (f"total field {m:.4g} nT is implausible (expected "
                 f"{limits.mag_total_range[0]:g}..{limits.mag_total_range[1]:g} nT)")
@@ -116,11 +132,16 @@ def _check_row(acc, mag, temp, limits: Limits):
     return None
 
 
-def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>"):
+def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_unit: str = "nT"):
     """Parse probe-log CSV text.  Returns ``(ProbeLog, [Rejection, ...])``.
 
-    Raises ``ValueError`` only when the file as a whole is unusable (wrong header, no data).
+    ``mag_unit``: the unit of the magnetometer columns (a key of :data:`MAG_UNITS`), converted to
+    nT here.  Raises ``ValueError`` only when the file as a whole is unusable (wrong header, no
+    data, unknown unit).
     """
+    if mag_unit not in MAG_UNITS:
+        raise ValueError(f"{source}: magnetometer unit {mag_unit!r} unknown (one of {', '.join(MAG_UNITS)})")
+    mag_scale = MAG_UNITS[mag_unit]
     lines = text.splitlines()
     if not lines:
         raise ValueError(f"{source}: empty file (expected header {','.join(HEADER)})")
@@ -149,8 +170,8 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>"):
         if nonfinite:
             rejections.append(Rejection(k, line, f"{', '.join(nonfinite)} not finite (NaN/inf)"))
             continue
-        t, acc, mag, temp = nums[0], nums[1:4], nums[4:7], nums[7]
-        reason = _check_row(acc, mag, temp, limits)
+        t, acc, mag, temp = nums[0], nums[1:4], [v * mag_scale for v in nums[4:7]], nums[7]
+        reason = check_sample(acc, mag, temp, limits)
         if reason is None and t <= last_t:
             reason = f"time t_s={t:g} does not increase (previous {last_t:g}): non-monotonic timestamp"
         if reason is None:
@@ -199,10 +220,7 @@ def _parse_labels(fields):
         if not math.isfinite(v):
             return 0, None, f"{name} not finite"
         ref.append(v)
-    n_known = sum(math.isfinite(v) for v in ref)
-    if n_known not in (0, 3):
-        return 0, None, "ref_drift/azimuth/toolface must be given all three or none"
-    if n_known == 3 and not 0 <= ref[0] <= 180:
+    if math.isfinite(ref[0]) and not 0 <= ref[0] <= 180:
         return 0, None, f"ref_drift_deg={ref[0]:g} outside 0..180"
     return pose, ref, None
 
@@ -217,25 +235,29 @@ def report(path, rejections, problems, warn, limit: int = 20) -> None:
         warn(f"{path}: {p}")
 
 
-def read_csv(path, limits: Limits = Limits()):
-    """Read a probe-log CSV file.  Returns ``(ProbeLog, [Rejection, ...])``."""
-    with open(path, encoding="utf-8") as fh:
-        return parse_csv(fh.read(), limits, source=str(path))
+def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT"):
+    """Read a probe-log CSV file (``.gz``: compressed).  Returns ``(ProbeLog, [Rejection, ...])``."""
+    opener = gzip.open if str(path).endswith(".gz") else open
+    with opener(path, "rt", encoding="utf-8") as fh:
+        return parse_csv(fh.read(), limits, source=str(path), mag_unit=mag_unit)
 
 
 def _fmt(v, fmt):
     return "" if not np.isfinite(v) else format(v, fmt)
 
 
-def format_csv(log: ProbeLog) -> str:
-    """Render a ProbeLog in the CSV format (full precision where it matters)."""
+def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
+    """Render a ProbeLog in the CSV format (full precision where it matters); the magnetometer in
+    ``mag_unit`` (the file then needs that unit given when it is read)."""
+    scale = 1.0 / MAG_UNITS[mag_unit]
+    mfmt = ".3f" if mag_unit == "nT" else ".6g"
     out = io.StringIO()
     out.write(",".join(HEADER) + "\n")
     for i in range(len(log)):
         fields = [f"{log.t_s[i]:.4f}",
                   *(f"{v:.6f}" for v in log.acc[i]),
-                  *(f"{v:.3f}" for v in log.mag[i]),
-                  f"{log.temp_c[i]:.3f}",
+                  *(format(v * scale, mfmt) for v in log.mag[i]),
+                  _fmt(log.temp_c[i], ".3f"),
                   str(int(log.pose[i])) if log.pose[i] else "",
                   *(_fmt(v, ".4f") for v in log.ref[i])]
         out.write(",".join(fields) + "\n")
@@ -262,106 +284,115 @@ def atomic_write_text(path, text: str) -> None:
         raise
 
 
-def write_csv(path, log: ProbeLog) -> None:
-    atomic_write_text(path, format_csv(log))
+def write_csv(path, log: ProbeLog, mag_unit: str = "nT") -> None:
+    atomic_write_text(path, format_csv(log, mag_unit))
 
 
 # --------------------------------------------------------------------------------------------
 # Static stations
 # --------------------------------------------------------------------------------------------
-@dataclass
-class Station:
-    """One static station: the average of consecutive rows with the same label.
-
-    ``g`` is the mean gravity vector (down positive, m/s²) — already converted from REP-145;
-    ``b`` the mean field (nT); ``g_std``/``b_std`` the per-axis scatter inside the station (the
-    noise estimate); ``ref`` the stand's set (drift, azimuth, toolface) in degrees, NaN if unknown.
-    """
-
-    index: int
-    pose: int
-    ref: np.ndarray
-    g: np.ndarray
-    b: np.ndarray
-    temp_c: float
-    t_start: float
-    t_end: float
-    n: int
-    g_std: np.ndarray
-    b_std: np.ndarray
-    first_row: int
-    warnings: list = field(default_factory=list)
-
-    @property
-    def has_ref(self) -> bool:
-        return bool(np.all(np.isfinite(self.ref)))
-
-    @property
-    def label(self) -> str:
-        if self.pose:
-            return f"pose {self.pose}"
-        if self.has_ref:
-            return "I={:g} A={:g} T={:g}".format(*self.ref)
-        return f"station {self.index}"
+def _ref_key(row):
+    return tuple(None if not math.isfinite(v) else round(float(v), 9) for v in row)
 
 
-def segment_stations(log: ProbeLog, min_samples: int = 5, max_motion_sigma: float = 6.0):
-    """Group consecutive rows with the same label into stations.
+def label_runs(log: ProbeLog):
+    """Runs of consecutive rows with the same label (pose and reference), labelled runs only.
 
-    Returns ``(stations, problems)`` where ``problems`` are strings naming stations that were
-    dropped (too short) or flagged (the probe moved during the capture: the scatter of one axis
-    is more than ``max_motion_sigma`` times the median scatter of all stations, a robust noise
-    reference, *and* the within-station trend dominates it).
-    """
+    Returns ``[(first_row, last_row, pose, ref), ...]`` with 0-based inclusive row indices and
+    ``ref`` (3,) degrees (NaN where not given).  What the log *says* its stations are — used to
+    report labelled holds the detector did not find, and for a simulator's truth."""
     n = len(log)
-    if n == 0:
-        return [], ["log has no rows"]
-    has_ref = np.all(np.isfinite(log.ref), axis=1)
-    labelled = (log.pose > 0) | has_ref
-    refkey = np.where(has_ref[:, None], log.ref, -999.0)
-    change = np.ones(n, dtype=bool)
-    change[1:] = (log.pose[1:] != log.pose[:-1]) | np.any(refkey[1:] != refkey[:-1], axis=1) | \
-        (labelled[1:] != labelled[:-1])
-    starts = np.flatnonzero(change)
-    ends = np.append(starts[1:], n)
-    g_all = gravity_from_specific_force(log.acc)
-    stations, problems = [], []
-    for s, e in zip(starts, ends):
-        if not labelled[s]:
-            continue
-        label = f"pose {log.pose[s]}" if log.pose[s] else "ref ({:g}, {:g}, {:g})".format(*log.ref[s])
-        if e - s < min_samples:
-            problems.append(f"station at rows {s + 1}-{e} ({label}): only {e - s} samples, "
-                            f"need {min_samples}: static window too short, dropped")
-            continue
-        g, b = g_all[s:e], log.mag[s:e]
-        stations.append(Station(
-            index=len(stations), pose=int(log.pose[s]), ref=log.ref[s].copy(),
-            g=g.mean(axis=0), b=b.mean(axis=0), temp_c=_mean_known(log.temp_c[s:e]),
-            t_start=float(log.t_s[s]), t_end=float(log.t_s[e - 1]), n=int(e - s),
-            g_std=g.std(axis=0, ddof=1), b_std=b.std(axis=0, ddof=1), first_row=int(s + 1)))
-    _flag_motion(stations, max_motion_sigma, problems)
+    out = []
+    k = 0
+    keys = [(int(p), _ref_key(r)) for p, r in zip(log.pose.tolist(), log.ref.tolist())] if n else []
+    while k < n:
+        j = k
+        while j + 1 < n and keys[j + 1] == keys[k]:
+            j += 1
+        pose, ref = keys[k]
+        if pose or any(v is not None for v in ref):
+            out.append((k, j, pose, log.ref[k].copy()))
+        k = j + 1
+    return out
+
+
+def segment_stations(log: ProbeLog, detector=None, use_labels: bool = True):
+    """The static stations of a log, found by the live nodes' detector; labels name them.
+
+    The rows go through :class:`streaming.StaticDetector` (default settings: thresholds from the
+    noise the log shows) exactly as a stream does, so a log, its bag and the live graph give the
+    same stations.  With ``use_labels``, each station takes the pose and reference of its rows
+    (a station whose rows carry different labels takes the most common one, with a message).
+
+    Returns ``(stations, problems)``: ``problems`` are messages for the user — a labelled hold in
+    which no station was found (and what the detector saw there), holds cut into pieces and why,
+    the noise stated vs measured.
+    """
+    from .streaming import StaticDetector  # streaming imports the station type, not this module
+
+    det = detector if detector is not None else StaticDetector()
+    found = []
+    t, acc, mag, temp = log.t_s, log.acc, log.mag, log.temp_c
+    for i in range(len(log)):
+        found.extend(det.update(t[i], acc[i], mag[i], temp[i]))
+    found.extend(det.flush())
+    problems = list(det.pop_events())
+    stations = []
+    starts = np.searchsorted(t, [st.t_start for st in found])
+    ends = np.searchsorted(t, [st.t_end for st in found])
+    for st, i0, i1 in zip(found, starts, ends):
+        st.first_row, st.last_row = int(i0) + 1, int(i1) + 1
+        if use_labels:
+            keys = Counter((int(p), _ref_key(r)) for p, r in zip(log.pose[i0:i1 + 1].tolist(),
+                                                                 log.ref[i0:i1 + 1].tolist()))
+            labelled = [k for k in keys if k[0] or any(v is not None for v in k[1])]
+            n_rows = sum(keys.values())
+            n_lab = sum(keys[k] for k in labelled)
+            pose, ref = 0, (None, None, None)
+            if labelled and 2 * n_lab >= n_rows:
+                pose, ref = max(labelled, key=lambda k: keys[k])
+            if len(labelled) > 1:
+                problems.append(f"station at {st.where} spans rows labelled {', '.join(_label_text(k) for k in labelled)} "
+                                f"without motion between them: labelled {_label_text((pose, ref))} (the most rows)")
+            elif labelled and not pose and all(v is None for v in ref):
+                problems.append(f"station at {st.where}: only {n_lab} of its {n_rows} rows carry the label "
+                                f"{_label_text(labelled[0])}: taken as unlabelled (no pose, no reference)")
+            st.pose = pose
+            st.ref = np.array([np.nan if v is None else v for v in ref], dtype=float)
+        if not st.short:
+            st.index = len(stations)
+            stations.append(st)
+    if use_labels:
+        problems.extend(_unfound_holds(log, found, det))
     return stations, problems
 
 
-def _mean_known(x) -> float:
-    """Mean of the finite values (temperatures may be unknown), NaN if none."""
-    ok = np.isfinite(x)
-    return float(x[ok].mean()) if ok.any() else float("nan")
+def _label_text(key) -> str:
+    pose, ref = key
+    if pose:
+        return f"pose {pose}"
+    return "ref ({})".format(", ".join("-" if v is None else f"{v:g}" for v in ref))
 
 
-def _flag_motion(stations, k, problems):
-    """Flag stations whose scatter is far above the typical (median) scatter: the probe moved."""
-    if len(stations) < 3:
-        return
-    gs = np.array([st.g_std for st in stations])
-    bs = np.array([st.b_std for st in stations])
-    g_ref = np.maximum(np.median(gs, axis=0), 1e-6)
-    b_ref = np.maximum(np.median(bs, axis=0), 1e-3)
-    for st, g, b in zip(stations, gs, bs):
-        ratio = max(np.max(g / g_ref), np.max(b / b_ref))
-        if ratio > k:
-            msg = (f"station {st.index} ({st.label}, rows from {st.first_row}): scatter {ratio:.1f}× the "
-                   f"typical — the probe moved during the capture")
-            st.warnings.append(msg)
-            problems.append(msg)
+def _unfound_holds(log, found, det) -> list:
+    """Labelled holds in which the detector found no station long enough, with what it did find."""
+    out = []
+    t = log.t_s
+    for i0, i1, pose, ref in label_runs(log):
+        t0, t1 = float(t[i0]), float(t[i1])
+        inside = [st for st in found if st.t_end >= t0 and st.t_start <= t1]
+        if any(not st.short for st in inside):
+            continue
+        label = _label_text((pose, _ref_key(ref)))
+        pieces = [st for st in inside if st.short]
+        if pieces:
+            why = (f"only pieces shorter than {det.min_duration_s:g} s ({', '.join(f'{st.duration_s:.2f}' for st in pieces)} s): "
+                   "the hold was cut by motion or noise (see the messages about pieces) or is too short — "
+                   "detector.min_duration_s / min_capture_s set the shortest hold")
+        elif t1 - t0 < det.min_duration_s + det.settle_s:
+            why = (f"the hold lasts {t1 - t0:.2f} s, less than the detector needs ({det.min_duration_s:g} s after "
+                   f"{det.settle_s:g} s settling)")
+        else:
+            why = "the probe was never still there (every sample moved beyond the noise)"
+        out.append(f"{label} at rows {i0 + 1}-{i1 + 1} (t={t0:.2f}-{t1:.2f} s): no static station found: {why}")
+    return out

@@ -10,9 +10,14 @@ written with :mod:`inclinometer_calib.bag`.  It does offline what the correction
 * ``/probe/temperature`` (``sensor_msgs/Temperature``) gives the temperature of later samples;
 * ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, drift/azimuth/toolface in degrees,
   NaN = none), if present, is copied into the stations' ``reference_*`` fields;
-* each pair goes through :class:`streaming.StaticDetector`; every closed static interval is
-  corrected and checked by :class:`streaming.SurveyProcessor` and written as one
-  ``/survey/station`` message (fields as the correction node fills them).
+* each pair goes through :class:`streaming.StaticDetector` (thresholds from the noise the data
+  show; the messages' covariance is a prior); every closed station is gated, corrected and
+  checked by :class:`streaming.SurveyProcessor` and written as one ``/survey/station`` message
+  (fields as the correction node fills them);
+* with ``calibrate`` the same stations go through the live calibration node's twelve-pose
+  session (:class:`capture.CaptureSession`): each solve is written as one
+  ``/calibration/coefficients`` message and corrects the stations that follow — offline, the
+  whole live graph.
 
 The input messages of those four topics are copied through unchanged (same bytes, log and publish
 times), so the output bag can be replayed again.  Other topics are skipped with a warning that
@@ -35,8 +40,12 @@ from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
 from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
+from .capture import CaptureSession
+from .deps import require
 from .frames import NT_PER_TESLA, Site
-from .streaming import StaticDetector, StationRecord, StreamPairer, SurveyProcessor, station_fields
+from .probelog import Limits, check_sample
+from .coeffs import message_fields
+from .streaming import StaticDetector, StreamPairer, SurveyProcessor, station_fields
 from .survey import Tolerances
 
 TOPIC_IMU = "/probe/imu"
@@ -50,14 +59,14 @@ MAG_TYPE = "sensor_msgs/msg/MagneticField"
 TEMPERATURE_TYPE = "sensor_msgs/msg/Temperature"
 REFERENCE_TYPE = "geometry_msgs/msg/Vector3Stamped"
 STATION_TYPE = "inclinometer_calib/msg/SurveyStation"
+COEFFICIENTS_TYPE = "inclinometer_calib/msg/CalibrationCoefficients"
+TOPIC_COEFFICIENTS = "/calibration/coefficients"
 
 #: Input topics read (and copied through) and the type each must have.
 INPUT_TOPICS = {TOPIC_IMU: IMU_TYPE, TOPIC_MAG: MAG_TYPE, TOPIC_TEMPERATURE: TEMPERATURE_TYPE,
                 TOPIC_REFERENCE: REFERENCE_TYPE}
 
 NAN = float("nan")
-#: |B| (after the tesla → nT conversion) outside this range is implausible for a probe on Earth.
-FIELD_RANGE_NT = (5000.0, 100000.0)
 
 
 class ReprocessError(ValueError):
@@ -95,6 +104,21 @@ def decode_imu(data):
     return (sec, nsec), s[1].unpack_from(data, pos + _IMU_ACC_OFFSET)
 
 
+def decode_imu_covariance(data) -> float:
+    """σ per axis (m/s²) that a ``sensor_msgs/Imu`` states for its linear acceleration (the square
+    root of the covariance's first diagonal entry), NaN when not stated (≤ 0)."""
+    _, _, pos, s = _header(data)
+    var = s[2].unpack_from(data, pos + _IMU_ACC_OFFSET + 24)[0]
+    return math.sqrt(var) if var > 0 else NAN
+
+
+def decode_mag_covariance(data) -> float:
+    """σ per axis (tesla) that a ``sensor_msgs/MagneticField`` states, NaN when not stated."""
+    _, _, pos, s = _header(data)
+    var = s[2].unpack_from(data, pos + 24)[0]
+    return math.sqrt(var) if var > 0 else NAN
+
+
 def decode_vector3(data):
     """``((sec, nanosec), (x, y, z))`` of a message whose first field after the header is a
     Vector3 (``sensor_msgs/MagneticField``, ``geometry_msgs/Vector3Stamped``)."""
@@ -109,27 +133,34 @@ def decode_temperature(data):
 
 
 # ---------------------------------------------------------------------------------------------
-# SurveyStation serialization (rosbags type store, our .msg registered)
+# Our messages' serialization (rosbags type store, our .msg registered)
 
-class StationEncoder:
-    """Serializes ``SurveyStation`` messages to CDR without rclpy (``rosbags`` type store)."""
+class MessageEncoder:
+    """Serializes ``SurveyStation`` and ``CalibrationCoefficients`` messages to CDR without rclpy
+    (``rosbags`` type store with our message definitions registered)."""
 
     def __init__(self, definitions: Optional[MessageDefinitions] = None):
+        require("rosbags.typesys", "bag", "writing our messages into a bag")
         from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
         defs = definitions or MessageDefinitions()
         self.store = get_typestore(Stores.ROS2_JAZZY)
-        self.store.register(get_types_from_msg(defs.text(STATION_TYPE), STATION_TYPE))
-        self._cls = self.store.types[STATION_TYPE]
+        for name in (STATION_TYPE, COEFFICIENTS_TYPE):
+            self.store.register(get_types_from_msg(defs.text(name), name))
         self._header = self.store.types["std_msgs/msg/Header"]
         self._time = self.store.types["builtin_interfaces/msg/Time"]
-        self.constants = self._cls
 
-    def encode(self, stamp_ns: int, frame_id: str, fields: dict) -> bytes:
+    def encode(self, type_name: str, stamp_ns: int, frame_id: str, fields: dict) -> bytes:
+        import numpy as np
+
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        msg = self._cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id),
-                        **fields)
-        return bytes(self.store.serialize_cdr(msg, STATION_TYPE))
+        cls = self.store.types[type_name]
+        # rosbags wants numpy arrays for numeric sequences
+        vals = {k: (np.asarray(v, dtype=np.uint8 if k == "poses_used" else float)
+                    if isinstance(v, list) and (not v or not isinstance(v[0], str)) else v)
+                for k, v in fields.items()}
+        msg = cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id), **vals)
+        return bytes(self.store.serialize_cdr(msg, type_name))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -163,6 +194,12 @@ class ReprocessReport:
     bag_errors: List[BagError] = field(default_factory=list)
     log_span_s: float = 0.0                                # log time covered by the input
     seconds: float = 0.0                                   # wall time of the run
+    events: List[str] = field(default_factory=list)        # the detector's messages (pieces, noise)
+    calibration_warnings: List[str] = field(default_factory=list)   # the capture session's (calibrate)
+    calibrations: List[object] = field(default_factory=list)        # each solve (calibrate), in order
+    calibration_state: str = ""                            # calibrate: done | error | collecting
+    calibration_message: str = ""
+    noise: object = None                                   # the noise.NoiseLevel the detector used
 
     def _issue(self, kind: str, where: str) -> None:
         self.issues.setdefault(kind, _Issue()).add(where)
@@ -174,6 +211,12 @@ class ReprocessReport:
         if self.short_intervals:
             out.append(f"{self.short_intervals} static interval(s) shorter than the minimum duration "
                        "not reported as stations (static window too short)")
+        out.extend(self.events)
+        out.extend(self.calibration_warnings)
+        moved = sum(1 for st in self.stations if st["moved_during_capture"])
+        if moved:
+            out.append(f"{moved} station(s) where the probe moved during the hold (status error, reasons in "
+                       "their warnings)")
         return out
 
 
@@ -184,58 +227,79 @@ def _where(topic: str, log_time: int) -> str:
 def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Tolerances = Tolerances(),
               detector: Optional[StaticDetector] = None, *, compression: str = "zstd",
               frame_id: str = "probe", copy_input: bool = True,
-              warn: Optional[Callable[[str], None]] = None) -> ReprocessReport:
+              warn: Optional[Callable[[str], None]] = None, calibrate: bool = False,
+              probe_id: str = "probe") -> ReprocessReport:
     """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten).
 
     ``calibration``: a :class:`coeffs.Calibration` or None (uncorrected figures).  ``detector``:
-    a configured :class:`streaming.StaticDetector` (default settings if None).  ``warn`` is
-    called with a message for each skipped topic as soon as it is seen.  Returns a
-    :class:`ReprocessReport`; damage to ``src`` is in ``report.bag_errors`` (not raised).
-    Raises :class:`FileExistsError` if ``dst`` exists, :class:`bag.BagError` if ``src`` is not a
-    bag at all, :class:`ReprocessError` if it holds no probe samples.
+    a configured :class:`streaming.StaticDetector` (default: thresholds from the noise the data
+    show).  ``calibrate``: run the live calibration node's twelve-pose session
+    (:class:`capture.CaptureSession`) on the bag's stations, as the live graph does: each solve
+    is written as ``/calibration/coefficients`` and applied to the stations that close after it
+    (a station is never corrected by coefficients solved from itself); ``calibration`` then
+    only corrects the stations before the first solve.  ``warn`` is called with a message for
+    each skipped topic as soon as it is seen.  Returns a :class:`ReprocessReport`; damage to
+    ``src`` is in ``report.bag_errors`` (not raised).  Raises :class:`FileExistsError` if
+    ``dst`` exists, :class:`bag.BagError` if ``src`` is not a bag at all, :class:`ReprocessError`
+    if it holds no probe samples.
     """
     t_wall = time.perf_counter()
+    for module in ("mcap.writer", "rosbags.typesys"):  # MissingDependency before any work
+        require(module, "bag", "reprocess")
     reader = open_bag(src)                      # BagError: not an MCAP / unreadable header
     report = ReprocessReport(Path(src), Path(dst))
     det = detector if detector is not None else StaticDetector()
     proc = SurveyProcessor(site, tolerances, calibration)
-    encoder = StationEncoder()
+    session = CaptureSession(site=site, probe_id=probe_id) if calibrate else None
+    encoder = MessageEncoder()
     az_ref = "true" if site.declination_deg else "magnetic"
-    calibrated = calibration is not None
-    lo_b, hi_b = FIELD_RANGE_NT
+    limits = Limits()
 
     writer = BagWriter(dst, compression=compression)   # FileExistsError before anything is read
     station_cid = writer.add_topic(TOPIC_STATION, STATION_TYPE,
                                    qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)])
+    coeff_cid = writer.add_topic(TOPIC_COEFFICIENTS, COEFFICIENTS_TYPE, qos_profiles=[dict(
+        DEFAULT_QOS_PROFILE, depth=1, durability="transient_local")]) if calibrate else None
     out_cid: Dict[str, Optional[int]] = {}     # input topic -> output channel, None = skipped
     pairer = StreamPairer()  # the same pairing as the live nodes
     temp = NAN
     have_temp = False
+    prior = {}
     ref_t: List[float] = []
     ref_v: List[tuple] = []
     first_log = last_log = None
     stations = report.stations
     copied = report.copied
     issue = report._issue
+    n_warned = 0
 
-    def emit(seg, log_time):
-        if seg.short:
+    def emit(st, log_time):
+        nonlocal n_warned
+        if st.short:
             report.short_intervals += 1
             return
         ref = None
         if ref_t:
-            k = bisect.bisect_right(ref_t, 0.5 * (seg.t_start + seg.t_end)) - 1
+            k = bisect.bisect_right(ref_t, 0.5 * (st.t_start + st.t_end)) - 1
             ref = ref_v[k] if k >= 0 else None
-        has_ref = ref is not None and all(math.isfinite(x) for x in ref)
-        rec = proc.process(seg, ref=ref if has_ref else None)
-        fields = station_fields(rec, ref, az_ref, have_temp, calibrated)
-        writer.write(station_cid, encoder.encode(int(round(seg.t_end * 1e9)), frame_id, fields), log_time)
+        rec = proc.process(st, ref=ref)
+        fields = station_fields(rec, ref, az_ref, have_temp, proc.calibration is not None)
+        writer.write(station_cid, encoder.encode(STATION_TYPE, int(round(st.t_end * 1e9)), frame_id, fields), log_time)
         stations.append(fields)
+        if session is not None:
+            n_before = session.solves
+            session.offer(st)
+            for w in session.warnings[n_warned:]:
+                report.calibration_warnings.append(w)
+            n_warned = len(session.warnings)
+            if session.solves != n_before and session.calibration is not None:
+                publish(session.calibration, st.t_end, log_time)
 
-    def sample(t, f, m, log_time):
-        seg = det.update(t, f, m, temp)
-        if seg is not None:
-            emit(seg, log_time)
+    def publish(cal, t_data, log_time):
+        proc.set_calibration(cal)
+        report.calibrations.append(cal)
+        writer.write(coeff_cid, encoder.encode(COEFFICIENTS_TYPE, int(round(t_data * 1e9)), frame_id,
+                                               message_fields(cal)), log_time)
 
     def register(m) -> Optional[int]:
         want = INPUT_TOPICS.get(m.topic)
@@ -243,6 +307,8 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
             why = f"{m.type or 'unknown type'}: not a probe input topic (reads {', '.join(INPUT_TOPICS)})"
             if m.topic == TOPIC_STATION:
                 why = f"{m.type}: stations of an earlier run, replaced by the reprocessed ones"
+            elif m.topic == TOPIC_COEFFICIENTS and calibrate:
+                why = f"{m.type}: coefficients of an earlier run, replaced by the reprocessed calibration"
         elif m.type != want:
             why = f"{m.type or 'unknown type'}: expected {want}"
         else:
@@ -279,9 +345,15 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                     n_unpaired, n_order = pairer.unpaired, pairer.out_of_order
                     if topic == TOPIC_IMU:
                         key, f = decode_imu(m.data)
+                        if "acc" not in prior:
+                            prior["acc"] = decode_imu_covariance(m.data)
+                            det.set_prior(noise_acc=prior["acc"])
                         got = pairer.add_imu(key, f)
                     else:
                         key, b = decode_vector3(m.data)
+                        if "mag" not in prior:
+                            prior["mag"] = decode_mag_covariance(m.data) * NT_PER_TESLA
+                            det.set_prior(noise_mag=prior["mag"])
                         got = pairer.add_mag(key, (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA))
                     if pairer.unpaired != n_unpaired:
                         issue("unpaired sample (no partner on the other stream with the same stamp)",
@@ -308,24 +380,34 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                 issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
                 continue
             # a complete imu/mag pair, in time order
-            b2 = mm[0] * mm[0] + mm[1] * mm[1] + mm[2] * mm[2]
-            if not (math.isfinite(b2) and math.isfinite(f[0] + f[1] + f[2])):
+            if not (math.isfinite(f[0] + f[1] + f[2]) and math.isfinite(mm[0] + mm[1] + mm[2])):
                 issue("non-finite (NaN/inf) sample, pair dropped", _where(topic, log_time))
                 continue
-            if not lo_b * lo_b <= b2 <= hi_b * hi_b:
-                bt = math.sqrt(b2) / NT_PER_TESLA
-                hint = (" — the field looks like nT written into a tesla field; MagneticField carries "
-                        "tesla (multiply nT by 1e-9)" if 1.0 < bt < 1e6 else "")
-                issue(f"implausible |B| (expected {lo_b:g}..{hi_b:g} nT), pair dropped{hint}",
-                      _where(topic, log_time) + f", |B| = {bt:.4g} T")
+            reason = check_sample(f, mm, NAN, limits)   # the CSV reader's and the nodes' plausibility
+            if reason is not None:
+                bt = math.sqrt(mm[0] * mm[0] + mm[1] * mm[1] + mm[2] * mm[2]) / NT_PER_TESLA
+                if 1.0 < bt < 1e6:
+                    reason += (" — the field looks like nT written into a tesla field; MagneticField carries "
+                               "tesla (multiply nT by 1e-9)")
+                issue(f"implausible sample ({reason.split(' (')[0]}), pair dropped",
+                      _where(topic, log_time) + f": {reason}")
                 continue
             report.pairs += 1
-            sample(t, f, mm, log_time)
-        seg = det.flush()
-        if seg is not None:
-            emit(seg, last_log or 0)
+            for st in det.update(t, f, mm, temp):
+                emit(st, log_time)
+        for st in det.flush():
+            emit(st, last_log or 0)
+        if session is not None:
+            n_before = session.solves
+            session.finish()
+            report.calibration_warnings.extend(session.warnings[n_warned:])
+            if session.solves != n_before and session.calibration is not None:
+                publish(session.calibration, pairer.last_t, last_log or 0)   # stamped at the data's end
+            report.calibration_state, report.calibration_message = session.state, session.message
     finally:
         writer.close()
+    report.events = det.pop_events()
+    report.noise = det.noise_level
     report.bag_errors = list(reader.errors)
     report.log_span_s = (last_log - first_log) / 1e9 if first_log is not None else 0.0
     report.seconds = time.perf_counter() - t_wall
@@ -346,9 +428,13 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
     ``reference``, ``/probe/reference`` at every change of the log's ``ref`` (NaN = none).
 
     Serialized with the ``rosbags`` type store (no ROS needed).  Accelerometer as REP-145 specific
-    force (m/s², as in the log), magnetometer converted nT → tesla.  Returns messages per topic.
+    force (m/s², as in the log), magnetometer converted nT → tesla; the covariances state the noise
+    the log shows (:func:`noise.estimate_noise`), as the probe node does.  Returns messages per topic.
     """
     import numpy as np
+
+    for module in ("mcap.writer", "rosbags.typesys"):  # MissingDependency before any work
+        require(module, "bag", "writing a probe log as a bag")
     from rosbags.typesys import Stores, get_typestore
 
     st = get_typestore(Stores.ROS2_JAZZY)
@@ -357,7 +443,16 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
     Vec, Quat = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
     Imu, Mag, Temp, V3S = (T[IMU_TYPE], T[MAG_TYPE], T[TEMPERATURE_TYPE], T[REFERENCE_TYPE])
     ser = st.serialize_cdr
-    z9 = np.zeros(9)
+    from .noise import estimate_noise
+
+    # the covariance the probe node publishes for a log: the noise the data show, per axis
+    lvl = estimate_noise(log.t_s, log.acc, log.mag)
+    cov_acc, cov_mag = np.zeros(9), np.zeros(9)
+    for k in range(3):
+        if np.isfinite(lvl.acc[k]):
+            cov_acc[4 * k] = lvl.acc[k] ** 2
+        if np.isfinite(lvl.mag[k]):
+            cov_mag[4 * k] = (lvl.mag[k] / NT_PER_TESLA) ** 2
     unknown_cov = np.zeros(9)
     unknown_cov[0] = -1.0          # REP-145: orientation not provided
     q0 = Quat(x=0.0, y=0.0, z=0.0, w=1.0)
@@ -386,10 +481,10 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
             w.write(c_imu, bytes(ser(Imu(header=hdr, orientation=q0, orientation_covariance=unknown_cov,
                                          angular_velocity=v0, angular_velocity_covariance=unknown_cov,
                                          linear_acceleration=Vec(x=float(f[0]), y=float(f[1]), z=float(f[2])),
-                                         linear_acceleration_covariance=z9), IMU_TYPE)), lt)
+                                         linear_acceleration_covariance=cov_acc), IMU_TYPE)), lt)
             b = mag_t[i]
             w.write(c_mag, bytes(ser(Mag(header=hdr, magnetic_field=Vec(x=float(b[0]), y=float(b[1]), z=float(b[2])),
-                                         magnetic_field_covariance=z9), MAG_TYPE)), lt)
+                                         magnetic_field_covariance=cov_mag), MAG_TYPE)), lt)
             w.write(c_tmp, bytes(ser(Temp(header=hdr, temperature=float(log.temp_c[i]), variance=0.0),
                                      TEMPERATURE_TYPE)), lt)
         return w.message_counts()

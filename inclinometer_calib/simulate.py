@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
-from .frames import Site, orientation_matrix, specific_force_from_gravity
+from .frames import Site, attitude_angles, orientation_matrix, specific_force_from_gravity
 from .probelog import ProbeLog
 from .twelve_position import POSES, pose_matrix
 
@@ -118,13 +118,17 @@ class Stationary:
     temp_c: float = 25.0
 
 
-def twelve_pose_session(rounds_temp_c=(25.0,), duration_s: float = 2.0, azimuth_deg: float = 0.0):
+def twelve_pose_session(rounds_temp_c=(25.0,), duration_s: float = 2.0, azimuth_deg: float = 0.0,
+                        refs: bool = False):
     """The twelve poses of Table 1, once per round, at each round's temperature.
 
     ``azimuth_deg`` rotates the whole stand about the vertical (its "north" need not be north).
+    ``refs``: also give each pose's set (drift, azimuth, toolface), as a stand's log does — the
+    vertical poses 9–12 without azimuth (:func:`frames.attitude_angles`).
     """
     rz = orientation_matrix(0.0, azimuth_deg, 0.0)
-    return [Stationary(rz @ pose_matrix(p), duration_s, pose=p, temp_c=t)
+    return [Stationary(rz @ pose_matrix(p), duration_s, pose=p, temp_c=t,
+                       ref=attitude_angles(rz @ pose_matrix(p)) if refs else (np.nan, np.nan, np.nan))
             for t in rounds_temp_c for p in POSES]
 
 

@@ -1,6 +1,8 @@
 """Streaming (sample-by-sample) processing for live nodes — ROS-free.
 
-* :class:`StaticDetector` finds static intervals in a live stream and closes them as stations.
+* :class:`StaticDetector` finds static intervals in a live stream and closes them as stations
+  (:class:`station.Station`), with thresholds taken from the noise the data show (:mod:`noise`);
+* :class:`StreamPairer` pairs the Imu and MagneticField samples of one stamp;
 * :class:`SurveyProcessor` corrects each closed station with the current calibration and evaluates
   it against the site reference (QC), producing plain records that a node converts to messages.
 
@@ -14,110 +16,204 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .frames import Site
 from .axial import evaluate_with_axial
+from .frames import Site
+from .gates import apply_gates
+from .noise import AXES6, UNITS6, NoiseEstimator
+from .station import Station
 from .survey import Tolerances, evaluate
 
 
-@dataclass
-class StaticSegment:
-    """A closed static interval: means in the gravity-vector convention (m/s²) and nT."""
-
-    t_start: float
-    t_end: float
-    n: int
-    g: np.ndarray
-    b: np.ndarray
-    g_std: np.ndarray
-    b_std: np.ndarray
-    temp_c: float
-    short: bool = False
-
-    @property
-    def duration_s(self) -> float:
-        return self.t_end - self.t_start
+_NO_STATIONS = ()
+#: Time comparisons allow this much (s): a log's times written as text ("0.25") and the same
+#: times stamped in a bag (sec + nanosec, far from zero) differ in their last bits, and durations
+#: nominally equal to a limit must fall on the same side of it in both.
+TIME_EPS = 1e-6
 
 
-@dataclass
 class StaticDetector:
-    """Detects static intervals from sample-to-mean deviations.
+    """Finds static intervals in a stream of samples and closes them as :class:`station.Station`.
 
-    A sample belongs to the current static candidate when every accelerometer axis is within
-    ``k_sigma·noise_acc`` and every magnetometer axis within ``k_sigma·noise_mag`` of the
-    candidate's running mean (plus ``acc_floor``/``mag_floor`` for sensors quieter than stated).
-    A sample outside closes the candidate; it is reported if it lasted ``min_duration_s``,
-    otherwise counted in ``too_short``.  The first ``settle_s`` of a candidate are discarded
-    (vibration after a move).  ``max_duration_s`` closes long stations so they are reported live.
+    A sample belongs to the current static candidate when every axis is within ``k_sigma``
+    times that axis' noise σ of the candidate's running mean (never less than ``acc_floor`` /
+    ``mag_floor``: motion smaller than that is not motion).  ``break_samples`` consecutive
+    samples outside end the candidate at the last sample inside it; fewer are isolated spikes,
+    left out of the means and counted (``Station.outliers``).  The first ``settle_s`` after a
+    break are discarded (ringing after a move).  A candidate is reported when it lasted
+    ``min_duration_s``; shorter ones are reported as ``short`` from ``short_report_s`` on (for
+    diagnostics) and counted in ``too_short``.  ``max_duration_s`` closes long holds so that they
+    are reported live (the next station continues the hold).
+
+    **The noise comes from the data** (:class:`noise.NoiseEstimator`: robust block statistics
+    over the stream), so a probe noisier or quieter than any default is handled alike.  Until the
+    estimator has seen enough blocks (a few seconds) the samples are buffered, then replayed
+    with the measured thresholds: the first stations come out a few seconds late, never cut
+    with a guessed noise.  ``noise_acc`` / ``noise_mag`` > 0 override the data (per-sample σ,
+    m/s² and nT); a noise stated by the messages (covariance) is a prior: :meth:`set_prior`.
+
+    Inputs follow the boundary convention: ``f`` REP-145 specific force (m/s²), negated here
+    once to the gravity vector of the stations; ``m`` the field in nT.
+
+    :meth:`update` returns a tuple of the stations closed by that sample (usually empty; several
+    when the warm-up buffer is replayed).  Messages for the user (a hold cut into pieces and why,
+    the stated noise contradicted by the data) accumulate in :attr:`events`; take them with
+    :meth:`pop_events`.
     """
 
-    noise_acc: float = 0.002
-    noise_mag: float = 20.0
-    k_sigma: float = 6.0
-    acc_floor: float = 0.003
-    mag_floor: float = 30.0
-    min_duration_s: float = 1.0
-    settle_s: float = 0.2
-    max_duration_s: float = 30.0
-    short_report_s: float = 0.3
+    def __init__(self, k_sigma: float = 6.0, noise_acc: float = 0.0, noise_mag: float = 0.0,
+                 acc_floor: float = 0.003, mag_floor: float = 30.0, min_duration_s: float = 0.5,
+                 settle_s: float = 0.2, max_duration_s: float = 30.0, break_samples: int = 3,
+                 short_report_s: float = 0.3, warmup_max_s: float = 10.0, noise_block_s: float = 0.25):
+        if not (k_sigma > 0 and min_duration_s > 0 and settle_s >= 0 and max_duration_s > 0
+                and break_samples >= 1 and acc_floor >= 0 and mag_floor >= 0):
+            raise ValueError("StaticDetector: k_sigma, min_duration_s, max_duration_s must be > 0, settle_s, "
+                             "floors >= 0, break_samples >= 1")
+        self.k_sigma = float(k_sigma)
+        self.acc_floor = float(acc_floor)
+        self.mag_floor = float(mag_floor)
+        self.min_duration_s = float(min_duration_s)
+        self.settle_s = float(settle_s)
+        self.max_duration_s = float(max_duration_s)
+        self.break_samples = int(break_samples)
+        self.short_report_s = float(short_report_s)
+        self.warmup_max_s = float(warmup_max_s)
+        self.noise = NoiseEstimator(block_s=noise_block_s, override_acc=noise_acc, override_mag=noise_mag)
+        self.too_short = 0
+        self.events: list = []
+        self._warming = not (noise_acc > 0 and noise_mag > 0)
+        self._buf: list = []
+        self._settle_until = -math.inf
+        self._tol = [math.inf] * 6
+        self._sigma = (math.nan,) * 6
+        self._prev = None            # the last station closed by motion: is the next one its continuation?
+        self._last_break = None      # (axis, deviation in σ) of the last break
+        self._reported_prior = False
+        self._refresh()
+        self.reset()
 
-    _n: int = 0
-    _t0: float = 0.0
-    _t_last: float = 0.0
-    _sum_t: float = 0.0
-    _n_t: int = 0
-    _settle_until: float = -math.inf
-    too_short: int = 0
-
-    def __post_init__(self):
-        self._tol_f = max(self.k_sigma * self.noise_acc, self.acc_floor)
-        self._tol_m = max(self.k_sigma * self.noise_mag, self.mag_floor)
-        # Per-axis accumulators as plain floats (this is the per-sample path of the live nodes:
-        # no numpy per sample).  Sums are of deviations from the candidate's first sample, which
-        # keeps the variance free of cancellation for fields of 50 000 nT.
+    # ---- state -----------------------------------------------------------------------------
+    def reset(self):
+        """Forget the current candidate (the noise estimate is kept)."""
+        self._n = 0
+        self._out = 0
+        self._outliers = 0
+        self._t0 = self._t_last = 0.0
         self._x0 = [0.0] * 6
         self._s1 = [0.0] * 6
         self._s2 = [0.0] * 6
-
-    def reset(self):
-        self._n = 0
-        self._s1 = [0.0] * 6
-        self._s2 = [0.0] * 6
+        self._st = [0.0] * 6
+        self._tt = self._tt2 = 0.0
         self._sum_t = 0.0
         self._n_t = 0
 
+    def set_prior(self, noise_acc: float | None = None, noise_mag: float | None = None) -> None:
+        """The per-sample σ stated by the messages (covariance): used until the data give one."""
+        self.noise.set_prior(noise_acc, noise_mag)
+
+    def _refresh(self):
+        lvl = self.noise.level
+        sig = lvl.sigma6
+        self._sigma = sig
+        k, fa, fm = self.k_sigma, self.acc_floor, self.mag_floor
+        self._tol = [max(k * v, fa if j < 3 else fm) if math.isfinite(v) else math.inf for j, v in enumerate(sig)]
+        if not self._reported_prior and self.noise.ready:
+            msgs = self.noise.check_prior()
+            if msgs:
+                self._reported_prior = True
+                self.events.extend(msgs)
+
+    @property
+    def noise_level(self):
+        """The :class:`noise.NoiseLevel` in use."""
+        return self.noise.level
+
+    @property
+    def warming_up(self) -> bool:
+        return self._warming
+
     @property
     def is_static(self) -> bool:
-        return self._n > 0 and (self._t_last - self._t0) >= self.min_duration_s
+        return self._n > 0 and (self._t_last - self._t0) >= self.min_duration_s - TIME_EPS
 
     @property
     def static_for_s(self) -> float:
         return (self._t_last - self._t0) if self._n else 0.0
 
-    def update(self, t: float, f, m, temp_c: float = float("nan")):
-        """Feed one sample (specific force m/s², field nT).  Returns a closed segment or None."""
-        fx, fy, fz = float(f[0]), float(f[1]), float(f[2])
-        mx, my, mz = float(m[0]), float(m[1]), float(m[2])
+    def pop_events(self) -> list:
+        out, self.events = self.events, []
+        return out
+
+    # ---- samples ---------------------------------------------------------------------------
+    def update(self, t: float, f, m, temp_c: float = math.nan):
+        """Feed one sample (specific force m/s², field nT, temperature °C or NaN).
+
+        Returns the stations closed by it (a tuple, usually empty)."""
+        x = (-float(f[0]), -float(f[1]), -float(f[2]), float(m[0]), float(m[1]), float(m[2]))
         t = float(t)
-        if not math.isfinite(fx + fy + fz + mx + my + mz + t):
-            return self._close(t, restart=None)  # a bad sample breaks the station
-        if t < self._settle_until:
-            return None
-        x = (fx, fy, fz, mx, my, mz)
+        if not math.isfinite(x[0] + x[1] + x[2] + x[3] + x[4] + x[5] + t):
+            self.noise.gap()
+            if self._warming:
+                self._buf.append((t, None, temp_c))
+                return _NO_STATIONS
+            return self._close("gap")
+        if self.noise.add(t, x):
+            self._refresh()
+        if self._warming:
+            buf = self._buf
+            buf.append((t, x, temp_c))
+            if self.noise.ready or (t - buf[0][0] >= self.warmup_max_s - TIME_EPS and self._can_estimate()):
+                return self._end_warmup()
+            return _NO_STATIONS
+        return self._step(t, x, temp_c)
+
+    def _can_estimate(self) -> bool:
+        lvl = self.noise.level
+        return all(math.isfinite(v) for v in lvl.sigma6)
+
+    def _end_warmup(self):
+        self._warming = False
+        lvl = self.noise.level
+        if not all(math.isfinite(v) for v in lvl.sigma6):
+            # too few blocks for the full estimate: take what the blocks there are say
+            self.noise.force()
+            self._refresh()
+            lvl = self.noise.level
+        out = []
+        for t, x, temp in self._buf:
+            out.extend(self._close("gap") if x is None else self._step(t, x, temp))
+        self._buf = []
+        return tuple(out)
+
+    def _step(self, t, x, temp_c):
+        if t < self._settle_until - TIME_EPS:
+            return _NO_STATIONS
         n = self._n
         if n:
-            x0, s1 = self._x0, self._s1
-            tf, tm = self._tol_f, self._tol_m
-            # deviation of the sample from the candidate's running mean, axis by axis
-            if (abs(fx - x0[0] - s1[0] / n) > tf or abs(fy - x0[1] - s1[1] / n) > tf
-                    or abs(fz - x0[2] - s1[2] / n) > tf or abs(mx - x0[3] - s1[3] / n) > tm
-                    or abs(my - x0[4] - s1[4] / n) > tm or abs(mz - x0[5] - s1[5] / n) > tm):
-                out = self._close(t, restart=None)
+            x0, s1, tol = self._x0, self._s1, self._tol
+            for k in range(6):
+                dev = x[k] - x0[k] - s1[k] / n
+                if dev > tol[k] or -dev > tol[k]:
+                    break
+            else:
+                k = -1
+            if k >= 0:                       # outside: a spike, or the start of a move
+                self._out += 1
+                if self._out < self.break_samples:
+                    self._outliers += 1
+                    return _NO_STATIONS
+                self._outliers -= self.break_samples - 1   # the pending ones were the move, not spikes
+                sig = self._sigma[k]
+                self._last_break = (k, abs(x[k] - x0[k] - s1[k] / n) / sig if sig > 0 else math.inf)
+                out = self._close("motion")
                 self._settle_until = t + self.settle_s
                 return out
-            if t - self._t0 >= self.max_duration_s:
-                return self._close(t, restart=(t, x, temp_c))
+            self._out = 0
+            if t - self._t0 >= self.max_duration_s - TIME_EPS:
+                out = self._close("max_duration")
+                self._add(t, x, temp_c)
+                return out
         self._add(t, x, temp_c)
-        return None
+        return _NO_STATIONS
 
     def _add(self, t, x, temp_c):
         if self._n == 0:
@@ -125,37 +221,95 @@ class StaticDetector:
             self._x0 = list(x)
         self._n += 1
         self._t_last = t
-        x0, s1, s2 = self._x0, self._s1, self._s2
+        tau = t - self._t0
+        self._tt += tau
+        self._tt2 += tau * tau
+        x0, s1, s2, st = self._x0, self._s1, self._s2, self._st
         for k in range(6):
             d = x[k] - x0[k]
             s1[k] += d
             s2[k] += d * d
-        if math.isfinite(temp_c):  # the mean is over the samples that had a temperature
+            st[k] += tau * d
+        if temp_c == temp_c:  # the mean is over the samples that had a temperature (NaN: unknown)
             self._sum_t += temp_c
             self._n_t += 1
 
-    def _close(self, t, restart):
-        seg = None
+    def _close(self, reason):
+        st = None
+        n = self._n
         dur = self._t_last - self._t0
-        if self._n >= 2 and dur >= min(self.short_report_s, self.min_duration_s):
-            n = self._n
-            s1 = np.array(self._s1)
-            mean_d = s1 / n
-            var = np.maximum(np.array(self._s2) / n - mean_d * mean_d, 0.0) * n / (n - 1)
-            mean = np.array(self._x0) + mean_d
-            std = np.sqrt(var)
-            short = dur < self.min_duration_s
-            self.too_short += short
-            seg = StaticSegment(self._t0, self._t_last, n, -mean[:3], mean[3:], std[:3], std[3:],
-                                self._sum_t / self._n_t if self._n_t else float("nan"), short=short)
+        if n >= 2 and dur >= min(self.short_report_s, self.min_duration_s) - TIME_EPS:
+            st = self._station(reason)
+            if st.short:
+                self.too_short += 1
         self.reset()
-        if restart is not None:
-            self._add(*restart)
-        return seg
+        if st is None:
+            return _NO_STATIONS
+        self._pieces(st)
+        return (st,)
+
+    def _station(self, reason):
+        n = self._n
+        s1 = np.array(self._s1)
+        mean_d = s1 / n
+        var = np.maximum(np.array(self._s2) / n - mean_d * mean_d, 0.0) * n / (n - 1)
+        mean = np.array(self._x0) + mean_d
+        # least-squares slope per axis: cov(t, x) / var(t)
+        tbar = self._tt / n
+        stt = self._tt2 - n * tbar * tbar
+        rate = (np.array(self._st) - tbar * s1) / stt if stt > 0 else np.zeros(6)
+        std = np.sqrt(var)
+        sig = np.array(self.noise.measured)   # the gates judge against the data's noise, not an override
+        return Station(t_start=self._t0, t_end=self._t_last, n=n, g=mean[:3], b=mean[3:], g_std=std[:3],
+                       b_std=std[3:], temp_c=self._sum_t / self._n_t if self._n_t else math.nan,
+                       g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)),
+                       g_noise=sig[:3], b_noise=sig[3:], outliers=self._outliers,
+                       short=(self._t_last - self._t0) < self.min_duration_s - TIME_EPS, ended_by=reason)
+
+    def _pieces(self, st):
+        """Say so when a hold was cut into pieces, with the likely reason and the setting that fixes
+        it.  Pieces of one hold: the previous station ended by motion, this one starts right after
+        (nothing but the settling time between them) and the probe points the same way (< 1°)."""
+        prev, self._prev = self._prev, (st if st.ended_by == "motion" else None)
+        if prev is None or self._last_break is None:
+            return
+        gap = st.t_start - prev.t_end
+        if gap > self.settle_s + 0.25 or _angle_deg(prev.g, st.g) > 1.0 or _angle_deg(prev.b, st.b) > 1.0:
+            return
+        k, dev = self._last_break
+        sig = self._sigma[k]
+        unit = UNITS6[k]
+        ang = max(_angle_deg(prev.g, st.g), _angle_deg(prev.b, st.b))
+        # how far apart the two pieces' means are, against what the noise of two means allows
+        sep = max(abs(float(st.g[j] - prev.g[j])) / (self._sigma[j] * math.sqrt(1 / st.n + 1 / prev.n))
+                  for j in range(3)) if all(self._sigma[j] > 0 for j in range(3)) else math.inf
+        where = f"hold at t={prev.t_start:.2f}-{st.t_end:.2f} s cut at t={prev.t_end:.2f} s"
+        if sep < 5.0:
+            self.events.append(
+                f"{where} by a {dev:.1f}σ excursion on {AXES6[k]} (σ = {sig:.3g} {unit}), but both pieces point the "
+                f"same way: the noise has outliers beyond {self.k_sigma:g}σ (not white, or spikes longer than "
+                f"{self.break_samples} samples) — raise detector.k_sigma (e.g. {math.ceil(1.3 * max(dev, self.k_sigma)):g}) "
+                f"or detector.break_samples")
+        else:
+            self.events.append(
+                f"{where}: the probe moved slowly during the hold ({ang:.2f}° between the pieces, the break was "
+                f"a {dev:.1f}σ step on {AXES6[k]}) — the stand or probe creeps; re-seat the probe (each piece is "
+                "checked for in-hold motion)")
 
     def flush(self):
-        """Close the current candidate (end of stream)."""
-        return self._close(self._t_last, restart=None)
+        """Close the current candidate (end of the stream).  Returns the stations closed."""
+        out = []
+        if self._warming:
+            out.extend(self._end_warmup())
+        out.extend(self._close("end"))
+        return tuple(out)
+
+
+def _angle_deg(u, v) -> float:
+    nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+    if not (nu > 0 and nv > 0):
+        return math.nan
+    return math.degrees(math.acos(max(-1.0, min(1.0, float(np.dot(u, v)) / (nu * nv)))))
 
 
 class StreamPairer:
@@ -211,13 +365,13 @@ class StationRecord:
     """A corrected, quality-checked survey station (plain data for a SurveyStation message)."""
 
     station_id: int
-    segment: StaticSegment
+    station: Station
     values: dict
     coefficients_id: str
 
 
 class SurveyProcessor:
-    """Corrects closed static segments with the current calibration and checks them against the site.
+    """Corrects closed stations with the current calibration and checks them against the site.
 
     ``axial=True``: azimuths from the short-collar correction of axial drill-string interference
     (:func:`axial.evaluate_with_axial`); QC stays on the measured field.
@@ -239,14 +393,20 @@ class SurveyProcessor:
             return np.asarray(g, float), np.asarray(b, float)
         return self.calibration.correct(g, b)
 
-    def process(self, seg: StaticSegment, ref=None) -> StationRecord:
-        g, b = self.correct_vectors(seg.g, seg.b)
+    def process(self, st: Station, ref=None) -> StationRecord:
+        """Gate (:func:`gates.apply_gates`: in-hold motion, flat axes), correct and evaluate one
+        station; a station in which the probe moved is still evaluated, and flagged.  ``ref``:
+        the reference attitude (drift, azimuth, toolface deg; NaN where not given), or None."""
+        apply_gates(st)
+        if ref is not None and not any(math.isfinite(x) for x in ref):
+            ref = None
+        g, b = self.correct_vectors(st.g, st.b)
         if self.axial:
             res = evaluate_with_axial(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
         else:
             res = evaluate(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
         values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
-        rec = StationRecord(self._next_id, seg, values,
+        rec = StationRecord(self._next_id, st, values,
                             self.calibration.id if self.calibration is not None else "none")
         self._next_id += 1
         return rec
@@ -267,8 +427,8 @@ def station_fields(rec: StationRecord, ref, azimuth_reference: str, have_tempera
     Plain Python values, shared by the correction node (rclpy message) and offline reprocessing
     (rosbags type store), so both publish the same thing.  Undefined values are NaN, never 0.
     """
-    v, seg = rec.values, rec.segment
-    has_ref = ref is not None and all(math.isfinite(x) for x in ref)
+    v, seg = rec.values, rec.station
+    ref = (NAN, NAN, NAN) if ref is None else tuple(float(x) for x in ref)  # NaN: not given (partial is fine)
     axial = "azimuth_method" in v
     return dict(
         station_id=int(rec.station_id),
@@ -290,41 +450,18 @@ def station_fields(rec: StationRecord, ref, azimuth_reference: str, have_tempera
         delta_g_mps2=float(v["delta_g"]),
         delta_b_nt=float(v["delta_b"]),
         delta_dip_deg=_finite_or_nan(v["delta_dip"]),
-        status=int(v["status"]),
+        status=2 if seg.moved else int(v["status"]),
         is_static=not seg.short,
         interference_suspected=bool(v["interference_suspected"]),
         azimuth_undefined=bool(v["azimuth_undefined"]),
         gravity_out_of_tolerance=bool(v["gravity_out_of_tolerance"]),
+        moved_during_capture=bool(seg.moved),
+        warnings=[str(w) for w in seg.warnings],
         samples_averaged=int(seg.n),
         duration_s=float(seg.duration_s),
         temperature_c=float(seg.temp_c) if have_temperature else NAN,
         coefficients_id=rec.coefficients_id if calibrated else "",
-        reference_drift_deg=float(ref[0]) if has_ref else NAN,
-        reference_azimuth_deg=float(ref[1]) if has_ref else NAN,
-        reference_toolface_deg=float(ref[2]) if has_ref else NAN,
+        reference_drift_deg=ref[0],
+        reference_azimuth_deg=ref[1],
+        reference_toolface_deg=ref[2],
     )
-
-
-def detect_stations(log, detector: StaticDetector | None = None) -> list:
-    """Static stations of a whole log found by the detector, ignoring any labels ('free' stations).
-
-    For logs recorded without a stand (the probe turned by hand through many attitudes): each
-    closed, long-enough static interval becomes a :class:`probelog.Station` with no pose and no
-    reference; only the site invariants constrain it.
-    """
-    from .probelog import Station
-
-    det = detector or StaticDetector()
-    segs = []
-    for i in range(len(log)):
-        seg = det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i])
-        if seg is not None and not seg.short:
-            segs.append(seg)
-    seg = det.flush()
-    if seg is not None and not seg.short:
-        segs.append(seg)
-    first_rows = np.searchsorted(log.t_s, [s.t_start for s in segs]) + 1
-    nan3 = np.full(3, np.nan)
-    return [Station(index=k, pose=0, ref=nan3.copy(), g=s.g, b=s.b, temp_c=s.temp_c, t_start=s.t_start,
-                    t_end=s.t_end, n=s.n, g_std=s.g_std, b_std=s.b_std, first_row=int(r))
-            for k, (s, r) in enumerate(zip(segs, first_rows))]

@@ -21,10 +21,11 @@ from .frames import Site, wrap180, wrap360
 
 @dataclass(frozen=True)
 class Tolerances:
-    """QC tolerances: |ΔB| nT, |Δdip| deg, |ΔG| m/s²; azimuth undefined below ``min_drift_deg``.
+    """QC tolerances: |ΔB| nT, |Δdip| deg, |ΔG| m/s²; the azimuth is undefined within
+    ``min_drift_deg`` of the vertical (drift below it, or above 180° minus it — the vertical cone).
 
-    ``gravity_toolface_min_drift_deg``: above this drift the reported toolface is the gravity
-    toolface, below it the magnetic toolface (the usual switch-over, ~3–5°).
+    ``gravity_toolface_min_drift_deg``: outside this cone about the vertical the reported toolface
+    is the gravity toolface, inside it the magnetic toolface (the usual switch-over, ~3–5°).
     """
 
     field_nt: float = 300.0
@@ -34,22 +35,36 @@ class Tolerances:
     gravity_toolface_min_drift_deg: float = 3.0
 
 
+def in_vertical_cone(drift_deg, cone_deg):
+    """True where a drift (deg) lies within ``cone_deg`` of the vertical, down (0°) or up (180°)."""
+    d = np.asarray(drift_deg, dtype=float)
+    return (d < cone_deg) | (d > 180.0 - cone_deg)
+
+
 def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict:
     """Angles, QC and (if ``ref`` (N, 3) deg is given) errors for corrected vectors ``g``, ``b``.
 
     Returns a dict of (N,) arrays.  Flags are booleans; ``status`` is 0 ok, 1 warn, 2 error.
+
+    A reference is used for what it defines (NaN: not given).  Within the vertical cone
+    (``tol.min_drift_deg`` of 0° or 180°) the azimuth is undefined, and the toolface error is
+    the error of the tool's rotation about the vertical: the measured magnetic toolface against
+    the one the reference attitude implies in the site's field (a vertical stand pose gives drift
+    and toolface without azimuth: its orientation about the vertical is the toolface, as for
+    azimuth 0).  Elsewhere the toolface error is the gravity toolface's.
     """
     g = np.atleast_2d(np.asarray(g, dtype=float))
     b = np.atleast_2d(np.asarray(b, dtype=float))
     out = frames.angles_from_vectors(g, b)
     out["azimuth_deg"] = wrap360(out["azimuth_deg"] + site.declination_deg)
-    gtf_ok = out["drift_deg"] >= tol.gravity_toolface_min_drift_deg
+    d, thr = out["drift_deg"], tol.gravity_toolface_min_drift_deg
+    gtf_ok = (d >= thr) & (d <= 180.0 - thr)   # outside the cone (NaN drift: magnetic, as the batch kernel)
     out["toolface_deg"] = np.where(gtf_ok, out["gravity_toolface_deg"], out["magnetic_toolface_deg"])
     out["toolface_is_gravity"] = gtf_ok
     out["delta_g"] = out["total_gravity"] - site.gravity_mps2
     out["delta_b"] = out["total_field"] - site.total_field_nt
     out["delta_dip"] = out["dip_deg"] - site.dip_deg
-    out["azimuth_undefined"] = out["drift_deg"] < tol.min_drift_deg
+    out["azimuth_undefined"] = in_vertical_cone(out["drift_deg"], tol.min_drift_deg)
     out["interference_suspected"] = (np.abs(out["delta_b"]) > tol.field_nt) | (np.abs(out["delta_dip"]) > tol.dip_deg)
     out["gravity_out_of_tolerance"] = np.abs(out["delta_g"]) > tol.gravity_mps2
     warn = out["azimuth_undefined"] | out["interference_suspected"]
@@ -57,11 +72,30 @@ def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict
     out["status"] = np.where(err, 2, np.where(warn, 1, 0))
     if ref is not None:
         ref = np.atleast_2d(np.asarray(ref, dtype=float))
-        out["drift_err"] = out["drift_deg"] - ref[:, 0]
-        az_err = wrap180(out["azimuth_deg"] - ref[:, 1])
-        out["azimuth_err"] = np.where(out["azimuth_undefined"], np.nan, az_err)
-        out["toolface_err"] = wrap180(out["gravity_toolface_deg"] - ref[:, 2])
+        out.update(reference_errors(out, ref, site, tol))
     return out
+
+
+def reference_errors(res: dict, ref, site: Site, tol: Tolerances = Tolerances()) -> dict:
+    """``drift_err``, ``azimuth_err``, ``toolface_err`` (deg) of evaluated stations ``res`` against
+    reference attitudes ``ref`` (N, 3): drift, azimuth, toolface in degrees, NaN where not given
+    (see :func:`evaluate`)."""
+    ref = np.atleast_2d(np.asarray(ref, dtype=float))
+    rd, ra, rt = ref[:, 0], ref[:, 1], ref[:, 2]
+    with np.errstate(invalid="ignore"):
+        vertical = in_vertical_cone(rd, tol.min_drift_deg)
+        az_err = wrap180(res["azimuth_deg"] - ra)
+        azimuth_err = np.where(res["azimuth_undefined"] | vertical | ~np.isfinite(ra), np.nan, az_err)
+        tf_err = wrap180(res["gravity_toolface_deg"] - rt)
+        # vertical reference: the rotation about the vertical, from the field (magnetic toolface)
+        if np.any(vertical & np.isfinite(rt)):
+            r = frames.orientation_matrix(np.where(np.isfinite(rd), rd, 0.0), np.where(np.isfinite(ra), ra, 0.0),
+                                          np.where(np.isfinite(rt), rt, 0.0))
+            b_ref = np.swapaxes(r, -1, -2) @ site.field_ned()
+            mtf_ref = frames.magnetic_toolface_deg(b_ref)
+            tf_err = np.where(vertical, wrap180(res["magnetic_toolface_deg"] - mtf_ref), tf_err)
+        toolface_err = np.where(np.isfinite(rt), tf_err, np.nan)
+    return {"drift_err": res["drift_deg"] - rd, "azimuth_err": azimuth_err, "toolface_err": toolface_err}
 
 
 def summarize(result: dict) -> dict:
@@ -295,7 +329,9 @@ def _correct_block(f, m, s, e, out, calibration, ba, neg_ca, bm, cm, a3, gt, bt,
     np.arcsin(t3, out=dip)
     rad2deg(dip, out=dip)
     # toolface: gravity atan2(gy, -gx) where drift >= threshold, else magnetic atan2(-by, bx)
-    np.greater_equal(drift, thr_tf, out=is_g)
+    np.greater_equal(drift, thr_tf, out=is_g)               # outside the vertical cone (in_vertical_cone)
+    np.less_equal(drift, 180.0 - thr_tf, out=m2)
+    np.logical_and(is_g, m2, out=is_g)
     np.negative(gx, out=t1)
     np.arctan2(gy, t1, out=tf)
     rad2deg(tf, out=tf)
@@ -307,7 +343,9 @@ def _correct_block(f, m, s, e, out, calibration, ba, neg_ca, bm, cm, a3, gt, bt,
     # QC flags (survey.evaluate); booleans viewed as 0/1 bytes and shifted into their bits
     fl, st = out["flags"][s:e], out["status"][s:e]
     tmp = u8[0, :k]
-    np.less(drift, tol.min_drift_deg, out=m1)                 # azimuth undefined
+    np.less(drift, tol.min_drift_deg, out=m1)                 # azimuth undefined: vertical cone
+    np.greater(drift, 180.0 - tol.min_drift_deg, out=m2)
+    np.logical_or(m1, m2, out=m1)
     np.copyto(fl, m1.view(np.uint8))
     np.subtract(bn, site.total_field_nt, out=t1)
     np.abs(t1, out=t1)

@@ -17,6 +17,7 @@ average of the per-round solutions), and the round-to-round spread per pose is r
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -158,12 +159,17 @@ class TriadSolution:
     Attributes
     ----------
     model : TriadModel
-    pose_means : (12, 3) output means per pose, averaged over rounds (output units)
+    pose_means : (12, 3) output means per pose, averaged over rounds (output units); NaN rows for
+        poses with no usable capture (least-squares solve)
     residuals : (12, 3) output minus model prediction per pose (output units), with the
-        reference's horizontal components estimated from the corrected data
+        reference's horizontal components estimated from the corrected data; NaN where no capture
     round_spread : (12, 3) sample standard deviation of the pose means over rounds (NaN if one)
     rounds : (12,) how many stations were averaged per pose
     reference_ned : (3,) the reference vector implied by the corrected data, in the stand frame
+    method : how the model was solved (the paper's closed form, or least squares over captures)
+    z_rms : residual RMS in units of the noise the data show (≈ 1 when the model explains the
+        data to the noise; NaN when the noise is unknown)
+    left_out : messages naming the captures left out because they did not fit
     """
 
     model: TriadModel
@@ -172,10 +178,14 @@ class TriadSolution:
     round_spread: np.ndarray
     rounds: np.ndarray
     reference_ned: np.ndarray
+    method: str = "closed form (eqs. 5-16)"
+    z_rms: float = float("nan")
+    left_out: list = field(default_factory=list)
 
     @property
     def rms_residual(self) -> float:
-        return float(np.sqrt(np.mean(self.residuals ** 2)))
+        r = self.residuals[np.all(np.isfinite(self.residuals), axis=1)]
+        return float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
 
 
 #: A solution whose sensitivity matrix K·E has a larger condition number is refused.
@@ -212,6 +222,7 @@ def check_solution(sol: "TriadSolution", name: str = "triad", scale_range=None, 
                          "dead; no coefficients written")
     ref = float(np.linalg.norm(sol.reference_ned))
     frac = np.linalg.norm(sol.residuals, axis=1) / ref if ref > 0 else np.full(12, np.inf)
+    frac = np.where(np.all(np.isfinite(sol.residuals), axis=1) | (ref <= 0), frac, 0.0)  # NaN: pose not used
     bad = [POSES[i] for i in np.flatnonzero(~(frac <= MAX_RESIDUAL_FRACTION))]
     if bad:
         i = int(np.nanargmax(np.where(np.isfinite(frac), frac, np.inf)))
@@ -304,111 +315,285 @@ def solve(acc_by_pose: dict, mag_by_pose: dict, gravity: float, field_down: floa
 
 
 # --------------------------------------------------------------------------------------------
-# From stations; to a coefficient record; tables laid out like the paper's
+# Least squares over individual captures: missing poses, outlier screening
 # --------------------------------------------------------------------------------------------
-def _station_where(st) -> str:
-    first, n = getattr(st, "first_row", None), getattr(st, "n", None)
-    if first is not None and n:
-        return f"station at rows {first}-{first + n - 1}"
-    return f"station {getattr(st, 'index', '?')}"
+#: Residuals above this multiple of what the measured noise explains mean the captures do not all
+#: fit the model: the screen looks for captures (or whole poses) to leave out, and otherwise the
+#: solve is kept and the user told (a stand with pose errors, or an effect the model lacks).
+NOISE_RATIO_WARN = 3.0
+#: A capture or pose is left out only if the others then fit this many times better (noise-
+#: normalised residual RMS) — a stand with random pose errors improves by a few per cent when any
+#: one pose is removed, a wrong capture by orders of magnitude.
+OUTLIER_IMPROVEMENT = 1.5
+#: ... and only if it is at least this far (deg, as an angle of the reference vector) from what
+#: the other captures predict.
+OUTLIER_MIN_DEG = 0.02
 
 
-def _gravity_says(st, good, tolerance_deg) -> str:
-    """Which pose(s) a station's gravity points to, resolved by the field of correctly labelled
-    stations where gravity alone leaves two (each vertical axis direction fits two poses)."""
-    cands = _gravity_candidates(st.g, tolerance_deg)
-    if not cands:
-        return "gravity matches no pose of Table 1"
-    if len(cands) > 1:
-        b = np.asarray(st.b, float)
-        best, best_ang = None, 30.0
-        for o in good:
-            if o.pose in cands:
-                ob = np.asarray(o.b, float)
-                ang = np.degrees(np.arccos(np.clip(b @ ob / (np.linalg.norm(b) * np.linalg.norm(ob)), -1, 1)))
-                if ang < best_ang:
-                    best, best_ang = o.pose, ang
-        if best is not None:
-            cands = [best]
-    return "gravity says pose " + " or ".join(str(c) for c in cands)
+@dataclass
+class TriadFit:
+    """Weighted least-squares fit of one triad to individual captures.
 
+    Model (paper eqs. 3/4 with the stand's reference unknown in its horizontal components):
+    ``h_c = A·P_cᵀ·r + B`` for capture c in pose p_c (``P`` = :func:`pose_matrix`), with
+    ``A = K·E`` (9), ``B`` (3) and ``r = (r_N, r_E, r_D)`` the reference vector in the stand frame,
+    ``r_D`` fixed to the vertical reference (g_d or M_d, as in the closed form) and ``r_N, r_E``
+    free (an unlevelled stand, a stand not aligned with north): 14 unknowns, 3 equations per
+    capture, each weighted by the noise of the capture's mean.  Unlike the closed form it needs
+    no complete set of poses, only enough to determine the 14 unknowns (``rank`` 14).
 
-def check_pose_labels(stations, tolerance_deg: float = 30.0):
-    """Split pose-labelled stations into those whose measured gravity fits their label and those
-    that do not.  Returns ``(kept, refused)`` with ``refused`` a list of messages such as
-    ``"station at rows 101-150: labelled pose 5 but gravity says pose 7; refused"``.
-
-    Gravity (uncalibrated: a few degrees off at most) tells which tool axis is vertical and which
-    way; that fixes the pose up to the pair sharing it, which is all the closed form needs (it
-    uses the sum of each pair).  Stations flagged as moved during the capture are refused too.
+    ``residuals`` (M, 3): capture minus model (output units); ``z_rms``: residual RMS in units
+    of the captures' noise, over the degrees of freedom left (≈ 1 when the model explains the
+    data to the noise); ``model`` None when the captures do not determine it (``rank`` < 14).
     """
-    good, bad = [], []
-    for st in stations:
-        if not st.pose:
-            continue
-        if st.pose not in _gravity_candidates(st.g, tolerance_deg):
-            bad.append(st)
-        else:
-            good.append(st)
-    refused = [f"{_station_where(st)}: labelled pose {st.pose} but {_gravity_says(st, good, tolerance_deg)}; "
-               "station refused (mislabelled pose)" for st in bad]
-    kept = []
-    for st in good:
-        if getattr(st, "warnings", None):
-            refused.append(f"{_station_where(st)} (pose {st.pose}): the probe moved during the capture; "
-                           "station refused")
-        else:
-            kept.append(st)
-    return kept, refused
+
+    model: TriadModel | None
+    reference: np.ndarray
+    residuals: np.ndarray
+    z_rms: float
+    rank: int
+    condition: float
 
 
-def solve_stations(stations, site, field_down: float | None = None, check_labels: bool = True) -> TwelvePositionResult:
-    """Solve from :class:`probelog.Station` objects labelled with poses (all rounds are used).
+def _design(poses, r, a):
+    """Unweighted Jacobian rows (3 per capture) of ``A·Pᵀ·r + B`` in (vec A, B, r_N, r_E)."""
+    m = len(poses)
+    jac = np.zeros((3 * m, 14))
+    for c, p in enumerate(poses):
+        pt = pose_matrix(p).T
+        u = pt @ r
+        for i in range(3):
+            jac[3 * c + i, 3 * i:3 * i + 3] = u
+            jac[3 * c + i, 9 + i] = 1.0
+        jac[3 * c:3 * c + 3, 12] = a @ pt[:, 0]
+        jac[3 * c:3 * c + 3, 13] = a @ pt[:, 1]
+    return jac
 
-    ``g_d`` is the site gravity; ``M_d`` the site's vertical field component unless given (the
-    paper notes M_d need not be exact: it only scales the magnetometer).  With ``check_labels``,
-    stations whose gravity contradicts their pose label, or taken while the probe moved, are
-    refused (:func:`check_pose_labels`); the result's ``notes`` say which, and also flag poses
-    captured more often than the others (a duplicated label?).  A pose left without a station is
-    an error whose message includes the refusals.  Scale factors must lie in
-    :data:`PLAUSIBLE_SCALE` (stations are in m/s² and nT).
+
+def _ab_given_r(poses, h, w, r):
+    """Weighted linear least squares for A and B with the reference r fixed."""
+    u = np.array([pose_matrix(p).T @ r for p in poses])
+    x = np.c_[u, np.ones(len(poses))]
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for i in range(3):
+        sol, *_ = np.linalg.lstsq(x * w[:, i:i + 1], h[:, i] * w[:, i], rcond=None)
+        a[i], b[i] = sol[:3], sol[3]
+    return a, b
+
+
+def fit_triad(poses, h, sigma, vertical_ref: float, horizontal0=(0.0, 0.0), iterations: int = 50) -> TriadFit:
+    """Weighted least-squares fit of one triad to captures (see :class:`TriadFit`).
+
+    ``poses`` (M,) 1..12, ``h`` (M, 3) capture means (output units), ``sigma`` (M, 3) their noise
+    (σ per sample / √n), ``vertical_ref`` r_D, ``horizontal0`` a start for (r_N, r_E).  Solved by
+    Gauss–Newton from the linear solution at the start reference; with a magnetometer the start
+    heading matters little (the horizontal components enter linearly once A is known).
+    """
+    poses = [int(p) for p in poses]
+    h = np.asarray(h, float).reshape(-1, 3)
+    w = 1.0 / np.asarray(sigma, float).reshape(-1, 3)
+    r = np.array([horizontal0[0], horizontal0[1], float(vertical_ref)])
+    a, b = _ab_given_r(poses, h, w, r)
+    wv = w.reshape(-1)
+    for _ in range(iterations):
+        pred = np.array([a @ (pose_matrix(p).T @ r) for p in poses]) + b
+        e = (h - pred).reshape(-1) * wv
+        jac = _design(poses, r, a) * wv[:, None]
+        step, *_ = np.linalg.lstsq(jac, e, rcond=None)
+        a = a + step[:9].reshape(3, 3)
+        b = b + step[9:12]
+        r = r + np.r_[step[12:14], 0.0]
+        if np.max(np.abs(step[12:14])) <= 1e-12 * abs(vertical_ref) and np.max(np.abs(step[:9])) < 1e-14:
+            break
+    pred = np.array([a @ (pose_matrix(p).T @ r) for p in poses]) + b
+    res = h - pred
+    sv = np.linalg.svd(_design(poses, r, a) * wv[:, None], compute_uv=False)
+    rank = int(np.sum(sv > sv[0] * 1e-9)) if len(sv) else 0
+    cond = float(sv[0] / sv[-1]) if len(sv) == 14 and sv[-1] > 0 else math.inf
+    z = (res * w).reshape(-1)
+    dof = max(len(z) - 14, 1)
+    try:
+        model = TriadModel.from_matrix(a, b) if rank == 14 else None   # undetermined: no model
+    except np.linalg.LinAlgError:
+        model, rank = None, min(rank, 13)
+    return TriadFit(model, r, res, float(math.sqrt(z @ z / dof)), rank, cond)
+
+
+@dataclass
+class CaptureSet:
+    """The captures of one triad that a solve may use: pose, mean and noise of the mean per capture,
+    with a text naming each (for messages)."""
+
+    poses: list
+    means: list
+    sigmas: list
+    names: list
+
+    def subset(self, keep):
+        return CaptureSet(*([x[i] for i in keep] for x in (self.poses, self.means, self.sigmas, self.names)))
+
+    def __len__(self):
+        return len(self.poses)
+
+
+def screen_triad(caps: CaptureSet, vertical_ref: float, horizontal0, name: str, unit: str):
+    """Fit a triad and leave out captures (or whole poses) that do not fit the twelve-pose model.
+
+    While the noise-normalised residual RMS of the fit exceeds :data:`NOISE_RATIO_WARN`, every
+    single capture and every pose with several captures (a pose wrong in every round: the
+    captures support each other, so only leaving the pose out shows it) is tried: if without the
+    best candidate the rest fit :data:`OUTLIER_IMPROVEMENT` × better and it lies more than
+    :data:`OUTLIER_MIN_DEG` from what the rest predict, it is left out and the screen repeats.
+    A single capture is preferred to its whole pose when leaving it out does nearly as well.
+    When leaving out the worst candidate would leave the triad undetermined, the solve is refused
+    naming it.  Returns ``(fit, kept CaptureSet, [messages about what was left out])``; raises
+    ValueError when the captures cannot determine the triad.
     """
     notes = []
-    if check_labels:
-        stations, notes = check_pose_labels(stations)
-    acc, mag = {}, {}
-    for st in stations:
-        if st.pose:
-            acc.setdefault(st.pose, []).append(st.g)
-            mag.setdefault(st.pose, []).append(st.b)
-    counts = {p: len(v) for p, v in acc.items()}
-    if counts:
-        usual = int(np.median(list(counts.values())))
-        extra = sorted(p for p, c in counts.items() if c > usual)
-        if extra:
-            notes.append("pose(s) " + ", ".join(f"{p} ×{counts[p]}" for p in extra) +
-                         f" captured more often than the others (×{usual}): their means average every "
-                         "capture; check for a duplicated pose label")
-    md = float(site.field_ned()[2]) if field_down is None else float(field_down)
-    try:
-        res = solve(acc, mag, gravity=float(site.gravity_mps2), field_down=md, scale_range=PLAUSIBLE_SCALE)
-    except ValueError as exc:
-        if notes:
-            raise ValueError(f"{exc}; " + "; ".join(notes)) from None
-        raise
-    res.notes = notes
-    return res
+    keep = list(range(len(caps)))
+    ref_norm = math.hypot(math.hypot(*horizontal0), vertical_ref)
+    if len(caps) < 5:   # 14 unknowns, 3 equations per capture
+        raise ValueError(f"{name}: {len(caps)} usable capture(s) ({', '.join(caps.names) or 'none'}): far too few to "
+                         "determine bias, scale and non-orthogonality (the gates' messages say why the others "
+                         "were refused)")
+    while True:
+        sub = caps.subset(keep)
+        fit = fit_triad(sub.poses, sub.means, sub.sigmas, vertical_ref, horizontal0)
+        if fit.rank < 14:
+            missing = [p for p in POSES if p not in sub.poses]
+            raise ValueError(f"{name}: the captures left ({len(sub)} in poses {sorted(set(sub.poses))}"
+                             + (f"; none in pose(s) {missing}" if missing else "") +
+                             ") do not determine bias, scale and non-orthogonality of all three axes")
+        if fit.z_rms <= NOISE_RATIO_WARN:
+            return fit, sub, notes
+        trials = [("capture", [j], sub.names[j]) for j in range(len(sub))]
+        for p in sorted(set(sub.poses)):
+            idx = [j for j in range(len(sub)) if sub.poses[j] == p]
+            if len(idx) > 1:
+                trials.append(("pose", idx, f"pose {p} (all {len(idx)} captures)"))
+        best = {}
+        for kind, idx, label in trials:
+            rest = [j for j in range(len(sub)) if j not in idx]
+            rs = sub.subset(rest)
+            f2 = fit_triad(rs.poses, rs.means, rs.sigmas, vertical_ref, horizontal0)
+            if f2.rank < 14:
+                z2 = math.inf
+            else:
+                z2 = f2.z_rms
+            if kind not in best or z2 < best[kind][0]:
+                best[kind] = (z2, idx, label, f2)
+        cands = [best[k] for k in ("capture", "pose") if k in best]
+        choice = min(cands, key=lambda c: c[0])
+        if "capture" in best and best["capture"][0] <= 1.2 * choice[0]:
+            choice = best["capture"]  # leave out as little as does the job
+        z2, idx, label, f2 = choice
+        # how far the left-out captures are from what the rest predict
+        pred = np.array([f2.model.forward(pose_matrix(sub.poses[j]).T @ f2.reference) for j in idx])
+        dev = np.linalg.norm(np.asarray([sub.means[j] for j in idx]) - pred, axis=1)
+        ang = math.degrees(float(np.max(dev)) / ref_norm)
+        if not (fit.z_rms >= OUTLIER_IMPROVEMENT * z2 and ang > OUTLIER_MIN_DEG):
+            return fit, sub, notes
+        msg = (f"{name}: {label} does not fit the twelve-pose model: {ang:.3f}° ({float(np.max(dev)):.4g} {unit}) from "
+               f"what the other captures predict; without it the residuals fall from {fit.z_rms:.1f}× to "
+               f"{z2:.1f}× the noise")
+        if not math.isfinite(z2):
+            raise ValueError(msg.split("; without it")[0] + "; without it the remaining captures cannot determine "
+                             f"the triad — recapture pose {sub.poses[idx[0]]}; no coefficients written")
+        notes.append(msg + " — left out")
+        keep = [k for j, k in enumerate(keep) if j not in idx]
+
+
+# --------------------------------------------------------------------------------------------
+# From captures; to a coefficient record; tables laid out like the paper's
+# --------------------------------------------------------------------------------------------
+def _solution_from_fit(fit: TriadFit, caps: CaptureSet, method: str) -> TriadSolution:
+    """A :class:`TriadSolution` (per-pose tables) from a least-squares fit over captures."""
+    means = np.full((12, 3), np.nan)
+    spread = np.full((12, 3), np.nan)
+    rounds = np.zeros(12, dtype=int)
+    for i, p in enumerate(POSES):
+        v = np.array([m for q, m in zip(caps.poses, caps.means) if q == p], dtype=float).reshape(-1, 3)
+        rounds[i] = len(v)
+        if len(v):
+            means[i] = v.mean(axis=0)
+            if len(v) > 1:
+                spread[i] = v.std(axis=0, ddof=1)
+    pred = np.array([fit.model.forward(pose_reference(p, fit.reference)) for p in POSES])
+    return TriadSolution(fit.model, means, means - pred, spread, rounds, fit.reference, method=method,
+                         z_rms=fit.z_rms)
+
+
+def solve_triad_captures(caps: CaptureSet, vertical_ref: float, horizontal0, *, name: str, unit: str,
+                         scale_range=PLAUSIBLE_SCALE) -> TriadSolution:
+    """Solve one triad from individual captures, screened for captures that do not fit.
+
+    :func:`screen_triad` leaves out what does not fit; then the paper's closed form (eqs. 5–16,
+    every round averaged per pose) is used when every pose keeps a capture, else the weighted
+    least-squares fit (:func:`fit_triad`) of the captures left.  Checked by
+    :func:`check_solution`.  Raises ValueError with a message naming what is missing or wrong.
+    """
+    fit, kept, left_out = screen_triad(caps, vertical_ref, horizontal0, name, unit)
+    missing = [p for p in POSES if p not in kept.poses]
+    if not missing:
+        by_pose = {}
+        for p, m in zip(kept.poses, kept.means):
+            by_pose.setdefault(p, []).append(m)
+        sol = solve_triad(by_pose, vertical_ref, name=name, scale_range=scale_range, unit=unit)
+        sol.z_rms = fit.z_rms
+    else:
+        sol = _solution_from_fit(fit, kept, f"least squares over {len(kept)} captures (no capture of pose(s) "
+                                             f"{missing}: the closed form needs all twelve)")
+        check_solution(sol, name, scale_range, unit)
+    sol.left_out = left_out
+    return sol
+
+
+def solve_captures(acc: CaptureSet, mag: CaptureSet, site, field_down: float | None = None) -> TwelvePositionResult:
+    """Solve both triads from captures (m/s² gravity vector and nT; see :class:`CaptureSet`).
+
+    ``g_d`` is the site gravity, ``M_d`` the site's vertical field component unless given (the
+    paper notes M_d need not be exact: it only scales the magnetometer).  The result's ``notes``
+    name the captures left out and say when the residuals stay above what the measured noise
+    explains (stand pose errors, or an effect the paper's model lacks).  Raises ValueError when
+    either triad cannot be solved.
+    """
+    fn = site.field_ned()
+    md = float(fn[2]) if field_down is None else float(field_down)
+    hor = (float(math.hypot(fn[0], fn[1])), 0.0)   # the stand set up against (magnetic) north
+    sols = {}
+    errors = []
+    for key, caps, vref, h0, name, unit in (("acc", acc, float(site.gravity_mps2), (0.0, 0.0), "accelerometer", "m/s^2"),
+                                            ("mag", mag, md, hor, "magnetometer", "nT")):
+        try:
+            sols[key] = solve_triad_captures(caps, vref, h0, name=name, unit=unit)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            errors.append(str(exc))
+    if errors:
+        raise ValueError("; ".join(errors))
+    notes = []
+    for key, name in (("acc", "accelerometer"), ("mag", "magnetometer")):
+        sol = sols[key]
+        notes.extend(sol.left_out)
+        if sol.z_rms > NOISE_RATIO_WARN:
+            notes.append(f"{name}: the residuals are {sol.z_rms:.1f}× what the measured noise explains: the stand's "
+                         "poses are off (a worn or badly set stand) or the probe has an effect the twelve-position "
+                         "model lacks (temperature, nonlinearity ...) — `inclinometer-calib lab diagnose` tells which")
+    return TwelvePositionResult(acc=sols["acc"], mag=sols["mag"], notes=notes)
 
 
 def _diagnostics(sol: TriadSolution, unit: str) -> dict:
     spread = np.where(np.isfinite(sol.round_spread), sol.round_spread, None)
     return {
         "units": unit,
+        "method": sol.method,
         "rms_residual": sol.rms_residual,
+        "noise_ratio": None if not np.isfinite(sol.z_rms) else float(sol.z_rms),
+        "left_out": list(sol.left_out),
         "reference_ned": [float(x) for x in sol.reference_ned],
         "per_pose": {
-            int(p): {"mean": [float(x) for x in sol.pose_means[i]],
-                     "residual": [float(x) for x in sol.residuals[i]],
+            int(p): {"mean": [None if not np.isfinite(x) else float(x) for x in sol.pose_means[i]],
+                     "residual": [None if not np.isfinite(x) else float(x) for x in sol.residuals[i]],
                      "rounds": int(sol.rounds[i]),
                      "round_spread": [None if x is None else float(x) for x in spread[i]]}
             for i, p in enumerate(POSES)},
@@ -419,12 +604,17 @@ def to_calibration(result: TwelvePositionResult, site, probe_id: str = "probe"):
     """Wrap a twelve-position result as a :class:`coeffs.Calibration` with per-pose diagnostics."""
     from .coeffs import Calibration  # local: coeffs is the record layer, this the calibrator
 
-    return Calibration(acc=result.acc.model, mag=result.mag.model, probe_id=probe_id,
-                       method="twelve_position (Li, Li & Zhao 2021, eqs. 5-16; inverse by matrix)",
-                       site=site,
-                       diagnostics={"acc": _diagnostics(result.acc, "m/s^2"),
-                                    "mag": _diagnostics(result.mag, "nT"),
-                                    "implied_site": result.implied_site()})
+    method = "twelve_position (Li, Li & Zhao 2021, eqs. 5-16; inverse by matrix)"
+    lsq = [name for name, sol in (("accelerometer", result.acc), ("magnetometer", result.mag))
+           if not sol.method.startswith("closed form")]
+    if lsq:
+        method += f"; {' and '.join(lsq)} by least squares over the captures (poses missing)"
+    diagnostics = {"acc": _diagnostics(result.acc, "m/s^2"), "mag": _diagnostics(result.mag, "nT"),
+                   "implied_site": result.implied_site()}
+    if result.notes:
+        diagnostics["notes"] = list(result.notes)
+    return Calibration(acc=result.acc.model, mag=result.mag.model, probe_id=probe_id, method=method, site=site,
+                       diagnostics=diagnostics)
 
 
 _TABLE2_E = {0: ("e_xy", "e_xz"), 1: ("e_yx", "e_yz"), 2: ("e_zx", "e_zy")}

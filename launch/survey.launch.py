@@ -3,7 +3,9 @@
 Equivalent of ``inclinometer-calib-launch`` (inclinometer_calib/launcher.py, used where ``launch``
 and ``launch_ros`` are not available, e.g. PyPI wheels): probe, calibration, correction and recorder
 with the package's config/<node>.yaml, the run's outputs in ``out``, and the whole launch shut down
-when the probe finishes.  The launcher additionally prints the summary; here run
+when the probe finishes.  The probe publishes ``/clock`` (its log time); calibration and correction
+run on it (``use_sim_time``).  Unlike the launcher, nothing here restarts a node that dies, reserves
+a ROS_DOMAIN_ID, or turns failures into an exit status.  The launcher additionally prints the summary; here run
 ``python -c "from inclinometer_calib.launcher import summarize_run; summarize_run('<out>')"``.
 
 Arguments: out (output directory), source (simulate|csv|mcap), input (file for csv/mcap),
@@ -26,6 +28,7 @@ def generate_launch_description():
     out = LaunchConfiguration("out")
     record = LaunchConfiguration("record")
     consumers = PythonExpression(["3 if '", record, "'.lower() == 'true' else 2"])
+    reference_readers = PythonExpression(["2 if '", record, "'.lower() == 'true' else 1"])
 
     probe = Node(
         package="inclinometer_calib", executable="probe", name="probe", output="screen",
@@ -37,17 +40,22 @@ def generate_launch_description():
             "seed": LaunchConfiguration("seed"),
             "on_end": "stop",
             "wait_for_subscribers": consumers,
+            "wait_for_reference_subscribers": reference_readers,
             "truth_file": PathJoinSubstitution([out, "truth.json"]),
         }],
     )
     calibration = Node(
         package="inclinometer_calib", executable="calibration", name="calibration", output="screen",
         parameters=[os.path.join(config, "calibration.yaml"),
-                    {"output": PathJoinSubstitution([out, "coeffs.yaml"])}],
+                    {"output": PathJoinSubstitution([out, "coeffs.yaml"]), "use_sim_time": True}],
     )
     correction = Node(
         package="inclinometer_calib", executable="correction", name="correction", output="screen",
-        parameters=[os.path.join(config, "correction.yaml")],
+        parameters=[os.path.join(config, "correction.yaml"), {
+            "use_sim_time": True,  # the probe's /clock (stamp:=log): one time base for all stamps
+            "fallback_coeffs_file": PathJoinSubstitution([out, "coeffs.yaml"]),
+            "state_file": PathJoinSubstitution([out, "correction_state.json"]),
+        }],
     )
     recorder = Node(
         package="inclinometer_calib", executable="recorder", name="recorder", output="screen",

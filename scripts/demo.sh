@@ -11,4 +11,6 @@ bash "$here/scripts/setup.sh"
 # shellcheck disable=SC1091
 source "$here/scripts/env.sh"
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-exec inclinometer-calib-launch --out "$out" --overwrite --speed 5 --domain-id "${ROS_DOMAIN_ID:-42}"
+# No --domain-id: the launcher reserves a free ROS_DOMAIN_ID for the run (or exactly the one set in
+# the environment, refused while another run holds it), so two demos at once never mix.
+exec inclinometer-calib-launch --out "$out" --overwrite --speed 5

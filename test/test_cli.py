@@ -15,7 +15,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 @pytest.fixture(scope="module")
 def simdir(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
-    assert main(["simulate", "--out", str(d), "--seed", "3", "--station-seconds", "0.5"]) == 0
+    assert main(["simulate", "--out", str(d), "--seed", "3", "--station-seconds", "1.5"]) == 0
     return d
 
 
@@ -51,14 +51,26 @@ def test_correct_prints_paper_style_tables(simdir, capsys):
     assert "Table 4" in out and "Table 5" in out and "RMS" in out
 
 
-def test_missing_pose_is_a_clear_error_with_exit_2(simdir, tmp_path, capsys):
+def test_a_missing_pose_is_solved_without_by_least_squares_and_said(simdir, tmp_path, capsys):
     lines = (simdir / "cal.csv").read_text().splitlines()
     kept = [ln for ln in lines if ln.split(",")[8] != "5"]
     bad = tmp_path / "cal_missing5.csv"
     bad.write_text("\n".join(kept) + "\n")
+    assert main(["twelve-position", str(bad), "-o", str(tmp_path / "c.yaml")]) == 0
+    captured = capsys.readouterr()
+    assert "solved without pose(s) [5] (never captured), by least squares over the others" in captured.err
+    assert "least squares over 11 captures" in captured.out
+
+
+def test_too_few_poses_are_a_clear_error_with_exit_2(simdir, tmp_path, capsys):
+    lines = (simdir / "cal.csv").read_text().splitlines()
+    kept = [ln for ln in lines if ln.split(",")[8] not in ("9", "10", "11", "12")]
+    bad = tmp_path / "cal_no_z.csv"
+    bad.write_text("\n".join(kept) + "\n")
     assert main(["twelve-position", str(bad), "-o", str(tmp_path / "c.yaml")]) == 2
     err = capsys.readouterr().err
-    assert "pose(s) [5] missing" in err
+    assert "accelerometer: the captures left" in err and "none in pose(s) [9, 10, 11, 12]" in err
+    assert "poses never captured: [9, 10, 11, 12]" in err
     assert not (tmp_path / "c.yaml").exists()
 
 

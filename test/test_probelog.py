@@ -39,11 +39,12 @@ def test_round_trip_through_csv_text():
     ("0.01,0.1,0.2,abc,20000,1000,40000,25,1,,,\n", "az='abc' is not a number"),
     ("0.01,0.1,0.2,-19.6,20000,1000,40000,25,1,,,\n", "az=-19.6 m/s² is saturated"),
     ("0.01,0.1,0.2,-9.8,99999,1000,40000,25,1,,,\n", "mx=99999 nT is saturated"),
-    ("0.01,0.1,0.2,-9.8,2e-5,1e-6,4e-5,25,1,,,\n", "look like tesla"),
+    ("0.01,0.1,0.2,-9.8,2e-5,1e-6,4e-5,25,1,,,\n", "look like tesla: give the unit (--mag-unit T)"),
+    ("0.01,0.1,0.2,-9.8,0.2,0.01,0.4,25,1,,,\n", "look like gauss"),
     ("0.01,0.1,0.2,-9.8,0,0,0,25,1,,,\n", "total field 0 nT is implausible"),
     ("0.01,0.1,0.2,-0.98,20000,1000,40000,25,1,,,\n", "total acceleration"),
     ("0.01,0.1,0.2,-9.8,20000,1000,40000,25,13,,,\n", "pose='13' is not one of 1..12"),
-    ("0.01,0.1,0.2,-9.8,20000,1000,40000,25,,10,,\n", "all three or none"),
+    ("0.01,0.1,0.2,-9.8,20000,1000,40000,25,,190,,\n", "ref_drift_deg=190 outside 0..180"),
     ("0.00,0.1,0.2,-9.8,20000,1000,40000,25,1,,,\n", "non-monotonic timestamp"),
     ("0.01,0.1,0.2,-9.8,20000,1000,40000,25,1,,\n", "11 fields, expected 12"),
 ])
@@ -62,52 +63,90 @@ def test_file_with_no_usable_rows_is_an_error_naming_the_first_rejection():
         parse_csv(_csv("0,nan,0,0,0,0,0,25,,,,\n"))
 
 
-def _labelled_log(n_per, labels, noise=0.001, seed=0):
-    rng = np.random.default_rng(seed)
-    n = n_per * len(labels)
-    pose = np.repeat([p for p, _ in labels], n_per)
-    ref = np.repeat([r for _, r in labels], n_per, axis=0).astype(float)
-    acc = np.tile([0.0, 0.0, -9.8], (n, 1)) + rng.normal(0, noise, (n, 3))
-    mag = np.tile([20000.0, 0.0, 40000.0], (n, 1)) + rng.normal(0, 10, (n, 3))
-    return ProbeLog(np.arange(n) * 0.01, acc, mag, np.full(n, 25.0), pose, ref)
+def test_a_reference_is_read_for_what_it_gives_and_no_row_is_lost_for_a_blank_column():
+    # a stand's log gives drift and toolface of its vertical poses, no azimuth
+    log, rej = parse_csv(_csv("0.00,0.1,0.2,-9.8,20000,1000,40000,25,9,0.0,,0.0\n",
+                              "0.01,0.1,0.2,-9.8,20000,1000,40000,25,,45.0,,\n",
+                              "0.02,0.1,0.2,-9.8,20000,1000,40000,25,,,,\n"))
+    assert rej == [] and len(log) == 3
+    np.testing.assert_array_equal(log.ref[0], [0.0, np.nan, 0.0])
+    np.testing.assert_array_equal(log.ref[1], [45.0, np.nan, np.nan])
+    assert np.all(np.isnan(log.ref[2]))
 
 
-NAN3 = (np.nan, np.nan, np.nan)
+@pytest.mark.parametrize("unit,scale", [("T", 1e-9), ("uT", 1e-3), ("G", 1e-5)])
+def test_a_magnetometer_in_another_unit_is_read_in_nT_when_the_unit_is_given(unit, scale):
+    row = f"0.00,0.1,0.2,-9.8,{20000 * scale:.9g},{1000 * scale:.9g},{40000 * scale:.9g},25,,,,\n"
+    log, rej = parse_csv(_csv(row), mag_unit=unit)
+    assert rej == []
+    np.testing.assert_allclose(log.mag[0], [20000, 1000, 40000], rtol=1e-9)
+    with pytest.raises(ValueError, match="unit 'Oe' unknown"):
+        parse_csv(_csv(row), mag_unit="Oe")
 
 
-def test_consecutive_rows_with_same_label_form_one_station_and_repeats_are_new_stations():
-    labels = [(1, NAN3), (0, NAN3), (2, NAN3), (0, (10, 20, 30)), (0, (10, 20, 40)), (1, NAN3)]
-    stations, problems = segment_stations(_labelled_log(20, labels))
+def test_a_compressed_log_is_read(tmp_path):
+    import gzip
+
+    from inclinometer_calib.probelog import read_csv
+
+    p = tmp_path / "log.csv.gz"
+    with gzip.open(p, "wt") as fh:
+        fh.write(_csv(GOOD))
+    log, rej = read_csv(p)
+    assert len(log) == 1 and rej == []
+
+
+def _session_log(stations, noise_acc=0.002, seed=0, rate_hz=100.0):
+    probe = sim.build_probe(1, noise_acc=noise_acc)
+    return sim.run_session(probe, Site(), stations, np.random.default_rng(seed), rate_hz=rate_hz)
+
+
+def test_stations_are_found_by_the_live_detector_and_named_by_their_rows_labels():
+    poses = sim.twelve_pose_session(duration_s=2.0)[:2]
+    grid = sim.stand_grid_session(drifts=(10,), azimuths=(20,), toolfaces=(30, 40), duration_s=2.0)
+    log = _session_log(poses + grid + poses[:1])
+    stations, problems = segment_stations(log)
     assert problems == []
     assert [s.pose for s in stations] == [1, 2, 0, 0, 1]
     assert [tuple(s.ref) for s in stations[2:4]] == [(10, 20, 30), (10, 20, 40)]
-    assert all(s.n == 20 for s in stations)
-    # the reader converts REP-145 specific force to the gravity vector, once
-    assert stations[0].g[2] == pytest.approx(9.8, abs=0.01)
+    for s in stations:        # the detector's window lies inside the labelled rows (it may take in the
+        rows = slice(s.first_row - 1, s.last_row)   # first, still unrotated, sample of the next move)
+        assert np.sum(log.pose[rows] == s.pose) >= s.n - 1 and 170 <= s.n <= 201
+    # the detector converts REP-145 specific force to the gravity vector, once
+    assert stations[0].g[0] == pytest.approx(9.8, abs=0.1)   # pose 1: tool X down
 
 
-def test_too_short_station_is_dropped_with_a_message():
-    log = _labelled_log(20, [(1, NAN3), (2, NAN3), (3, NAN3)])
-    log.pose[20:37] = 0  # pose 2 keeps 3 samples
-    stations, problems = segment_stations(log, min_samples=5)
-    assert [s.pose for s in stations] == [1, 3]
-    assert any("pose 2" in p and "too short" in p for p in problems)
+def test_a_labelled_hold_with_no_station_is_named_with_the_reason():
+    stations = sim.twelve_pose_session(duration_s=2.0)[:3]
+    stations[1].duration_s = 0.3
+    log = _session_log(stations)
+    found, problems = segment_stations(log)
+    assert [s.pose for s in found] == [1, 3]
+    assert problems == ["pose 2 at rows 301-330 (t=3.00-3.29 s): no static station found: the hold lasts 0.29 s, "
+                        "less than the detector needs (0.5 s after 0.2 s settling)"]
 
 
-def test_probe_moving_during_capture_is_flagged():
-    log = _labelled_log(50, [(p, NAN3) for p in range(1, 7)])
-    log.acc[100:150, 0] += np.linspace(0, 3, 50)  # pose 3 rolls while captured
-    stations, problems = segment_stations(log)
-    assert stations[2].warnings and "moved during the capture" in stations[2].warnings[0]
-    assert sum(bool(s.warnings) for s in stations) == 1
+def test_a_probe_moving_during_a_capture_is_found_by_the_gates():
+    from inclinometer_calib.gates import apply_gates
+
+    log = _session_log(sim.twelve_pose_session(duration_s=3.0)[:4], noise_acc=0.005)
+    rows = np.flatnonzero(log.pose == 3)
+    log.acc[rows, 1] += np.linspace(0, 0.03, len(rows))   # pose 3 creeps 0.18° while captured
+    stations, _ = segment_stations(log)
+    moved = [s for s in stations if apply_gates(s) and s.moved]
+    assert [s.pose for s in moved] == [3]
+    assert "turned" in moved[0].warnings[0] and "pose 3" in moved[0].warnings[0]
 
 
 def test_empty_temperature_is_unknown_not_a_bad_row():
     log, rej = parse_csv(_csv(GOOD, "0.01,0.1,0.2,-9.8,20000,1000,40000,,1,,,\n"))
     assert rej == [] and len(log) == 2
     assert np.isnan(log.temp_c[1])
-    stations, _ = segment_stations(log, min_samples=2)
-    assert stations[0].temp_c == 25.0  # the mean of the known temperatures
+    log = _session_log(sim.twelve_pose_session(duration_s=2.0)[:1])
+    log.temp_c[::2] = np.nan
+    stations, _ = segment_stations(log)
+    rows = slice(stations[0].first_row - 1, stations[0].last_row)
+    assert stations[0].temp_c == pytest.approx(np.nanmean(log.temp_c[rows]))  # the mean of the known ones
     log.temp_c[:] = np.nan
-    stations, _ = segment_stations(log, min_samples=2)
+    stations, _ = segment_stations(log)
     assert np.isnan(stations[0].temp_c)

@@ -107,12 +107,18 @@ def test_printed_closed_forms_agree_with_the_inverse_except_eq21_and_eq23():
 
 
 def test_simulated_twelve_pose_log_recovers_the_probe_to_noise_level():
+    from inclinometer_calib.capture import CaptureSession
+
     site = Site()
     probe = sim.build_probe(seed=5, noise_acc=0.0, noise_mag=0.0)
     log = sim.run_session(probe, site, sim.twelve_pose_session(), np.random.default_rng(0), rate_hz=50)
-    stations, problems = segment_stations(log)
+    stations, problems = segment_stations(log)     # default detector: noise from the data, even none
     assert problems == [] and len(stations) == 12
-    res = tp.solve_stations(stations, site)
+    session = CaptureSession(site=site)
+    for st in stations:
+        session.offer(st)
+    res = session.result
+    assert session.state == "done" and res.acc.method.startswith("closed form")
     for k, v in probe.acc.parameters().items():
         assert res.acc.model.parameters()[k] == pytest.approx(v, abs=1e-9), k
     for k, v in probe.mag.parameters().items():
@@ -122,28 +128,74 @@ def test_simulated_twelve_pose_log_recovers_the_probe_to_noise_level():
     assert imp["dip_deg"] == pytest.approx(site.dip_deg, abs=1e-8)
 
 
-def test_identify_pose_uses_the_field_to_resolve_the_roll():
-    site = Site()
-    for p in tp.POSES:
-        g = tp.pose_reference(p, site.gravity_ned())
-        b = tp.pose_reference(p, site.field_ned())
-        pose, misfit = tp.identify_pose_with_field(g, b, site.field_ned())
-        assert pose == p and misfit < 1e-6
-    assert tp.identify_pose_with_field([1.0, 1.0, 1.0], [1.0, 0, 0], site.field_ned())[0] is None
+def _captures(truth, poses, ref, noise=0.0, rng=None, rounds=1):
+    rng = rng or np.random.default_rng(0)
+    ps = [p for _ in range(rounds) for p in poses]
+    means = [truth.forward(tp.pose_reference(p, ref)) + rng.normal(0, noise, 3) if noise else
+             truth.forward(tp.pose_reference(p, ref)) for p in ps]
+    sig = [np.full(3, max(noise, 1e-6 * np.linalg.norm(ref)))] * len(ps)
+    return tp.CaptureSet(ps, means, sig, [f"pose {p} (capture {k})" for k, p in enumerate(ps)])
 
 
-def test_ill_conditioned_solution_is_refused():
-    # two sensor axes (nearly) parallel: K·E is close to singular
-    a = np.array([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    truth = TriadModel.from_matrix(a, np.zeros(3))
-    h = np.array([truth.forward(TABLE1_M[p]) for p in tp.POSES])
-    with pytest.raises(ValueError, match="singular or ill-conditioned \\(condition number"):
-        tp.solve_triad({p: [h[i]] for i, p in enumerate(tp.POSES)}, MD)
+def test_least_squares_over_captures_equals_the_closed_form_and_needs_no_complete_set():
+    rng = np.random.default_rng(21)
+    truth = _random_triad(rng)
+    full = tp.fit_triad(*(lambda c: (c.poses, c.means, c.sigmas))(_captures(truth, tp.POSES, [MN, ME, MD])),
+                        MD, (MN, 0.0))
+    np.testing.assert_allclose(full.model.A, truth.A, atol=1e-9)
+    np.testing.assert_allclose(full.reference, [MN, ME, MD], atol=1e-6)   # the stand's horizontal field
+    for missing in (5, 9, 12):
+        caps = _captures(truth, [p for p in tp.POSES if p != missing], [MN, ME, MD])
+        sol = tp.solve_triad_captures(caps, MD, (MN, 0.0), name="magnetometer", unit="nT", scale_range=None)
+        assert "least squares" in sol.method and np.all(np.isnan(sol.residuals[missing - 1]))
+        np.testing.assert_allclose(sol.model.A, truth.A, atol=1e-9)
 
 
-def test_pose_far_off_the_model_is_refused_naming_it():
-    truth = TriadModel(scale=np.ones(3), bias=np.zeros(3), e={})
-    data = {p: [truth.forward(TABLE1_M[p])] for p in tp.POSES}
-    data[11] = [truth.forward(TABLE1_M[12])]      # pose 11 captured in pose 12's orientation
-    with pytest.raises(ValueError, match="magnetometer: pose 1[12] does not fit the twelve-pose model"):
-        tp.solve_triad(data, MD, name="magnetometer", unit="nT")
+def test_a_capture_that_does_not_fit_is_left_out_and_named():
+    rng = np.random.default_rng(22)
+    truth = _random_triad(rng)
+    caps = _captures(truth, tp.POSES, [MN, ME, MD], noise=2.0, rng=rng, rounds=2)
+    caps.means[3] = caps.means[3] + np.array([0.0, 400.0, 0.0])      # one capture 0.8° off
+    sol = tp.solve_triad_captures(caps, MD, (MN, 0.0), name="magnetometer", unit="nT", scale_range=None)
+    assert len(sol.left_out) == 1 and "pose 4 (capture 3)" in sol.left_out[0]
+    assert sol.method.startswith("closed form") and sol.rounds[3] == 1
+    assert sol.z_rms < 1.5
+
+
+def test_a_pose_wrong_in_every_round_is_left_out_as_a_pose():
+    # both rounds' captures of pose 11 taken in pose 12's orientation: each supports the other,
+    # only leaving the pose out shows it
+    rng = np.random.default_rng(23)
+    truth = _random_triad(rng)
+    caps = _captures(truth, tp.POSES, [MN, ME, MD], noise=2.0, rng=rng, rounds=2)
+    for k, p in enumerate(caps.poses):
+        if p == 11:
+            caps.means[k] = truth.forward(TABLE1_M[12]) + rng.normal(0, 2.0, 3)
+    sol = tp.solve_triad_captures(caps, MD, (MN, 0.0), name="magnetometer", unit="nT", scale_range=None)
+    assert len(sol.left_out) == 1 and "pose 11 (all 2 captures)" in sol.left_out[0]
+    assert "least squares" in sol.method
+    np.testing.assert_allclose(sol.model.A, truth.A, atol=2e-4)
+
+
+def test_random_stand_pose_errors_leave_every_capture_in_and_are_reported_as_excess_residual():
+    from scipy.spatial.transform import Rotation
+
+    from inclinometer_calib.frames import Site as S
+
+    rng = np.random.default_rng(24)
+    site = S()
+    truths = {"acc": TriadModel(scale=[1.001, 0.998, 1.0], bias=[0.02, -0.01, 0.03], e={"e_xy": 0.01}),
+              "mag": _random_triad(rng)}
+    refs = {"acc": site.gravity_ned(), "mag": site.field_ned()}
+    noise = {"acc": 0.0002, "mag": 2.0}
+    ps = list(tp.POSES) * 2
+    errs = [Rotation.from_rotvec(np.radians(rng.normal(0, 0.1, 3))).as_matrix() for _ in ps]  # stand 0.1° off
+    caps = {}
+    for k in ("acc", "mag"):
+        means = [truths[k].forward(e.T @ tp.pose_reference(p, refs[k])) + rng.normal(0, noise[k], 3)
+                 for p, e in zip(ps, errs)]
+        caps[k] = tp.CaptureSet(ps, means, [np.full(3, noise[k])] * len(ps), [f"pose {p}" for p in ps])
+    res = tp.solve_captures(caps["acc"], caps["mag"], site)
+    assert res.acc.left_out == [] and res.mag.left_out == []
+    assert res.acc.z_rms > 10 and res.mag.z_rms > 10
+    assert any("magnetometer: the residuals are" in n and "lab diagnose" in n for n in res.notes)

@@ -3,7 +3,9 @@
 Three kinds of station, by what constrains them:
 
 * ``pose``  — a twelve-position pose (Table 1): orientation known from the pose, in the stand frame;
-* ``ref``   — a stand-grid station with reference drift/azimuth/toolface: orientation known;
+* ``ref``   — a stand-grid station with reference drift/azimuth/toolface: orientation known (a
+  vertical reference without azimuth is known too: its rotation about the vertical is the
+  toolface, as for azimuth 0);
 * ``free``  — orientation unknown: constrained only by the site invariants |g|, |B| and dip.
 
 Each log has a *role*: ``"cal"`` (the non-magnetic lab stand) or ``"val"`` (validation / survey
@@ -18,7 +20,9 @@ import numpy as np
 
 from ..effects import T_REF_C
 from ..frames import orientation_matrix
+from ..gates import apply_gates
 from ..probelog import read_csv, report, segment_stations
+from ..survey import Tolerances, in_vertical_cone
 from ..twelve_position import pose_matrix
 
 #: Floors of the per-station noise estimate (std/√n): m/s², nT.
@@ -96,6 +100,10 @@ def from_stations(stations, role: str, source: str = "", use_ref: bool = True) -
         elif use_ref and st.has_ref:
             rot[i] = orientation_matrix(*st.ref)
             kind[i] = "ref"
+        elif (use_ref and np.isfinite(st.ref[0]) and np.isfinite(st.ref[2])
+              and in_vertical_cone(st.ref[0], Tolerances().min_drift_deg)):
+            rot[i] = orientation_matrix(st.ref[0], 0.0, st.ref[2])   # vertical: no azimuth, toolface about it
+            kind[i] = "ref"
         else:
             kind[i] = "free"
     cnt = np.array([max(st.n, 1) for st in stations], dtype=float)
@@ -119,38 +127,36 @@ def from_stations(stations, role: str, source: str = "", use_ref: bool = True) -
         source=np.full(n, source))
 
 
-def load_logs(cal_path=None, val_path=None, min_samples: int = 5, warn=None, free_paths=()) -> LabData:
+def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> LabData:
     """Read CAL and VAL probe logs (CSV) into one LabData; rejections go to ``warn`` (callable).
 
-    ``free_paths``: logs without labels (the probe turned by hand through many attitudes); their
-    static intervals are found by :func:`streaming.detect_stations` and enter as ``free``
-    stations (role ``cal``), constrained by the site invariants only.
+    Stations are found by the live nodes' detector (:func:`probelog.segment_stations`) and
+    checked by the gates (:mod:`gates`); a station in which the probe moved is left out, with
+    the reason.  ``free_paths``: logs without labels (the probe turned by hand through many
+    attitudes); their stations enter as ``free`` (role ``cal``), constrained by the site
+    invariants only.
     """
-    from ..streaming import detect_stations
-
     parts = []
-    for path in free_paths or ():
-        log, rejections = read_csv(path)
-        if warn:
-            report(path, rejections, [], warn)
-        stations = detect_stations(log)
-        if not stations:
-            raise ValueError(f"{path}: no static intervals found (need ≥ 1 s still at each attitude)")
-        parts.append(from_stations(stations, "cal", source=str(path), use_ref=False))
-    for path, role in ((cal_path, "cal"), (val_path, "val")):
+    for path, role, labels in ([(p, "cal", False) for p in (free_paths or ())]
+                               + [(cal_path, "cal", True), (val_path, "val", True)]):
         if path is None:
             continue
         log, rejections = read_csv(path)
-        stations, problems = segment_stations(log, min_samples=min_samples)
+        stations, problems = segment_stations(log, use_labels=labels)
         if warn:
             report(path, rejections, problems, warn)
-        moved = [s for s in stations if s.warnings]
-        stations = [s for s in stations if not s.warnings]  # a capture taken while moving is not used
+        for st in stations:
+            for f in apply_gates(st):
+                if warn:
+                    warn(f"{path}: {f.message}")
+        moved = [s for s in stations if s.moved]
+        stations = [s for s in stations if not s.moved]  # a capture taken while moving is not used
         if moved and warn:
             warn(f"{path}: {len(moved)} station(s) left out: the probe moved during the capture")
         if not stations:
-            raise ValueError(f"{path}: no usable static stations")
-        parts.append(from_stations(stations, role, source=str(path)))
+            raise ValueError(f"{path}: no usable static stations" + ("" if labels else
+                             " (need ≥ 0.5 s still at each attitude)"))
+        parts.append(from_stations(stations, role, source=str(path), use_ref=labels))
     if not parts:
         raise ValueError("no logs given")
     return LabData.concatenate(parts)

@@ -12,6 +12,7 @@ import io
 
 import numpy as np
 
+from ..deps import require
 from ..survey import table4, table5
 
 
@@ -25,8 +26,7 @@ def _png(fig) -> str:
 
 
 def _plt():
-    import matplotlib
-
+    matplotlib = require("matplotlib", "report", "lab report")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -65,11 +65,15 @@ def uncorrected_metrics(data, site) -> dict:
 
 def write_report(path, data, site, effects_text: str | None = None, max_steps: int = 4, progress=None,
                  candidates=None) -> list:
-    """Run the effect ladder from the base model (plus ``effects_text``) and write the HTML report."""
+    """Run the effect ladder from the base model (plus ``effects_text``) and write the HTML report.
+
+    Raises :class:`deps.MissingDependency` before any fitting if matplotlib is not installed."""
+    from ..deps import require
     from .diagnose import ladder
     from .fit import fit
     from .report import render
 
+    require("matplotlib", "report", "lab report")  # the plots; checked before the minutes of fitting
     steps = ladder(data, site, max_steps=max_steps, progress=progress, candidates=candidates,
                    start=build_model(site, effects_text))
     final_fit = fit(steps[-1].model, data)

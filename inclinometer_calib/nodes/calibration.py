@@ -25,6 +25,7 @@ from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_srvs.srv import Trigger
 
 from ..capture import CaptureSession
+from ..gates import GateLimits
 from ..streaming import StaticDetector
 from ..twelve_position import POSES
 from . import common as c
@@ -42,29 +43,35 @@ class CalibrationNode(Node):
         self.probe_id = p.declare("probe_id", "probe", "Id / serial number of the probe", read_only=True)
         self.status_rate = p.declare("status_rate_hz", 1.0, "Periodic status publication rate, Hz",
                                      read_only=True, range=(0.1, 100.0))
-        self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
-                                    "arrived for this long (wall clock), s; 0 disables", read_only=True,
-                                    range=(0.0, 60.0))
+        self.idle_flush = p.declare("idle_flush_s", 1.0, "End of the data: when no sample arrived for this long "
+                                    "(wall clock), s, close the current static interval and solve with what there "
+                                    "is (poses missing: least squares), or say why not; data arriving later continue "
+                                    "the session; 0 disables", read_only=True, range=(0.0, 60.0))
         self.max_warnings = p.declare("max_warnings", 10, "Most recent warnings carried in the status",
                                       range=(0, 50))
-        min_capture = p.declare("min_capture_s", 1.0, "Shortest accepted capture, s (log time)",
+        min_capture = p.declare("min_capture_s", 0.5, "Shortest accepted capture, s (log time)",
                                 read_only=True, range=(0.05, 600.0))
-        max_acc = p.declare("max_scatter_acc", 0.02, "Per-axis scatter above which the probe moved during "
-                            "a capture, m/s^2", read_only=True, range=(1e-6, 10.0))
-        max_mag = p.declare("max_scatter_mag", 150.0, "Per-axis scatter above which the probe moved during "
-                            "a capture, nT", read_only=True, range=(1e-3, 1e5))
+        max_creep = p.declare("gates.max_creep_deg", GateLimits.max_creep_deg, "Largest turn of the probe during a "
+                              "hold that is not motion (the trend must also be significant against the noise), deg",
+                              read_only=True, range=(0.0, 10.0))
+        max_ratio = p.declare("gates.max_scatter_ratio", GateLimits.max_scatter_ratio, "A hold whose scatter "
+                              "(after its trend) exceeds this multiple of the measured noise, significantly, is "
+                              "unsteady (vibration, motion): rejected", read_only=True, range=(1.0, 100.0))
         pose_tol = p.declare("pose_tolerance_deg", 15.0, "How far the measured gravity may be from a "
                              "Table 1 pose, deg", read_only=True, range=(1.0, 44.0))
-        rounds = p.declare("rounds", False, "Accept repeated poses as extra rounds (else ignore them)",
-                           read_only=True)
+        rounds = p.declare("rounds", True, "After the first solve, accept further complete rounds of the twelve "
+                           "poses in Table 1 order (starting at pose 1) and solve again with all of them; "
+                           "false: the first solve is final", read_only=True)
         site = c.declare_site(p)
         det = c.declare_detector(p, max_duration_s=600.0)
         qos = c.declare_qos(p)
 
         self.detector = StaticDetector(**det)
-        self.session = CaptureSession(site=site, min_capture_s=min_capture, max_scatter_acc=max_acc,
-                                      max_scatter_mag=max_mag, pose_tolerance_deg=pose_tol, rounds=rounds,
-                                      probe_id=self.probe_id)
+        self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
+        self.implausible_samples = 0
+        self.session = CaptureSession(site=site, min_capture_s=min_capture, pose_tolerance_deg=pose_tol,
+                                      rounds=rounds, probe_id=self.probe_id,
+                                      limits=GateLimits(max_creep_deg=max_creep, max_scatter_ratio=max_ratio))
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
         self._temp = c.NAN
@@ -80,7 +87,7 @@ class CalibrationNode(Node):
         self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(RecapturePose, "~/recapture", self._on_recapture)
-        self.create_timer(1.0 / self.status_rate, self._on_timer)
+        c.steady_timer(self, 1.0 / self.status_rate, self._on_timer)  # runs on when /clock stops
         self.add_post_set_parameters_callback(self._after_set)
         self.get_logger().info(f"waiting for the twelve poses on {c.TOPIC_IMU} + {c.TOPIC_MAG}"
                                + (f"; coefficients will be written to {self.output}" if self.output else ""))
@@ -102,6 +109,8 @@ class CalibrationNode(Node):
     def _on_imu(self, msg):
         s = msg.header.stamp
         ooo = self.pairer.out_of_order
+        if len(self._prior_seen) < 2:
+            c.note_covariance(self, self.detector, imu_msg=msg)
         got = self.pairer.add_imu((s.sec, s.nanosec), c.specific_force(msg))
         if got is not None:
             self._sample(*got)
@@ -111,6 +120,8 @@ class CalibrationNode(Node):
     def _on_mag(self, msg):
         s = msg.header.stamp
         ooo = self.pairer.out_of_order
+        if len(self._prior_seen) < 2:
+            c.note_covariance(self, self.detector, mag_msg=msg)
         got = self.pairer.add_mag((s.sec, s.nanosec), c.field_nt(msg))
         if got is not None:
             self._sample(*got)
@@ -124,25 +135,46 @@ class CalibrationNode(Node):
         c.note_bad_sample(self, t, f, m)
         self._last = (t, f, m)
         self._last_wall = time.monotonic()
-        seg = self.detector.update(t, f, m, self._temp)
-        if seg is not None:
-            self._offer(seg)
+        if c.sample_is_finite(f, m) and c.implausible(f, m) is not None:
+            c.note_implausible(self, t, f, m)
+            return
+        for st in self.detector.update(t, f, m, self._temp):
+            self._offer(st)
+        if self.detector.events:
+            self._log_events()
+
+    def _log_events(self):
+        for e in self.detector.pop_events():
+            self.get_logger().warning(e)
 
     def _offer(self, seg):
+        """Offer a closed station to the session; every refusal is logged at WARNING, a failed solve
+        at ERROR (never at INFO), and a solve is published."""
+        self._report(lambda: self.session.offer(seg))
+
+    def _report(self, action):
         s = self.session
-        if s.state == "done" and not s.recapture and not s.rounds:
-            return  # solved: later stations (the survey) are not calibration poses
-        n_warn = len(self.session.warnings)
-        result = self.session.offer(seg)
-        for w in self.session.warnings[n_warn:]:
+        n_warn, n_info, n_solves = len(s.warnings), len(s.infos), s.solves
+        result = action()
+        for w in s.warnings[n_warn:]:
             self.get_logger().warning(w)
+        for i in s.infos[n_info:]:
+            self.get_logger().info(i)
         if result == "accepted":
-            self.get_logger().info(f"captured pose {self.session.current_pose}; pending {self.session.pending}")
-        if result == "solved":
+            self.get_logger().info(f"captured pose {s.current_pose}; pending {s.pending}")
+        if s.solves != n_solves and s.calibration is not None:
             self._publish_coefficients()
-        elif self.session.state == "error":
-            self.get_logger().error(self.session.message)
+        elif s.state == "error" and s.message:
+            self.get_logger().error(s.message)
         self._publish_status()
+
+    def _finish(self):
+        s = self.session
+        before = (s.state, s.solves)
+        s.finish()
+        if s.state == "error" and before[0] != "error":
+            self.get_logger().error(f"calibration did not solve: {s.message}")
+        return "finished"
 
     def _publish_coefficients(self):
         cal = self.session.calibration
@@ -163,17 +195,21 @@ class CalibrationNode(Node):
         if (self.idle_flush > 0 and self._last_wall is not None
                 and time.monotonic() - self._last_wall > self.idle_flush):
             self._last_wall = None
-            seg = self.detector.flush()
-            if seg is not None:
-                self._offer(seg)
-                return
+            closed = self.detector.flush()
+            for st in closed:
+                self._offer(st)
+            self._log_events()
+            # the end of the data: solve with what there is (the last round, poses missing) or say why not
+            self._report(self._finish)
+            return
         # Live pose while static (the session only identifies closed segments).
         if self._last is not None and self.detector.static_for_s > 0:
             pose, _ = self.session.identify(tuple(-x for x in self._last[1]), self._last[2])  # g = -f
             self._live_pose = pose if pose is not None else -1
         else:
             self._live_pose = -1
-        self._publish_status()
+        if c.ros_time_started(self):  # use_sim_time: no periodic status before the first /clock
+            self._publish_status()
 
     def _publish_status(self):
         s = self.session

@@ -12,20 +12,24 @@ Per-sample helpers work on plain floats and tuples: no numpy arrays are allocate
 from __future__ import annotations
 
 import math
+import re
 import sys
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..coeffs import Calibration
-from ..frames import NT_PER_TESLA, Site
+from ..coeffs import Calibration, message_fields
+from ..frames import NT_PER_TESLA, STANDARD_GRAVITY, Site
+from ..probelog import Limits, check_sample
 from ..survey import Tolerances
 from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-free, shared with reprocess)
 
@@ -43,6 +47,7 @@ TOPIC_COEFFICIENTS = "/calibration/coefficients"
 TOPIC_STATUS = "/calibration/status"
 TOPIC_STATION = "/survey/station"
 TOPIC_DIAGNOSTICS = "/diagnostics"
+TOPIC_CLOCK = "/clock"  # the probe's log time (stamp:=log); the other nodes run on it (use_sim_time)
 
 
 # --------------------------------------------------------------------------------------------
@@ -192,18 +197,21 @@ def declare_tolerances(params: Params, prefix: str = "tolerances") -> Tolerances
     )
 
 
-DETECTOR_FIELDS = ("noise_acc", "noise_mag", "k_sigma", "min_duration_s", "settle_s", "max_duration_s")
-
-
 def declare_detector(params: Params, prefix: str = "detector", **defaults) -> dict:
-    """Static-detector settings (keyword arguments of :class:`streaming.StaticDetector`)."""
+    """Static-detector settings (keyword arguments of :class:`streaming.StaticDetector`).
+
+    The noise is measured from the data by default (``noise_acc``/``noise_mag`` = 0); a value
+    > 0 overrides the measurement.  The covariance the probe's messages state is a prior (see
+    :func:`note_covariance`)."""
     p = prefix
     spec = {
-        "noise_acc": (0.002, "Accelerometer noise per sample (1 sigma), m/s^2", (1e-6, 1.0)),
-        "noise_mag": (20.0, "Magnetometer noise per sample (1 sigma), nT", (1e-3, 5000.0)),
-        "k_sigma": (6.0, "A sample further than k_sigma*noise from the running mean ends a static "
-                         "interval", (1.0, 100.0)),
-        "min_duration_s": (1.0, "Shortest static interval reported as a station, s (log time)", (0.05, 600.0)),
+        "noise_acc": (0.0, "Accelerometer noise per sample (1 sigma), m/s^2; 0: measured from the data "
+                           "(default; the messages' covariance is only a prior), > 0: use this instead", (0.0, 1.0)),
+        "noise_mag": (0.0, "Magnetometer noise per sample (1 sigma), nT; 0: measured from the data (default), "
+                           "> 0: use this instead", (0.0, 5000.0)),
+        "k_sigma": (6.0, "A sample further than k_sigma times its axis' noise from the running mean of a hold "
+                         "is motion (break_samples in a row end the hold)", (1.0, 100.0)),
+        "min_duration_s": (0.5, "Shortest static interval reported as a station, s (log time)", (0.05, 600.0)),
         "settle_s": (0.2, "Samples discarded after motion stops, s (log time)", (0.0, 60.0)),
         "max_duration_s": (30.0, "Long static intervals are closed (reported) after this, s", (0.1, 1e6)),
     }
@@ -211,7 +219,43 @@ def declare_detector(params: Params, prefix: str = "detector", **defaults) -> di
     for key, (default, desc, rng) in spec.items():
         out[key] = params.declare(f"{p}.{key}", float(defaults.get(key, default)), desc, read_only=True,
                                   range=rng)
+    out["break_samples"] = params.declare(f"{p}.break_samples", int(defaults.get("break_samples", 3)),
+                                          "Consecutive samples beyond k_sigma that end a hold; fewer are spikes, "
+                                          "left out of the means", read_only=True, range=(1, 1000))
     return out
+
+
+def note_covariance(node, detector, imu_msg=None, mag_msg=None) -> None:
+    """Give the detector the noise the first Imu / MagneticField message states (its covariance's
+    first diagonal entry, if > 0) as a prior; called until both are seen (``node._prior_seen``)."""
+    seen = node._prior_seen
+    if imu_msg is not None and "acc" not in seen:
+        seen.add("acc")
+        var = imu_msg.linear_acceleration_covariance[0]
+        if var > 0:
+            detector.set_prior(noise_acc=math.sqrt(var))
+    if mag_msg is not None and "mag" not in seen:
+        seen.add("mag")
+        var = mag_msg.magnetic_field_covariance[0]
+        if var > 0:
+            detector.set_prior(noise_mag=math.sqrt(var) * NT_PER_TESLA)
+
+
+_ACC2 = (0.25 * STANDARD_GRAVITY ** 2, 2.25 * STANDARD_GRAVITY ** 2)   # |f|² of probelog.Limits' range
+_MAG2 = (5000.0 ** 2, 100000.0 ** 2)
+
+
+def implausible(f, m) -> str | None:
+    """Why a sample (specific force m/s², field nT) is unusable, or None: the CSV reader's limits
+    (:func:`probelog.check_sample`), with a cheap squared-norm pre-check for the per-sample path."""
+    a2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2]
+    b2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
+    if _ACC2[0] <= a2 <= _ACC2[1] and _MAG2[0] <= b2 <= _MAG2[1]:
+        return None
+    reason = check_sample(f, m, NAN, Limits())
+    if reason is not None and 1.0 < math.sqrt(b2) / NT_PER_TESLA < 1e6:
+        reason += " — the field looks like nT written into a tesla field; MagneticField carries tesla"
+    return reason
 
 
 def declare_qos(params: Params, prefix: str = "qos", reliability: str = "best_effort",
@@ -266,6 +310,23 @@ def set_stamp(stamp, t: float) -> None:
     stamp.nanosec = ns
 
 
+def steady_timer(node, period_s: float, callback):
+    """A timer on the steady (monotonic) clock, not the node's ROS clock.
+
+    With ``use_sim_time`` the ROS clock follows ``/clock`` (the probe's log time) and stops when
+    the probe stops; the periodic work of the nodes (status, idle flush, diagnostics heartbeat,
+    pairing checks, publishing, discovery) must go on then, so it runs on steady time.
+    """
+    return node.create_timer(period_s, callback, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
+def ros_time_started(node) -> bool:
+    """False while the node runs on simulated time (``use_sim_time``) and no ``/clock`` has come
+    yet (its ROS time reads 0): a stamp taken then would lie outside the run's time base."""
+    clock = node.get_clock()
+    return not clock.ros_time_is_active or clock.now().nanoseconds > 0
+
+
 def specific_force(imu_msg) -> tuple:
     """REP-145 specific force (m/s^2) of an Imu message as a tuple of floats."""
     a = imu_msg.linear_acceleration
@@ -309,64 +370,31 @@ def note_bad_sample(node, t: float, f, m) -> None:
         node.get_logger().warning(bad_sample_text(t, f, m, node.bad_samples), throttle_duration_sec=2.0)
 
 
+def note_implausible(node, t: float, f, m) -> None:
+    """Count and log a sample dropped as implausible (see :func:`implausible`): each kind of reason
+    (its text without the numbers) at most every 2 s, so one reason does not hide another."""
+    node.implausible_samples += 1
+    reason = implausible(f, m)
+    kind = re.sub(r"[-+0-9.e]+", "#", reason)
+    seen = node.__dict__.setdefault("_implausible_said", {})
+    now = time.monotonic()
+    if now - seen.get(kind, -math.inf) >= 2.0:
+        seen[kind] = now
+        node.get_logger().warning(f"sample at t={t:.3f} s dropped: {reason}; {node.implausible_samples} dropped so far")
+
+
 # --------------------------------------------------------------------------------------------
 # Calibration coefficients <-> CalibrationCoefficients
 # --------------------------------------------------------------------------------------------
-_PARAM_UNITS = {"acc": {"bias": "m/s^2", "scale": "1", "e": "1"}, "mag": {"bias": "nT", "scale": "1", "e": "1"}}
-
-
-def _param_unit(sensor, name):
-    kind = "bias" if name.startswith("bias") else "scale" if name.startswith("scale") else "e"
-    return _PARAM_UNITS[sensor][kind]
-
-
-def _residuals(cal: Calibration, sensor: str, sign: float):
-    diag = cal.diagnostics.get(sensor) or {}
-    per_pose = diag.get("per_pose") or {}
-    poses = sorted(int(p) for p in per_pose)
-    res = []
-    for p in poses:
-        r = per_pose.get(p, per_pose.get(str(p)))
-        res.extend(sign * float(x) for x in r["residual"])
-    return poses, res
-
-
 def coefficients_to_msg(cal: Calibration, msg_type, stamp_msg=None, frame_id: str = "probe"):
-    """A ``CalibrationCoefficients`` message from a :class:`coeffs.Calibration`.
-
-    The message's model is ``corrected = matrix·(raw - offset)``: matrix = ``C = (K·E)^-1`` and
-    offset = the bias ``B``.  Its accelerometer fields are REP-145 (specific force): the matrix is
-    the same as in the core's gravity-vector convention, the offset and the bias parameters change
-    sign (``f = -g``), as do the residuals.  ``coefficients_yaml`` carries the core record
-    unchanged (gravity-vector convention, stated in the record).
-    """
+    """A ``CalibrationCoefficients`` message from a :class:`coeffs.Calibration` (fields: see
+    :func:`coeffs.message_fields`, shared with offline reprocessing)."""
     m = msg_type()
     if stamp_msg is not None:
         m.header.stamp = stamp_msg
     m.header.frame_id = frame_id
-    m.id = cal.id
-    m.probe_id = cal.probe_id
-    m.created = cal.created
-    for sensor, prefix, sign in (("acc", "accel", -1.0), ("mag", "mag", 1.0)):
-        t = cal.triad(sensor)
-        setattr(m, f"{prefix}_correction_matrix", [float(x) for x in t.correction_matrix.reshape(9)])
-        # message model: corrected = matrix·(raw - offset), so the offset is the bias itself
-        setattr(m, f"{prefix}_offset", [sign * float(x) for x in t.bias])
-        params = t.parameters()
-        names = list(params)
-        setattr(m, f"{prefix}_parameter_names", names)
-        setattr(m, f"{prefix}_parameter_values",
-                [(sign if n.startswith("bias") else 1.0) * float(params[n]) for n in names])
-        setattr(m, f"{prefix}_parameter_units", [_param_unit(sensor, n) for n in names])
-        poses, res = _residuals(cal, sensor, sign)
-        setattr(m, f"{prefix}_residuals", res)
-        setattr(m, f"{prefix}_residual_units", "m/s^2" if sensor == "acc" else "nT")
-        setattr(m, f"{prefix}_rms_residual",
-                float(math.sqrt(sum(r * r for r in res) / len(res))) if res else NAN)
-        setattr(m, f"{prefix}_model_effects", list(cal.effects))
-        if sensor == "acc":
-            m.poses_used = list(poses)  # Table 1 numbering, 1..12
-    m.coefficients_yaml = cal.to_yaml()
+    for name, value in message_fields(cal).items():
+        setattr(m, name, value)
     return m
 
 

@@ -6,6 +6,12 @@ Inputs: ``/probe/imu`` + ``/probe/mag`` (paired by header stamp), ``/probe/tempe
 YAML file (``coeffs_file``, may be changed at run time: the file is checked before it is
 accepted).  The most recently received set is applied.
 
+Recovery (a node restarted mid-run, e.g. by the launcher, after the calibration node is gone):
+``fallback_coeffs_file`` is the last valid record on disk (the calibration node's ``output``); it
+is applied at start-up, with a warning, until a record arrives on the topic (one that differs
+replaces it).  ``state_file`` keeps the next station id (JSON, written atomically after every
+station), so the ids of a restarted node continue instead of starting again at 0.
+
 Outputs:
 
 * ``/survey/station`` (``SurveyStation``, reliable): one per static interval closed by the
@@ -22,7 +28,9 @@ minute) do the heavier evaluation.
 from __future__ import annotations
 
 import bisect
+import json
 import math
+import os
 import sys
 import time
 
@@ -32,6 +40,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..coeffs import Calibration, CoefficientError
+from ..probelog import atomic_write_text
 from ..streaming import StaticDetector, SurveyProcessor, station_fields
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
@@ -51,6 +60,14 @@ class CorrectionNode(Node):
                                 check=self._check_coeffs_file)
         self.use_topic = p.declare("use_topic", True, f"Apply coefficients received on {c.TOPIC_COEFFICIENTS}",
                                    read_only=True)
+        fallback = p.declare("fallback_coeffs_file", "", "Last valid coefficient record on disk (the "
+                             "calibration node's output), applied at start-up until a record arrives on "
+                             f"{c.TOPIC_COEFFICIENTS} (one that differs replaces it); ignored when coeffs_file "
+                             "is given; a missing file is skipped, an invalid one reported; empty: none",
+                             read_only=True)
+        self.state_file = p.declare("state_file", "", "JSON file keeping the next station id, written after "
+                                    "every station and read at start-up, so that the ids of a restarted node "
+                                    "continue; empty: ids start at 0", read_only=True)
         self.publish_corrected = p.declare("publish_corrected", False, "Publish the corrected streams "
                                            f"{c.TOPIC_IMU_CORRECTED} and {c.TOPIC_MAG_CORRECTED}")
         axial = p.declare("axial_correction", False, "Azimuths from the short-collar correction of axial "
@@ -68,7 +85,11 @@ class CorrectionNode(Node):
         self.add_post_set_parameters_callback(self._after_set)
 
         self.detector = StaticDetector(**det)
+        self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
+        self.implausible_samples = 0
         self.processor = SurveyProcessor(self.site, self.tol, axial=axial)
+        self.processor._next_id = self._read_state()  # station ids continue across restarts
+        self._fallback_id = None     # id of the record applied from fallback_coeffs_file, until replaced
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
         self._unpaired_seen = self._paired_seen = 0
@@ -82,6 +103,8 @@ class CorrectionNode(Node):
                                   else SurveyStation.AZIMUTH_REFERENCE_MAGNETIC)
         if coeffs_file:
             self._apply(Calibration.load(coeffs_file), f"file {coeffs_file}")
+        elif fallback:
+            self._apply_fallback(fallback)
 
         self.pub_station = self.create_publisher(SurveyStation, c.TOPIC_STATION, c.reliable_qos(100))
         self.pub_diag = self.create_publisher(DiagnosticArray, c.TOPIC_DIAGNOSTICS, c.reliable_qos(10))
@@ -94,7 +117,7 @@ class CorrectionNode(Node):
         if self.use_topic:
             self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
                                      c.latched_qos())
-        self.create_timer(1.0, self._on_timer)
+        c.steady_timer(self, 1.0, self._on_timer)  # keeps running when /clock (use_sim_time) stops
 
     # ---- coefficients ----------------------------------------------------------------------
     @staticmethod
@@ -110,6 +133,7 @@ class CorrectionNode(Node):
     def _after_set(self, params):
         for prm in params:
             if prm.name == "coeffs_file" and prm.value:
+                self._fallback_id = None  # an explicit record replaces the fallback
                 self._apply(Calibration.load(prm.value), f"file {prm.value}")
             elif prm.name in ("publish_corrected", "publish_short"):
                 setattr(self, prm.name, prm.value)
@@ -119,20 +143,76 @@ class CorrectionNode(Node):
         self.fast = c.FastCorrection.from_calibration(cal)
         self.get_logger().info(f"applying coefficients {cal.id} (probe {cal.probe_id}) from {origin}")
 
+    def _apply_fallback(self, path):
+        """Apply the last valid record on disk until the topic delivers one (see the module docstring)."""
+        if not os.path.exists(path):
+            self.get_logger().info(f"no fallback record at {path} (yet): waiting for {c.TOPIC_COEFFICIENTS}")
+            return
+        try:
+            cal = Calibration.load(path)
+        except (OSError, CoefficientError) as exc:
+            self.get_logger().error(f"fallback record {path} is not valid, not used: {exc}")
+            return
+        self.processor.set_calibration(cal)
+        self.fast = c.FastCorrection.from_calibration(cal)
+        self._fallback_id = cal.id
+        self.get_logger().warning(f"no record received yet; applying the last valid record on disk {path} "
+                                  f"(id {cal.id}, created {cal.created}) until one arrives on "
+                                  f"{c.TOPIC_COEFFICIENTS}")
+
     def _on_coefficients(self, msg):
         try:
             cal = c.coefficients_from_msg(msg)
         except CoefficientError as exc:
             self.get_logger().error(f"coefficients rejected, keeping the previous ones: {exc}")
             return
+        fallback, self._fallback_id = self._fallback_id, None
+        if fallback is not None and cal.id != fallback:
+            self.get_logger().info(f"record {cal.id} received on {c.TOPIC_COEFFICIENTS} replaces the fallback "
+                                   f"record {fallback} from disk")
+        elif fallback is not None:
+            self.get_logger().info(f"record {cal.id} received on {c.TOPIC_COEFFICIENTS} is the fallback record "
+                                   "already applied")
         if self.processor.calibration is None or cal.id != self.processor.calibration.id:
             self._apply(cal, c.TOPIC_COEFFICIENTS)
+
+    # ---- station-id state ------------------------------------------------------------------
+    def _read_state(self) -> int:
+        """The next station id from ``state_file`` (0 without one).  An unreadable file is reported
+        at ERROR and ids start at 0 (they may then repeat those of the earlier run)."""
+        if not self.state_file or not os.path.exists(self.state_file):
+            return 0
+        try:
+            with open(self.state_file, encoding="utf-8") as fh:
+                state = json.load(fh)
+            next_id = state["next_station_id"]
+            if not isinstance(next_id, int) or isinstance(next_id, bool) or next_id < 0:
+                raise ValueError(f"next_station_id {next_id!r} is not a non-negative integer")
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            self.get_logger().error(f"state file {self.state_file} is not usable ({type(exc).__name__}: {exc}): "
+                                    "station ids start at 0 and may repeat those of the earlier run")
+            return 0
+        self.get_logger().info(f"continuing station ids at {next_id} (from {self.state_file})")
+        return next_id
+
+    def _write_state(self):
+        """Persist the next station id (atomically: a crash leaves the old or the new file, never half)."""
+        if not self.state_file:
+            return
+        state = {"format": "inclinometer_calib/correction_state", "next_station_id": self.processor._next_id}
+        try:
+            atomic_write_text(self.state_file, json.dumps(state) + "\n")
+        except OSError as exc:
+            self.get_logger().error(f"cannot write the state file {self.state_file}: {exc}",
+                                    throttle_duration_sec=10.0)
 
     # ---- samples ---------------------------------------------------------------------------
     def _on_imu(self, msg):
         s = msg.header.stamp
         ooo = self.pairer.out_of_order
         f = c.specific_force(msg)
+        if len(self._prior_seen) < 2:
+            c.note_covariance(self, self.detector, imu_msg=msg)
         got = self.pairer.add_imu((s.sec, s.nanosec), f)
         if got is not None:
             self._sample(*got)
@@ -147,6 +227,8 @@ class CorrectionNode(Node):
         s = msg.header.stamp
         ooo = self.pairer.out_of_order
         m = c.field_nt(msg)
+        if len(self._prior_seen) < 2:
+            c.note_covariance(self, self.detector, mag_msg=msg)
         got = self.pairer.add_mag((s.sec, s.nanosec), m)
         if got is not None:
             self._sample(*got)
@@ -178,23 +260,31 @@ class CorrectionNode(Node):
     def _sample(self, t, f, m):
         c.note_bad_sample(self, t, f, m)
         self._last_wall = time.monotonic()
-        seg = self.detector.update(t, f, m, self._temp)
-        if seg is not None:
-            self._station(seg)
+        if c.sample_is_finite(f, m) and c.implausible(f, m) is not None:
+            c.note_implausible(self, t, f, m)
+            return
+        for st in self.detector.update(t, f, m, self._temp):
+            self._station(st)
+        if self.detector.events:
+            for e in self.detector.pop_events():
+                self.get_logger().warning(e)
 
     # ---- stations --------------------------------------------------------------------------
     def _station(self, seg):
         if seg.short and not self.publish_short:
             return
         ref = self._reference_at(0.5 * (seg.t_start + seg.t_end))
-        has_ref = all(math.isfinite(x) for x in ref)
+        has_ref = any(math.isfinite(x) for x in ref)   # a partial reference is used for what it gives
         rec = self.processor.process(seg, ref=ref if has_ref else None)
+        for w in seg.warnings:
+            self.get_logger().warning(f"station {rec.station_id}: {w}")
         msg = SurveyStation()
         c.set_stamp(msg.header.stamp, seg.t_end)
         msg.header.frame_id = self.frame_id
         for name, value in station_fields(rec, ref if has_ref else None, self.azimuth_reference, self._have_temp,
                                           self.processor.calibration is not None).items():
             setattr(msg, name, value)
+        self._write_state()  # before publishing: a crash in between skips an id, never repeats one
         self.pub_station.publish(msg)
         self._last_diag = self._diagnostics(msg)
         self.pub_diag.publish(self._last_diag)
@@ -258,10 +348,15 @@ class CorrectionNode(Node):
         if (self.idle_flush > 0 and self._last_wall is not None
                 and time.monotonic() - self._last_wall > self.idle_flush):
             self._last_wall = None  # end of stream: close the last station
-            seg = self.detector.flush()
-            if seg is not None:
-                self._station(seg)
+            closed = self.detector.flush()
+            for st in closed:
+                self._station(st)
+            for e in self.detector.pop_events():
+                self.get_logger().warning(e)
+            if closed:
                 return
+        if not c.ros_time_started(self):
+            return  # use_sim_time and no /clock yet: nothing to stamp the heartbeat with
         if self._last_diag is None:
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()

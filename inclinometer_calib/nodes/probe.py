@@ -5,8 +5,8 @@ header stamp per sample:
 
 * ``/probe/imu`` (``sensor_msgs/Imu``): REP-145 specific force in m/s^2 (a resting probe reads
   -gravity); ``orientation_covariance[0] = angular_velocity_covariance[0] = -1`` (the probe
-  measures neither); ``linear_acceleration_covariance`` diagonal = ``noise_acc^2``;
-* ``/probe/mag`` (``sensor_msgs/MagneticField``): tesla, covariance diagonal from ``noise_mag``;
+  measures neither); ``linear_acceleration_covariance``: see below;
+* ``/probe/mag`` (``sensor_msgs/MagneticField``): tesla, covariance in tesla^2;
 * ``/probe/temperature`` (``sensor_msgs/Temperature``): degrees Celsius;
 * ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, reliable): the known reference attitude
   (x = drift, y = azimuth, z = toolface, degrees), piecewise constant from ``header.stamp`` on;
@@ -15,8 +15,26 @@ header stamp per sample:
 The whole log is prepared at start-up (simulated, read or decoded) and then published sample by
 sample from a timer that follows the log's time line scaled by ``speed`` (several samples per
 tick at high rates).  Stamps are the log time (``stamp:=log``, a simulation time base starting
-at the log's first sample) or the wall-clock time the sample is due (``stamp:=now``).  At the
-end: ``on_end:=stop`` exits with status 0, ``on_end:=idle`` keeps the node alive.
+at the log's first sample) or the wall-clock time the sample is due (``stamp:=now``).  With
+``stamp:=log`` the node also publishes ``/clock`` (``rosgraph_msgs/Clock``): the log time of the
+samples published so far (the first sample's while waiting; at most every
+:data:`CLOCK_PERIOD_S` of wall time), so that nodes run with ``use_sim_time:=true`` stamp their
+own messages (status, diagnostics, coefficients) in the same time base as the samples.  Its own
+publishing timer runs on the steady clock.
+
+The start waits until ``/probe/imu``, ``/probe/mag`` and ``/probe/temperature`` each have
+``wait_for_subscribers`` subscribers and ``/probe/reference`` has
+``wait_for_reference_subscribers`` (the launcher sets both from the nodes it starts), so that a
+recorder does not miss the first messages of a topic it subscribed to last.
+
+Covariances (per-axis variances on the diagonal): ``simulate`` publishes the simulated noise;
+``csv`` and ``mcap`` the noise measured from the whole log (:func:`noise.estimate_noise`), except
+that a bag whose messages carry a positive covariance keeps the recorded one, and a ``noise_acc``
+/ ``noise_mag`` parameter > 0 overrides both for its sensor.
+
+At the end: ``on_end:=stop`` exits with status 0 — or :data:`INPUT_DAMAGED` (3) when the MCAP
+input was damaged (truncated, corrupt chunks, undecodable messages: the readable part was
+replayed) — ``on_end:=idle`` keeps the node alive.
 """
 from __future__ import annotations
 
@@ -31,15 +49,22 @@ from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.task import Future
+from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from .. import effects as fx
 from .. import simulate as sim
 from ..coeffs import Calibration
-from ..probelog import ProbeLog, atomic_write_text, read_csv, segment_stations
+from ..noise import estimate_noise
+from ..probelog import ProbeLog, atomic_write_text, label_runs, read_csv
 from . import common as c
 
 SOURCES = ("simulate", "csv", "mcap")
+#: Exit status at the end of the script when the MCAP input was damaged (the launcher reports it).
+INPUT_DAMAGED = 3
+#: Shortest wall-clock interval between two /clock messages, s: enough for the other nodes'
+#: stamps (10 ms of wall time), a fraction of the sample rate's message load.
+CLOCK_PERIOD_S = 0.01
 KNOWN_BAG_TOPICS = {
     c.TOPIC_IMU: "sensor_msgs/msg/Imu",
     c.TOPIC_MAG: "sensor_msgs/msg/MagneticField",
@@ -84,9 +109,13 @@ class ProbeNode(Node):
         self.frame_id = p.declare("frame_id", "probe", "frame_id of the published messages", read_only=True)
         self.max_batch = p.declare("max_batch", 2000, "Most samples published per timer tick",
                                    range=(1, 100000))
-        self.wait_subs = p.declare("wait_for_subscribers", 0, "Start publishing once /probe/imu and "
-                                   "/probe/mag each have this many subscribers (0: start at once)",
-                                   read_only=True, range=(0, 100))
+        self.wait_subs = p.declare("wait_for_subscribers", 0, f"Start publishing once {c.TOPIC_IMU}, "
+                                   f"{c.TOPIC_MAG} and {c.TOPIC_TEMPERATURE} each have this many subscribers "
+                                   "(0: do not wait for them)", read_only=True, range=(0, 100))
+        self.wait_ref_subs = p.declare("wait_for_reference_subscribers", 0, "Start publishing only once "
+                                       f"{c.TOPIC_REFERENCE} has this many subscribers too (its readers: the "
+                                       "correction node, a recorder; 0: do not wait for them)", read_only=True,
+                                       range=(0, 100))
         self.wait_timeout = p.declare("wait_timeout_s", 30.0, "Start anyway after this long waiting for "
                                       "subscribers, s", read_only=True, range=(0.0, 3600.0))
         self.start_delay = p.declare("start_delay_s", 0.5, "Pause before the first sample (after the "
@@ -104,10 +133,14 @@ class ProbeNode(Node):
                                  ptype=Parameter.Type.STRING_ARRAY)
         self.severity = p.declare("severity", 1.0, "Scale of the random probe errors", read_only=True,
                                   range=(0.0, 10.0))
-        self.noise_acc = p.declare("noise_acc", 0.002, "Accelerometer noise (1 sigma), m/s^2; also the "
-                                   "published covariance", read_only=True, range=(0.0, 1.0))
-        self.noise_mag = p.declare("noise_mag", 20.0, "Magnetometer noise (1 sigma), nT; also the "
-                                   "published covariance", read_only=True, range=(0.0, 5000.0))
+        self.noise_acc = p.declare("noise_acc", 0.0, "Accelerometer noise (1 sigma), m/s^2, published as the "
+                                   "covariance. simulate: the simulated noise (0: the simulator's 0.002); csv, "
+                                   "mcap: overrides the noise measured from the data (0: measured from the data, "
+                                   "or a bag's recorded covariance)", read_only=True, range=(0.0, 1.0))
+        self.noise_mag = p.declare("noise_mag", 0.0, "Magnetometer noise (1 sigma), nT, published as the "
+                                   "covariance. simulate: the simulated noise (0: the simulator's 20); csv, mcap: "
+                                   "overrides the noise measured from the data (0: measured from the data, or a "
+                                   "bag's recorded covariance)", read_only=True, range=(0.0, 5000.0))
         self.site = c.declare_site(p)
         self.calibrate = p.declare("calibration_session", True, "Simulate the twelve-pose calibration "
                                    "first", read_only=True)
@@ -140,7 +173,8 @@ class ProbeNode(Node):
         qos = c.declare_qos(p)
         self.add_post_set_parameters_callback(self._after_set)
 
-        self.log, self.noise = self._load()  # raises ValueError/OSError on bad input
+        self.input_damaged = 0  # problems found in an MCAP input (exit status INPUT_DAMAGED at the end)
+        self.log, self.cov = self._load()  # raises ValueError/OSError on bad input
         self._t = self.log.t_s.tolist()
         self._acc = self.log.acc.tolist()
         self._mag = (self.log.mag * c.TESLA_PER_NT).tolist()
@@ -151,6 +185,10 @@ class ProbeNode(Node):
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG, qos)
         self.pub_temp = self.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
         self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, c.reliable_qos(100))
+        self.pub_clock = (self.create_publisher(ClockMsg, c.TOPIC_CLOCK, c.sensor_qos(10))
+                          if self.stamp_mode == "log" else None)
+        self._clock_msg = ClockMsg()
+        self._clock_wall = -math.inf
         self._init_messages()
 
         self.done = Future()
@@ -161,7 +199,7 @@ class ProbeNode(Node):
         self._wall0 = self._log0 = 0.0
         self._stamp0 = 0.0
         period = min(max(1.0 / (self.rate_hz * self.speed), 0.002), 0.02)
-        self._timer = self.create_timer(period, self._tick)
+        self._timer = c.steady_timer(self, period, self._tick)
         dur = (self._t[-1] - self._t[0]) if self._t else 0.0
         self.get_logger().info(
             f"source={self.source}: {len(self._t)} samples over {dur:.1f} s of log time; speed {self.speed:g} "
@@ -179,13 +217,13 @@ class ProbeNode(Node):
                 self.get_logger().warning(f"{self.path}: {r}")
             if rejections:
                 self.get_logger().warning(f"{self.path}: {len(rejections)} rows rejected")
-            return log, (self.noise_acc, self.noise_mag)
+            return log, self._covariance(log)
         return self._read_bag(self.path)
 
     def _simulate(self):
         specs = [sim.parse_effect_arg(e) for e in self.effects]
-        probe = sim.build_probe(self.seed, specs, severity=self.severity, noise_acc=self.noise_acc,
-                                noise_mag=self.noise_mag)
+        noise = {k: v for k, v in (("noise_acc", self.noise_acc), ("noise_mag", self.noise_mag)) if v > 0}
+        probe = sim.build_probe(self.seed, specs, severity=self.severity, **noise)
         rng = np.random.default_rng(self.seed + 1)
         logs, t0 = [], 0.0
         if self.calibrate:
@@ -212,10 +250,10 @@ class ProbeNode(Node):
         log = ProbeLog.concatenate(logs)
         if self.truth_file:
             self._write_truth(probe, log)
-        return log, (self.noise_acc, self.noise_mag)
+        return log, (self._diagonal((probe.noise_acc,) * 3), self._diagonal((probe.noise_mag * c.TESLA_PER_NT,) * 3))
 
     def _write_truth(self, probe, log):
-        stations, _ = segment_stations(log, min_samples=1)
+        runs = label_runs(log)   # the stations as simulated (labels), not as detected
         truth_cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id=f"sim-{self.seed}",
                                 method="simulator truth", site=self.site)
         truth = {
@@ -226,8 +264,8 @@ class ProbeNode(Node):
                                  "correction_matrix": c.as_list(truth_cal.triad(s).correction_matrix),
                                  "offset": c.as_list(truth_cal.triad(s).correction_offset),
                                  "convention": "gravity vector (acc), nT (mag)"} for s in ("acc", "mag")},
-            "stations": [{"pose": st.pose, "ref": [None if not math.isfinite(x) else float(x) for x in st.ref],
-                          "t_start": st.t_start, "t_end": st.t_end} for st in stations],
+            "stations": [{"pose": int(pose), "ref": [None if not math.isfinite(x) else float(x) for x in ref],
+                          "t_start": float(log.t_s[i0]), "t_end": float(log.t_s[i1])} for i0, i1, pose, ref in runs],
             "samples": len(log),
         }
         d = os.path.dirname(os.path.abspath(self.truth_file))
@@ -293,6 +331,7 @@ class ProbeNode(Node):
                 ref.append((key[0] + 1e-9 * key[1], (v.x, v.y, v.z)))
         for err in reader.errors:
             log.warning(f"{err}; replaying the messages read before it")
+        self.input_damaged = len(reader.errors) + sum(undecodable.values())
         for topic, n in skipped.items():
             log.warning(f"{path}: {n} messages on {topic} skipped")
         for topic, n in undecodable.items():
@@ -311,10 +350,49 @@ class ProbeNode(Node):
             refs[(t >= t_r - 1e-10) & (t < t_next - 1e-10)] = v
         log = ProbeLog(t, np.array([imu[k] for k in keys]), np.array([mag[k] for k in keys]),
                        np.array([temp.get(k, np.nan) for k in keys]), np.zeros(len(keys), dtype=int), refs)
-        noise = (math.sqrt(cov_acc[0]) if cov_acc is not None and cov_acc[0] > 0 else self.noise_acc,
-                 math.sqrt(cov_mag[0]) * 1e9 if cov_mag is not None and cov_mag[0] > 0 else self.noise_mag)
         self.get_logger().info(f"{path}: {len(keys)} samples, {len(ref)} reference changes")
-        return log, noise
+        return log, self._covariance(log, (cov_acc, cov_mag))
+
+    @staticmethod
+    def _diagonal(sigmas):
+        """A row-major 3x3 covariance with the squares of the per-axis ``sigmas`` on the diagonal."""
+        cov = [0.0] * 9
+        for k, v in zip((0, 4, 8), sigmas):
+            cov[k] = float(v) ** 2
+        return cov
+
+    def _covariance(self, log, recorded=(None, None)):
+        """Covariances to publish for a replayed log: (acc in (m/s^2)^2, mag in T^2), row-major 3x3.
+
+        Per sensor: the ``noise_*`` parameter if > 0; else a recorded covariance with a positive
+        diagonal (``recorded``: the bag's last message's, kept as is); else the per-axis noise
+        measured from the whole log (:func:`noise.estimate_noise`); else (too little static data)
+        zeros, which sensor_msgs reads as "unknown", with a warning.
+        """
+        level, out, says = None, [], []
+        for k, (name, override, rec, unit, to_msg) in enumerate((
+                ("accelerometer", self.noise_acc, recorded[0], "m/s^2", 1.0),
+                ("magnetometer", self.noise_mag, recorded[1], "nT", c.TESLA_PER_NT))):
+            if override > 0:
+                sig, src = (override,) * 3, "the noise parameter"
+            elif rec is not None and all(rec[i] > 0 for i in (0, 4, 8)):
+                out.append([float(x) for x in rec])
+                sig = tuple(math.sqrt(rec[i]) / to_msg for i in (0, 4, 8))
+                says.append(f"{name} {'/'.join(f'{x:.3g}' for x in sig)} {unit} (recorded in the bag)")
+                continue
+            else:
+                if level is None:
+                    level = estimate_noise(log.t_s, log.acc, log.mag)
+                sig = level.acc if k == 0 else level.mag
+                src = f"measured from the data, {level.blocks} blocks"
+                if not all(math.isfinite(x) and x > 0 for x in sig):
+                    self.get_logger().warning(f"{name} noise cannot be measured from {len(log)} samples "
+                                              "(too little static data): publishing a zero covariance (unknown)")
+                    sig, src = (0.0,) * 3, "unknown"
+            out.append(self._diagonal(tuple(x * to_msg for x in sig)))
+            says.append(f"{name} {'/'.join(f'{x:.3g}' for x in sig)} {unit} ({src})")
+        self.get_logger().info("published noise (1 sigma per axis x/y/z): " + "; ".join(says))
+        return out[0], out[1]
 
     @staticmethod
     def _reference_changes(ref):
@@ -330,18 +408,15 @@ class ProbeNode(Node):
         return out
 
     def _init_messages(self):
-        na, nm = self.noise
+        cov_acc, cov_mag = self.cov
         self.m_imu = Imu()
         self.m_imu.header.frame_id = self.frame_id
         self.m_imu.orientation_covariance[0] = -1.0
         self.m_imu.angular_velocity_covariance[0] = -1.0
-        for k in (0, 4, 8):
-            self.m_imu.linear_acceleration_covariance[k] = na * na
+        self.m_imu.linear_acceleration_covariance = [float(x) for x in cov_acc]
         self.m_mag = MagneticField()
         self.m_mag.header.frame_id = self.frame_id
-        var = (nm * c.TESLA_PER_NT) ** 2
-        for k in (0, 4, 8):
-            self.m_mag.magnetic_field_covariance[k] = var
+        self.m_mag.magnetic_field_covariance = [float(x) for x in cov_mag]
         self.m_temp = Temperature()
         self.m_temp.header.frame_id = self.frame_id
         self.m_temp.variance = 0.0
@@ -369,22 +444,47 @@ class ProbeNode(Node):
         self._stamp0 = self.get_clock().now().nanoseconds * 1e-9
         self.get_logger().info("publishing")
 
+    def _publish_clock(self, t: float, force: bool = False):
+        """/clock := log time ``t`` (s), at most every CLOCK_PERIOD_S of wall time unless ``force``."""
+        if self.pub_clock is None:
+            return
+        now = time.monotonic()
+        if force or now - self._clock_wall >= CLOCK_PERIOD_S:
+            self._clock_wall = now
+            c.set_stamp(self._clock_msg.clock, max(t, 0.0))
+            self.pub_clock.publish(self._clock_msg)
+
+    def _missing_subscribers(self) -> list:
+        """``topic (have/want)`` for every topic still short of the subscribers it waits for."""
+        want = [(pub, self.wait_subs) for pub in (self.pub_imu, self.pub_mag, self.pub_temp)]
+        want.append((self.pub_ref, self.wait_ref_subs))
+        return [f"{pub.topic_name} ({pub.get_subscription_count()}/{n})" for pub, n in want
+                if pub.get_subscription_count() < n]
+
     def _tick(self):
         if self._state == "running":
             self._publish_due()
         elif self._state == "waiting":
+            if self._t:
+                self._publish_clock(self._t[0])  # the other nodes' clocks start at the log's start
             waited = time.monotonic() - self._created
-            subs = min(self.pub_imu.get_subscription_count(), self.pub_mag.get_subscription_count())
-            if subs >= self.wait_subs and waited >= self.start_delay:
+            missing = self._missing_subscribers()
+            if not missing and waited >= self.start_delay:
                 self._start()
             elif waited > self.wait_timeout + self.start_delay:
-                self.get_logger().warning(f"only {subs} of {self.wait_subs} subscribers after "
-                                          f"{self.wait_timeout:g} s: starting anyway")
+                self.get_logger().warning(f"still waiting for subscribers after {self.wait_timeout:g} s on "
+                                          f"{', '.join(missing)}: starting anyway")
                 self._start()
         elif self._state == "ending" and time.monotonic() >= self._end_at:
             self._state = "ended"
+            status = 0
+            if self.input_damaged:
+                status = INPUT_DAMAGED
+                self.get_logger().error(f"{self.path}: the input was damaged ({self.input_damaged} problem(s), "
+                                        f"see the warnings above): only its readable part was replayed; exit "
+                                        f"status {INPUT_DAMAGED}")
             if self.on_end == "stop":
-                self.done.set_result(0)
+                self.done.set_result(status)
             else:
                 self.get_logger().info("script finished; idling (on_end:=idle)")
 
@@ -402,6 +502,8 @@ class ProbeNode(Node):
                 tk = self._stamp0 + (tk - self._log0) / self.speed
             self._publish_sample(k, tk)
         self._i = end
+        if end > i:
+            self._publish_clock(t[end - 1], force=end >= n)  # stamp:=log only
         if end >= n:
             self._state = "ending"
             self._end_at = time.monotonic() + 0.5  # let the last samples go out

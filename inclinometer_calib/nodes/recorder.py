@@ -9,8 +9,10 @@ that passes ``topics`` / ``exclude`` and has at least one publisher is subscribe
 ``ros2 bag record`` does: reliable only if every publisher is reliable, transient-local only if
 every publisher is (so latched messages such as calibration coefficients published before the
 recorder started are still delivered). The callback hands the bytes straight to
-:class:`inclinometer_calib.bag.BagWriter` (log time = receive time, publish time = the
-publisher's source timestamp).
+:class:`inclinometer_calib.bag.BagWriter` (log time = the wall-clock receive time, publish time =
+the publisher's source timestamp).  Log times stay wall-clock time even when the graph runs on the
+probe's ``/clock`` (header stamps in log time): what ``ros2 bag record`` does without
+``--use-sim-time``; the header stamps inside the messages carry the run's time base.
 
 Topic types are imported with importlib (``pkg.msg`` module + class; ``rosidl_runtime_py`` is
 not on PyPI). A topic whose type cannot be imported is skipped with a warning; at shutdown the
@@ -33,6 +35,7 @@ from typing import Dict, List, Optional, Set
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -158,8 +161,11 @@ class Recorder(Node):
             f"excluding {sorted(self.exclude)}, chunks <= {max_chunk_s:g} s, "
             f"compression {self.bag.compression or 'none'})")
         self._discover()
-        self.create_timer(period, self._discover)
-        self.create_timer(tick_s, self.bag.tick)
+        # steady clock: discovery and chunk closing go on whatever the ROS clock does (a node
+        # started with use_sim_time would otherwise stall when /clock stops)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(period, self._discover, clock=steady)
+        self.create_timer(tick_s, self.bag.tick, clock=steady)
 
     # -- discovery ---------------------------------------------------------------------------
     def _wanted(self, topic: str) -> bool:

@@ -1,8 +1,20 @@
-"""Faults: the correction node restarted mid-run picks up the latched coefficients and carries on.
+"""Faults and recovery.
+
+* the correction node restarted mid-run picks up the latched coefficients and carries on;
+* in-process: a correction node with no calibration node around applies the last valid record
+  on disk (``fallback_coeffs_file``), and its station ids continue across a restart
+  (``state_file``);
+* the launcher: a recorder and a correction node killed mid-run are restarted (a new bag part;
+  the record on disk, the station ids), the summary is built from both parts, the run exits 1; a
+  calibration that never solves, a damaged input bag exit 1; two launchers at once get different
+  domains and do not mix; an explicit domain held by another run is refused (exit 2).
 
 (The recorder's SIGKILL test — readable up to at most the last chunk, recovered — is
 ``test_recorder.py::test_sigkill_loses_at_most_one_chunk``.)
 """
+import json
+import os
+import re
 import signal
 import subprocess
 import sys
@@ -12,6 +24,8 @@ import time
 import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
+
+from inclinometer_calib.coeffs import Calibration  # noqa: E402
 
 
 def _node(name, env, log_path, *params):
@@ -97,3 +111,321 @@ def test_restarted_correction_node_gets_latched_coefficients(ros_env, tmp_path):
     survey = [s for s in after[k:] if s.drift_deg > 4.0 and s.status == 0]
     assert len(survey) >= 3
     assert rcs[0] == 0 and time.monotonic() > killed_at
+
+
+# ---- the correction node's recovery state, in-process (no DDS needed) ---------------------------
+class _Collect:
+    """Stands in for a publisher: keeps what is published."""
+
+    def __init__(self):
+        self.msgs = []
+
+    def publish(self, msg):
+        self.msgs.append(msg)
+
+
+def _survey_log(n_stations, seed=3):
+    import numpy as np
+
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.frames import Site
+
+    refs = [(20.0 + 10.0 * k, 40.0 * k, 0.0) for k in range(n_stations)]
+    stations = [sim.Stationary(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs]
+    return sim.run_session(sim.build_probe(seed), Site(), stations, np.random.default_rng(1), rate_hz=100.0,
+                           move_s=0.5, survey=True)
+
+
+def _correction_node(*params):
+    from rclpy.parameter import Parameter
+
+    from inclinometer_calib.nodes.correction import CorrectionNode
+
+    node = CorrectionNode(parameter_overrides=[Parameter(k, value=v) for k, v in params])
+    node.pub_station, node.pub_diag = _Collect(), _Collect()
+    return node
+
+
+def _feed(node, log):
+    """Samples straight into the node's sample path, then the end-of-stream flush."""
+    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
+        node._sample(t, tuple(f), tuple(m))
+    closed = node.detector.flush()  # the open interval, or the intervals it closes
+    for seg in [closed] if hasattr(closed, "short") else list(closed or ()):
+        node._station(seg)
+    return node.pub_station.msgs
+
+
+@pytest.fixture
+def truth_record(tmp_path):
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.coeffs import Calibration
+    from inclinometer_calib.frames import Site
+
+    probe = sim.build_probe(3)
+    cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id="fallback", site=Site())
+    path = tmp_path / "coeffs.yaml"
+    cal.save(path)
+    return path, cal
+
+
+def test_correction_node_started_after_the_calibration_node_is_gone_applies_the_record_on_disk(
+        ros, truth_record, tmp_path, capfd):
+    path, cal = truth_record
+    node = _correction_node(("fallback_coeffs_file", str(path)))
+    ros.append(node)
+    err = capfd.readouterr().err
+    assert f"no record received yet; applying the last valid record on disk {path} (id {cal.id}, created " in err
+    assert "[WARN]" in err.split("no record received yet")[0].splitlines()[-1]
+    st = _feed(node, _survey_log(2))
+    assert len(st) == 2 and all(s.coefficients_id == cal.id for s in st)  # corrected, not raw
+    assert all(s.status == 0 and abs(s.drift_deg - r) < 0.1 for s, r in zip(st, (20.0, 30.0)))
+
+
+def test_a_different_record_on_the_topic_replaces_the_fallback_one(ros, truth_record, capfd):
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.coeffs import Calibration
+    from inclinometer_calib.frames import Site
+    from inclinometer_calib.msg import CalibrationCoefficients
+    from inclinometer_calib.nodes import common as c
+
+    path, cal = truth_record
+    same, node = (_correction_node(("fallback_coeffs_file", str(path))) for _ in range(2))
+    ros.extend([same, node])
+    same._on_coefficients(c.coefficients_to_msg(cal, CalibrationCoefficients))  # the same record: kept
+    assert "is the fallback record already applied" in capfd.readouterr().err
+    assert same.processor.calibration.id == cal.id
+    other = sim.build_probe(4)
+    newer = Calibration(acc=other.acc, mag=other.mag, probe_id="newer", site=Site())
+    node._on_coefficients(c.coefficients_to_msg(newer, CalibrationCoefficients))
+    err = capfd.readouterr().err
+    line = next(x for x in err.splitlines() if "replaces the fallback record" in x)
+    assert "[INFO]" in line and f"record {newer.id} received on /calibration/coefficients replaces the " \
+        f"fallback record {cal.id} from disk" in line
+    assert node.processor.calibration.id == newer.id
+
+
+def test_an_invalid_fallback_record_is_reported_and_not_used(ros, tmp_path, capfd):
+    bad = tmp_path / "coeffs.yaml"
+    bad.write_text("format: inclinometer_calib/coefficients\nformat_version: 1\nid: abc\n")
+    node = _correction_node(("fallback_coeffs_file", str(bad)))
+    ros.append(node)
+    err = capfd.readouterr().err
+    line = next(x for x in err.splitlines() if "fallback record" in x)
+    assert "[ERROR]" in line and f"fallback record {bad} is not valid, not used" in line
+    assert node.processor.calibration is None
+    missing = _correction_node(("fallback_coeffs_file", str(tmp_path / "none.yaml")))
+    ros.append(missing)
+    assert missing.processor.calibration is None
+    assert "no fallback record at" in capfd.readouterr().err
+
+
+def test_station_ids_continue_across_a_restart_with_a_state_file(ros, truth_record, tmp_path, capfd):
+    path, _ = truth_record
+    state = tmp_path / "correction_state.json"
+    first = _correction_node(("coeffs_file", str(path)), ("state_file", str(state)))
+    ids = [s.station_id for s in _feed(first, _survey_log(3))]
+    first.destroy_node()  # as if it had crashed: only the state file survives
+    assert ids == [0, 1, 2]
+    second = _correction_node(("coeffs_file", str(path)), ("state_file", str(state)))
+    ros.append(second)
+    assert "continuing station ids at 3" in capfd.readouterr().err
+    assert [s.station_id for s in _feed(second, _survey_log(2, seed=4))] == [3, 4]
+    # without a usable state file the node says so and numbers from 0
+    state.write_text("{not json")
+    third = _correction_node(("coeffs_file", str(path)), ("state_file", str(state)))
+    ros.append(third)
+    err = capfd.readouterr().err
+    assert f"state file {state} is not usable" in err and "station ids start at 0" in err
+    assert third.processor._next_id == 0
+
+
+# ---- the launcher: a recorder and a correction node killed mid-run; a calibration that never
+# solves; two runs at once; a domain held by another run; a damaged input bag -----------------
+class Launch:
+    """A launcher running in the background; its output lines collected as they come."""
+
+    def __init__(self, env, *args):
+        self.proc = subprocess.Popen([sys.executable, "-m", "inclinometer_calib.launcher", *map(str, args)],
+                                     env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.lines = []
+        self._th = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
+        self._th.start()
+
+    @property
+    def text(self):
+        return "".join(self.lines)
+
+    def wait_for(self, pattern, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for line in list(self.lines):
+                m = re.search(pattern, line)
+                if m:
+                    return m
+            if self.proc.poll() is not None and not self._th.is_alive():
+                break
+            time.sleep(0.05)
+        raise AssertionError(f"no line matching {pattern!r}:\n{self.text[-6000:]}")
+
+    def finish(self, timeout):
+        try:
+            rc = self.proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            self.proc.send_signal(signal.SIGINT)
+            rc = self.proc.wait(30)
+        self._th.join(5)
+        return rc
+
+
+def _free_env():
+    """An isolated environment with no ROS_DOMAIN_ID: the launcher must reserve one itself."""
+    from inclinometer_calib.rosenv import RESERVED_BY_PARENT, isolated_env
+
+    env = isolated_env(0)
+    for key in ("ROS_DOMAIN_ID", RESERVED_BY_PARENT):
+        env.pop(key, None)
+    return env
+
+
+def _bag_topics(path, topics):
+    from mcap_ros2.reader import read_ros2_messages
+
+    return [m for m in read_ros2_messages(str(path), topics=topics)]
+
+
+@pytest.fixture(scope="module")
+def fault_runs(tmp_path_factory):
+    """Two launchers at once, both reserving their own domain:
+
+    A: calibration + 8-station survey; right after the coefficients are published its recorder
+       and its correction node are killed (SIGKILL), and a third launcher asks for A's domain;
+    B: the calibration node runs but the probe has no calibration session (never solves).
+    """
+    pytest.importorskip("mcap_ros2")
+    root = tmp_path_factory.mktemp("faults")
+    env = _free_env()
+    t0 = time.monotonic()
+    common = ("--speed", 4.0, "--reliable", "--timeout", 150, "--drain", 1.5)
+    a = Launch(env, "--out", root / "a", "--stations", 8, "--seed", 11, *common)
+    b = Launch(env, "--out", root / "b", "--stations", 18, "--seed", 12,
+               "--param", "probe:calibration_session:=false", *common)
+    try:
+        a_domain = int(a.wait_for(r"^\[launch\] ROS_DOMAIN_ID=(\d+)", 30).group(1))
+        refused = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", root / "c",
+                                  "--domain-id", str(a_domain)], env=env, capture_output=True, text=True,
+                                 timeout=60)
+        pids = {n: int(a.wait_for(rf"^\[launch\] starting {n} \(pid (\d+)\)", 30).group(1))
+                for n in ("recorder", "correction")}
+        a.wait_for(r"^\[calibration\].*published coefficients", 120)
+        time.sleep(0.3)
+        for pid in pids.values():
+            os.kill(pid, signal.SIGKILL)
+        rc_a, rc_b = a.finish(150), b.finish(150)
+    finally:
+        for run in (a, b):
+            if run.proc.poll() is None:
+                run.proc.kill()
+    print(f"two launcher runs with faults, side by side: {time.monotonic() - t0:.1f} s")
+    return {"root": root, "a": (rc_a, a.text), "b": (rc_b, b.text), "c": refused, "a_domain": a_domain}
+
+
+def test_launcher_restarts_a_killed_recorder_into_a_new_part_and_exits_1(fault_runs):
+    rc, text = fault_runs["a"]
+    out = fault_runs["root"] / "a"
+    assert rc == 1, text[-6000:]
+    assert "[launch] recorder died unexpectedly (killed by SIGKILL): restarting it into survey_1.mcap" in text
+    assert "[launch] recorder stopped (exit status 0)" in text  # the new one, finalized at the end
+    last = text.strip().splitlines()[-1]
+    assert last.startswith("[launch] exit status 1:") and "recorder died unexpectedly" in last
+    assert (out / "survey.mcap").is_file() and (out / "survey_1.mcap").is_file()
+    assert (out / "survey.recovered.mcap").is_file()
+    summary = json.loads((out / "summary.json").read_text())
+    first, second = summary["bag_parts"]
+    assert first["file"] == "survey.mcap" and first["recovered_into"] == "survey.recovered.mcap"
+    assert first["messages_saved"] > 0 and "recovered" not in second and second["file"] == "survey_1.mcap"
+    assert "survey.mcap (not finalized, its recorder died:" in text and "into survey.recovered.mcap" in text
+    # the latched coefficients reached the new recorder: published once, before it started
+    coeff_id = Calibration.load(out / "coeffs.yaml").id
+    assert text.count("published coefficients") == 1
+    assert [m.ros_msg.id for m in _bag_topics(out / "survey_1.mcap", ["/calibration/coefficients"])] == [coeff_id]
+    assert summary["coefficient_messages"] == 1 and summary["coefficients_id"] == coeff_id
+    # stations from both parts, in time order
+    n1 = len(_bag_topics(out / "survey.recovered.mcap", ["/survey/station"]))
+    n2 = len(_bag_topics(out / "survey_1.mcap", ["/survey/station"]))
+    # (the last second before the kill is lost with the open chunk: the last pose or two)
+    assert n1 >= 9 and n2 >= 2 and summary["stations_recorded"] == n1 + n2
+    assert summary["survey"]["stations"] >= 2
+
+
+def test_a_correction_node_restarted_by_the_launcher_keeps_ids_and_coefficients(fault_runs):
+    rc, text = fault_runs["a"]
+    out = fault_runs["root"] / "a"
+    assert "[launch] correction died unexpectedly (killed by SIGKILL): restarting it" in text
+    coeff_id = Calibration.load(out / "coeffs.yaml").id
+    assert f"applying the last valid record on disk {out / 'coeffs.yaml'} (id {coeff_id}," in text
+    assert f"record {coeff_id} received on /calibration/coefficients is the fallback record" in text  # latched
+    restarted_at = int(re.search(r"continuing station ids at (\d+)", text).group(1))
+    assert restarted_at >= 12  # the twelve poses and any survey station before the kill
+    stations = [m.ros_msg for m in _bag_topics(out / "survey_1.mcap", ["/survey/station"])]
+    late = [s for s in stations if s.station_id >= restarted_at]
+    assert late and all(s.coefficients_id == coeff_id for s in late)  # corrected from the first one on
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["repeated_station_ids"] == []
+
+
+def test_a_calibration_that_never_solves_exits_1_and_two_runs_do_not_mix(fault_runs):
+    rc, text = fault_runs["b"]
+    out = fault_runs["root"] / "b"
+    assert rc == 1, text[-6000:]
+    last = text.strip().splitlines()[-1]
+    assert last.startswith("[launch] exit status 1:") and "the calibration did not solve" in last
+    assert "pending [" in last
+    assert "calibration not solved: state " in text  # the summary line, with the node's last status
+    b_domain = int(re.search(r"^\[launch\] ROS_DOMAIN_ID=(\d+)", text, flags=re.M).group(1))
+    assert b_domain != fault_runs["a_domain"]
+    # run A solved while B was recording: nothing of A's reached B's bag
+    assert _bag_topics(out / "survey.mcap", ["/calibration/coefficients"]) == []
+    assert not (out / "coeffs.yaml").exists()
+
+
+def test_a_domain_held_by_another_run_is_refused(fault_runs):
+    proc = fault_runs["c"]
+    d = fault_runs["a_domain"]
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert f"ROS_DOMAIN_ID {d} is in use by another inclinometer_calib run" in proc.stderr
+    assert "Give another --domain-id" in proc.stderr
+    assert not (fault_runs["root"] / "c").exists()  # refused before touching anything
+
+
+def test_a_damaged_input_bag_ends_the_launcher_with_status_1(ros_env, tmp_path):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Imu, MagneticField
+
+    from inclinometer_calib import bag
+    from inclinometer_calib.nodes import common as c
+
+    src = tmp_path / "rec.mcap"
+    w = bag.BagWriter(src, max_chunk_s=0.25, compression="none")
+    ch_imu = w.add_topic(c.TOPIC_IMU, "sensor_msgs/msg/Imu")
+    ch_mag = w.add_topic(c.TOPIC_MAG, "sensor_msgs/msg/MagneticField")
+    for k in range(300):
+        t = 1.0 + 0.01 * k
+        mi, mm = Imu(), MagneticField()
+        c.set_stamp(mi.header.stamp, t)
+        mm.header.stamp = mi.header.stamp
+        mi.linear_acceleration.z = -9.80665
+        mm.magnetic_field.x, mm.magnetic_field.z = 35e-6, 35e-6
+        w.write(ch_imu, serialize_message(mi), int(t * 1e9), int(t * 1e9))
+        w.write(ch_mag, serialize_message(mm), int(t * 1e9), int(t * 1e9))
+    w.close()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(src.read_bytes()[:int(src.stat().st_size * 0.6)])
+    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", tmp_path / "run",
+                           "--source", "mcap", "--input", cut, "--no-calibration", "--no-recorder",
+                           "--speed", "20", "--drain", "0.5", "--timeout", "60"],
+                          env=ros_env, capture_output=True, text=True, timeout=90)
+    assert proc.returncode == 1, proc.stdout[-4000:]
+    assert "[launch] probe finished (exit status 3): its input bag was damaged" in proc.stdout
+    last = proc.stdout.strip().splitlines()[-1]
+    assert last.startswith("[launch] exit status 1:") and "input bag was damaged" in last

@@ -4,7 +4,8 @@ with an independent reader (``mcap_ros2``; the launcher's summary uses ``rosbags
 writes with ``inclinometer_calib.bag``).
 
 1. a simulated twelve-pose calibration + well-path survey at 4x speed: coefficients against the
-   simulator truth, survey angles against the reference attitudes;
+   simulator truth, survey angles against the reference attitudes; every temperature message
+   recorded; one time base (the probe's /clock) for all header stamps;
 2. regression: replaying the recorded bag through probe(source:=mcap) -> correction (coefficients
    from the recorded coeffs.yaml) reproduces the recorded SurveyStation values.
 
@@ -85,6 +86,37 @@ def test_launcher_leaves_the_run_files(sim_run):
     # every node stopped cleanly on SIGINT
     for node in ("probe", "calibration", "correction", "recorder"):
         assert f"[launch] {node} stopped (exit status 0)" in proc.stdout, node
+    # the domain this test reserved is used as is; a clean run says so last
+    assert "(from ROS_DOMAIN_ID, reserved by the parent process)" in proc.stdout
+    assert proc.stdout.strip().splitlines()[-1] == "[launch] exit status 0: clean run"
+    assert json.loads((out / "correction_state.json").read_text())["next_station_id"] == 12 + N_STATIONS
+
+
+def test_the_recorder_has_every_temperature_message_from_the_first_on(sim_run):
+    out, _, _ = sim_run
+    bag = read_mcap(out / "survey.mcap", ["/probe/imu", "/probe/mag", "/probe/temperature", "/probe/reference"])
+    imu, temp = bag["/probe/imu"], bag["/probe/temperature"]
+    assert len(temp) == len(imu) == len(bag["/probe/mag"])  # reliable run: nothing lost, nothing missed
+    assert stamp(temp[0]) == stamp(imu[0])
+    truth = json.loads((out / "truth.json").read_text())
+    assert len(imu) == truth["samples"]
+    assert len(bag["/probe/reference"]) >= N_STATIONS
+
+
+def test_one_time_base_for_all_stamps(sim_run):
+    """stamp:=log: the probe publishes /clock, the other nodes run on it (use_sim_time), so their
+    own stamps (status, diagnostics, coefficients) lie in the span of the sensor stamps."""
+    out, _, _ = sim_run
+    topics = ["/probe/imu", "/calibration/status", "/diagnostics", "/calibration/coefficients", "/clock"]
+    bag = read_mcap(out / "survey.mcap", topics)
+    t_imu = [stamp(m) for m in bag["/probe/imu"]]
+    lo, hi = min(t_imu), max(t_imu)
+    for topic in topics[1:4]:
+        t = [stamp(m) for m in bag[topic]]
+        assert t, topic
+        assert lo <= min(t) and max(t) <= hi, (topic, min(t), max(t), lo, hi)
+    clock = [m.clock.sec + 1e-9 * m.clock.nanosec for m in bag["/clock"]]
+    assert clock == sorted(clock) and lo <= clock[0] and clock[-1] <= hi
 
 
 def test_coefficients_match_the_simulator_truth(sim_run):

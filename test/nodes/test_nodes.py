@@ -1,5 +1,6 @@
 """Fast node-level tests (in-process rclpy, own ROS_DOMAIN_ID): parameter validation, services,
-message conventions, stream pairing, and the probe publishing what it says."""
+message conventions, stream pairing, the probe publishing what it says (and waiting for every
+reader it expects; covariances measured from a replayed log), timers on steady time."""
 import math
 import threading
 import time
@@ -129,7 +130,8 @@ def test_recapture_and_reset_services(spinning):
                           np.random.default_rng(1), rate_hz=100.0)
     for t, f, m in zip(log.t_s, log.acc, log.mag):
         cal_node._sample(float(t), tuple(f), tuple(m))
-    cal_node._offer(cal_node.detector.flush())
+    for st in cal_node.detector.flush():
+        cal_node._offer(st)
     assert cal_node.session.captured == [1, 2]
 
     res = _call(client_node, recapture, RecapturePose.Request(pose=13))
@@ -229,3 +231,114 @@ def test_probe_publishes_rep145_tesla_and_shared_stamps(spinning):
     assert imu.orientation_covariance[0] == -1.0
     assert math.isclose(imu.linear_acceleration_covariance[0], 0.002 ** 2)
     assert math.isclose(mag.magnetic_field_covariance[4], (20e-9) ** 2)
+
+
+def test_probe_waits_for_temperature_and_reference_subscribers_too(spinning):
+    from geometry_msgs.msg import Vector3Stamped
+    from sensor_msgs.msg import Imu, MagneticField, Temperature
+
+    probe = spinning(ProbeNode(parameter_overrides=[
+        Parameter("survey", value="none"), Parameter("speed", value=10.0), Parameter("start_delay_s", value=0.0),
+        Parameter("wait_for_subscribers", value=1), Parameter("wait_for_reference_subscribers", value=1)]))
+    sub = spinning(rclpy.create_node("test_sub"))
+    qos = c.sensor_qos(10)
+    sub.create_subscription(Imu, c.TOPIC_IMU, lambda m: None, qos)
+    sub.create_subscription(MagneticField, c.TOPIC_MAG, lambda m: None, qos)
+
+    def settle(seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and probe._state == "waiting":
+            time.sleep(0.05)
+
+    settle(1.5)  # imu and mag have their reader, the temperature and reference have none yet
+    assert probe._state == "waiting"
+    missing = probe._missing_subscribers()
+    assert missing == [f"{c.TOPIC_TEMPERATURE} (0/1)", f"{c.TOPIC_REFERENCE} (0/1)"], missing
+    sub.create_subscription(Temperature, c.TOPIC_TEMPERATURE, lambda m: None, qos)
+    settle(1.5)
+    assert probe._state == "waiting" and probe._missing_subscribers() == [f"{c.TOPIC_REFERENCE} (0/1)"]
+    sub.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, lambda m: None, c.reliable_qos(10))
+    settle(5.0)
+    assert probe._state != "waiting"
+
+
+def _noisy_log(noise_acc, noise_mag, seed=2):
+    """A simulated four-station stand log with the given white noise (m/s^2, nT per sample)."""
+    probe = sim.build_probe(seed, noise_acc=noise_acc, noise_mag=noise_mag)
+    refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 0.0), (50.0, 200.0, 120.0), (20.0, 300.0, 240.0)]
+    stations = [sim.Stationary(sim.orientation_matrix(*r), 3.0, ref=r) for r in refs]
+    return sim.run_session(probe, Site(), stations, np.random.default_rng(seed), rate_hz=100.0, move_s=1.0,
+                           survey=True)
+
+
+def _diag(cov):
+    return np.array([cov[0], cov[4], cov[8]])
+
+
+def test_probe_replaying_a_csv_log_publishes_the_noise_measured_from_it(ros, tmp_path):
+    from inclinometer_calib.probelog import write_csv
+
+    path = tmp_path / "log.csv"
+    write_csv(path, _noisy_log(0.005, 50.0))  # 2.5x the defaults
+    node = ProbeNode(parameter_overrides=[Parameter("source", value="csv"), Parameter("path", value=str(path))])
+    ros.append(node)
+    acc, mag = np.sqrt(_diag(node.m_imu.linear_acceleration_covariance)), np.sqrt(_diag(node.m_mag.magnetic_field_covariance))
+    assert np.allclose(acc, 0.005, rtol=0.15), acc
+    assert np.allclose(mag, 50e-9, rtol=0.15), mag  # tesla
+    # a noise parameter > 0 overrides the data for its sensor only
+    node2 = ProbeNode(parameter_overrides=[Parameter("source", value="csv"), Parameter("path", value=str(path)),
+                                           Parameter("noise_acc", value=0.01)])
+    ros.append(node2)
+    assert np.allclose(_diag(node2.m_imu.linear_acceleration_covariance), 1e-4)
+    assert np.allclose(np.sqrt(_diag(node2.m_mag.magnetic_field_covariance)), 50e-9, rtol=0.15)
+
+
+def test_probe_replaying_a_bag_keeps_its_recorded_covariance_and_measures_a_missing_one(ros, tmp_path):
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Imu, MagneticField
+
+    from inclinometer_calib import bag
+
+    log = _noisy_log(0.004, 40.0)
+    path = tmp_path / "rec.mcap"
+    w = bag.BagWriter(path, compression="none")
+    ch_imu = w.add_topic(c.TOPIC_IMU, "sensor_msgs/msg/Imu")
+    ch_mag = w.add_topic(c.TOPIC_MAG, "sensor_msgs/msg/MagneticField")
+    recorded = [1e-6, 0.0, 0.0, 0.0, 4e-6, 0.0, 0.0, 0.0, 9e-6]
+    mi, mm = Imu(), MagneticField()
+    mi.linear_acceleration_covariance = recorded  # the magnetometer's stays all zero: unknown
+    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
+        c.set_stamp(mi.header.stamp, t)
+        mm.header.stamp = mi.header.stamp
+        mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
+        mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (x * 1e-9 for x in m)
+        w.write(ch_imu, serialize_message(mi), int(t * 1e9) + 1, int(t * 1e9))
+        w.write(ch_mag, serialize_message(mm), int(t * 1e9) + 1, int(t * 1e9))
+    w.close()
+    node = ProbeNode(parameter_overrides=[Parameter("source", value="mcap"), Parameter("path", value=str(path))])
+    ros.append(node)
+    assert list(node.m_imu.linear_acceleration_covariance) == recorded
+    assert np.allclose(np.sqrt(_diag(node.m_mag.magnetic_field_covariance)), 40e-9, rtol=0.15)
+
+
+def test_periodic_work_runs_on_steady_time_when_the_sim_clock_stops(spinning, tmp_path):
+    """use_sim_time and a /clock that never ticks (the probe has stopped): the correction node's
+    1 Hz timer runs on steady time, so its idle flush still closes the last station."""
+    from inclinometer_calib.msg import SurveyStation
+
+    path = tmp_path / "coeffs.yaml"
+    _truth_calibration().save(path)
+    node = spinning(CorrectionNode(parameter_overrides=[Parameter("use_sim_time", value=True),
+                                                        Parameter("coeffs_file", value=str(path))]))
+    stations = []
+    sub = spinning(rclpy.create_node("test_sub"))
+    sub.create_subscription(SurveyStation, c.TOPIC_STATION, stations.append, c.reliable_qos(10))
+    log = _noisy_log(0.002, 20.0)
+    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
+        node._sample(t, tuple(f), tuple(m))
+    assert node.get_clock().ros_time_is_active and node.get_clock().now().nanoseconds == 0  # no /clock
+    end = time.monotonic() + 6.0
+    while time.monotonic() < end and len(stations) < 4:
+        time.sleep(0.05)
+    assert len(stations) == 4, "the last station must be closed by the idle flush (a steady-clock timer)"
+    assert math.isclose(c.stamp_to_sec(stations[-1].header.stamp), log.t_s[-1], abs_tol=1e-6)

@@ -1,0 +1,52 @@
+"""Optional dependencies: import them where they are needed, or say in one line how to get them.
+
+``pip install .`` installs the core only (numpy, scipy, PyYAML). The rest comes with extras
+declared in ``setup.py``:
+
+=========  ==========================================  =============================================
+extra      distributions                               needed by
+=========  ==========================================  =============================================
+report     matplotlib                                  ``lab report`` (:mod:`.lab.report`)
+bag        mcap, zstandard, lz4, rosbags               ``reprocess``, writing bags (:mod:`.bag`,
+                                                       :mod:`.reprocess`), the launcher's summary
+all        report + bag
+=========  ==========================================  =============================================
+
+:func:`require` imports a module of one of them and, when it is missing, raises
+:class:`MissingDependency` whose message names the purpose, the missing distribution and the pip
+command; the CLI prints it as ``error: <message>`` (exit status 2, no traceback).
+"""
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+#: The pip requirement that installs this package with an extra (quoted for the shell).
+PIP_TARGET = "inclinometer_calib[{extra}]"
+
+
+class MissingDependency(ImportError):
+    """An optional dependency is not installed; the message says which extra provides it."""
+
+    def __init__(self, module: str, extra: str, purpose: str):
+        self.module = module
+        self.extra = extra
+        self.purpose = purpose
+        super().__init__(f"{purpose} needs {module}, which is not installed: "
+                         f"pip install '{PIP_TARGET.format(extra=extra)}'", name=module)
+
+
+def require(module: str, extra: str, purpose: str) -> ModuleType:
+    """Import ``module`` (e.g. ``"matplotlib"``, ``"rosbags.typesys"``) and return it.
+
+    Raises :class:`MissingDependency` if it (or a module it imports) is not installed; the
+    message names the missing top-level module (for our optional dependencies the same as the
+    PyPI distribution), ``purpose`` (what the user was doing, e.g. ``"lab report"``) and the
+    ``pip install 'inclinometer_calib[<extra>]'`` that provides it.  Other import errors (an
+    installed package that is broken or too old) propagate unchanged.
+    """
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        missing = (exc.name or module).split(".")[0]
+        raise MissingDependency(missing, extra, purpose) from exc

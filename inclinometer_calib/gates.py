@@ -1,0 +1,194 @@
+"""Acceptance gates for static stations: in-hold motion and saturation — ROS-free.
+
+Every station, whatever path found it (live detector, a log, a bag), is checked here against
+the noise the data show (:mod:`noise`; the σ the detector used is carried by the station), so
+the limits adapt to the probe.  A failed gate is a :class:`Finding` with a message that says
+what, where and how much; callers log it at WARNING (never INFO), attach it to the station and
+leave the station out of what it would spoil:
+
+* ``creep`` — the probe turned during the hold: the least-squares trend of the accelerometer
+  (or magnetometer) direction over the station is significant against the noise (``TREND_Z``
+  standard errors) *and* larger than ``max_creep_deg``.  Both sensors are used: a rotation
+  about the vertical leaves gravity unchanged but turns the field.
+* ``unsteady`` — the scatter left after removing that trend is far above the noise (a χ² test
+  at p < 1e-6 *and* more than ``max_scatter_ratio`` × σ): vibration, or motion no trend
+  describes.
+* ``flat`` — an axis that did not change at all, or far less than its noise (< 0.25 σ, a χ²
+  impossibility for ≥ 10 white-noise samples): a clipped/saturated ADC or a stuck axis.  Only
+  that sensor's data are refused.  :class:`SaturationMonitor` notices the same level repeating
+  across stations and names it ("saturates at 9.6 m/s², below its stated full scale").
+* ``gravity`` — the raw |g| is more than ``max_gravity_error`` (relative) away from the site's:
+  no uncalibrated scale error is that large; a saturated axis, wrong units or a moving probe.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .noise import chi_quantile
+
+#: Significance of a trend, in standard errors of the slope.
+TREND_Z = 5.0
+#: p-value of the scatter test (χ² with n-1 degrees of freedom).
+SCATTER_P = 1e-6
+#: Scatter below this fraction of the noise is an axis that does not respond (≥ 10 samples).
+FLAT_RATIO = 0.25
+
+
+@dataclass(frozen=True)
+class GateLimits:
+    """Gate limits.  ``max_creep_deg``: largest turn of the probe during a hold that is not
+    motion (the stand's own settling); ``max_scatter_ratio``: scatter above this multiple of the
+    noise (and significant) is unsteady; ``max_gravity_error``: relative |g| error beyond which
+    the accelerometer reading is implausible before calibration."""
+
+    max_creep_deg: float = 0.05
+    max_scatter_ratio: float = 1.5
+    max_gravity_error: float = 0.10
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A gate that failed: ``code`` (creep, unsteady, flat, gravity), the ``sensors`` whose data
+    it disqualifies (``("acc", "mag")`` for motion), the message for the user, and for ``flat`` the
+    axis (e.g. ``"magnetometer y"``)."""
+
+    code: str
+    sensors: tuple
+    message: str
+    axis: str = ""
+
+
+def _turn_deg(mean, rate, duration):
+    """Angle (deg) by which the vector ``mean`` turns over ``duration`` at the per-axis ``rate``."""
+    v = np.asarray(mean, float)
+    nv = float(np.linalg.norm(v))
+    if not nv > 0:
+        return 0.0
+    d = np.asarray(rate, float) * duration
+    perp = d - (d @ v) / (nv * nv) * v
+    return math.degrees(float(np.linalg.norm(perp)) / nv)
+
+
+def _trend_z(rate, noise, n, t_std):
+    """Largest per-axis slope in standard errors: se = σ / (t_std·sqrt(n-1))."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        se = np.asarray(noise, float) / (t_std * math.sqrt(max(n - 1, 1)))
+        z = np.abs(np.asarray(rate, float)) / se
+    z = z[np.isfinite(z)]
+    return float(z.max()) if len(z) else 0.0
+
+
+def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float | None = None) -> list:
+    """The gates a :class:`station.Station` fails, as a list of :class:`Finding` (empty: fine).
+
+    Needs the station's noise (``g_noise``, ``b_noise``); without it the motion and flatness
+    tests are skipped (nothing to compare with).  ``gravity_mps2``: the site's |g| for the
+    gravity gate (skipped if None).
+    """
+    out = []
+    dur = st.duration_s
+    where = f"{st.label} at {st.where}" if (st.pose or st.has_partial_ref) else st.where
+    for sensor, name, mean, std, rate, noise, unit in (
+            ("acc", "accelerometer", st.g, st.g_std, st.g_rate, st.g_noise, "m/s^2"),
+            ("mag", "magnetometer", st.b, st.b_std, st.b_rate, st.b_noise, "nT")):
+        noise = np.asarray(noise, float)
+        if not np.all(np.isfinite(noise) & (noise >= 0)):
+            continue
+        std = np.asarray(std, float)
+        # flat: an axis that does not respond (noise 0: it did not change in the data while the
+        # sensor's other axes did — a sensor with no noise at all cannot tell stuck from quiet)
+        if st.n >= 10:
+            noisy = bool(np.any(noise > 0))
+            flat = [k for k in range(3) if std[k] < FLAT_RATIO * noise[k] or (noise[k] == 0 and std[k] == 0 and noisy)]
+            if flat:
+                k = flat[0]
+                level = -mean[k] if sensor == "acc" else mean[k]  # as the sensor reports it (REP-145 for acc)
+                out.append(Finding("flat", (sensor,), (
+                    f"{where}: {name} {'xyz'[k]} reads a constant {level:.4f} {unit} (scatter {std[k]:.3g} vs noise "
+                    f"{noise[k]:.3g} {unit} over {st.n} samples): clipped/saturated or stuck — its {name} data are "
+                    "not used"), axis=f"{name} {'xyz'[k]}"))
+                continue
+        if not np.all(noise > 0):
+            continue   # no noise to judge a trend or a scatter against
+        # creep: the direction turns during the hold
+        turn = _turn_deg(mean, rate, dur)
+        z = _trend_z(rate, noise, st.n, st.t_std)
+        if turn > limits.max_creep_deg and z > TREND_Z:
+            out.append(Finding("creep", ("acc", "mag"), (
+                f"{where}: the probe turned {turn:.3f}° during the {dur:.2f} s hold ({name} trend "
+                f"{turn / dur if dur > 0 else math.inf:.3f}°/s, {z:.0f} standard errors; limit "
+                f"{limits.max_creep_deg:g}°): it moved or crept on the stand — station not used")))
+            continue
+        # unsteady: scatter left after the trend, against the noise
+        resid = np.sqrt(np.maximum(std * std - (np.asarray(rate, float) * st.t_std) ** 2, 0.0))
+        ratio = resid / noise
+        k = int(np.argmax(ratio))
+        if st.n >= 5 and ratio[k] > max(limits.max_scatter_ratio, chi_quantile(st.n, 1.0 - SCATTER_P)):
+            out.append(Finding("unsteady", ("acc", "mag"), (
+                f"{where}: {name} {'xyz'[k]} scatters {ratio[k]:.1f}× its noise ({resid[k]:.3g} vs {noise[k]:.3g} "
+                f"{unit}): vibration or motion during the hold — station not used")))
+    if gravity_mps2 and not any(f.code == "flat" and "acc" in f.sensors for f in out):
+        gn = float(np.linalg.norm(st.g))
+        err = gn / gravity_mps2 - 1.0
+        if abs(err) > limits.max_gravity_error:
+            out.append(Finding("gravity", ("acc",), (
+                f"{where}: raw |g| = {gn:.4g} m/s² is {100 * err:+.0f}% from the site's {gravity_mps2:.5g} (limit "
+                f"±{100 * limits.max_gravity_error:g}%): a saturated axis, wrong units or a moving probe — its "
+                "accelerometer data are not used")))
+    return out
+
+
+class SaturationMonitor:
+    """Notices an axis that goes flat at the same level in several stations: an ADC that
+    saturates (below the full scale the data sheet states, or the limit is not known).
+
+    :meth:`add` takes the ``flat`` findings of a station; it returns a message the first time
+    a level repeats (a second flat station within ``level_tolerance`` of the same value).
+    """
+
+    def __init__(self, acc_tolerance: float = 1e-3, mag_tolerance: float = 1.0):
+        self.tol = {"acc": acc_tolerance, "mag": mag_tolerance}
+        self._levels = {}     # (sensor, axis) -> [level, count]
+        self.reported = set()
+
+    def add(self, st, findings) -> list:
+        out = []
+        for sensor, mean, std, noise in (("acc", -np.asarray(st.g), st.g_std, st.g_noise),
+                                         ("mag", np.asarray(st.b), st.b_std, st.b_noise)):
+            if not any(f.code == "flat" and sensor in f.sensors for f in findings):
+                continue
+            for k in range(3):
+                if not (std[k] < FLAT_RATIO * noise[k] or (noise[k] == 0 and std[k] == 0)):
+                    continue
+                key = (sensor, k)
+                lvl = self._levels.setdefault(key, [float(mean[k]), 0])
+                if abs(lvl[0] - mean[k]) <= self.tol[sensor]:
+                    lvl[1] += 1
+                else:
+                    self._levels[key] = [float(mean[k]), 1]
+                    continue
+                if lvl[1] >= 2 and key not in self.reported:
+                    self.reported.add(key)
+                    unit = "m/s^2" if sensor == "acc" else "nT"
+                    name = "accelerometer" if sensor == "acc" else "magnetometer"
+                    out.append(f"{name} {'xyz'[k]} is flat at {lvl[0]:.4f} {unit} in {lvl[1]} stations: it saturates "
+                               f"(clips) at that level — below the stated full scale if one is given; poses or stations "
+                               f"where the axis reaches it cannot be used")
+        return out
+
+
+def apply_gates(st, limits: GateLimits = GateLimits(), gravity_mps2: float | None = None) -> list:
+    """Run the gates on a station once and record the outcome on it: ``warnings`` (messages),
+    ``unusable`` (sensors refused), ``moved`` (in-hold motion), ``gated``.  Returns the findings
+    of this run (empty if the station was gated before: its messages were given then)."""
+    if st.gated:
+        return []
+    found = station_findings(st, limits, gravity_mps2)
+    st.gated = True
+    st.warnings.extend(f.message for f in found)
+    st.unusable = tuple(sorted(set(st.unusable) | {s for f in found if f.code in ("flat", "gravity") for s in f.sensors}))
+    st.moved = st.moved or any(f.code in ("creep", "unsteady") for f in found)
+    return found

@@ -1,0 +1,92 @@
+"""The launcher's ROS-free parts: honest labels in the run report and summary, and the choice of
+the run's ROS_DOMAIN_ID (a free one, or exactly the one asked for and refused while another run
+holds it).  Nothing here starts ROS."""
+import math
+
+import pytest
+
+from inclinometer_calib import launcher, rosenv
+
+NAN = float("nan")
+
+
+def _station(station_id, coefficients_id, **kw):
+    s = {"station_id": station_id, "coefficients_id": coefficients_id, "drift_deg": 30.2, "azimuth_deg": 61.0,
+         "reference_drift_deg": 30.0, "reference_azimuth_deg": 60.0, "delta_b_nt": -850.0, "delta_dip_deg": 1.2,
+         "status": 1, "interference_suspected": True, "azimuth_undefined": False}
+    s.update(kw)
+    return s
+
+
+def _rows(report):
+    return [ln for ln in report.splitlines() if ln.startswith("| ") and not ln.startswith("| id")]
+
+
+def test_stations_before_the_calibration_are_labelled_uncorrected_without_qc_flags():
+    stations = [_station(0, ""),                                             # a stand pose, raw
+                _station(1, "abc123", status=0, interference_suspected=False),
+                _station(2, "abc123", status=1)]                              # corrected and off: flagged
+    raw, good, flagged = _rows(launcher.format_report({}, [], None, stations))
+    assert raw.endswith("| uncorrected (before calibration) |") and "interference" not in raw
+    assert raw.split("|")[2].strip() == launcher.DASH  # no coefficients
+    assert good.endswith("| ok |")
+    assert flagged.endswith("| warn (interference_suspected) |")
+
+
+def test_missing_values_print_as_a_dash_not_nan():
+    stations = [_station(0, "", reference_drift_deg=NAN, reference_azimuth_deg=NAN, azimuth_deg=NAN)]
+    summary = {"stations_recorded": 1, "raw_stations": 1, "coefficient_messages": 1, "coefficients_id": "abc123",
+               "survey": {"stations": 1, "drift_rms_deg": 0.001, "drift_max_abs_deg": 0.001,
+                          "azimuth_rms_deg": NAN, "azimuth_max_abs_deg": NAN, "azimuth_stations": 0,
+                          "toolface_rms_deg": NAN, "status_counts": {"0": 0, "1": 1, "2": 0},
+                          "max_abs_delta_b_nt": 3.0, "max_abs_delta_dip_deg": 0.01, "max_abs_delta_g_mps2": 0.0}}
+    lines = launcher.format_summary(summary)
+    rows = [{"ref_drift_deg": 0.0, "ref_azimuth_deg": 40.0, "drift_err_before": 1.5, "drift_err_after": 0.001,
+             "azimuth_err_before": NAN, "azimuth_err_after": NAN}]
+    lines += launcher.format_before_after(rows)
+    report = launcher.format_report(summary, lines, None, stations)
+    for text in ("\n".join(lines), report):
+        assert "nan" not in text.lower(), text
+    assert f"azimuth RMS {launcher.DASH} max {launcher.DASH} deg" in "\n".join(lines)
+    (row,) = _rows(report)
+    cells = [x.strip() for x in row.strip("|").split("|")]
+    assert cells[2:4] == [launcher.DASH, launcher.DASH] and cells[5] == launcher.DASH and cells[7] == launcher.DASH
+    assert launcher._num(math.inf, ".3f") == launcher.DASH and launcher._num(None, ".3f") == launcher.DASH
+
+
+@pytest.fixture
+def no_domain(monkeypatch):
+    for key in ("ROS_DOMAIN_ID", rosenv.RESERVED_BY_PARENT):
+        monkeypatch.delenv(key, raising=False)
+
+
+def test_without_a_domain_the_launcher_reserves_a_free_one(no_domain):
+    args = launcher.parse_args([])
+    a_id, a_lock, how = launcher.reserve_run_domain(args, {})
+    b_id, b_lock, _ = launcher.reserve_run_domain(args, {})
+    try:
+        assert a_id != b_id and rosenv.DOMAIN_ID_MIN <= a_id <= rosenv.DOMAIN_ID_MAX
+        assert "free domain" in how
+    finally:
+        a_lock.close()
+        b_lock.close()
+
+
+def test_an_explicit_domain_held_by_another_run_is_refused_with_status_2(no_domain, tmp_path, capsys):
+    domain_id, lock = rosenv.reserve_domain_id()  # "another run" holds it
+    try:
+        out = tmp_path / "run"
+        assert launcher.main(["--out", str(out), "--domain-id", str(domain_id)]) == 2
+        err = capsys.readouterr().err
+        assert f"ROS_DOMAIN_ID {domain_id} is in use by another inclinometer_calib run" in err
+        assert "Give another --domain-id" in err and not out.exists()
+        # the same id from the environment is refused the same way ...
+        with pytest.raises(rosenv.DomainInUse):
+            launcher.reserve_run_domain(launcher.parse_args([]), {"ROS_DOMAIN_ID": str(domain_id)})
+        # ... unless the environment says the parent holds it for us (tests, benchmarks)
+        env = {"ROS_DOMAIN_ID": str(domain_id), rosenv.RESERVED_BY_PARENT: str(domain_id)}
+        assert launcher.reserve_run_domain(launcher.parse_args([]), env)[:2] == (domain_id, None)
+    finally:
+        lock.close()
+    free_again = rosenv.reserve_this_domain_id(domain_id)  # released with its holder
+    free_again.close()
