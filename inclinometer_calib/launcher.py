@@ -190,6 +190,16 @@ def build_params(args, out):
     if args.reliable:
         for n in ("probe", "calibration", "correction"):
             p[n]["qos.reliability"] = "reliable"
+    if args.site:
+        # the site reference of the run (total field, dip, declination, gravity): the calibration
+        # and correction nodes use it, the simulated probe lives in it
+        from .cli import UserError, load_site
+        try:
+            site = load_site(args.site)
+        except UserError as exc:
+            raise SystemExit(f"--site: {exc}") from None
+        for n in ("probe", "calibration", "correction"):
+            p[n].update({f"site.{k}": float(v) for k, v in site.to_dict().items()})
     for spec in args.param:
         node, _, rest = spec.partition(":")
         key, sep, value = rest.partition(":=")
@@ -797,6 +807,8 @@ def parse_args(argv=None):
     ap.add_argument("--station-seconds", type=float, help="time held at each station, s")
     ap.add_argument("--effect", action="append", default=[], help="extra simulated effect, e.g. axial_interference=300")
     ap.add_argument("--coeffs", help="coefficient YAML for the correction node (else: from the calibration node)")
+    ap.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2) for "
+                                   "the calibration and correction nodes (and the simulated probe)")
     ap.add_argument("--no-calibration", action="store_true", help="no calibration node and no twelve-pose session")
     ap.add_argument("--no-recorder", action="store_true", help="do not record (no summary from the bag)")
     ap.add_argument("--reliable", action="store_true", help="reliable QoS for the raw streams (lossless replay)")

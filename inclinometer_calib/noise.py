@@ -32,6 +32,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+# imported here, not on first use: the import takes a good part of a second, and on first use it
+# would stall a live node's sample callback while its (best-effort) queue overflows
+from scipy.stats import chi2
 
 AXES6 = ("acc x", "acc y", "acc z", "mag x", "mag y", "mag z")
 UNITS6 = ("m/s^2",) * 3 + ("nT",) * 3
@@ -47,8 +50,6 @@ PRIOR_MISMATCH = 2.0
 def chi_quantile(n: int, q: float = LOW_QUANTILE) -> float:
     """Quantile ``q`` of ``s/σ`` for the sample std ``s`` of ``n`` white-noise samples:
     ``sqrt(χ²_q(n-1) / (n-1))``."""
-    from scipy.stats import chi2
-
     dof = max(int(n) - 1, 1)
     return math.sqrt(chi2.ppf(q, dof) / dof)
 

@@ -31,7 +31,6 @@ reported with the topic and the log time of the first one.
 """
 from __future__ import annotations
 
-import bisect
 import math
 import struct
 import time
@@ -45,7 +44,7 @@ from .deps import require
 from .frames import NT_PER_TESLA, Site
 from .probelog import Limits, check_sample
 from .coeffs import message_fields
-from .streaming import StaticDetector, StreamPairer, SurveyProcessor, station_fields
+from .streaming import ReferenceTrack, StaticDetector, StreamPairer, SurveyProcessor, station_fields
 from .survey import Tolerances
 
 TOPIC_IMU = "/probe/imu"
@@ -265,8 +264,8 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     temp = NAN
     have_temp = False
     prior = {}
-    ref_t: List[float] = []
-    ref_v: List[tuple] = []
+    refs = ReferenceTrack()
+    pending: List[tuple] = []                  # (station, log time) waiting for the reference
     first_log = last_log = None
     stations = report.stations
     copied = report.copied
@@ -274,14 +273,22 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     n_warned = 0
 
     def emit(st, log_time):
-        nonlocal n_warned
         if st.short:
             report.short_intervals += 1
             return
-        ref = None
-        if ref_t:
-            k = bisect.bisect_right(ref_t, 0.5 * (st.t_start + st.t_end)) - 1
-            ref = ref_v[k] if k >= 0 else None
+        # as the correction node: a station waits until the reference is current up to its end
+        if pending or not refs.current_at(st.t_end):
+            pending.append((st, log_time))
+        else:
+            publish_station(st, log_time)
+
+    def release(force):
+        while pending and (force or refs.current_at(pending[0][0].t_end)):
+            publish_station(*pending.pop(0))
+
+    def publish_station(st, log_time):
+        nonlocal n_warned
+        ref = refs.at(0.5 * (st.t_start + st.t_end))
         rec = proc.process(st, ref=ref)
         fields = station_fields(rec, ref, az_ref, have_temp, proc.calibration is not None)
         writer.write(station_cid, encoder.encode(STATION_TYPE, int(round(st.t_end * 1e9)), frame_id, fields), log_time)
@@ -371,10 +378,8 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                     continue
                 else:  # reference
                     key, v = decode_vector3(m.data)
-                    t = key[0] + 1e-9 * key[1]
-                    k = bisect.bisect_right(ref_t, t)
-                    ref_t.insert(k, t)
-                    ref_v.insert(k, v)
+                    refs.add(key[0] + 1e-9 * key[1], v)
+                    release(False)
                     continue
             except (struct.error, ValueError, IndexError) as exc:
                 issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
@@ -397,6 +402,7 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                 emit(st, log_time)
         for st in det.flush():
             emit(st, last_log or 0)
+        release(True)
         if session is not None:
             n_before = session.solves
             session.finish()

@@ -11,6 +11,7 @@ here once to the gravity vector; magnetometer in nT (a node converts from tesla 
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -25,6 +26,9 @@ from .survey import Tolerances, evaluate
 
 
 _NO_STATIONS = ()
+#: A time step this many times the usual sample interval (and over GAP_MIN_S) is a gap: samples lost.
+GAP_FACTOR = 5.0
+GAP_MIN_S = 0.05
 #: Time comparisons allow this much (s): a log's times written as text ("0.25") and the same
 #: times stamped in a bag (sec + nanosec, far from zero) differ in their last bits, and durations
 #: nominally equal to a limit must fall on the same side of it in both.
@@ -79,6 +83,10 @@ class StaticDetector:
         self.warmup_max_s = float(warmup_max_s)
         self.noise = NoiseEstimator(block_s=noise_block_s, override_acc=noise_acc, override_mag=noise_mag)
         self.too_short = 0
+        self.gaps = 0                # breaks in the sample times (lost samples)
+        self.samples_missing = 0
+        self._t_prev = math.inf
+        self._dt = math.inf          # the typical sample interval (running mean of the non-gap ones)
         self.events: list = []
         self._warming = not (noise_acc > 0 and noise_mag > 0)
         self._buf: list = []
@@ -156,15 +164,39 @@ class StaticDetector:
                 self._buf.append((t, None, temp_c))
                 return _NO_STATIONS
             return self._close("gap")
+        out = _NO_STATIONS
+        dt = t - self._t_prev
+        self._t_prev = t
+        if dt > GAP_FACTOR * self._dt and dt > GAP_MIN_S:
+            # samples lost (a reader that could not keep up on best-effort QoS, the source): what the
+            # probe did meanwhile went unseen, so a hold ends at a gap
+            self._note_gap(t, dt)
+            self.noise.gap()
+            if self._warming:
+                self._buf.append((t, None, temp_c))
+            else:
+                out = self._close("gap")
+        elif dt > 0:
+            self._dt = dt if self._dt == math.inf else 0.9 * self._dt + 0.1 * dt   # the typical interval
         if self.noise.add(t, x):
             self._refresh()
         if self._warming:
             buf = self._buf
             buf.append((t, x, temp_c))
             if self.noise.ready or (t - buf[0][0] >= self.warmup_max_s - TIME_EPS and self._can_estimate()):
-                return self._end_warmup()
-            return _NO_STATIONS
-        return self._step(t, x, temp_c)
+                return out + self._end_warmup()
+            return out
+        return out + self._step(t, x, temp_c)
+
+    def _note_gap(self, t, dt):
+        self.gaps += 1
+        self.samples_missing += max(int(round(dt / self._dt)) - 1, 1)
+        if self.gaps & (self.gaps - 1) == 0:   # said at the 1st, 2nd, 4th, 8th ... gap: bounded
+            self.events.append(
+                f"{self.gaps} gap(s) in the sample times so far, about {self.samples_missing} samples missing (this "
+                f"one {dt:.3f} s at t={t - dt:.2f} s, {dt / self._dt:.0f}× the usual interval): a pause in the log, or "
+                "samples lost (live: a reader that could not keep up with best-effort QoS — for a replay use "
+                "qos.reliability:=reliable or a lower speed); each gap ends a hold")
 
     def _can_estimate(self) -> bool:
         lvl = self.noise.level
@@ -317,13 +349,14 @@ class StreamPairer:
 
     ``add_imu``/``add_mag`` return ``(t, f, m)`` when the stamp's partner is already there,
     else None.  Unpaired samples wait in small insertion-ordered dicts (the oldest is evicted
-    beyond ``max_pending``); a completed pair older than the last one emitted is dropped
+    beyond ``max_pending``: with reliable QoS on a loaded machine one topic may run hundreds of
+    samples behind the other); a completed pair older than the last one emitted is dropped
     (``out_of_order``), so consumers always see increasing times.
     """
 
     __slots__ = ("_imu", "_mag", "max_pending", "last_t", "paired", "unpaired", "out_of_order")
 
-    def __init__(self, max_pending: int = 64):
+    def __init__(self, max_pending: int = 4096):
         self._imu = {}
         self._mag = {}
         self.max_pending = max_pending
@@ -358,6 +391,46 @@ class StreamPairer:
 
     def add_mag(self, key, m):
         return self._add(key, m, self._mag, self._imu, False)
+
+
+class ReferenceTrack:
+    """The reference attitude over time, from ``/probe/reference`` messages — ROS-free.
+
+    Each message holds (drift, azimuth, toolface) in degrees from its stamp on (NaN: not given);
+    messages may arrive late and out of order (another topic, reliable delivery repairs losses
+    later), so they are kept sorted by stamp.  A station's reference is the one in effect at its
+    middle — but only once the track is known to be current up to the station's end
+    (:meth:`current_at`: a message stamped at or after it has arrived; the probe repeats the
+    reference every second for that), else a late message would leave the station with the
+    previous station's reference.  Streams without any reference never wait.
+    """
+
+    def __init__(self, keep: int = 4000):
+        self._t: list = []
+        self._v: list = []
+        self.keep = keep
+        self.latest = -math.inf     # the newest stamp received
+
+    @property
+    def seen(self) -> bool:
+        return bool(self._t)
+
+    def add(self, t: float, v) -> None:
+        k = bisect.bisect_right(self._t, t)
+        self._t.insert(k, t)
+        self._v.insert(k, tuple(float(x) for x in v))
+        self.latest = max(self.latest, t)
+        if len(self._t) > self.keep:
+            del self._t[:self.keep // 2], self._v[:self.keep // 2]
+
+    def at(self, t: float):
+        """The reference in effect at ``t`` (a tuple, NaN where not given), or None."""
+        k = bisect.bisect_right(self._t, t) - 1
+        return self._v[k] if k >= 0 and any(math.isfinite(x) for x in self._v[k]) else None
+
+    def current_at(self, t: float) -> bool:
+        """No reference can still arrive for times up to ``t`` (or there is no reference at all)."""
+        return not self._t or self.latest >= t - TIME_EPS
 
 
 @dataclass

@@ -89,3 +89,52 @@ def stations_of_bag(path):
 
 def json_out(text: str) -> dict:
     return json.loads(text)
+
+
+# ---------------------------------------------------------------------------------------------
+# The independent simulator's probe (test/data/stranger-probe, see its README)
+# ---------------------------------------------------------------------------------------------
+STRANGER_DIR = __import__("pathlib").Path(__file__).resolve().parent / "data" / "stranger-probe"
+
+
+def stranger_truth():
+    """``(Calibration, Site)`` of the independent simulator's probe, in our conventions.
+
+    Its accelerometer model applies to the REP-145 specific force, ``f_out = K·E·f + B_f``; ours
+    to the gravity vector ``g = -f``, ``g_out = K·E·g - B_f``: the same K and E, the bias negated.
+    Its ``e`` keys ``ab`` are our ``e_ab`` (the coefficient of component a in sensor b's output).
+    """
+    from inclinometer_calib.errormodel import TriadModel
+
+    t = json.loads((STRANGER_DIR / "truth.json").read_text())
+
+    def triad(d, sign):
+        return TriadModel(scale=d["K"], bias=[sign * b for b in d["B"]], e={f"e_{k}": v for k, v in d["e"].items()})
+
+    site = Site(total_field_nt=t["site"]["F_nT"], dip_deg=t["site"]["dip_deg"],
+                declination_deg=t["site"]["declination_deg"], gravity_mps2=t["site"]["g_mps2"])
+    cal = Calibration(acc=triad(t["acc"], -1.0), mag=triad(t["mag"], 1.0), probe_id="stranger",
+                      method="independent simulator's truth", site=site)
+    return cal, site
+
+
+def stranger_files(out, val_stations: int | None = None):
+    """The stranger's logs as the tests use them: ``cal`` and ``val`` (the compressed originals),
+    ``both`` (one CSV, validation after calibration; only its first ``val_stations`` stations if
+    given), ``site`` (its site as our YAML)."""
+    from inclinometer_calib.probelog import label_runs, read_csv
+
+    out.mkdir(parents=True, exist_ok=True)
+    cal, _ = read_csv(STRANGER_DIR / "calibration.csv.gz")
+    val, _ = read_csv(STRANGER_DIR / "validation.csv.gz")
+    if val_stations is not None:
+        end = label_runs(val)[val_stations - 1][1] + 50           # the last hold and half of the move after it
+        val = ProbeLog(*(getattr(val, k)[:end] for k in ("t_s", "acc", "mag", "temp_c", "pose", "ref")))
+    val.t_s = val.t_s + cal.t_s[-1] + 2.0          # its validation log starts at 0 again
+    both = out / "both.csv"
+    write_csv(both, ProbeLog.concatenate([cal, val]))
+    _, site = stranger_truth()
+    site_file = out / "site.yaml"
+    site_file.write_text(yaml.safe_dump({"site": site.to_dict()}))
+    return {"cal": STRANGER_DIR / "calibration.csv.gz", "val": STRANGER_DIR / "validation.csv.gz",
+            "both": both, "site": site_file}

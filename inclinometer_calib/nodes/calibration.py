@@ -138,8 +138,11 @@ class CalibrationNode(Node):
         if c.sample_is_finite(f, m) and c.implausible(f, m) is not None:
             c.note_implausible(self, t, f, m)
             return
-        for st in self.detector.update(t, f, m, self._temp):
+        closed = self.detector.update(t, f, m, self._temp)
+        for st in closed:
             self._offer(st)
+        if closed:  # after the heavier work: the idle check must not take a busy node for a quiet stream
+            self._last_wall = time.monotonic()
         if self.detector.events:
             self._log_events()
 
@@ -154,26 +157,24 @@ class CalibrationNode(Node):
 
     def _report(self, action):
         s = self.session
-        n_warn, n_info, n_solves = len(s.warnings), len(s.infos), s.solves
+        n_warn, n_info, n_solves, before = len(s.warnings), len(s.infos), s.solves, (s.state, s.message)
         result = action()
         for w in s.warnings[n_warn:]:
-            self.get_logger().warning(w)
+            if not (s.state == "error" and w == s.message):   # the failure itself: at ERROR, below
+                self.get_logger().warning(w)
         for i in s.infos[n_info:]:
             self.get_logger().info(i)
         if result == "accepted":
             self.get_logger().info(f"captured pose {s.current_pose}; pending {s.pending}")
-        if s.solves != n_solves and s.calibration is not None:
-            self._publish_coefficients()
-        elif s.state == "error" and s.message:
-            self.get_logger().error(s.message)
+        if (s.solves != n_solves and s.calibration is not None
+                and (self.coefficients is None or self.coefficients.id != s.calibration.id)):
+            self._publish_coefficients()   # a solve that gives the same record again is not republished
+        elif s.state == "error" and s.message and (s.state, s.message) != before:
+            self.get_logger().error(s.message)   # once, when it happens
         self._publish_status()
 
     def _finish(self):
-        s = self.session
-        before = (s.state, s.solves)
-        s.finish()
-        if s.state == "error" and before[0] != "error":
-            self.get_logger().error(f"calibration did not solve: {s.message}")
+        self.session.finish()   # a failure is logged by _report, once
         return "finished"
 
     def _publish_coefficients(self):

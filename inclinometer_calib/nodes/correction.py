@@ -27,7 +27,7 @@ minute) do the heavier evaluation.
 """
 from __future__ import annotations
 
-import bisect
+import collections
 import json
 import math
 import os
@@ -41,7 +41,7 @@ from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..coeffs import Calibration, CoefficientError
 from ..probelog import atomic_write_text
-from ..streaming import StaticDetector, SurveyProcessor, station_fields
+from ..streaming import ReferenceTrack, StaticDetector, SurveyProcessor, station_fields
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
 
@@ -75,6 +75,10 @@ class CorrectionNode(Node):
                           "field; degenerate stations keep the standard azimuth and are flagged")
         self.publish_short = p.declare("publish_short", False, "Also publish static intervals shorter "
                                        "than detector.min_duration_s (is_static = false)")
+        self.reference_wait = p.declare("reference_wait_s", 2.0, f"A closed station waits at most this long (wall "
+                                        f"clock, s) for {c.TOPIC_REFERENCE} to be current up to its end (the reference "
+                                        "is another topic and may come late); then it is published with the last "
+                                        "reference received, with a warning", read_only=True, range=(0.0, 60.0))
         self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
                                     "arrived for this long (wall clock), s; 0 disables", read_only=True,
                                     range=(0.0, 60.0))
@@ -97,7 +101,8 @@ class CorrectionNode(Node):
         self._temp = c.NAN
         self._have_temp = False
         self._last_wall = None
-        self._ref_t, self._ref_v = [], []
+        self.refs = ReferenceTrack()
+        self._pending = collections.deque()   # (station, monotonic time) waiting for the reference
         self._last_diag = None
         self.azimuth_reference = (SurveyStation.AZIMUTH_REFERENCE_TRUE if self.site.declination_deg
                                   else SurveyStation.AZIMUTH_REFERENCE_MAGNETIC)
@@ -245,17 +250,21 @@ class CorrectionNode(Node):
         self._have_temp = True
 
     def _on_reference(self, msg):
-        t = c.stamp_to_sec(msg.header.stamp)
-        v = (msg.vector.x, msg.vector.y, msg.vector.z)
-        k = bisect.bisect_right(self._ref_t, t)
-        self._ref_t.insert(k, t)
-        self._ref_v.insert(k, v)
-        if len(self._ref_t) > 2000:
-            del self._ref_t[:1000], self._ref_v[:1000]
+        self.refs.add(c.stamp_to_sec(msg.header.stamp), (msg.vector.x, msg.vector.y, msg.vector.z))
+        self._release(force=False)
 
-    def _reference_at(self, t):
-        k = bisect.bisect_right(self._ref_t, t) - 1
-        return self._ref_v[k] if k >= 0 else (c.NAN, c.NAN, c.NAN)
+    def _release(self, force: bool, end: bool = False):
+        """Publish the waiting stations whose reference is known (all of them with ``force``: the
+        wait ran out, or the stream ended — ``end``: then what was received is all there is), in order."""
+        pending = self._pending
+        while pending and (force or self.refs.current_at(pending[0][0].t_end)):
+            st, since = pending.popleft()
+            if not end and not self.refs.current_at(st.t_end):
+                self.get_logger().warning(
+                    f"station closed at t={st.t_end:.2f} s: no {c.TOPIC_REFERENCE} up to its end after "
+                    f"{time.monotonic() - since:.1f} s (delayed or lost): published with the reference "
+                    "last received, which may be the previous station's")
+            self._publish_station(st)
 
     def _sample(self, t, f, m):
         c.note_bad_sample(self, t, f, m)
@@ -263,19 +272,30 @@ class CorrectionNode(Node):
         if c.sample_is_finite(f, m) and c.implausible(f, m) is not None:
             c.note_implausible(self, t, f, m)
             return
-        for st in self.detector.update(t, f, m, self._temp):
+        closed = self.detector.update(t, f, m, self._temp)
+        for st in closed:
             self._station(st)
+        if closed:  # after the heavier work: the idle check must not take a busy node for a quiet stream
+            self._last_wall = time.monotonic()
         if self.detector.events:
             for e in self.detector.pop_events():
                 self.get_logger().warning(e)
 
     # ---- stations --------------------------------------------------------------------------
     def _station(self, seg):
+        """A closed station: published at once, or when the reference is known to be current up to
+        its end (:class:`streaming.ReferenceTrack`; at most ``reference_wait_s`` later)."""
         if seg.short and not self.publish_short:
             return
-        ref = self._reference_at(0.5 * (seg.t_start + seg.t_end))
-        has_ref = any(math.isfinite(x) for x in ref)   # a partial reference is used for what it gives
-        rec = self.processor.process(seg, ref=ref if has_ref else None)
+        if self._pending or not self.refs.current_at(seg.t_end):
+            self._pending.append((seg, time.monotonic()))
+            return
+        self._publish_station(seg)
+
+    def _publish_station(self, seg):
+        ref = self.refs.at(0.5 * (seg.t_start + seg.t_end))
+        has_ref = ref is not None   # a partial reference is used for what it gives
+        rec = self.processor.process(seg, ref=ref)
         for w in seg.warnings:
             self.get_logger().warning(f"station {rec.station_id}: {w}")
         msg = SurveyStation()
@@ -353,8 +373,11 @@ class CorrectionNode(Node):
                 self._station(st)
             for e in self.detector.pop_events():
                 self.get_logger().warning(e)
+            self._release(force=True, end=True)
             if closed:
                 return
+        if self._pending and time.monotonic() - self._pending[0][1] > self.reference_wait:
+            self._release(force=True)
         if not c.ros_time_started(self):
             return  # use_sim_time and no /clock yet: nothing to stamp the heartbeat with
         if self._last_diag is None:

@@ -10,7 +10,9 @@ header stamp per sample:
 * ``/probe/temperature`` (``sensor_msgs/Temperature``): degrees Celsius;
 * ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, reliable): the known reference attitude
   (x = drift, y = azimuth, z = toolface, degrees), piecewise constant from ``header.stamp`` on;
-  NaN = no reference (the probe is moving or the attitude is unknown).  Published when it changes.
+  NaN = no reference (the probe is moving or the attitude is unknown), per component (a vertical
+  pose has no azimuth).  Published when it changes, and again every second of log time while it
+  does not (``REFERENCE_PERIOD_S``), so that a reader knows the last one it has is current.
 
 The whole log is prepared at start-up (simulated, read or decoded) and then published sample by
 sample from a timer that follows the log's time line scaled by ``speed`` (several samples per
@@ -56,10 +58,13 @@ from .. import effects as fx
 from .. import simulate as sim
 from ..coeffs import Calibration
 from ..noise import estimate_noise
-from ..probelog import ProbeLog, atomic_write_text, label_runs, read_csv
+from ..probelog import MAG_UNITS, ProbeLog, atomic_write_text, label_runs, read_csv
 from . import common as c
 
 SOURCES = ("simulate", "csv", "mcap")
+#: The reference in effect is published again after this much log time without a change, so that
+#: a reader knows its last reference is current (a station waits for that before it is published).
+REFERENCE_PERIOD_S = 1.0
 #: Exit status at the end of the script when the MCAP input was damaged (the launcher reports it).
 INPUT_DAMAGED = 3
 #: Shortest wall-clock interval between two /clock messages, s: enough for the other nodes'
@@ -98,6 +103,8 @@ class ProbeNode(Node):
         p = c.Params(self)
         self.source = p.declare("source", "simulate", "Where the samples come from: simulate, csv or mcap",
                                 read_only=True, choices=SOURCES)
+        self.mag_unit = p.declare("mag_unit", "nT", "source:=csv: unit of the log's magnetometer columns",
+                                  read_only=True, choices=tuple(MAG_UNITS))
         self.path = p.declare("path", "", "Input file for source:=csv (probe-log CSV) or source:=mcap (bag)",
                               read_only=True)
         self.speed = p.declare("speed", 1.0, "Playback speed factor (log time / wall time); may be changed "
@@ -177,7 +184,10 @@ class ProbeNode(Node):
         self.log, self.cov = self._load()  # raises ValueError/OSError on bad input
         self._t = self.log.t_s.tolist()
         self._acc = self.log.acc.tolist()
-        self._mag = (self.log.mag * c.TESLA_PER_NT).tolist()
+        # tesla: a bag's recorded values unchanged (bit for bit), a log's nT divided as reprocess and
+        # `bag from-csv` do, so that every path sees the same numbers
+        recorded = getattr(self, "_recorded_tesla", None)
+        self._mag = (recorded if recorded is not None else self.log.mag / c.NT_PER_TESLA).tolist()
         self._temp = self.log.temp_c.tolist()
         self._ref_changes = self._reference_changes(self.log.ref)
 
@@ -194,6 +204,8 @@ class ProbeNode(Node):
         self.done = Future()
         self._i = 0
         self._next_ref = 0
+        self._ref_now = None          # the reference in effect (published), None before the first
+        self._ref_sent = -math.inf    # stamp of the last reference published
         self._state = "waiting"
         self._created = time.monotonic()
         self._wall0 = self._log0 = 0.0
@@ -212,7 +224,7 @@ class ProbeNode(Node):
         if not self.path:
             raise ValueError(f"source:={self.source} needs the parameter path")
         if self.source == "csv":
-            log, rejections = read_csv(self.path)
+            log, rejections = read_csv(self.path, mag_unit=self.mag_unit)
             for r in rejections[:10]:
                 self.get_logger().warning(f"{self.path}: {r}")
             if rejections:
@@ -322,7 +334,7 @@ class ProbeNode(Node):
                 cov_acc = msg.linear_acceleration_covariance
             elif m.topic == c.TOPIC_MAG:
                 f = msg.magnetic_field
-                mag[key] = (f.x * 1e9, f.y * 1e9, f.z * 1e9)
+                mag[key] = (f.x, f.y, f.z)   # tesla as recorded: republished unchanged
                 cov_mag = msg.magnetic_field_covariance
             elif m.topic == c.TOPIC_TEMPERATURE:
                 temp[key] = msg.temperature
@@ -348,7 +360,8 @@ class ProbeNode(Node):
         for k, (t_r, v) in enumerate(ref):
             t_next = ref[k + 1][0] if k + 1 < len(ref) else np.inf
             refs[(t >= t_r - 1e-10) & (t < t_next - 1e-10)] = v
-        log = ProbeLog(t, np.array([imu[k] for k in keys]), np.array([mag[k] for k in keys]),
+        self._recorded_tesla = np.array([mag[k] for k in keys])
+        log = ProbeLog(t, np.array([imu[k] for k in keys]), self._recorded_tesla * c.NT_PER_TESLA,
                        np.array([temp.get(k, np.nan) for k in keys]), np.zeros(len(keys), dtype=int), refs)
         self.get_logger().info(f"{path}: {len(keys)} samples, {len(ref)} reference changes")
         return log, self._covariance(log, (cov_acc, cov_mag))
@@ -393,6 +406,14 @@ class ProbeNode(Node):
             says.append(f"{name} {'/'.join(f'{x:.3g}' for x in sig)} {unit} ({src})")
         self.get_logger().info("published noise (1 sigma per axis x/y/z): " + "; ".join(says))
         return out[0], out[1]
+
+    def _publish_reference(self, stamp_s):
+        ref = Vector3Stamped()
+        ref.header.frame_id = self.frame_id
+        c.set_stamp(ref.header.stamp, stamp_s)
+        ref.vector.x, ref.vector.y, ref.vector.z = self._ref_now
+        self.pub_ref.publish(ref)
+        self._ref_sent = stamp_s
 
     @staticmethod
     def _reference_changes(ref):
@@ -511,12 +532,11 @@ class ProbeNode(Node):
 
     def _publish_sample(self, k, stamp_s):
         if self._next_ref < len(self._ref_changes) and self._ref_changes[self._next_ref][0] <= k:
-            ref = Vector3Stamped()
-            ref.header.frame_id = self.frame_id
-            c.set_stamp(ref.header.stamp, stamp_s)
-            ref.vector.x, ref.vector.y, ref.vector.z = self._ref_changes[self._next_ref][1]
-            self.pub_ref.publish(ref)
+            self._ref_now = self._ref_changes[self._next_ref][1]
+            self._publish_reference(stamp_s)
             self._next_ref += 1
+        elif self._ref_now is not None and stamp_s - self._ref_sent >= REFERENCE_PERIOD_S:
+            self._publish_reference(stamp_s)   # unchanged: repeated, so readers know it is current
         mi, mm, mt = self.m_imu, self.m_mag, self.m_temp
         c.set_stamp(mi.header.stamp, stamp_s)
         mm.header.stamp = mt.header.stamp = mi.header.stamp
