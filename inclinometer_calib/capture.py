@@ -28,14 +28,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .frames import Site
+from .frames import Site, angle_between_deg
 from .gates import GateLimits, SaturationMonitor, apply_gates
 from .station import Station, merge_stations
-from .twelve_position import (POSES, CaptureSet, identify_pose_with_field, solve_captures, to_calibration,
-                              _gravity_candidates)
+from .twelve_position import (POSES, CaptureSet, identify_pose_with_field, pose_reference, solve_captures,
+                              to_calibration, _gravity_candidates)
 
 #: Statics of the same pose closer in time than this (s) are pieces of one hold, merged.
 MERGE_GAP_S = 1.0
+#: After the first solve, a further round's capture, corrected, must be this close to its pose of
+#: Table 1 (deg: the stand's accuracy, with room) and its field this close to the first round's
+#: capture of the pose; survey stations near a pose are not.
+ROUND_GRAVITY_TOL_DEG = 2.0
+ROUND_FIELD_TOL_DEG = 5.0
 
 
 @dataclass
@@ -173,11 +178,17 @@ class CaptureSession:
         return self._accept(st, labelled, after_solve)
 
     def _continues_round(self, pose, st) -> bool:
-        """After the first solve: does this station start or continue a new round in order?"""
+        """After the first solve: does this station start or continue a new round in order?
+
+        Calibrated, a stand pose is exactly one of Table 1 (within the stand's accuracy) and its
+        field points as in the first round's capture of it; a survey station a few degrees off a
+        pose is neither, and is left alone silently."""
         if not self.rounds:
             return False
         if st.pose:                      # a stand's log says it is a calibration pose (label checked next)
             return True
+        if not self._looks_like_pose(pose, st):
+            return False
         if not self._round:
             if pose == 1:
                 return True
@@ -190,6 +201,20 @@ class CaptureSession:
                    "are not used; the coefficients stay those of the complete rounds")
         self._drop_round()
         return pose == 1
+
+    def _looks_like_pose(self, pose, st) -> bool:
+        cal = self.calibration
+        if cal is None:
+            return True
+        g, b = cal.correct(np.asarray(st.g, float), np.asarray(st.b, float))
+        if not angle_between_deg(g, pose_reference(pose, [0.0, 0.0, 1.0])) <= ROUND_GRAVITY_TOL_DEG:
+            return False
+        first = next((c for c in self.captures if c.pose == pose and "mag" not in c.unusable), None)
+        if first is not None:
+            _, b0 = cal.correct(np.asarray(first.g, float), np.asarray(first.b, float))
+            if not angle_between_deg(b, b0) <= ROUND_FIELD_TOL_DEG:
+                return False
+        return True
 
     def _drop_round(self):
         ids = {id(c) for c in self._round}
@@ -268,6 +293,7 @@ class CaptureSession:
         self._round = []
         self._dirty = False
         self._saturation = SaturationMonitor()
+        self._flat_seen, self._flat_reported = {}, {}
         self.result = self.calibration = None
         self.state, self.message, self.current_pose, self.solves = "collecting", "", -1, 0
 
@@ -343,3 +369,4 @@ class CaptureSession:
                         f"{self.result.acc.rms_residual:.5f} m/s², mag {self.result.mag.rms_residual:.2f} nT "
                         f"({self.result.acc.z_rms:.1f}× and {self.result.mag.z_rms:.1f}× the noise)")
         return self.calibration
+

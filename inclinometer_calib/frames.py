@@ -74,6 +74,15 @@ def attitude_angles(r, vertical_cone_deg: float = 0.5):
     return drift, float(wrap360(az)), float(wrap360(tf))
 
 
+def angle_between_deg(u, v) -> float:
+    """Angle between two vectors, degrees (NaN if either has no length)."""
+    u, v = np.asarray(u, dtype=float), np.asarray(v, dtype=float)
+    nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
+    if not (nu > 0 and nv > 0):
+        return float("nan")
+    return float(np.degrees(np.arccos(np.clip(float(u @ v) / (nu * nv), -1.0, 1.0))))
+
+
 def wrap360(angle_deg):
     """Wrap an angle to [0, 360) degrees."""
     w = np.mod(angle_deg, 360.0)

@@ -849,19 +849,9 @@ def reserve_run_domain(args, env):
 
 def _lock_out_dir(out):
     """Lock ``out`` for this run (an ``flock`` on ``out/.launch.lock``); None if another run holds it."""
-    import fcntl
+    from .rosenv import try_lock_file
 
-    fh = open(os.path.join(out, ".launch.lock"), "a+")
-    try:
-        fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        fh.close()
-        return None
-    fh.seek(0)
-    fh.truncate()
-    fh.write(f"{os.getpid()}\n")
-    fh.flush()
-    return fh
+    return try_lock_file(os.path.join(out, ".launch.lock"))
 
 
 def run_files(out) -> list:

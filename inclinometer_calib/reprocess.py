@@ -171,10 +171,10 @@ class _Issue:
     count: int = 0
     first: str = ""
 
-    def add(self, where: str) -> None:
+    def add(self, where: str, n: int = 1) -> None:
         if not self.count:
             self.first = where
-        self.count += 1
+        self.count += n
 
 
 @dataclass
@@ -200,8 +200,8 @@ class ReprocessReport:
     calibration_message: str = ""
     noise: object = None                                   # the noise.NoiseLevel the detector used
 
-    def _issue(self, kind: str, where: str) -> None:
-        self.issues.setdefault(kind, _Issue()).add(where)
+    def _issue(self, kind: str, where: str, n: int = 1) -> None:
+        self.issues.setdefault(kind, _Issue()).add(where, n)
 
     def warnings(self) -> List[str]:
         out = [f"skipped topic {t} ({why})" for t, why in self.skipped_topics.items()]
@@ -403,6 +403,9 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
         for st in det.flush():
             emit(st, last_log or 0)
         release(True)
+        if pairer.waiting:   # never paired: the other stream had no sample of that stamp
+            issue("unpaired sample (no partner on the other stream with the same stamp)",
+                  f"{pairer.waiting} still waiting at the end of the bag", pairer.waiting)
         if session is not None:
             n_before = session.solves
             session.finish()

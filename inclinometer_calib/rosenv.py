@@ -55,7 +55,14 @@ def lock_path(domain_id: int) -> str:
 def _try_lock(domain_id: int):
     """The open, locked lock file of ``domain_id`` (our pid written into it), or None if held."""
     os.makedirs(LOCK_DIR, exist_ok=True)
-    fh = open(lock_path(domain_id), "a+")
+    return try_lock_file(lock_path(domain_id))
+
+
+def try_lock_file(path: str):
+    """Hold an exclusive ``flock`` on ``path`` (created if need be; our pid written into it): the
+    open file, kept open while the lock is needed (released when closed, or when the process
+    dies), or None if another process holds it."""
+    fh = open(path, "a+")
     try:
         fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:

@@ -152,10 +152,13 @@ def stand_grid_session(drifts=VAL_DRIFTS, azimuths=VAL_AZIMUTHS, toolfaces=VAL_T
 
 
 def run_session(probe: ProbeModel, site: Site, stations, rng: np.random.Generator, rate_hz: float = 100.0,
-                move_s: float = 1.0, t0: float = 0.0, survey: bool = False) -> ProbeLog:
+                move_s: float = 1.0, t0: float = 0.0, survey: bool = False, lead_in=None) -> ProbeLog:
     """Simulate a session: each station held for its duration, with moves of ``move_s`` between.
 
     During moves the orientation follows a slerp between the stations (rows carry no labels).
+    ``lead_in = (rotation, seconds)``: the session starts with a move of that length from that
+    orientation (where an earlier session left the probe), so that sessions run one after the
+    other make one continuous stream.
     """
     if rate_hz <= 0:
         raise ValueError("rate_hz must be positive")
@@ -172,6 +175,11 @@ def run_session(probe: ProbeModel, site: Site, stations, rng: np.random.Generato
     segments = []  # (t_start, t_end, station index or -1, temp_start, temp_end)
     t = t0
     prev_temp = stations[0].temp_c if stations else 25.0
+    if lead_in is not None and stations and lead_in[1] > 0:
+        key_t.append(t)
+        key_r.append(np.asarray(lead_in[0], dtype=float))
+        segments.append((t, t + lead_in[1], -1, prev_temp, prev_temp))
+        t += lead_in[1]
     for k, (st, r) in enumerate(zip(stations, actual)):
         if k > 0 and move_s > 0:
             segments.append((t, t + move_s, -1, prev_temp, st.temp_c))

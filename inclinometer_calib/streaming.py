@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .axial import evaluate_with_axial
-from .frames import Site
+from .frames import Site, angle_between_deg
 from .gates import apply_gates
 from .noise import AXES6, UNITS6, NoiseEstimator
 from .station import Station
@@ -306,12 +306,12 @@ class StaticDetector:
         if prev is None or self._last_break is None:
             return
         gap = st.t_start - prev.t_end
-        if gap > self.settle_s + 0.25 or _angle_deg(prev.g, st.g) > 1.0 or _angle_deg(prev.b, st.b) > 1.0:
+        if gap > self.settle_s + 0.25 or angle_between_deg(prev.g, st.g) > 1.0 or angle_between_deg(prev.b, st.b) > 1.0:
             return
         k, dev = self._last_break
         sig = self._sigma[k]
         unit = UNITS6[k]
-        ang = max(_angle_deg(prev.g, st.g), _angle_deg(prev.b, st.b))
+        ang = max(angle_between_deg(prev.g, st.g), angle_between_deg(prev.b, st.b))
         # how far apart the two pieces' means are, against what the noise of two means allows
         sep = max(abs(float(st.g[j] - prev.g[j])) / (self._sigma[j] * math.sqrt(1 / st.n + 1 / prev.n))
                   for j in range(3)) if all(self._sigma[j] > 0 for j in range(3)) else math.inf
@@ -337,13 +337,6 @@ class StaticDetector:
         return tuple(out)
 
 
-def _angle_deg(u, v) -> float:
-    nu, nv = float(np.linalg.norm(u)), float(np.linalg.norm(v))
-    if not (nu > 0 and nv > 0):
-        return math.nan
-    return math.degrees(math.acos(max(-1.0, min(1.0, float(np.dot(u, v)) / (nu * nv)))))
-
-
 class StreamPairer:
     """Pairs Imu and MagneticField samples of the same header stamp, cheaply and in time order.
 
@@ -364,6 +357,11 @@ class StreamPairer:
         self.paired = 0
         self.unpaired = 0
         self.out_of_order = 0
+
+    @property
+    def waiting(self) -> int:
+        """Samples waiting for their partner."""
+        return len(self._imu) + len(self._mag)
 
     def reset(self):
         self._imu.clear()

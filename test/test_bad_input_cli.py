@@ -344,3 +344,33 @@ def test_field_in_nT_written_as_tesla_in_a_bag_is_refused_with_the_unit_hint(sim
     assert code == 2
     assert "no usable /probe/imu//probe/mag sample pairs" in err
     assert "looks like nT written into a tesla field" in err and "/probe/mag at log time" in err
+
+
+def test_a_killed_recorders_bag_is_recovered_by_the_cli_into_one_any_reader_opens(bag, tmp_path, capsys):
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    src, _ = bag
+    data = src.read_bytes()
+    killed = tmp_path / "killed.mcap"
+    killed.write_bytes(data[:int(len(data) * 0.6)])        # no summary, a chunk cut in half
+    with pytest.raises(AnyReaderError):                     # what a user meets without us
+        with AnyReader([killed]) as r:
+            sum(1 for _ in r.messages())
+    fixed = tmp_path / "fixed.mcap"
+    code, stdout, err = _run(capsys, ["bag", "recover", str(killed), "-o", str(fixed)])
+    assert code == 0, err
+    assert "recovered" in stdout or "saved" in stdout
+    with AnyReader([fixed]) as r:
+        n = sum(1 for _ in r.messages())
+    assert 0 < n
+    code, _, err = _run(capsys, ["bag", "recover", str(killed), "-o", str(fixed)])   # never overwritten
+    assert code == 2 and "exists" in err
+
+
+def test_reprocess_takes_the_detectors_noise_from_the_data_or_from_an_option(simdir, bag, tmp_path, capsys):
+    src, _ = bag
+    code, stdout, _ = _run(capsys, ["reprocess", str(src), "--coeffs", "none", "-o", str(tmp_path / "a.mcap")])
+    assert code == 0 and "(data)" in stdout and "8 stations" in stdout
+    code, stdout, _ = _run(capsys, ["reprocess", str(src), "--coeffs", "none", "-o", str(tmp_path / "b.mcap"),
+                                    "--noise-acc", "0.004", "--noise-mag", "30"])
+    assert code == 0 and "0.004/0.004/0.004 m/s^2 (override)" in stdout and "30/30/30 nT (override)" in stdout

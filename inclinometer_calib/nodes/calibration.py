@@ -132,19 +132,8 @@ class CalibrationNode(Node):
         self._temp = msg.temperature
 
     def _sample(self, t, f, m):
-        c.note_bad_sample(self, t, f, m)
         self._last = (t, f, m)
-        self._last_wall = time.monotonic()
-        if c.sample_is_finite(f, m) and c.implausible(f, m) is not None:
-            c.note_implausible(self, t, f, m)
-            return
-        closed = self.detector.update(t, f, m, self._temp)
-        for st in closed:
-            self._offer(st)
-        if closed:  # after the heavier work: the idle check must not take a busy node for a quiet stream
-            self._last_wall = time.monotonic()
-        if self.detector.events:
-            self._log_events()
+        c.feed_sample(self, t, f, m, self._offer)
 
     def _log_events(self):
         for e in self.detector.pop_events():

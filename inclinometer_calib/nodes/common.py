@@ -370,6 +370,27 @@ def note_bad_sample(node, t: float, f, m) -> None:
         node.get_logger().warning(bad_sample_text(t, f, m, node.bad_samples), throttle_duration_sec=2.0)
 
 
+def feed_sample(node, t: float, f, m, on_station) -> None:
+    """One paired sample through a node's static detector: counted when non-finite, dropped (and
+    said) when implausible, else fed; ``on_station`` gets each station it closes; the detector's
+    messages are logged at WARNING.  ``node._last_wall`` (monotonic) marks the last sample, and
+    again after the heavier work of a closing station, so that the idle check never takes a busy
+    node for a quiet stream."""
+    note_bad_sample(node, t, f, m)
+    node._last_wall = time.monotonic()
+    if sample_is_finite(f, m) and implausible(f, m) is not None:
+        note_implausible(node, t, f, m)
+        return
+    closed = node.detector.update(t, f, m, node._temp)
+    for st in closed:
+        on_station(st)
+    if closed:
+        node._last_wall = time.monotonic()
+    if node.detector.events:
+        for e in node.detector.pop_events():
+            node.get_logger().warning(e)
+
+
 def note_implausible(node, t: float, f, m) -> None:
     """Count and log a sample dropped as implausible (see :func:`implausible`): each kind of reason
     (its text without the numbers) at most every 2 s, so one reason does not hide another."""

@@ -96,7 +96,7 @@ class CorrectionNode(Node):
         self._fallback_id = None     # id of the record applied from fallback_coeffs_file, until replaced
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
-        self._unpaired_seen = self._paired_seen = 0
+        self._unpaired_seen = self._paired_seen = self._waiting_seen = 0
         self.fast = None
         self._temp = c.NAN
         self._have_temp = False
@@ -267,19 +267,7 @@ class CorrectionNode(Node):
             self._publish_station(st)
 
     def _sample(self, t, f, m):
-        c.note_bad_sample(self, t, f, m)
-        self._last_wall = time.monotonic()
-        if c.sample_is_finite(f, m) and c.implausible(f, m) is not None:
-            c.note_implausible(self, t, f, m)
-            return
-        closed = self.detector.update(t, f, m, self._temp)
-        for st in closed:
-            self._station(st)
-        if closed:  # after the heavier work: the idle check must not take a busy node for a quiet stream
-            self._last_wall = time.monotonic()
-        if self.detector.events:
-            for e in self.detector.pop_events():
-                self.get_logger().warning(e)
+        c.feed_sample(self, t, f, m, self._station)
 
     # ---- stations --------------------------------------------------------------------------
     def _station(self, seg):
@@ -353,15 +341,17 @@ class CorrectionNode(Node):
         return arr
 
     def _check_pairing(self):
-        """Warn when samples of one stream find no partner of the other (absent field or imu)."""
+        """Warn when samples of one stream find no partner of the other (absent field or imu): no
+        pair completed since the last check while samples of one stream wait (or were evicted)."""
         pr = self.pairer
-        new = pr.unpaired - self._unpaired_seen
+        waiting = pr.waiting
+        new = pr.unpaired - self._unpaired_seen + max(waiting - self._waiting_seen, 0)
         if new > 0 and pr.paired == self._paired_seen:
             lone, other = ((c.TOPIC_IMU, c.TOPIC_MAG) if len(pr._imu) >= len(pr._mag)
                            else (c.TOPIC_MAG, c.TOPIC_IMU))
             self.get_logger().warning(f"{new} samples on {lone} without a {other} partner (same stamp) since the "
                                       f"last check: {other} absent or stamped differently; no stations from them")
-        self._unpaired_seen, self._paired_seen = pr.unpaired, pr.paired
+        self._unpaired_seen, self._paired_seen, self._waiting_seen = pr.unpaired, pr.paired, waiting
 
     def _on_timer(self):
         self._check_pairing()

@@ -160,7 +160,8 @@ class ProbeNode(Node):
                                 range=(0.0, 600.0))
         self.survey = p.declare("survey", "well_path", "Survey after the calibration: stand_grid, well_path "
                                 "or none", read_only=True, choices=("stand_grid", "well_path", "none"))
-        self.survey_gap = p.declare("survey_gap_s", 2.0, "Pause between calibration and survey, s",
+        self.survey_gap = p.declare("survey_gap_s", 2.0, "Time between calibration and survey (the probe "
+                                    "moves from the stand to the first station, streaming), s",
                                     read_only=True, range=(0.0, 3600.0))
         self.grid_drifts = p.declare("grid.drifts_deg", [float(x) for x in sim.VAL_DRIFTS],
                                      "Stand grid set drifts, deg", read_only=True,
@@ -237,14 +238,16 @@ class ProbeNode(Node):
         noise = {k: v for k, v in (("noise_acc", self.noise_acc), ("noise_mag", self.noise_mag)) if v > 0}
         probe = sim.build_probe(self.seed, specs, severity=self.severity, **noise)
         rng = np.random.default_rng(self.seed + 1)
-        logs, t0 = [], 0.0
+        logs, t0, lead_in = [], 0.0, None
         if self.calibrate:
             # The stand is set up against magnetic north (rotated by the declination in NED).
             stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s,
                                                azimuth_deg=self.site.declination_deg)
             logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
                                         move_s=self.move_s, t0=t0, survey=False))
-            t0 = logs[-1].t_s[-1] + 1.0 / self.rate_hz + self.survey_gap
+            t0 = logs[-1].t_s[-1] + 1.0 / self.rate_hz
+            # the probe keeps streaming while it is taken from the stand to the survey
+            lead_in = (stations[-1].rotation, self.survey_gap)
         if self.survey == "stand_grid":
             stations = sim.stand_grid_session(self.grid_drifts, self.grid_azimuths, self.grid_toolfaces,
                                               duration_s=self.station_s)
@@ -256,7 +259,7 @@ class ProbeNode(Node):
             stations = []
         if stations:
             logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
-                                        move_s=self.move_s, t0=t0, survey=True))
+                                        move_s=self.move_s, t0=t0, survey=True, lead_in=lead_in))
         if not logs:
             raise ValueError("nothing to simulate: calibration_session is false and survey is none")
         log = ProbeLog.concatenate(logs)

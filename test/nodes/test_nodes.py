@@ -342,3 +342,29 @@ def test_periodic_work_runs_on_steady_time_when_the_sim_clock_stops(spinning, tm
         time.sleep(0.05)
     assert len(stations) == 4, "the last station must be closed by the idle flush (a steady-clock timer)"
     assert math.isclose(c.stamp_to_sec(stations[-1].header.stamp), log.t_s[-1], abs_tol=1e-6)
+
+
+def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_says_so(ros, capfd):
+    # a probe driver stating 0.002 m/s² / 20 nT for a probe 2.5× noisier: every hold is still one
+    # station, and the node warns that the stated noise is not what the data show
+    from sensor_msgs.msg import Imu, MagneticField
+
+    log = _noisy_log(0.005, 50.0)
+    node = CalibrationNode()
+    ros.append(node)
+    mi, mm = Imu(), MagneticField()
+    mi.linear_acceleration_covariance = [0.002 ** 2, 0.0, 0.0, 0.0, 0.002 ** 2, 0.0, 0.0, 0.0, 0.002 ** 2]
+    mm.magnetic_field_covariance = [(20e-9) ** 2, 0.0, 0.0, 0.0, (20e-9) ** 2, 0.0, 0.0, 0.0, (20e-9) ** 2]
+    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
+        c.set_stamp(mi.header.stamp, t)
+        mm.header.stamp = mi.header.stamp
+        mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
+        mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (x * 1e-9 for x in m)
+        node._on_imu(mi)
+        node._on_mag(mm)
+    assert node.detector.noise.prior == pytest.approx((0.002, 20.0))
+    lvl = node.detector.noise_level
+    assert lvl.acc_source == "data" and np.allclose(lvl.acc, 0.005, rtol=0.15)
+    err = capfd.readouterr().err
+    assert "[WARN]" in err and "the messages state a noise of 0.002 m/s^2" in err and "using the data" in err
+    assert "magnetometer: the messages state a noise of 20 nT" in err
