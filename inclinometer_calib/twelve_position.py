@@ -328,6 +328,9 @@ OUTLIER_IMPROVEMENT = 1.5
 #: ... and only if it is at least this far (deg, as an angle of the reference vector) from what
 #: the other captures predict.
 OUTLIER_MIN_DEG = 0.02
+#: A solve whose captures still miss the model by more than this (RMS, deg, as an angle of the
+#: reference vector) after screening is refused: its coefficients would be worse than none.
+MAX_RESIDUAL_DEG = 0.5
 
 
 @dataclass
@@ -445,10 +448,10 @@ def screen_triad(caps: CaptureSet, vertical_ref: float, horizontal0, name: str, 
     captures support each other, so only leaving the pose out shows it) is tried: if without the
     best candidate the rest fit :data:`OUTLIER_IMPROVEMENT` × better and it lies more than
     :data:`OUTLIER_MIN_DEG` from what the rest predict, it is left out and the screen repeats.
-    A single capture is preferred to its whole pose when leaving it out does nearly as well.
-    When leaving out the worst candidate would leave the triad undetermined, the solve is refused
-    naming it.  Returns ``(fit, kept CaptureSet, [messages about what was left out])``; raises
-    ValueError when the captures cannot determine the triad.
+    A single capture is preferred to its whole pose when leaving it out does nearly as well (a
+    capture the others cannot do without cannot be tested: it is fitted exactly).  Returns ``(fit,
+    kept CaptureSet, [messages about what was left out])``; raises ValueError when the captures
+    cannot determine the triad.
     """
     notes = []
     keep = list(range(len(caps)))
@@ -494,13 +497,9 @@ def screen_triad(caps: CaptureSet, vertical_ref: float, horizontal0, name: str, 
         ang = math.degrees(float(np.max(dev)) / ref_norm)
         if not (fit.z_rms >= OUTLIER_IMPROVEMENT * z2 and ang > OUTLIER_MIN_DEG):
             return fit, sub, notes
-        msg = (f"{name}: {label} does not fit the twelve-pose model: {ang:.3f}° ({float(np.max(dev)):.4g} {unit}) from "
-               f"what the other captures predict; without it the residuals fall from {fit.z_rms:.1f}× to "
-               f"{z2:.1f}× the noise")
-        if not math.isfinite(z2):
-            raise ValueError(msg.split("; without it")[0] + "; without it the remaining captures cannot determine "
-                             f"the triad — recapture pose {sub.poses[idx[0]]}; no coefficients written")
-        notes.append(msg + " — left out")
+        notes.append(f"{name}: {label} does not fit the twelve-pose model: {ang:.3f}° ({float(np.max(dev)):.4g} "
+                     f"{unit}) from what the other captures predict; without it the residuals fall from "
+                     f"{fit.z_rms:.1f}× to {z2:.1f}× the noise — left out")
         keep = [k for j, k in enumerate(keep) if j not in idx]
 
 
@@ -534,6 +533,16 @@ def solve_triad_captures(caps: CaptureSet, vertical_ref: float, horizontal0, *, 
     :func:`check_solution`.  Raises ValueError with a message naming what is missing or wrong.
     """
     fit, kept, left_out = screen_triad(caps, vertical_ref, horizontal0, name, unit)
+    ref_norm = math.hypot(math.hypot(*horizontal0), vertical_ref)
+    ang = np.degrees(np.linalg.norm(fit.residuals, axis=1) / ref_norm)
+    rms = float(np.sqrt(np.mean(ang ** 2)))
+    if rms > MAX_RESIDUAL_DEG:
+        worst = np.argsort(ang)[::-1][:3]
+        raise ValueError(f"{name}: the captures do not fit the twelve-pose model even after screening: residual "
+                         f"{rms:.2f}° RMS ({fit.z_rms:.0f}× the noise; limit {MAX_RESIDUAL_DEG:g}°), worst "
+                         + ", ".join(f"{kept.names[i]} {ang[i]:.2f}°" for i in worst)
+                         + " — stand poses far off, a sensor that does not follow the model, or a log of "
+                         "something else; no coefficients written")
     missing = [p for p in POSES if p not in kept.poses]
     if not missing:
         by_pose = {}

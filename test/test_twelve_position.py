@@ -199,3 +199,20 @@ def test_random_stand_pose_errors_leave_every_capture_in_and_are_reported_as_exc
     assert res.acc.left_out == [] and res.mag.left_out == []
     assert res.acc.z_rms > 10 and res.mag.z_rms > 10
     assert any("magnetometer: the residuals are" in n and "lab diagnose" in n for n in res.notes)
+
+
+def test_captures_far_off_the_model_everywhere_refuse_the_solve_naming_the_worst():
+    # a stand whose poses are off by a degree at random: nothing to leave out, nothing to keep
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(25)
+    truth = _random_triad(rng)
+    ref = np.array([MN, ME, MD])
+    ps = list(tp.POSES) * 2
+    means = [truth.forward(Rotation.from_rotvec(np.radians(rng.normal(0, 1.0, 3))).as_matrix().T
+                           @ tp.pose_reference(p, ref)) for p in ps]
+    caps = tp.CaptureSet(ps, means, [np.full(3, 2.0)] * len(ps), [f"pose {p} (capture {k})" for k, p in enumerate(ps)])
+    with pytest.raises(ValueError, match=r"magnetometer: the captures do not fit the twelve-pose model even after "
+                                         r"screening: residual \d\.\d+° RMS .* worst pose \d+ \(capture \d+\) "
+                                         r"\d\.\d\d°.*no coefficients written"):
+        tp.solve_triad_captures(caps, MD, (MN, 0.0), name="magnetometer", unit="nT", scale_range=None)

@@ -1,0 +1,80 @@
+"""Acceptance gates of a station: creep, unsteady, flat, implausible |g|; saturation named."""
+import numpy as np
+import pytest
+
+from inclinometer_calib.gates import GateLimits, SaturationMonitor, apply_gates, station_findings
+from inclinometer_calib.station import Station
+
+G = np.array([0.0, 0.0, 9.80665])
+B = np.array([35000.0, 0.0, 35000.0])
+
+
+def _station(**kw):
+    n = kw.pop("n", 300)
+    base = dict(t_start=0.0, t_end=3.0, n=n, g=G.copy(), b=B.copy(), g_std=np.full(3, 0.005),
+                b_std=np.full(3, 30.0), g_noise=np.full(3, 0.005), b_noise=np.full(3, 30.0),
+                t_std=3.0 / np.sqrt(12), pose=9)
+    base.update(kw)
+    return Station(**base)
+
+
+def test_a_still_station_passes_every_gate():
+    assert station_findings(_station(), gravity_mps2=9.80665) == []
+
+
+def test_a_creep_of_a_tenth_of_a_degree_is_named_with_the_turn_and_rate():
+    rate = np.array([9.80665 * np.radians(0.1) / 3.0, 0.0, 0.0])   # gravity tilts 0.1° over 3 s
+    f = station_findings(_station(g_rate=rate))
+    assert [x.code for x in f] == ["creep"] and f[0].sensors == ("acc", "mag")
+    assert "turned 0.100° during the 3.00 s hold" in f[0].message and "pose 9" in f[0].message
+
+
+def test_a_trend_within_the_noise_or_below_the_limit_is_not_a_creep():
+    tiny = np.array([9.80665 * np.radians(0.02) / 3.0, 0.0, 0.0])  # 0.02° < 0.05°
+    assert station_findings(_station(g_rate=tiny)) == []
+    few = _station(n=5, t_end=0.04, t_std=0.015, g_rate=np.array([0.5, 0.0, 0.0]))  # 5 samples: not significant
+    assert all(x.code != "creep" for x in station_findings(few))
+
+
+def test_a_magnetometer_turn_alone_is_a_creep_too():
+    rate = np.array([0.0, 35000.0 * np.radians(0.2) / 3.0, 0.0])    # a turn about the vertical
+    assert [x.code for x in station_findings(_station(b_rate=rate))] == ["creep"]
+
+
+def test_scatter_far_above_the_noise_is_unsteady():
+    f = station_findings(_station(b_std=np.array([30.0, 90.0, 30.0])))
+    assert [x.code for x in f] == ["unsteady"] and "magnetometer y scatters 3.0× its noise" in f[0].message
+
+
+def test_a_flat_axis_refuses_that_sensor_only_and_names_its_level():
+    f = station_findings(_station(g=np.array([-9.6, 0.1, 1.9]), g_std=np.array([0.0, 0.005, 0.005])))
+    assert [x.code for x in f] == ["flat"] and f[0].sensors == ("acc",)
+    assert "accelerometer x reads a constant 9.6000 m/s^2" in f[0].message and f[0].axis == "accelerometer x"
+
+
+def test_an_implausible_raw_gravity_refuses_the_accelerometer():
+    f = station_findings(_station(g=G * 0.85), gravity_mps2=9.80665)
+    assert [x.code for x in f] == ["gravity"] and "-15%" in f[0].message
+
+
+def test_apply_gates_records_the_outcome_once():
+    st = _station(g_rate=np.array([0.01, 0.0, 0.0]))
+    assert [x.code for x in apply_gates(st)] == ["creep"]
+    assert st.moved and st.gated and len(st.warnings) == 1
+    assert apply_gates(st) == [] and len(st.warnings) == 1
+
+
+def test_saturation_is_named_when_the_same_level_repeats():
+    mon = SaturationMonitor()
+    out = []
+    for _ in range(3):
+        st = _station(g=np.array([-9.6, 0.1, 1.9]), g_std=np.array([0.0, 0.005, 0.005]))
+        out += mon.add(st, station_findings(st))
+    assert len(out) == 1 and "accelerometer x is flat at 9.6000 m/s^2 in 2 stations: it saturates" in out[0]
+
+
+def test_limits_are_settings():
+    rate = np.array([9.80665 * np.radians(0.1) / 3.0, 0.0, 0.0])
+    assert station_findings(_station(g_rate=rate), GateLimits(max_creep_deg=0.2)) == []
+    with pytest.raises(TypeError):
+        GateLimits(0.1, 1.5, 0.1, 5)
