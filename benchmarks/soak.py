@@ -60,10 +60,11 @@ def main(argv=None) -> int:
     qos = {"qos.reliability": "reliable"} if args.reliable else {}
     params = {
         "probe": dict(source="simulate", rate_hz=float(args.rate), speed=1.0, survey="well_path",
-                      **{"well.n_stations": n_well, "wait_for_subscribers": 3, "start_delay_s": 1.0,
-                         "on_end": "stop"}, **qos),
-        "calibration": dict(output=os.path.join(out, "coeffs.yaml"), **qos),
-        "correction": dict(publish_corrected=not args.no_corrected, **qos),
+                      **{"well.n_stations": n_well, "wait_for_subscribers": 3, "wait_for_reference_subscribers": 2,
+                         "start_delay_s": 1.0, "on_end": "stop"}, **qos),
+        # one time base, as the launcher runs the graph: the probe's /clock (log time)
+        "calibration": dict(output=os.path.join(out, "coeffs.yaml"), use_sim_time=True, **qos),
+        "correction": dict(publish_corrected=not args.no_corrected, use_sim_time=True, **qos),
         "recorder": dict(output=bag_path),
     }
     print(f"soak: {args.minutes:g} min at {args.rate:g} Hz ({n_well} well stations + 12 poses), "

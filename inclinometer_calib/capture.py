@@ -7,9 +7,9 @@ the same detector.  The session
 * **gates** each station (:mod:`gates`: in-hold motion, a flat/saturated axis, an implausible
   |g|): a moved station is rejected, a sensor that failed is left out of that sensor's solve;
 * **identifies** the pose from the measured gravity direction (which tool axis is vertical, and
-  its sign) and the field's horizontal direction (which of the two rolls about that axis; the
-  stand is set up against magnetic north, as in the paper), and checks it against the log's
-  pose label when there is one;
+  its sign: a pair of poses) and the field's heading on the stand (which member of the pair),
+  the heading measured from the captures — a stand need not be set up against magnetic north as
+  in the paper — and checks it against the log's pose label when there is one;
 * follows **the sequence**: before the first solve any pending pose is accepted (out of order
   with a warning), the pose just captured again is the same hold cut into pieces (merged) or a
   retake, any other repeat is refused; after the first solve a new round must start at pose 1
@@ -31,7 +31,7 @@ import numpy as np
 from .frames import Site, angle_between_deg
 from .gates import GateLimits, SaturationMonitor, apply_gates
 from .station import Station, merge_stations
-from .twelve_position import (POSES, CaptureSet, identify_pose_with_field, pose_reference, solve_captures,
+from .twelve_position import (POSES, CaptureSet, field_heading_deg, identify_pose, pose_reference, solve_captures,
                               to_calibration, _gravity_candidates)
 
 #: Statics of the same pose closer in time than this (s) are pieces of one hold, merged.
@@ -41,6 +41,16 @@ MERGE_GAP_S = 1.0
 #: capture of the pose; survey stations near a pose are not.
 ROUND_GRAVITY_TOL_DEG = 2.0
 ROUND_FIELD_TOL_DEG = 5.0
+#: Before any solve, a pose captured again must point like its earlier capture (raw gravity and
+#: raw field directions, deg): the same sensor errors in the same pose give the same readings.
+REPEAT_TOL_DEG = 3.0
+
+
+def position(pose: int) -> int:
+    """Place in Table 1's sequence of a pose, the two poses of a pair (turned 180° about the
+    vertical from each other: 1–2, 3–4, …) sharing it — which member of a pair a capture is
+    depends on the stand's heading, the sequence does not."""
+    return (int(pose) - 1) // 2
 
 
 @dataclass
@@ -49,7 +59,7 @@ class CaptureSession:
 
     Parameters
     ----------
-    site : Site — reference field (the stand is assumed aligned with magnetic north).
+    site : Site — reference field (gravity, and M_d: the vertical field that scales the magnetometer).
     min_capture_s : a capture shorter than this is rejected ("too short").
     pose_tolerance_deg : how far from a Table 1 pose the measured gravity may be (uncalibrated
         sensors may be several degrees off).
@@ -82,6 +92,11 @@ class CaptureSession:
         self._saturation = SaturationMonitor()
         self._flat_seen = {}              # "accelerometer x" -> stations in which it was flat
         self._flat_reported = {}
+        self._h2 = [0.0, 0.0]             # sums of cos, sin of twice the captures' field headings
+        self._heading = 0.0
+        self._heading_said = False
+        self.solve_notes: list = []       # what the last solve said (left-out captures, residuals)
+        self._solve_texts: set = set()    # everything any solve said
 
     # ---- views -----------------------------------------------------------------------------
     @property
@@ -97,24 +112,54 @@ class CaptureSession:
     @property
     def expected_next(self) -> int:
         """The pose the sequence expects next: in a round after the first solve, the one after the
-        last; before, the first pending pose after the last one captured (Table 1 order, wrapping)."""
+        last; before, the first pending pose from the last one captured on (Table 1 order by pair,
+        wrapping)."""
         if self.state == "done" and self._round:
             last = self._round[-1].pose
             return last + 1 if last < 12 else -1
         pending = self.pending
         if not pending:
             return -1
-        last = self.captures[-1].pose if self.captures else 0
-        after = [p for p in pending if p > last]
+        last = self.captures[-1].pose if self.captures else 1
+        after = [p for p in pending if position(p) >= position(last)]   # the last one's partner counts as next
         return after[0] if after else pending[0]
 
-    def _stand_field(self):
-        # Stand frame = magnetic north/east/down (Table 1 is laid out against magnetic north).
-        return Site(self.site.total_field_nt, self.site.dip_deg, 0.0, self.site.gravity_mps2).field_ned()
+    @property
+    def heading(self) -> float:
+        """The field's heading in the stand frame (deg), measured from the captures so far: 0 for a
+        stand set up against magnetic north as in the paper.  A pose and its pair partner give
+        headings 180° apart, so the mean is taken of the doubled angles; the branch is the one
+        nearest the previous estimate (the first: nearest magnetic north)."""
+        c, s = self._h2
+        if c == 0.0 and s == 0.0:
+            return self._heading
+        half = math.degrees(math.atan2(s, c)) / 2.0
+        return half + 180.0 * round((self._heading - half) / 180.0)
 
     def identify(self, g, b):
-        """Pose (1..12) and misfit (deg) for mean gravity vector ``g`` and raw field ``b``."""
-        return identify_pose_with_field(g, b, self._stand_field(), self.pose_tolerance_deg)
+        """Pose (1..12) and heading misfit (deg) for a mean gravity vector ``g`` and raw field ``b``
+        (:func:`twelve_position.identify_pose` at the stand's measured heading)."""
+        cands = _gravity_candidates(g, self.pose_tolerance_deg)
+        if not cands:
+            return None, float("nan")
+        # the heading with this capture counted in (either member of the pair: doubled angles)
+        psi = math.radians(field_heading_deg(cands[0], b))
+        c, s = self._h2
+        c, s = c + math.cos(2 * psi), s + math.sin(2 * psi)
+        half = math.degrees(math.atan2(s, c)) / 2.0
+        heading = half + 180.0 * round((self._heading - half) / 180.0)
+        return identify_pose(g, b, heading, self.pose_tolerance_deg)
+
+    def _count_heading(self, st):
+        psi = math.radians(field_heading_deg(st.pose, st.b))
+        self._h2[0] += math.cos(2 * psi)
+        self._h2[1] += math.sin(2 * psi)
+        self._heading = self.heading
+        if not self._heading_said and len(self.captures) >= 4 and abs(self._heading) > 20.0:
+            self._heading_said = True
+            self._info(f"the field points {self._heading:+.0f}° from the stand's north: the stand is turned about "
+                       f"{-self._heading:+.0f}° from magnetic north (the solve does not need it; the poses are told "
+                       "apart by it)")
 
     def _warn(self, msg):
         self.warnings.append(msg)
@@ -134,7 +179,7 @@ class CaptureSession:
         log) must agree with the pose its gravity shows; a station after the calibration that
         does not continue a new round in order is a survey station: 'ignored' without a warning.
         """
-        pose, misfit = self.identify(st.g, st.b)
+        pose, _ = self.identify(st.g, st.b)
         # solved from every pose: later statics are new rounds or survey stations; solved without some
         # poses (at the end of the data, least squares): those poses are still welcome
         after_solve = self.state == "done" and not self.recapture and not self.pending
@@ -166,16 +211,35 @@ class CaptureSession:
             return "rejected"
         if st.pose and st.pose != pose:
             cands = _gravity_candidates(st.g, self.pose_tolerance_deg)
-            says = f"pose {pose}" + (f" (gravity alone: pose {' or '.join(map(str, cands))})" if len(cands) > 1 else "")
-            self._warn(f"station at {st.where}: labelled pose {st.pose} but its gravity and field say {says}: "
-                       "refused (mislabelled pose)")
-            return "rejected"
-        if misfit > 30.0:
-            self._warn(f"{where}: field direction {misfit:.0f}° from the expected one — is the stand aligned "
-                       f"with magnetic north? accepted on gravity")
+            if st.pose not in cands:
+                self._warn(f"station at {st.where}: labelled pose {st.pose} but its gravity says pose "
+                           f"{' or '.join(map(str, cands))}: refused (mislabelled pose)")
+                return "rejected"
+            pose = st.pose   # the label tells the pair's members apart where the heading guessed wrong
         labelled = bool(st.pose)
         st.pose = pose
-        return self._accept(st, labelled, after_solve)
+        if not self._same_as_before(st):
+            return "ignored"
+        result = self._accept(st, labelled, after_solve)
+        if result not in ("ignored", "rejected"):
+            self._count_heading(st)
+        return result
+
+    def _same_as_before(self, st) -> bool:
+        """Before any solve, a pose captured again must read as its first capture did (the same
+        sensor errors in the same pose): a survey station near a pose does not."""
+        if self.state == "done":
+            return True     # calibrated: checked against the pose itself (_looks_like_pose)
+        first = next((c for c in self.captures if c.pose == st.pose), None)
+        if first is None:
+            return True
+        dg, db = angle_between_deg(st.g, first.g), angle_between_deg(st.b, first.b)
+        if dg <= REPEAT_TOL_DEG and db <= REPEAT_TOL_DEG:
+            return True
+        self._warn(f"pose {st.pose} at {st.where}: its gravity is {dg:.1f}° and its field {db:.1f}° from pose "
+                   f"{st.pose}'s earlier capture at {first.where}: not the same pose (a survey station, or the "
+                   "stand moved?) — ignored")
+        return False
 
     def _continues_round(self, pose, st) -> bool:
         """After the first solve: does this station start or continue a new round in order?
@@ -190,17 +254,15 @@ class CaptureSession:
         if not self._looks_like_pose(pose, st):
             return False
         if not self._round:
-            if pose == 1:
-                return True
-            return False
+            return position(pose) == 0
         last = self._round[-1]
-        if pose == last.pose or pose == last.pose + 1:
+        if position(pose) in (position(last.pose), position(last.pose) + 1):
             return True
         self._warn(f"round {self.solves + 1} abandoned after pose {last.pose}: the next static ({st.where}) is "
-                   f"pose {pose}, not pose {last.pose + 1} — the survey started? Its {len(self._round)} capture(s) "
+                   f"pose {pose}, out of Table 1's order — the survey started? Its {len(self._round)} capture(s) "
                    "are not used; the coefficients stay those of the complete rounds")
         self._drop_round()
-        return pose == 1
+        return position(pose) == 0
 
     def _looks_like_pose(self, pose, st) -> bool:
         cal = self.calibration
@@ -265,8 +327,11 @@ class CaptureSession:
                 self._warn(f"{where}: pose {st.pose} again, out of sequence (expected pose {self.expected_next}): "
                            "ignored — call recapture to replace a pose")
                 return "ignored"
-        elif st.pose != self.expected_next:
-            self._warn(f"{where}: out of order (expected pose {self.expected_next} next); accepted")
+        elif position(st.pose) != position(self.expected_next):
+            if labelled:   # a stand's labels: its order is its own
+                self._info(f"{where}: out of Table 1's order (labelled); accepted")
+            else:
+                self._warn(f"{where}: out of order (expected pose {self.expected_next} next); accepted")
         self.captures.append(st)
         self._dirty = True
         # solve when this capture completes the twelve (later captures wait for a round or the end)
@@ -294,6 +359,8 @@ class CaptureSession:
         self._dirty = False
         self._saturation = SaturationMonitor()
         self._flat_seen, self._flat_reported = {}, {}
+        self._h2, self._heading, self._heading_said, self.solve_notes = [0.0, 0.0], 0.0, False, []
+        self._solve_texts = set()
         self.result = self.calibration = None
         self.state, self.message, self.current_pose, self.solves = "collecting", "", -1, 0
 
@@ -332,14 +399,17 @@ class CaptureSession:
         return sets
 
     def solve(self, final: bool = False):
-        """Solve from the captures (see the module docstring).  Sets :attr:`state` and :attr:`message`."""
+        """Solve from the captures (see the module docstring).  Sets :attr:`state` and :attr:`message`;
+        what the solve says goes to :attr:`warnings` (as it happens) and :attr:`solve_notes` (the
+        last solve's only).  ``final``: the end of the data — poses captured more often than the
+        others are named then (a duplicated label?), not while a round is still coming in."""
         self.state = "solving"
         self._dirty = False
+        notes = []
         for axis, k in self._flat_seen.items():
-            if k > 2 and self._flat_reported.get(axis) != k:
-                self._flat_reported[axis] = k
-                self._warn(f"{axis} was flat in {k} captures (the first two are named above); those captures' "
-                           f"{axis.split()[0]} data are not used")
+            if k > 2:
+                notes.append(f"{axis} was flat in {k} captures (the first two are named above); those captures' "
+                             f"{axis.split()[0]} data are not used")
         acc, mag = self.capture_sets()
         missing = self.pending
         try:
@@ -351,17 +421,16 @@ class CaptureSession:
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.state = "error"
             self.message = (f"solve failed: {exc}" + (f" (poses never captured: {missing})" if missing else ""))
-            self._warn(self.message)
+            self._say_solve(notes + [self.message])
             return None
-        for note in self.result.notes:
-            self._warn(note)
-
+        notes.extend(self.result.notes)
         counts = {p: sum(1 for c in self.captures if c.pose == p) for p in self.captured}
         usual = int(np.median(list(counts.values())))
         extra = sorted(p for p, k in counts.items() if k > usual)
-        if extra:
-            self._warn("pose(s) " + ", ".join(f"{p} ×{counts[p]}" for p in extra) + f" captured more often than the "
-                       f"others (×{usual}): their means average every capture; check for a duplicated pose label")
+        if final and extra:
+            notes.append("pose(s) " + ", ".join(f"{p} ×{counts[p]}" for p in extra) + f" captured more often than "
+                         f"the others (×{usual}): their means average every capture; check for a duplicated pose label")
+        self._say_solve(notes)
         self.state = "done"
         self.solves += 1
         n = len(self.captures)
@@ -370,3 +439,15 @@ class CaptureSession:
                         f"({self.result.acc.z_rms:.1f}× and {self.result.mag.z_rms:.1f}× the noise)")
         return self.calibration
 
+    def _say_solve(self, notes):
+        self.solve_notes = list(notes)
+        for note in notes:
+            if note not in self._solve_texts:   # the same words again at a later solve: said once
+                self._warn(note)
+            self._solve_texts.add(note)
+
+    @property
+    def capture_warnings(self) -> list:
+        """The warnings about captures (gates, identification, sequence), without what the solves
+        said: with :attr:`solve_notes` what a whole log gives, when only the last solve matters."""
+        return [w for w in self.warnings if w not in self._solve_texts]

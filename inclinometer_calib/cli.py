@@ -155,8 +155,8 @@ def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", de
     for st in stations:
         session.offer(st)
     session.finish()
-    if not quiet:
-        for w in session.warnings:
+    if not quiet:   # what the captures met, and what the last solve said (earlier ones were provisional)
+        for w in session.capture_warnings + session.solve_notes:
             if session.calibration is None and w == session.message:
                 continue   # the error itself, said once below
             _warn(f"{cal_path}: {w}")
@@ -168,10 +168,26 @@ def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", de
         if not quiet:
             _warn(f"{cal_path}: no --site given: site reference taken from the calibration data — dip "
                   f"{site.dip_deg:.3f}°, horizontal field {site.declination_deg:+.3f}° from the stand's north "
-                  f"(azimuths will be reported from the stand's north), total field {site.total_field_nt:.0f} "
-                  f"in the scale of the assumed vertical component; give --site for a survey elsewhere")
+                  f"(azimuths will be reported from the stand's north), total field {site.total_field_nt:.0f} nT "
+                  f"in the scale of an assumed vertical component, gravity {site.gravity_mps2:g} m/s² assumed "
+                  "(the scale factors are relative to them; angles are not affected); give --site for a survey "
+                  "elsewhere")
         cal.site = site
+        cal.site_source = "measured"
     return session, cal
+
+
+def check_site_against_record(site, cal, tol, where):
+    """Warn when a site given now contradicts a record solved without one: its magnetometer scale
+    is that of the assumed vertical field, so every station's |B| would be off by the difference."""
+    if cal is None or cal.site_source != "measured":
+        return
+    diff = site.total_field_nt - cal.site.total_field_nt
+    if abs(diff) > tol.field_nt:
+        _warn(f"{where}: the coefficients were solved without a site (their magnetometer scale is that of an assumed "
+              f"field of {cal.site.total_field_nt:.0f} nT) and this site's total field is {site.total_field_nt:.0f} nT: "
+              f"every station's |B| will be {-diff:+.0f} nT off and flagged — calibrate with --site for a survey "
+              "with another site")
 
 
 def cmd_twelve_position(args):
@@ -201,8 +217,13 @@ def cmd_twelve_position(args):
     imp = result.implied_site()
     print(f"RMS residual: acc {result.acc.rms_residual:.5f} m/s^2 ({result.acc.z_rms:.1f}× the noise), "
           f"mag {result.mag.rms_residual:.2f} nT ({result.mag.z_rms:.1f}× the noise)")
-    print(f"Implied by the corrected data: |B| {imp['total_field']:.1f} nT (site {site.total_field_nt:g}), "
-          f"dip {imp['dip_deg']:.3f} deg (site {site.dip_deg:g}), stand tilt {imp['stand_tilt_deg']:.3f} deg")
+    if cal.site_source == "measured":
+        print(f"Measured on the stand (the site reference of this record): |B| {imp['total_field']:.1f} nT (in the "
+              f"scale of the assumed vertical field), dip {imp['dip_deg']:.3f} deg, stand tilt "
+              f"{imp['stand_tilt_deg']:.3f} deg")
+    else:
+        print(f"Implied by the corrected data: |B| {imp['total_field']:.1f} nT (site {site.total_field_nt:g}), "
+              f"dip {imp['dip_deg']:.3f} deg (site {site.dip_deg:g}), stand tilt {imp['stand_tilt_deg']:.3f} deg")
     print(f"wrote {args.output} (id {cal.id})")
     return 0
 
@@ -273,6 +294,8 @@ def cmd_correct(args):
     cal = load_calibration(args.coeffs)
     site = load_site(args.site) if args.site else (cal.site if cal else Site())
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+    if args.site:
+        check_site_against_record(site, cal, tol, args.log)
     stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction, mag_unit=args.mag_unit,
                                       detector=detector_from_args(args))
     if args.output:
@@ -351,6 +374,8 @@ def cmd_reprocess(args):
     cal = load_calibration(args.coeffs)
     site = load_site(args.site) if args.site else (cal.site if cal else Site())
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+    if args.site:
+        check_site_against_record(site, cal, tol, args.bag)
     det = detector_from_args(args)
     try:
         rep = reprocess(args.bag, args.output, cal, site, tol, det, compression=args.compression,
@@ -364,14 +389,23 @@ def cmd_reprocess(args):
     for w in rep.warnings():
         if not w.startswith("skipped topic"):  # those were warned as they were met
             _warn(f"{args.bag}: {w}")
+    if rep.graph_outputs:
+        print(f"not read (a recorded run's own outputs, made anew here or not needed): {', '.join(rep.graph_outputs)}")
     n = len(rep.stations)
-    flagged = {k: sum(bool(s[k]) for s in rep.stations)
+    speed = rep.log_span_s / rep.seconds if rep.seconds > 0 else float("inf")
+    used = rep.calibrations[-1].id if rep.calibrations else (cal.id if cal else "")
+    by_id = {}
+    for st in rep.stations:
+        by_id[st["coefficients_id"]] = by_id.get(st["coefficients_id"], 0) + 1
+    parts = [f"{k} with {cid}" + (" (the last)" if cid == used and len(by_id) > 1 else "") if cid else
+             f"{k} uncorrected (before any coefficients)" for cid, k in by_id.items()]
+    final = [s for s in rep.stations if s["coefficients_id"] == used]
+    flagged = {k: sum(bool(s[k]) for s in final)
                for k in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance",
                          "moved_during_capture")}
-    speed = rep.log_span_s / rep.seconds if rep.seconds > 0 else float("inf")
-    used = rep.calibrations[-1].id if rep.calibrations else (cal.id if cal else "none")
-    print(f"{rep.messages_read} messages read, {rep.pairs} imu/mag pairs, {n} stations "
-          f"(coefficients {used}); flagged: " + ", ".join(f"{k} {v}" for k, v in flagged.items()))
+    print(f"{rep.messages_read} messages read, {rep.pairs} imu/mag pairs, {n} stations: " + ", ".join(parts))
+    print(f"flagged among the {len(final)} stations with {used or 'no coefficients'}: "
+          + ", ".join(f"{k} {v}" for k, v in flagged.items()))
     if rep.noise is not None:
         print(f"detector: {rep.noise.describe()}")
     rc = 0
@@ -387,7 +421,7 @@ def cmd_reprocess(args):
                   file=sys.stderr)
             rc = 1
     print(f"wrote {args.output} ({n} {TOPIC_STATION} messages, "
-          f"{sum(rep.copied.values())} input messages copied); {rep.log_span_s:.1f} s of log in "
+          f"{sum(rep.copied.values())} input messages copied); {rep.log_span_s:.1f} s of data in "
           f"{rep.seconds:.2f} s ({speed:.0f}× real time)")
     if rep.bag_errors:
         for e in rep.bag_errors:
@@ -645,7 +679,8 @@ def build_parser():
     s.set_defaults(func=cmd_simulate)
 
     t = sub.add_parser("twelve-position", help="fit both triads from a twelve-pose calibration log")
-    t.add_argument("cal", help="calibration log CSV (poses 1..12 labelled)")
+    t.add_argument("cal", help="calibration log CSV: the twelve poses, labelled or not (the poses are recognised "
+                                "from gravity and field; labels are checked)")
     t.add_argument("-o", "--output", required=True, help="coefficient YAML to write")
     t.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2)")
     t.add_argument("--probe-id", default="probe")

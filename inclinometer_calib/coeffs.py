@@ -57,6 +57,10 @@ class Calibration:
     site: Site = field(default_factory=Site)
     effects: tuple = ("bias", "scale", "nonorthogonality")
     diagnostics: dict = field(default_factory=dict)
+    #: where ``site`` came from: "given" (a site file, node parameters), "measured" (the stand's
+    #: field measured by the twelve poses, its total field in the scale of an assumed vertical
+    #: component: the magnetometer's scale is then relative), "unknown" (an older record)
+    site_source: str = "given"
 
     def __post_init__(self):
         if not self.created:
@@ -87,6 +91,7 @@ class Calibration:
             "method": self.method,
             "conventions": dict(CONVENTIONS),
             "site": self.site.to_dict(),
+            "site_source": self.site_source,
             "model": {"effects": list(self.effects)},
         }
         for sensor, key in TRIAD_KEYS.items():
@@ -176,7 +181,8 @@ class Calibration:
             diags["notes"] = [str(x) for x in rec["notes"]]
         cal = cls(acc=triads["acc"][0], mag=triads["mag"][0], probe_id=str(rec.get("probe_id", "probe")),
                   method=str(rec.get("method", "")), created=str(rec.get("created", "")), site=site,
-                  effects=tuple(rec.get("model", {}).get("effects", ())), diagnostics=diags)
+                  effects=tuple(rec.get("model", {}).get("effects", ())), diagnostics=diags,
+                  site_source=str(rec.get("site_source", "unknown")))
         if "id" in rec and rec["id"] != cal.id:
             fail(f"id {rec['id']!r} does not match the coefficients (expected {cal.id!r}): edited without re-issuing")
         return cal

@@ -17,8 +17,8 @@ into pieces and lets a quieter one move unnoticed, so the noise is measured from
   which inflate the estimate by several per cent);
 * blocks in which an axis did not change at all (``s = 0``: a clipped, saturated or stuck axis)
   are left out — they say nothing about the noise and would drag the low quantile to zero; an
-  axis that did not change in most blocks gets σ = 0 (stuck, or noiseless data: the gates call
-  it flat when the sensor's other axes do show noise).
+  axis that did not change in most blocks takes the noise of its triad's other axes
+  (:func:`fill_flat_axes`; 0 only when no axis of the sensor shows noise: noiseless data).
 
 The estimate is valid as soon as ``ready_blocks`` blocks of together ``ready_samples`` samples
 have been seen; it keeps adapting over the last ``history_s`` seconds.  An explicit value (a node parameter, a CLI option) overrides the
@@ -88,6 +88,20 @@ def estimate_from_blocks(block_std: np.ndarray, block_n: float) -> np.ndarray:
     finite = np.isfinite(s).sum(axis=0)
     flat = (2 * count < finite)
     return np.where(finite == 0, np.nan, np.where(flat, 0.0, out))
+
+
+def fill_flat_axes(sigma6) -> tuple:
+    """An axis flat in most blocks (σ 0) while the same sensor's other axes show noise takes their
+    median: a clipped or stuck axis still has the noise of its triad once it moves again, and a
+    threshold of 0 would cut every hold on it.  (A sensor with no noise at all keeps 0.)"""
+    out = list(sigma6)
+    for k in (0, 3):
+        trio = out[k:k + 3]
+        noisy = [v for v in trio if math.isfinite(v) and v > 0]
+        if noisy and len(noisy) < 3:
+            fill = float(np.median(noisy))
+            out[k:k + 3] = [fill if v == 0 else v for v in trio]
+    return tuple(out)
 
 
 @dataclass(frozen=True)
@@ -187,13 +201,15 @@ class NoiseEstimator:
         # once the estimate stands, refreshing it every fourth block (about once a second) is enough
         if (m >= self.ready_blocks and self._samples >= self.ready_samples
                 and (m <= 4 * self.ready_blocks or self._count % 4 == 0)):
-            self._sigma = tuple(float(v) for v in estimate_from_blocks(self._std[:m], float(np.median(self._nb[:m]))))
+            self._sigma = fill_flat_axes(float(v) for v in estimate_from_blocks(self._std[:m],
+                                                                                 float(np.median(self._nb[:m]))))
 
     def force(self) -> None:
         """Estimate from the blocks there are, even fewer than ``ready_blocks`` (a short stream)."""
         m = min(self._count, self._cap)
         if m:
-            self._sigma = tuple(float(v) for v in estimate_from_blocks(self._std[:m], float(np.median(self._nb[:m]))))
+            self._sigma = fill_flat_axes(float(v) for v in estimate_from_blocks(self._std[:m],
+                                                                                 float(np.median(self._nb[:m]))))
 
     # ---- results ---------------------------------------------------------------------------
     @property
@@ -292,6 +308,6 @@ def estimate_noise(t, acc, mag, block_s: float = 0.25, min_block_samples: int = 
     if not stds:
         return NoiseLevel((math.nan,) * 3, (math.nan,) * 3, "none", "none", 0)
     s = np.concatenate(stds)
-    sig = estimate_from_blocks(s, per)
+    sig = np.array(fill_flat_axes(float(v) for v in estimate_from_blocks(s, per)))
     src = ["data" if np.all(np.isfinite(sig[3 * k:3 * k + 3])) else "none" for k in range(2)]
     return NoiseLevel(tuple(float(v) for v in sig[:3]), tuple(float(v) for v in sig[3:]), src[0], src[1], len(s))

@@ -41,6 +41,8 @@ HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
           "ref_drift_deg", "ref_azimuth_deg", "ref_toolface_deg"]
 #: Magnetometer units a log may be written in, as nT per unit.
 MAG_UNITS = {"nT": 1.0, "uT": 1e3, "mT": 1e6, "T": 1e9, "G": 1e5, "mG": 1e2}
+UNIT_NAMES = {"nT": "nanotesla", "uT": "microtesla", "mT": "millitesla", "T": "tesla", "G": "gauss",
+              "mG": "milligauss"}
 
 
 @dataclass
@@ -49,7 +51,8 @@ class ProbeLog:
 
     Attributes: ``t_s`` (N,) s; ``acc`` (N, 3) REP-145 specific force, m/s²; ``mag`` (N, 3) nT;
     ``temp_c`` (N,) °C; ``pose`` (N,) int, 0 = none; ``ref`` (N, 3) deg (drift, azimuth,
-    toolface), NaN where unknown.
+    toolface), NaN where unknown; ``row`` (N,) int, the data row of the file each sample came from
+    (1-based; rows rejected by the reader are missing), for messages that point into the file.
     """
 
     t_s: np.ndarray
@@ -58,6 +61,11 @@ class ProbeLog:
     temp_c: np.ndarray
     pose: np.ndarray
     ref: np.ndarray
+    row: np.ndarray = None
+
+    def __post_init__(self):
+        if self.row is None:
+            self.row = np.arange(1, len(self.t_s) + 1)
 
     def __len__(self):
         return len(self.t_s)
@@ -69,6 +77,7 @@ class ProbeLog:
 
     @classmethod
     def concatenate(cls, logs):
+        """One log after the other (rows numbered on through the whole)."""
         logs = list(logs)
         return cls(*(np.concatenate([getattr(lg, f) for lg in logs]) for f in
                      ("t_s", "acc", "mag", "temp_c", "pose", "ref")))
@@ -118,17 +127,24 @@ def check_sample(acc, mag, temp, limits: Limits):
     if not limits.acc_total_range[0] <= a <= limits.acc_total_range[1]:
         return (f"total acceleration {a:.4g} m/s² is implausible (expected "
                 f"{limits.acc_total_range[0]:.3g}..{limits.acc_total_range[1]:.3g}; units must be m/s²)")
-    if 0 < m < 1e-3:
-        return (f"total field {m:.3g} nT is implausible — the magnetometer columns look like tesla: give the "
-                f"unit (--mag-unit T) or write nT")
-    if 5e-3 < m < 1.0:
-        return (f"total field {m:.3g} nT is implausible — the magnetometer columns look like gauss: give the "
-                f"unit (--mag-unit G) or write nT")
+    if 0 < m < limits.mag_total_range[0]:
+        unit = _unit_guess(m)
+        if unit:
+            return (f"total field {m:.3g} nT is implausible — the magnetometer columns look like {UNIT_NAMES[unit]}: "
+                    f"give the unit (--mag-unit {unit}) or write nT")
     if not limits.mag_total_range[0] <= m <= limits.mag_total_range[1]:
         return (f"total field {m:.4g} nT is implausible (expected "
                 f"{limits.mag_total_range[0]:g}..{limits.mag_total_range[1]:g} nT)")
     if math.isfinite(temp) and not limits.temp_range_c[0] <= temp <= limits.temp_range_c[1]:
         return f"temp_c={temp:g} °C is implausible"
+    return None
+
+
+def _unit_guess(total: float):
+    """The unit in which ``total`` (read as nT) would be an Earth field of 20 000–70 000 nT."""
+    for unit, scale in MAG_UNITS.items():
+        if unit != "nT" and 20000.0 <= total * scale <= 70000.0:
+            return unit
     return None
 
 
@@ -180,12 +196,12 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
             rejections.append(Rejection(k, line, reason))
             continue
         last_t = t
-        rows.append((t, *acc, *mag, temp, pose, *ref))
+        rows.append((t, *acc, *mag, temp, pose, *ref, k))
     if not rows:
         detail = f"; first rejection: {rejections[0]}" if rejections else ""
         raise ValueError(f"{source}: no usable rows{detail}")
     a = np.array(rows, dtype=float)
-    log = ProbeLog(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8].astype(int), a[:, 9:12])
+    log = ProbeLog(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8].astype(int), a[:, 9:12], a[:, 12].astype(int))
     return log, rejections
 
 
@@ -299,7 +315,8 @@ def label_runs(log: ProbeLog):
     """Runs of consecutive rows with the same label (pose and reference), labelled runs only.
 
     Returns ``[(first_row, last_row, pose, ref), ...]`` with 0-based inclusive row indices and
-    ``ref`` (3,) degrees (NaN where not given).  What the log *says* its stations are — used to
+    ``ref`` (3,) degrees (NaN where not given) — indices into the log, not file rows (``log.row``).
+    What the log *says* its stations are — used to
     report labelled holds the detector did not find, and for a simulator's truth."""
     n = len(log)
     out = []
@@ -341,7 +358,7 @@ def segment_stations(log: ProbeLog, detector=None, use_labels: bool = True):
     starts = np.searchsorted(t, [st.t_start for st in found])
     ends = np.searchsorted(t, [st.t_end for st in found])
     for st, i0, i1 in zip(found, starts, ends):
-        st.first_row, st.last_row = int(i0) + 1, int(i1) + 1
+        st.first_row, st.last_row = int(log.row[i0]), int(log.row[min(i1, len(log) - 1)])   # the file's rows
         if use_labels:
             keys = Counter((int(p), _ref_key(r)) for p, r in zip(log.pose[i0:i1 + 1].tolist(),
                                                                  log.ref[i0:i1 + 1].tolist()))
@@ -384,6 +401,7 @@ def _unfound_holds(log, found, det) -> list:
         if any(not st.short for st in inside):
             continue
         label = _label_text((pose, _ref_key(ref)))
+        r0, r1 = int(log.row[i0]), int(log.row[i1])
         pieces = [st for st in inside if st.short]
         if pieces:
             why = (f"only pieces shorter than {det.min_duration_s:g} s ({', '.join(f'{st.duration_s:.2f}' for st in pieces)} s): "
@@ -394,5 +412,5 @@ def _unfound_holds(log, found, det) -> list:
                    f"{det.settle_s:g} s settling)")
         else:
             why = "the probe was never still there (every sample moved beyond the noise)"
-        out.append(f"{label} at rows {i0 + 1}-{i1 + 1} (t={t0:.2f}-{t1:.2f} s): no static station found: {why}")
+        out.append(f"{label} at rows {r0}-{r1} (t={t0:.2f}-{t1:.2f} s): no static station found: {why}")
     return out

@@ -46,24 +46,12 @@ from .probelog import Limits, check_sample
 from .coeffs import message_fields
 from .streaming import ReferenceTrack, StaticDetector, StreamPairer, SurveyProcessor, station_fields
 from .survey import Tolerances
-
-TOPIC_IMU = "/probe/imu"
-TOPIC_MAG = "/probe/mag"
-TOPIC_TEMPERATURE = "/probe/temperature"
-TOPIC_REFERENCE = "/probe/reference"
-TOPIC_STATION = "/survey/station"
-
-IMU_TYPE = "sensor_msgs/msg/Imu"
-MAG_TYPE = "sensor_msgs/msg/MagneticField"
-TEMPERATURE_TYPE = "sensor_msgs/msg/Temperature"
-REFERENCE_TYPE = "geometry_msgs/msg/Vector3Stamped"
-STATION_TYPE = "inclinometer_calib/msg/SurveyStation"
-COEFFICIENTS_TYPE = "inclinometer_calib/msg/CalibrationCoefficients"
-TOPIC_COEFFICIENTS = "/calibration/coefficients"
+from .topics import (COEFFICIENTS_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
+                     STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_IMU, TOPIC_MAG, TOPIC_REFERENCE,
+                     TOPIC_STATION, TOPIC_TEMPERATURE)
 
 #: Input topics read (and copied through) and the type each must have.
-INPUT_TOPICS = {TOPIC_IMU: IMU_TYPE, TOPIC_MAG: MAG_TYPE, TOPIC_TEMPERATURE: TEMPERATURE_TYPE,
-                TOPIC_REFERENCE: REFERENCE_TYPE}
+INPUT_TOPICS = PROBE_TOPICS
 
 NAN = float("nan")
 
@@ -187,11 +175,12 @@ class ReprocessReport:
     messages_read: int = 0
     copied: Dict[str, int] = field(default_factory=dict)  # input messages copied, per topic
     skipped_topics: Dict[str, str] = field(default_factory=dict)  # topic -> "type: reason"
+    graph_outputs: Dict[str, str] = field(default_factory=dict)   # a recorded run's own outputs, not read
     pairs: int = 0
     short_intervals: int = 0                               # static but shorter than min_duration_s
     issues: Dict[str, _Issue] = field(default_factory=dict)
     bag_errors: List[BagError] = field(default_factory=list)
-    log_span_s: float = 0.0                                # log time covered by the input
+    log_span_s: float = 0.0                                # time the input's samples cover (their stamps), s
     seconds: float = 0.0                                   # wall time of the run
     events: List[str] = field(default_factory=list)        # the detector's messages (pieces, noise)
     calibration_warnings: List[str] = field(default_factory=list)   # the capture session's (calibrate)
@@ -235,7 +224,9 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     show).  ``calibrate``: run the live calibration node's twelve-pose session
     (:class:`capture.CaptureSession`) on the bag's stations, as the live graph does: each solve
     is written as ``/calibration/coefficients`` and applied to the stations that close after it
-    (a station is never corrected by coefficients solved from itself); ``calibration`` then
+    (a station is never corrected by coefficients solved from itself — live, the station that
+    completes a calibration may or may not be, as the coefficients race it to the correction
+    node); ``calibration`` then
     only corrects the stations before the first solve.  ``warn`` is called with a message for
     each skipped topic as soon as it is seen.  Returns a :class:`ReprocessReport`; damage to
     ``src`` is in ``report.bag_errors`` (not raised).  Raises :class:`FileExistsError` if
@@ -266,7 +257,8 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     prior = {}
     refs = ReferenceTrack()
     pending: List[tuple] = []                  # (station, log time) waiting for the reference
-    first_log = last_log = None
+    last_log = None
+    t_first_pair = t_last_pair = None
     stations = report.stations
     copied = report.copied
     issue = report._issue
@@ -312,6 +304,8 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
         want = INPUT_TOPICS.get(m.topic)
         if want is None:
             why = f"{m.type or 'unknown type'}: not a probe input topic (reads {', '.join(INPUT_TOPICS)})"
+            if m.topic in GRAPH_OUTPUTS:
+                why = f"{m.type}: an output of the live graph, not an input"
             if m.topic == TOPIC_STATION:
                 why = f"{m.type}: stations of an earlier run, replaced by the reprocessed ones"
             elif m.topic == TOPIC_COEFFICIENTS and calibrate:
@@ -328,8 +322,12 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
             out_cid[m.topic] = cid
             copied[m.topic] = 0
             return cid
-        report.skipped_topics[m.topic] = why
         out_cid[m.topic] = None
+        if m.topic in GRAPH_OUTPUTS and m.topic not in (TOPIC_STATION, TOPIC_COEFFICIENTS) or \
+                (m.topic == TOPIC_STATION) or (m.topic == TOPIC_COEFFICIENTS and calibrate):
+            report.graph_outputs[m.topic] = why   # a recorded run's own outputs: expected, made anew or not needed
+            return None
+        report.skipped_topics[m.topic] = why
         if warn is not None:
             warn(f"{src}: skipped topic {m.topic} ({why})")
         return None
@@ -338,8 +336,6 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
         for m in reader.messages(strict=False):
             report.messages_read += 1
             topic, log_time = m.topic, m.log_time
-            if first_log is None:
-                first_log = log_time
             last_log = log_time
             cid = out_cid[topic] if topic in out_cid else register(m)
             if cid is None:
@@ -398,6 +394,9 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                       _where(topic, log_time) + f": {reason}")
                 continue
             report.pairs += 1
+            if t_first_pair is None:
+                t_first_pair = t
+            t_last_pair = t
             for st in det.update(t, f, mm, temp):
                 emit(st, log_time)
         for st in det.flush():
@@ -418,7 +417,7 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     report.events = det.pop_events()
     report.noise = det.noise_level
     report.bag_errors = list(reader.errors)
-    report.log_span_s = (last_log - first_log) / 1e9 if first_log is not None else 0.0
+    report.log_span_s = (t_last_pair - t_first_pair) if t_first_pair is not None else 0.0   # the data's own time
     report.seconds = time.perf_counter() - t_wall
     if not report.pairs:
         reasons = "; ".join(report.warnings() + [str(e) for e in report.bag_errors]) or "no messages"

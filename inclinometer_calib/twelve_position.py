@@ -68,24 +68,33 @@ def _gravity_candidates(g_tool, tolerance_deg):
     return out
 
 
-def identify_pose_with_field(g_tool, b_tool, site_field_ned, tolerance_deg: float = 20.0):
-    """Pose from gravity (which axis is vertical) and the field's horizontal direction.
+def field_heading_deg(pose: int, b_tool) -> float:
+    """Heading (deg, from the stand's north towards its east) of the field's horizontal part in
+    the stand frame, if the probe is in ``pose``: ``atan2(h_E, h_N)`` of ``h = P·b``.  Raw (not
+    yet calibrated) fields give it to within a few degrees."""
+    h = pose_matrix(pose) @ np.asarray(b_tool, dtype=float)
+    return float(np.degrees(np.arctan2(h[1], h[0])))
 
-    Returns ``(pose, misfit_deg)`` of the best candidate, or ``(None, nan)``.  The misfit is the
-    angle between the measured field and the pose's expected field direction.
+
+def identify_pose(g_tool, b_tool, heading_deg: float = 0.0, tolerance_deg: float = 15.0):
+    """Pose from gravity (which tool axis is vertical, and its sign: a pair of poses of Table 1,
+    turned 180° about the vertical from each other) and, within the pair, the member whose field
+    heading in the stand frame (:func:`field_heading_deg`) is nearest ``heading_deg`` — 0 for a
+    stand set up against magnetic north as in the paper, else the stand's measured heading.
+
+    Returns ``(pose, heading_misfit_deg)``, or ``(None, nan)`` when no tool axis is within
+    ``tolerance_deg`` of the vertical.
     """
     cands = _gravity_candidates(g_tool, tolerance_deg)
     if not cands:
         return None, float("nan")
-    b = np.asarray(b_tool, dtype=float)
-    bn = b / np.linalg.norm(b)
-    best, best_ang = None, np.inf
-    for p in cands:
-        exp = pose_reference(p, site_field_ned)
-        ang = np.degrees(np.arccos(np.clip(bn @ exp / np.linalg.norm(exp), -1, 1)))
-        if ang < best_ang:
-            best, best_ang = p, ang
-    return best, float(best_ang)
+    miss = {p: abs(_wrap180(field_heading_deg(p, b_tool) - heading_deg)) for p in cands}
+    best = min(cands, key=miss.get)
+    return best, float(miss[best])
+
+
+def _wrap180(a):
+    return (a + 180.0) % 360.0 - 180.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -356,6 +365,7 @@ class TriadFit:
     z_rms: float
     rank: int
     condition: float
+    weak: str = ""          # tool axes the captures do not determine (see _weak_axes)
 
 
 def _design(poses, r, a):
@@ -414,13 +424,34 @@ def fit_triad(poses, h, sigma, vertical_ref: float, horizontal0=(0.0, 0.0), iter
     sv = np.linalg.svd(_design(poses, r, a) * wv[:, None], compute_uv=False)
     rank = int(np.sum(sv > sv[0] * 1e-9)) if len(sv) else 0
     cond = float(sv[0] / sv[-1]) if len(sv) == 14 and sv[-1] > 0 else math.inf
+    weak = _weak_axes(poses, r, a) if rank == 14 else "xyz"
     z = (res * w).reshape(-1)
     dof = max(len(z) - 14, 1)
     try:
-        model = TriadModel.from_matrix(a, b) if rank == 14 else None   # undetermined: no model
+        model = TriadModel.from_matrix(a, b) if rank == 14 and not weak else None   # undetermined: no model
     except np.linalg.LinAlgError:
-        model, rank = None, min(rank, 13)
-    return TriadFit(model, r, res, float(math.sqrt(z @ z / dof)), rank, cond)
+        model = None
+    if model is None:
+        rank = min(rank, 13)
+    return TriadFit(model, r, res, float(math.sqrt(z @ z / dof)), rank, cond, weak)
+
+
+#: A design whose parameters are this many times less certain than the complete twelve-pose
+#: design's does not determine them (a design missing an axis' vertical poses on a level stand is
+#: ≥ 100× worse, one missing a few poses ≤ 3×).
+MAX_DEGRADATION = 10.0
+
+
+def _weak_axes(poses, r, a) -> str:
+    """Tool axes whose column of ``A = K·E`` the captures determine far worse than the complete
+    twelve-pose design would (:data:`MAX_DEGRADATION`): formally rank 14, yet held only by a
+    stand's slight tilt or such."""
+    def sigma(ps):
+        jac = _design(ps, r, a)
+        return np.sqrt(np.abs(np.diag(np.linalg.pinv(jac.T @ jac))))
+
+    ratio = sigma(list(poses)) / sigma(list(POSES))
+    return "".join(ax for j, ax in enumerate("xyz") if np.max(ratio[[j, 3 + j, 6 + j]]) > MAX_DEGRADATION)
 
 
 @dataclass
@@ -465,9 +496,11 @@ def screen_triad(caps: CaptureSet, vertical_ref: float, horizontal0, name: str, 
         fit = fit_triad(sub.poses, sub.means, sub.sigmas, vertical_ref, horizontal0)
         if fit.rank < 14:
             missing = [p for p in POSES if p not in sub.poses]
+            weak = "" if fit.weak == "xyz" else (f": tool axis {', '.join(fit.weak)} is never vertical "
+                                                 f"(poses {', '.join(_GROUPS['xyz'.index(x)] for x in fit.weak)})")
             raise ValueError(f"{name}: the captures left ({len(sub)} in poses {sorted(set(sub.poses))}"
                              + (f"; none in pose(s) {missing}" if missing else "") +
-                             ") do not determine bias, scale and non-orthogonality of all three axes")
+                             ") do not determine bias, scale and non-orthogonality of all three axes" + weak)
         if fit.z_rms <= NOISE_RATIO_WARN:
             return fit, sub, notes
         trials = [("capture", [j], sub.names[j]) for j in range(len(sub))]
@@ -491,6 +524,8 @@ def screen_triad(caps: CaptureSet, vertical_ref: float, horizontal0, name: str, 
         if "capture" in best and best["capture"][0] <= 1.2 * choice[0]:
             choice = best["capture"]  # leave out as little as does the job
         z2, idx, label, f2 = choice
+        if not math.isfinite(z2):
+            return fit, sub, notes   # nothing can be left out: the rest would not determine the triad
         # how far the left-out captures are from what the rest predict
         pred = np.array([f2.model.forward(pose_matrix(sub.poses[j]).T @ f2.reference) for j in idx])
         dev = np.linalg.norm(np.asarray([sub.means[j] for j in idx]) - pred, axis=1)

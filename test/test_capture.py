@@ -40,14 +40,31 @@ def test_full_session_identifies_every_pose_and_solves_to_the_truth():
 
 def test_out_of_order_pose_warns_and_a_pose_again_out_of_sequence_is_refused():
     stations = sim.twelve_pose_session(duration_s=2.0)
-    order = [0, 1, 3, 1, 2] + list(range(4, 12))  # 4 before 3, then pose 2 again
+    order = [0, 1, 5, 1, 2, 3, 4] + list(range(6, 12))  # 6 before 3, then pose 2 again
     _, log = _log([stations[i] for i in order])
     s = CaptureSession(site=Site())
     _feed(s, log)
     text = "\n".join(s.warnings)
-    assert "pose 4" in text and "out of order (expected pose 3" in text
+    assert "pose 6" in text and "out of order (expected pose 3" in text
     assert "pose 2 again, out of sequence" in text and "ignored" in text
     assert s.state == "done" and len(s.captures) == 12
+
+
+@pytest.mark.parametrize("turned", [35.0, 100.0, 180.0])
+def test_a_stand_turned_from_magnetic_north_calibrates_alike_labelled_or_not(turned):
+    # the pair of poses comes from gravity; its member from the field's heading on the stand,
+    # measured from the captures — the paper's stand is set up against magnetic north, not ours
+    stations = sim.twelve_pose_session((25.0, 30.0), duration_s=2.0, azimuth_deg=turned)
+    probe, log = _log(stations)
+    for labels in (True, False):
+        if not labels:
+            log.pose[:] = 0
+        s = CaptureSession(site=Site())
+        _feed(s, log, finish=True)
+        assert s.state == "done" and s.solves >= 1 and len(s.captures) == 24, s.warnings
+        assert s.warnings == []
+        np.testing.assert_allclose(s.calibration.mag.A, probe.mag.A, atol=2e-3)
+        assert abs((s.heading + turned + 90.0) % 180.0 - 90.0) < 5.0      # up to the pairs' 180°
 
 
 def test_too_short_capture_is_rejected_and_pose_stays_pending():
@@ -167,3 +184,16 @@ def test_a_probe_that_creeps_during_a_hold_is_rejected_naming_the_turn():
     assert "turned" in text and "during the" in text and "not used" in text
     assert s.state == "done"
     assert s.result.acc.rounds[5] == 1              # pose 6 from round 2 only
+
+
+def test_an_accelerometer_axis_clipped_both_ways_refuses_the_calibration_naming_the_axis():
+    # clipped at ±9.6 m/s²: the x axis is flat whenever it is vertical, so nothing measures its
+    # scale — a least-squares fit over the other poses would be held only by the stand's tilt
+    stations = sim.twelve_pose_session((25.0, 30.0), duration_s=2.0)
+    probe, log = _log(stations, noise_acc=0.005, noise_mag=30.0)
+    log.acc[:, 0] = np.clip(log.acc[:, 0], -9.6, 9.6)
+    s = CaptureSession(site=Site())
+    _feed(s, log, finish=True)
+    assert s.state == "error" and s.calibration is None
+    assert "accelerometer: the captures left" in s.message and "tool axis x is never vertical (poses 1-4)" in s.message
+    assert any("accelerometer x is flat at" in w and "it saturates" in w for w in s.warnings)

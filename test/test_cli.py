@@ -126,3 +126,17 @@ def test_without_a_site_file_the_site_is_taken_from_the_calibration_data(tmp_pat
     out = _json(capsys, ["correct", str(d / "val.csv"), "--coeffs", str(coeffs), "--json"])
     assert out["azimuth_rms_deg"] < 0.05
     assert out["flagged"]["interference_suspected"] == 0
+
+
+def test_a_site_given_later_that_contradicts_a_record_solved_without_one_is_said(simdir, tmp_path, capsys):
+    coeffs = tmp_path / "nosite.yaml"
+    assert main(["twelve-position", str(simdir / "cal.csv"), "-o", str(coeffs)]) == 0
+    assert yaml.safe_load(coeffs.read_text())["site_source"] == "measured"
+    other = tmp_path / "site.yaml"
+    site = yaml.safe_load((simdir / "site.yaml").read_text())["site"]
+    site["total_field_nt"] += 800.0
+    other.write_text(yaml.safe_dump({"site": site}))
+    capsys.readouterr()
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(coeffs), "--site", str(other), "--json"]) == 0
+    err = capsys.readouterr().err
+    assert "the coefficients were solved without a site" in err and "calibrate with --site" in err

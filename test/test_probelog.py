@@ -150,3 +150,17 @@ def test_empty_temperature_is_unknown_not_a_bad_row():
     log.temp_c[:] = np.nan
     stations, _ = segment_stations(log)
     assert np.isnan(stations[0].temp_c)
+
+
+def test_stations_name_the_files_rows_though_rows_before_them_were_rejected():
+    log = _session_log(sim.twelve_pose_session(duration_s=2.0)[:2])
+    text = format_csv(log).splitlines()
+    for k in range(5, 55):                            # 50 unusable rows before the second hold
+        fields = text[k].split(",")
+        fields[1] = "nan"
+        text[k] = ",".join(fields)
+    back, rej = parse_csv("\n".join(text) + "\n")
+    assert len(rej) == 50
+    stations, _ = segment_stations(back)
+    rows = [r for r in range(1, len(log) + 1) if log.pose[r - 1] == 2]
+    assert stations[1].pose == 2 and rows[0] <= stations[1].first_row and stations[1].last_row <= rows[-1] + 1

@@ -216,3 +216,45 @@ def test_captures_far_off_the_model_everywhere_refuse_the_solve_naming_the_worst
                                          r"screening: residual \d\.\d+° RMS .* worst pose \d+ \(capture \d+\) "
                                          r"\d\.\d\d°.*no coefficients written"):
         tp.solve_triad_captures(caps, MD, (MN, 0.0), name="magnetometer", unit="nT", scale_range=None)
+
+
+@pytest.mark.parametrize("heading", [0.0, 35.0, -80.0, 100.0, 180.0])
+def test_identify_pose_takes_the_pair_from_gravity_and_the_member_from_the_stands_heading(heading):
+    # a stand turned `heading` from magnetic north: the field's heading in the stand frame is -heading
+    site = Site()
+    field = Site(site.total_field_nt, site.dip_deg, -heading).field_ned()
+    for p in tp.POSES:
+        g = tp.pose_reference(p, site.gravity_ned())
+        b = tp.pose_reference(p, field)
+        pose, misfit = tp.identify_pose(g, b, heading_deg=-heading)
+        assert pose == p and misfit < 1e-6
+        assert tp.field_heading_deg(p, b) == pytest.approx(tp._wrap180(-heading), abs=1e-9)
+    assert tp.identify_pose([1.0, 1.0, 1.0], [1.0, 0, 0])[0] is None
+
+
+def test_ill_conditioned_solution_is_refused():
+    # two sensor axes (nearly) parallel: K·E is close to singular
+    a = np.array([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    truth = TriadModel.from_matrix(a, np.zeros(3))
+    h = np.array([truth.forward(TABLE1_M[p]) for p in tp.POSES])
+    with pytest.raises(ValueError, match="singular or ill-conditioned \\(condition number"):
+        tp.solve_triad({p: [h[i]] for i, p in enumerate(tp.POSES)}, MD)
+
+
+def test_pose_far_off_the_model_is_refused_naming_it():
+    truth = TriadModel(scale=np.ones(3), bias=np.zeros(3), e={})
+    data = {p: [truth.forward(TABLE1_M[p])] for p in tp.POSES}
+    data[11] = [truth.forward(TABLE1_M[12])]      # pose 11 captured in pose 12's orientation
+    with pytest.raises(ValueError, match="magnetometer: pose 1[12] does not fit the twelve-pose model"):
+        tp.solve_triad(data, MD, name="magnetometer", unit="nT")
+
+
+def test_an_accelerometer_axis_never_vertical_is_not_determined_though_a_tilted_stand_gives_rank_14():
+    rng = np.random.default_rng(26)
+    truth = TriadModel(scale=[1.01, 0.99, 1.0], bias=[0.05, -0.02, 0.01], e={"e_xy": 0.01, "e_zx": -0.02})
+    tilted = [0.05, 0.03, 9.8]                     # the stand 0.3° off level: r_N, r_E tiny, not 0
+    caps = _captures(truth, [p for p in tp.POSES if p > 4], tilted, noise=0.0003, rng=rng, rounds=2)
+    fit = tp.fit_triad(caps.poses, caps.means, caps.sigmas, 9.8, (0.0, 0.0))
+    assert fit.weak == "x" and fit.model is None and fit.rank < 14
+    with pytest.raises(ValueError, match="tool axis x is never vertical \\(poses 1-4\\)"):
+        tp.solve_triad_captures(caps, 9.8, (0.0, 0.0), name="accelerometer", unit="m/s^2")

@@ -36,18 +36,9 @@ from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-fre
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
 
-# Topic names of the graph (one place, so the launcher, the nodes and the tests agree).
-TOPIC_IMU = "/probe/imu"
-TOPIC_MAG = "/probe/mag"
-TOPIC_TEMPERATURE = "/probe/temperature"
-TOPIC_REFERENCE = "/probe/reference"
-TOPIC_IMU_CORRECTED = "/probe/imu_corrected"
-TOPIC_MAG_CORRECTED = "/probe/mag_corrected"
-TOPIC_COEFFICIENTS = "/calibration/coefficients"
-TOPIC_STATUS = "/calibration/status"
-TOPIC_STATION = "/survey/station"
-TOPIC_DIAGNOSTICS = "/diagnostics"
-TOPIC_CLOCK = "/clock"  # the probe's log time (stamp:=log); the other nodes run on it (use_sim_time)
+from ..topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DIAGNOSTICS, TOPIC_IMU,  # noqa: F401,E402
+                      TOPIC_IMU_CORRECTED, TOPIC_MAG, TOPIC_MAG_CORRECTED, TOPIC_REFERENCE, TOPIC_STATION,
+                      TOPIC_STATUS, TOPIC_TEMPERATURE)   # the graph's names, one place (re-exported)
 
 
 # --------------------------------------------------------------------------------------------

@@ -296,11 +296,16 @@ class CorrectionNode(Node):
         self.pub_station.publish(msg)
         self._last_diag = self._diagnostics(msg)
         self.pub_diag.publish(self._last_diag)
-        self.get_logger().info(
-            f"station {msg.station_id}: drift {msg.drift_deg:.3f} azimuth {msg.azimuth_deg:.3f} toolface "
-            f"{msg.toolface_deg:.2f} deg; dG {msg.delta_g_mps2:+.4f} m/s^2 dB {msg.delta_b_nt:+.0f} nT "
-            f"ddip {msg.delta_dip_deg:+.3f} deg; status {msg.status}"
-            + (f"; ref drift {ref[0]:g} azimuth {ref[1]:g}" if has_ref else ""))
+        text = (f"station {msg.station_id}: drift {msg.drift_deg:.3f} azimuth {msg.azimuth_deg:.3f} toolface "
+                f"{msg.toolface_deg:.2f} deg; dG {msg.delta_g_mps2:+.4f} m/s^2 dB {msg.delta_b_nt:+.0f} nT "
+                f"ddip {msg.delta_dip_deg:+.3f} deg; status {msg.status}"
+                + (f"; ref drift {ref[0]:g} azimuth {ref[1]:g}" if has_ref else ""))
+        # a station not to be used (status error: the probe moved, |G| out of tolerance) is said at WARNING
+        # (rclpy ties a severity to its call site: two calls)
+        if msg.status == SurveyStation.STATUS_ERROR:
+            self.get_logger().warning(text)
+        else:
+            self.get_logger().info(text)
 
     def _diagnostics(self, st):
         tol = self.tol

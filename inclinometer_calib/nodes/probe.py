@@ -59,6 +59,7 @@ from .. import simulate as sim
 from ..coeffs import Calibration
 from ..noise import estimate_noise
 from ..probelog import MAG_UNITS, ProbeLog, atomic_write_text, label_runs, read_csv
+from ..topics import GRAPH_OUTPUTS, PROBE_TOPICS
 from . import common as c
 
 SOURCES = ("simulate", "csv", "mcap")
@@ -70,12 +71,7 @@ INPUT_DAMAGED = 3
 #: Shortest wall-clock interval between two /clock messages, s: enough for the other nodes'
 #: stamps (10 ms of wall time), a fraction of the sample rate's message load.
 CLOCK_PERIOD_S = 0.01
-KNOWN_BAG_TOPICS = {
-    c.TOPIC_IMU: "sensor_msgs/msg/Imu",
-    c.TOPIC_MAG: "sensor_msgs/msg/MagneticField",
-    c.TOPIC_TEMPERATURE: "sensor_msgs/msg/Temperature",
-    c.TOPIC_REFERENCE: "geometry_msgs/msg/Vector3Stamped",
-}
+KNOWN_BAG_TOPICS = PROBE_TOPICS   # what a replay publishes again, with the type each must have
 
 
 def _check_effects(values):
@@ -317,9 +313,12 @@ class ProbeNode(Node):
             if want is None or m.type != want:
                 if m.topic not in skipped:
                     skipped[m.topic] = 0
-                    log.warning(f"{path}: topic {m.topic} ({m.type or '?'}) is not replayed: skipped"
-                                if want is None else
-                                f"{path}: topic {m.topic} has type {m.type or '?'}, expected {want}: skipped")
+                    if want is None and m.topic in GRAPH_OUTPUTS:   # a recorded run's own outputs: expected
+                        log.info(f"{path}: {m.topic} is an output of the recorded graph: not replayed")
+                    else:
+                        log.warning(f"{path}: topic {m.topic} ({m.type or '?'}) is not replayed: skipped"
+                                    if want is None else
+                                    f"{path}: topic {m.topic} has type {m.type or '?'}, expected {want}: skipped")
                 skipped[m.topic] += 1
                 continue
             try:
@@ -348,7 +347,8 @@ class ProbeNode(Node):
             log.warning(f"{err}; replaying the messages read before it")
         self.input_damaged = len(reader.errors) + sum(undecodable.values())
         for topic, n in skipped.items():
-            log.warning(f"{path}: {n} messages on {topic} skipped")
+            if topic not in GRAPH_OUTPUTS:
+                log.warning(f"{path}: {n} messages on {topic} skipped")
         for topic, n in undecodable.items():
             log.warning(f"{path}: {n} undecodable messages on {topic} skipped")
         keys = sorted(set(imu) & set(mag))

@@ -1,0 +1,29 @@
+"""The graph's topic names and message types — one place, ROS-free (the nodes, the launcher,
+offline reprocessing and the tests agree on them)."""
+
+TOPIC_IMU = "/probe/imu"
+TOPIC_MAG = "/probe/mag"
+TOPIC_TEMPERATURE = "/probe/temperature"
+TOPIC_REFERENCE = "/probe/reference"
+TOPIC_IMU_CORRECTED = "/probe/imu_corrected"
+TOPIC_MAG_CORRECTED = "/probe/mag_corrected"
+TOPIC_COEFFICIENTS = "/calibration/coefficients"
+TOPIC_STATUS = "/calibration/status"
+TOPIC_STATION = "/survey/station"
+TOPIC_DIAGNOSTICS = "/diagnostics"
+TOPIC_CLOCK = "/clock"  # the probe's log time (stamp:=log); the other nodes run on it (use_sim_time)
+
+IMU_TYPE = "sensor_msgs/msg/Imu"
+MAG_TYPE = "sensor_msgs/msg/MagneticField"
+TEMPERATURE_TYPE = "sensor_msgs/msg/Temperature"
+REFERENCE_TYPE = "geometry_msgs/msg/Vector3Stamped"
+STATION_TYPE = "inclinometer_calib/msg/SurveyStation"
+COEFFICIENTS_TYPE = "inclinometer_calib/msg/CalibrationCoefficients"
+
+#: What the probe publishes: the inputs of the calibration and correction (and of a replay).
+PROBE_TOPICS = {TOPIC_IMU: IMU_TYPE, TOPIC_MAG: MAG_TYPE, TOPIC_TEMPERATURE: TEMPERATURE_TYPE,
+                TOPIC_REFERENCE: REFERENCE_TYPE}
+#: What the rest of a live graph publishes (a recorded run holds them): a replay or a
+#: reprocessing makes them anew, so meeting them in a bag is expected, not a problem.
+GRAPH_OUTPUTS = {TOPIC_COEFFICIENTS, TOPIC_STATUS, TOPIC_STATION, TOPIC_DIAGNOSTICS, TOPIC_CLOCK,
+                 TOPIC_IMU_CORRECTED, TOPIC_MAG_CORRECTED, "/rosout", "/parameter_events"}
