@@ -62,6 +62,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .deps import MissingDependency, require
+from .topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "recorder")
 STOP_ORDER = ("probe", "calibration", "correction", "recorder")  # the recorder last: it records the others
@@ -297,6 +298,9 @@ def run_graph(args, out, env) -> GraphResult:
     params["probe"].setdefault("wait_for_subscribers", len(consumers))
     params["probe"].setdefault("wait_for_reference_subscribers",
                                sum(n in ("correction", "recorder") for n in consumers))
+    if "recorder" in consumers and "correction" in consumers:
+        # stations are reliable but volatile: a recorder not yet subscribed would miss the first ones
+        params["probe"].setdefault("wait_for_topic_subscribers", [f"{TOPIC_STATION}=1"])
     if params["probe"].get("stamp", _config_value(cfg, "probe", "stamp", "log")) == "log":
         # one time base: the probe publishes /clock (log time), the others run on it
         for n in ("calibration", "correction"):

@@ -41,6 +41,7 @@ def generate_launch_description():
             "on_end": "stop",
             "wait_for_subscribers": consumers,
             "wait_for_reference_subscribers": reference_readers,
+            "wait_for_topic_subscribers": ["/survey/station=1"],   # the recorder, before the first station
             "truth_file": PathJoinSubstitution([out, "truth.json"]),
         }],
     )

@@ -86,6 +86,14 @@ def _check_effects(values):
     return None
 
 
+def _check_topic_counts(values):
+    for v in values:
+        topic, sep, n = v.rpartition("=")
+        if not sep or not topic.startswith("/") or not n.isdigit():
+            return f"{v!r} is not TOPIC=N (e.g. /survey/station=1)"
+    return None
+
+
 def _check_finite_list(lo, hi):
     def check(values):
         bad = [v for v in values if not (math.isfinite(v) and lo <= v <= hi)]
@@ -119,6 +127,10 @@ class ProbeNode(Node):
                                        f"{c.TOPIC_REFERENCE} has this many subscribers too (its readers: the "
                                        "correction node, a recorder; 0: do not wait for them)", read_only=True,
                                        range=(0, 100))
+        self.wait_topics = p.declare("wait_for_topic_subscribers", [], "Start publishing only once these "
+                                     "topics of the other nodes have subscribers too, TOPIC=N each (e.g. "
+                                     f"{c.TOPIC_STATION}=1: a recorder that must not miss the first stations)",
+                                     read_only=True, check=_check_topic_counts, ptype=Parameter.Type.STRING_ARRAY)
         self.wait_timeout = p.declare("wait_timeout_s", 30.0, "Start anyway after this long waiting for "
                                       "subscribers, s", read_only=True, range=(0.0, 3600.0))
         self.start_delay = p.declare("start_delay_s", 0.5, "Pause before the first sample (after the "
@@ -482,8 +494,13 @@ class ProbeNode(Node):
         """``topic (have/want)`` for every topic still short of the subscribers it waits for."""
         want = [(pub, self.wait_subs) for pub in (self.pub_imu, self.pub_mag, self.pub_temp)]
         want.append((self.pub_ref, self.wait_ref_subs))
-        return [f"{pub.topic_name} ({pub.get_subscription_count()}/{n})" for pub, n in want
-                if pub.get_subscription_count() < n]
+        missing = [f"{pub.topic_name} ({pub.get_subscription_count()}/{n})" for pub, n in want
+                   if pub.get_subscription_count() < n]
+        for topic, n in (spec.rsplit("=", 1) for spec in self.wait_topics):
+            have = self.count_subscribers(topic)   # other nodes' topics, from the graph
+            if have < int(n):
+                missing.append(f"{topic} ({have}/{n})")
+        return missing
 
     def _tick(self):
         if self._state == "running":

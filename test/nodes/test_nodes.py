@@ -262,6 +262,27 @@ def test_probe_waits_for_temperature_and_reference_subscribers_too(spinning):
     assert probe._state != "waiting"
 
 
+def test_probe_waits_for_a_recorder_of_the_stations_before_its_first_sample(spinning):
+    # /survey/station is reliable but volatile: a recorder subscribing after the first station misses it
+    from inclinometer_calib.msg import SurveyStation
+
+    probe = spinning(ProbeNode(parameter_overrides=[
+        Parameter("survey", value="none"), Parameter("speed", value=10.0), Parameter("start_delay_s", value=0.0),
+        Parameter("wait_for_topic_subscribers", value=[f"{c.TOPIC_STATION}=1"])]))
+    sub = spinning(rclpy.create_node("test_station_reader"))
+    end = time.monotonic() + 1.5
+    while time.monotonic() < end:
+        time.sleep(0.05)
+    assert probe._state == "waiting" and probe._missing_subscribers() == [f"{c.TOPIC_STATION} (0/1)"]
+    sub.create_subscription(SurveyStation, c.TOPIC_STATION, lambda m: None, c.reliable_qos(10))
+    end = time.monotonic() + 5.0
+    while time.monotonic() < end and probe._state == "waiting":
+        time.sleep(0.05)
+    assert probe._state != "waiting"
+    with pytest.raises(InvalidParameterValueException, match="is not TOPIC=N"):
+        ProbeNode(parameter_overrides=[Parameter("wait_for_topic_subscribers", value=["survey"])])
+
+
 def _noisy_log(noise_acc, noise_mag, seed=2):
     """A simulated four-station stand log with the given white noise (m/s^2, nT per sample)."""
     probe = sim.build_probe(seed, noise_acc=noise_acc, noise_mag=noise_mag)
