@@ -29,6 +29,7 @@ def generate_launch_description():
     record = LaunchConfiguration("record")
     consumers = PythonExpression(["3 if '", record, "'.lower() == 'true' else 2"])
     reference_readers = PythonExpression(["2 if '", record, "'.lower() == 'true' else 1"])
+    station_readers = PythonExpression(["'/survey/station=1' if '", record, "'.lower() == 'true' else '/survey/station=0'"])
 
     probe = Node(
         package="inclinometer_calib", executable="probe", name="probe", output="screen",
@@ -41,7 +42,8 @@ def generate_launch_description():
             "on_end": "stop",
             "wait_for_subscribers": consumers,
             "wait_for_reference_subscribers": reference_readers,
-            "wait_for_topic_subscribers": ["/survey/station=1"],   # the recorder, before the first station
+            # the recorder, before the first station (=0: nothing to wait for without one)
+            "wait_for_topic_subscribers": [station_readers],
             "truth_file": PathJoinSubstitution([out, "truth.json"]),
         }],
     )
