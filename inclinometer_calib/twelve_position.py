@@ -364,7 +364,6 @@ class TriadFit:
     residuals: np.ndarray
     z_rms: float
     rank: int
-    condition: float
     weak: str = ""          # tool axes the captures do not determine (see _weak_axes)
 
 
@@ -423,7 +422,6 @@ def fit_triad(poses, h, sigma, vertical_ref: float, horizontal0=(0.0, 0.0), iter
     res = h - pred
     sv = np.linalg.svd(_design(poses, r, a) * wv[:, None], compute_uv=False)
     rank = int(np.sum(sv > sv[0] * 1e-9)) if len(sv) else 0
-    cond = float(sv[0] / sv[-1]) if len(sv) == 14 and sv[-1] > 0 else math.inf
     weak = _weak_axes(poses, r, a) if rank == 14 else "xyz"
     z = (res * w).reshape(-1)
     dof = max(len(z) - 14, 1)
@@ -433,7 +431,7 @@ def fit_triad(poses, h, sigma, vertical_ref: float, horizontal0=(0.0, 0.0), iter
         model = None
     if model is None:
         rank = min(rank, 13)
-    return TriadFit(model, r, res, float(math.sqrt(z @ z / dof)), rank, cond, weak)
+    return TriadFit(model, r, res, float(math.sqrt(z @ z / dof)), rank, weak)
 
 
 #: A design whose parameters are this many times less certain than the complete twelve-pose
