@@ -18,6 +18,12 @@ the same detector.  The session
 * **solves** when all twelve poses are in, again after every complete round, and at the end of
   the data (:meth:`finish`) — screening out captures that do not fit and solving by least squares
   when a pose is left without one (:func:`twelve_position.solve_captures`);
+* with a **model** named (``effects``, the package's effect grammar, e.g.
+  ``temperature_bias:mag``), fits the paper's model plus those effects to the captures with the
+  lab's fit, starting from the twelve-position solution, and says which parameters the captures
+  could not identify (e.g. a temperature effect from captures at one temperature);
+* owns the **site** of its record: the one given, or — without one — the one the stand measures
+  (dip and the horizontal field's direction; ``site_source`` "measured"), never a default;
 * says every failure aloud: each gate, refusal and left-out capture is a message in
   :attr:`warnings` (the node logs them at WARNING, the CLI prints them).
 """
@@ -59,7 +65,10 @@ class CaptureSession:
 
     Parameters
     ----------
-    site : Site — reference field (gravity, and M_d: the vertical field that scales the magnetometer).
+    site : Site or None — reference field (gravity, and M_d: the vertical field that scales the
+        magnetometer) and the site the record owns; None: measured by the stand (the solve assumes
+        the default gravity and M_d, which only set the triads' scale).
+    effects : effects to fit beyond the paper's model (the package's grammar), "" for none.
     min_capture_s : a capture shorter than this is rejected ("too short").
     pose_tolerance_deg : how far from a Table 1 pose the measured gravity may be (uncalibrated
         sensors may be several degrees off).
@@ -68,12 +77,13 @@ class CaptureSession:
     limits : the gates' limits (:class:`gates.GateLimits`).
     """
 
-    site: Site = field(default_factory=Site)
+    site: Site | None = None
     min_capture_s: float = 0.5
     pose_tolerance_deg: float = 15.0
     rounds: bool = True
     probe_id: str = "probe"
     limits: GateLimits = field(default_factory=GateLimits)
+    effects: str = ""
 
     captures: list = field(default_factory=list)      # accepted Stations (pose = the identified pose)
     warnings: list = field(default_factory=list)      # every message for the user, in order
@@ -87,6 +97,9 @@ class CaptureSession:
     solves: int = 0
 
     def __post_init__(self):
+        from .effects import parse_effects
+        self._specs = parse_effects(self.effects)   # a bad name is an error now, not at the first solve
+        self.fit = None                   # the lab fit of the named effects (model.FitResult), if any
         self._round: list = []            # captures of a round in progress after the first solve
         self._dirty = False               # captures added since the last solve
         self._saturation = SaturationMonitor()
@@ -195,7 +208,7 @@ class CaptureSession:
         if st.short or st.duration_s < self.min_capture_s:
             self._warn(f"{where}: capture too short ({st.duration_s:.2f} s < {self.min_capture_s:g} s): rejected")
             return "rejected"
-        findings = apply_gates(st, self.limits, self.site.gravity_mps2)
+        findings = apply_gates(st, self.limits, self._solve_site.gravity_mps2)
         for f in findings:
             if f.code == "flat":   # the same stuck/clipped axis in every station: said twice, then counted
                 self._flat_seen[f.axis] = self._flat_seen.get(f.axis, 0) + 1
@@ -413,11 +426,17 @@ class CaptureSession:
         acc, mag = self.capture_sets()
         missing = self.pending
         try:
-            self.result = solve_captures(acc, mag, self.site)
+            self.result = solve_captures(acc, mag, self._solve_site)
             if missing:
                 self.result.notes.append(f"solved without pose(s) {missing} (never captured), by least squares "
                                          "over the others")
-            self.calibration = to_calibration(self.result, self.site, self.probe_id)
+            cal = to_calibration(self.result, self._solve_site, self.probe_id)
+            if self.site is None:   # the site the stand measures is the record's (said by the caller)
+                cal.site = self.result.site_estimate(self._solve_site.gravity_mps2)
+                cal.site_source = "measured"
+            if self._specs:
+                cal = self._fit_model(cal, notes)
+            self.calibration = cal
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.state = "error"
             self.message = (f"solve failed: {exc}" + (f" (poses never captured: {missing})" if missing else ""))
@@ -438,6 +457,43 @@ class CaptureSession:
                         f"{self.result.acc.rms_residual:.5f} m/s², mag {self.result.mag.rms_residual:.2f} nT "
                         f"({self.result.acc.z_rms:.1f}× and {self.result.mag.z_rms:.1f}× the noise)")
         return self.calibration
+
+    @property
+    def _solve_site(self) -> Site:
+        """The site the solve assumes: the given one, else the defaults (g_d and M_d only set the
+        triads' scale; the record then owns the measured site)."""
+        return self.site if self.site is not None else Site()
+
+    def _fit_model(self, cal, notes):
+        """The paper's model plus the named effects, fitted to the captures by the lab's fit from
+        the twelve-position solution; the stand's heading is fitted too (its north is not known).
+        Parameters the captures cannot determine are named in the record and in ``notes``."""
+        from .lab.fit import fit
+        from .lab.model import LabModel
+        from .station import Stations
+
+        imp = self.result.implied_site()
+        lm = LabModel.from_calibration(cal, fit_heading=True)
+        lm.heading_deg = float(((imp["field_heading_deg"] - cal.site.declination_deg) + 180.0) % 360.0 - 180.0)
+        for spec in self._specs:
+            for eff in spec.build():
+                lm = lm.with_effect(eff, spec.scope)
+        data = Stations.from_list(self.captures, "cal", source="captures")
+        res = fit(lm, data)
+        if not res.success:
+            raise ValueError(f"the fit of {', '.join(lm.probe.labels())} did not converge: {res.message}")
+        for n in res.not_identifiable:
+            notes.append(f"model {lm.probe.describe()}: {n.parameter} is not identifiable from these captures: "
+                         f"{n.reason}")
+        self.fit = res
+        out = lm.record(probe_id=self.probe_id, site_source=cal.site_source, not_identifiable=res.not_identifiable,
+                        fit_stats={"chi2": res.chi2, "dof": res.dof, "z_rms": res.z_rms, "stations": len(data)},
+                        method=f"{cal.method}; then the lab's fit of {', '.join(lm.probe.labels())} to the captures")
+        out.diagnostics.update({k: v for k, v in cal.diagnostics.items() if k not in out.diagnostics})
+        notes.append(f"model fitted to the {len(data)} captures: {lm.probe.describe()}; noise-normalised residual RMS "
+                     f"{res.z_rms:.2f} (the twelve-position model alone: {self.result.mag.z_rms:.2f} mag, "
+                     f"{self.result.acc.z_rms:.2f} acc)")
+        return out
 
     def _say_solve(self, notes):
         self.solve_notes = list(notes)

@@ -21,7 +21,9 @@ from .frames import Site
 from .capture import CaptureSession
 from .gates import apply_gates
 from .probelog import MAG_UNITS, Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
-from .survey import Tolerances, evaluate, format_table4, format_table5, summarize, table4, table5
+from .model import ModelContextError
+from .pipeline import NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note
+from .survey import Tolerances, format_table4, format_table5, summarize, table4, table5
 from .twelve_position import format_table2, format_table3
 
 
@@ -88,20 +90,26 @@ def load_calibration(spec):
 
 
 # --------------------------------------------------------------------------------------------
-def cmd_simulate(args):
-    if args.plugin:
-        from .lab.plugins import PluginError, load_plugin
+def load_plugins(specs, quiet=True):
+    """Load the ``--plugin`` files/modules (their effects can then be named anywhere)."""
+    from .plugins import PluginError, load_plugin
+
+    for plug in specs or ():
         try:
-            for plug in args.plugin:
-                load_plugin(plug)
+            names = load_plugin(plug)
         except PluginError as exc:
             raise UserError(str(exc)) from None
+        if not quiet:
+            print(f"plug-in {plug}: {', '.join(names)}", file=sys.stderr)
+
+
+def cmd_simulate(args):
+    load_plugins(args.plugin)
     try:
-        specs = [sim.parse_effect_arg(e) for e in args.effect]
-        probe = sim.build_probe(args.seed, specs, severity=args.severity,
+        probe = sim.build_probe(args.seed, args.effect, severity=args.severity,
                                 noise_acc=args.noise_acc, noise_mag=args.noise_mag)
     except ValueError as exc:
-        raise UserError(str(exc)) from None
+        raise UserError(f"--effect: {exc}") from None
     site = Site(args.total_field, args.dip, args.declination, args.gravity)
     rng = np.random.default_rng(args.seed + 1)
     temps = [float(t) for t in args.cal_temps.split(",")]
@@ -129,29 +137,27 @@ def cmd_simulate(args):
                      "survey_effects": not args.no_survey_effects}}
     atomic_write_text(os.path.join(args.out, "truth.json"), json.dumps(truth, indent=2) + "\n")
     atomic_write_text(os.path.join(args.out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
-    true_cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id=f"sim-{args.seed}", method="simulator truth",
-                           site=site)
+    true_cal = Calibration(probe.model, probe_id=f"sim-{args.seed}", method="simulator truth", site=site)
     true_cal.save(os.path.join(args.out, "truth_coeffs.yaml"))
     print(f"wrote {args.out}/cal.csv ({len(cal)} rows, {len(cal_session)} stations), "
           f"val.csv ({len(val)} rows, {len(val_session)} stations), truth.json, truth_coeffs.yaml, site.yaml")
     for e in probe.effects:
         print(f"  hidden effect: {e.describe()}")
-    if probe.stand_pose_error_deg:
-        print(f"  stand pose error: {probe.stand_pose_error_deg} deg 1σ")
-    if probe.time_skew_s:
-        print(f"  time skew: {probe.time_skew_s} s")
     return 0
 
 
-def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", detector=None):
+def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", detector=None, effects=""):
     """Solve a twelve-pose log with the live calibration node's session (:class:`capture.CaptureSession`):
-    the same detector, gates, pose identification, sequence and solve.  Pose labels, when the log
-    has them, are checked against the poses gravity shows.  ``site`` None: the site reference is
-    taken from the data (dip and the horizontal field's direction on the stand; the total field
-    in the scale M_d sets).  Returns ``(session, calibration)``."""
+    the same detector, gates, pose identification, sequence and solve (and, with ``effects``, the
+    same lab fit of a named model).  Pose labels, when the log has them, are checked against the
+    poses gravity shows.  ``site`` None: the site reference is taken from the data (dip and the
+    horizontal field's direction on the stand; the total field in the scale M_d sets).  Returns
+    ``(session, calibration)``."""
     _, stations, _, _ = load_stations(cal_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
-    measured = site is None
-    session = CaptureSession(site=Site() if measured else site, probe_id=probe_id)
+    try:
+        session = CaptureSession(site=site, probe_id=probe_id, effects=effects or "")
+    except ValueError as exc:
+        raise UserError(f"--effects: {exc}") from None
     for st in stations:
         session.offer(st)
     session.finish()
@@ -163,8 +169,8 @@ def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", de
     if session.calibration is None:
         raise UserError(f"{cal_path}: {session.message or 'calibration did not solve'}")
     cal = session.calibration
-    if measured:
-        site = session.result.site_estimate(Site().gravity_mps2)
+    if cal.site_source == "measured":
+        site = cal.site
         if not quiet:
             _warn(f"{cal_path}: no --site given: site reference taken from the calibration data — dip "
                   f"{site.dip_deg:.3f}°, horizontal field {site.declination_deg:+.3f}° from the stand's north "
@@ -172,8 +178,6 @@ def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", de
                   f"in the scale of an assumed vertical component, gravity {site.gravity_mps2:g} m/s² assumed "
                   "(the scale factors are relative to them; angles are not affected); give --site for a survey "
                   "elsewhere")
-        cal.site = site
-        cal.site_source = "measured"
     return session, cal
 
 
@@ -191,8 +195,9 @@ def check_site_against_record(site, cal, tol, where):
 
 
 def cmd_twelve_position(args):
+    load_plugins(args.plugin)
     session, cal = run_twelve_position(args.cal, load_site(args.site) if args.site else None, args.probe_id,
-                                       mag_unit=args.mag_unit, detector=detector_from_args(args))
+                                       mag_unit=args.mag_unit, detector=detector_from_args(args), effects=args.effects)
     result = session.result
     site = cal.site
     cal.save(args.output)
@@ -224,6 +229,13 @@ def cmd_twelve_position(args):
     else:
         print(f"Implied by the corrected data: |B| {imp['total_field']:.1f} nT (site {site.total_field_nt:g}), "
               f"dip {imp['dip_deg']:.3f} deg (site {site.dip_deg:g}), stand tilt {imp['stand_tilt_deg']:.3f} deg")
+    if session.fit is not None:
+        print(f"Model {cal.model.describe()} fitted to the captures: noise-normalised residual RMS "
+              f"{session.fit.z_rms:.2f}")
+        for r in session.fit.parameter_table(extras_only=True):
+            print(f"  {r['name']:<44}{r['value']:>14.6g} ± {r['std']:.2g} {r['unit']}")
+        for n in cal.not_identifiable:
+            print(f"  not identifiable: {n['parameter']}: {n['reason']}")
     print(f"wrote {args.output} (id {cal.id})")
     return 0
 
@@ -243,18 +255,17 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
         for f in apply_gates(st):   # corrected |G| is checked by the QC; the raw |g| gate is for captures
             if not quiet:
                 _warn(f"{log_path}: {f.message}")
-    g = np.array([s.g for s in stations])
-    b = np.array([s.b for s in stations])
-    if cal is not None:
-        g, b = cal.correct(g, b)
+    try:
+        g, b = correct_stations(stations, cal, strict=True)   # the one correction path, with each station's temperature
+    except ModelContextError as exc:
+        raise UserError(f"{log_path}: {exc}") from None
+    missing = [st for st in stations if context_warnings(st, cal)]
+    if missing and not quiet:
+        _warn(f"{log_path}: {len(missing)} station(s) without a temperature: {context_warnings(missing[0], cal)[0]}")
     ref = np.array([s.ref for s in stations])
     ref_used = np.where(np.array([s.moved for s in stations])[:, None], np.nan, ref)  # moved: no error figures
     has_ref = np.any(np.isfinite(ref_used), axis=1)
-    if axial:
-        from .axial import evaluate_with_axial
-        res = evaluate_with_axial(g, b, site, tol, ref=ref_used if has_ref.any() else None)
-    else:
-        res = evaluate(g, b, site, tol, ref=ref_used if has_ref.any() else None)
+    res = evaluate_stations(g, b, site, tol, ref_used if has_ref.any() else None, axial)
     return stations, res, summarize(res)
 
 
@@ -290,12 +301,27 @@ def format_station_csv(stations, res) -> str:
     return "\n".join(lines) + "\n"
 
 
-def cmd_correct(args):
-    cal = load_calibration(args.coeffs)
-    site = load_site(args.site) if args.site else (cal.site if cal else Site())
-    tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+def site_for(args, cal, tol, where):
+    """The site reference of a run: the record's (it owns one), a ``--site`` overriding it (said
+    aloud), or none at all (said too: no QC against a reference, azimuths magnetic)."""
     if args.site:
-        check_site_against_record(site, cal, tol, args.log)
+        site = load_site(args.site)
+        note = site_override_note(cal, site)
+        if note:
+            _warn(f"{where}: {note}")
+        check_site_against_record(site, cal, tol, where)
+        return site
+    if cal is not None:
+        return cal.site
+    _warn(f"{where}: {NO_SITE} (give --site SITE.yaml)")
+    return None
+
+
+def cmd_correct(args):
+    load_plugins(args.plugin)
+    cal = load_calibration(args.coeffs)
+    tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+    site = site_for(args, cal, tol, args.log)
     stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction, mag_unit=args.mag_unit,
                                       detector=detector_from_args(args))
     if args.output:
@@ -358,6 +384,16 @@ def cmd_demo(args):
     return 0
 
 
+def field_monitor(args):
+    """The correction node's model check (:class:`lab.field.FieldMonitor`) over ``--monitor-window``
+    stations, or None when it is 0."""
+    if not getattr(args, "monitor_window", 0):
+        return None
+    from .lab.field import FieldMonitor
+
+    return FieldMonitor(window=args.monitor_window)
+
+
 def cmd_reprocess(args):
     """Offline reprocessing of a recorded bag (see :mod:`inclinometer_calib.reprocess`).
 
@@ -368,18 +404,27 @@ def cmd_reprocess(args):
     from .bag import BagError
     from .reprocess import TOPIC_STATION, ReprocessError, reprocess
 
+    if args.compare:
+        return cmd_compare(args)
     if args.coeffs is None and not args.calibrate:
         raise UserError("give --coeffs FILE (or 'none' for uncorrected figures), or --calibrate to calibrate "
                         "from the bag's twelve poses as the live graph does")
+    load_plugins(args.plugin)
     cal = load_calibration(args.coeffs)
-    site = load_site(args.site) if args.site else (cal.site if cal else Site())
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
     if args.site:
-        check_site_against_record(site, cal, tol, args.bag)
+        site = site_for(args, cal, tol, args.bag)
+    else:
+        site = None   # the record's (and with --calibrate, the stand's measured one until a record exists)
+        if cal is None and not args.calibrate:
+            _warn(f"{args.bag}: {NO_SITE} (give --site SITE.yaml)")
     det = detector_from_args(args)
     try:
         rep = reprocess(args.bag, args.output, cal, site, tol, det, compression=args.compression,
-                        warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id)
+                        warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id, effects=args.effects,
+                        monitor=field_monitor(args))
+    except ValueError as exc:   # ReprocessError, a bad --effects
+        raise UserError(str(exc)) from None
     except FileExistsError as exc:
         raise UserError(str(exc)) from None
     except FileNotFoundError as exc:
@@ -430,6 +475,50 @@ def cmd_reprocess(args):
               f"the damage were processed and written to {args.output}", file=sys.stderr)
         return 1
     return rc
+
+
+def cmd_compare(args):
+    """``reprocess BAG --compare A.yaml B.yaml ... -o DIR``: the field effect ladder (:mod:`compare`)."""
+    from . import compare
+    from .bag import BagError
+    from .deps import require
+    from .reprocess import ReprocessError
+
+    if args.coeffs or args.calibrate:
+        raise UserError("--compare replays the bag through each record given: not with --coeffs or --calibrate")
+    require("matplotlib", "report", "reprocess --compare")   # the HTML's plots, before minutes of replay
+    load_plugins(args.plugin)
+    models, names = [], set()
+    for spec in args.compare:
+        cal = load_calibration(spec)
+        name = "uncorrected" if cal is None else os.path.splitext(os.path.basename(spec))[0]
+        base, k = name, 2
+        while name in names:
+            name, k = f"{base}-{k}", k + 1
+        names.add(name)
+        models.append((name, cal))
+    tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
+    site = load_site(args.site) if args.site else None
+    if site is None and all(c is None for _, c in models):
+        _warn(f"{args.bag}: {NO_SITE} (give --site SITE.yaml)")
+    for name, cal in models:
+        note = site_override_note(cal, site)
+        if note:
+            _warn(f"{args.bag}: {name}: {note}")
+    try:
+        runs = compare.compare(args.bag, models, args.output, site=site, tolerances=tol,
+                               make_detector=lambda: detector_from_args(args), warn=_warn,
+                               monitor_window=args.monitor_window)
+    except (FileExistsError, FileNotFoundError, BagError, ReprocessError) as exc:
+        raise UserError(str(exc)) from None
+    for line in compare.describe(runs, args.bag):
+        print(line)
+    md = os.path.join(args.output, "compare.md")
+    page = os.path.join(args.output, "compare.html")
+    atomic_write_text(md, compare.to_markdown(runs, args.bag))
+    atomic_write_text(page, compare.to_html(runs, args.bag))
+    print(f"wrote {md}, {page} and one bag per record in {args.output}/")
+    return 0
 
 
 def cmd_bag_recover(args):
@@ -483,16 +572,29 @@ def _lab_setup(args):
     from . import lab
     from .lab.spec import build_model
 
-    for plug in args.plugin or []:
-        try:
-            names = lab.load_plugin(plug)
-        except lab.PluginError as exc:
-            raise UserError(str(exc)) from None
-        if not args.json:
-            print(f"plug-in {plug}: {', '.join(names)}", file=sys.stderr)
-    site = load_site(args.site) if args.site else _site_from_calibration(args.cal)
+    load_plugins(args.plugin, quiet=args.json)
+    if bool(args.bag) == bool(args.cal):
+        raise UserError("give the calibration log (--cal, with --val and --free) or a recorded run (--bag)")
     try:
-        data = lab.load_logs(args.cal, args.val, warn=_warn, free_paths=args.free or ())
+        if args.bag:
+            from .bag import BagError
+            try:
+                data, cal = lab.load_bag(args.bag, warn=_warn)
+            except BagError as exc:
+                raise UserError(str(exc)) from None
+            if args.site:
+                site = load_site(args.site)
+            elif cal is not None:
+                site = cal.site
+                _warn(f"{args.bag}: no --site given: using the site reference of the run's own calibration "
+                      f"({cal.site_source}): total field {site.total_field_nt:.0f} nT, dip {site.dip_deg:.3f}°")
+            else:
+                raise UserError(f"{args.bag}: no --site given and the run's captures do not solve: give --site")
+            args.site_source = "given" if args.site else cal.site_source
+        else:
+            site = load_site(args.site) if args.site else _site_from_calibration(args.cal)
+            args.site_source = "given" if args.site else "measured"
+            data = lab.load_logs(args.cal, args.val, warn=_warn, free_paths=args.free or ())
         model = build_model(site, args.effects, fit_heading=args.fit_heading)
     except OSError as exc:
         raise UserError(f"{exc.filename}: {exc.strerror}") from None
@@ -502,12 +604,13 @@ def _lab_setup(args):
 
 
 def _site_from_calibration(cal_path):
-    """Site reference measured by a twelve-pose log (see :func:`run_twelve_position`), or the default
-    when the log has no complete set of poses."""
+    """Site reference measured by a twelve-pose log (see :func:`run_twelve_position`); a log that
+    cannot give one is an error (never a default site)."""
     try:
         _, cal = run_twelve_position(cal_path, None, "probe", quiet=True)
-    except UserError:
-        return Site()
+    except UserError as exc:
+        raise UserError(f"no --site given, and {cal_path} cannot measure one (no twelve-pose solve: {exc}): give "
+                        "--site SITE.yaml") from None
     _warn(f"{cal_path}: no --site given: using the site reference the twelve poses measure (dip "
           f"{cal.site.dip_deg:.3f}°, horizontal field {cal.site.declination_deg:+.3f}° from the stand's north)")
     return cal.site
@@ -531,6 +634,15 @@ def cmd_lab_fit(args):
         folds = _folds(data, args.folds)
         held_out = lab.cross_validate(model, data, folds) if folds else {}
     validation = held_out or in_sample
+    if args.output:   # the fitted model as the record that correct, reprocess and the nodes apply
+        rec = model.record(probe_id=args.probe_id, site_source=args.site_source,
+                           not_identifiable=result.not_identifiable,
+                           fit_stats={"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms,
+                                      "stations": len(train), "data": data.describe(),
+                                      "validation": {k: v for k, v in validation.items() if k != "stations"}},
+                           method=f"lab fit ({'cal + val' if args.fit_on == 'all' else 'cal'} logs) of "
+                                  f"{model.describe()}")
+        rec.save(args.output)
     out = {"model": model.describe(), "effects": model.labels(), "data": data.describe(),
            "fit": {"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms, "success": result.success,
                    "seconds": result.seconds},
@@ -539,6 +651,8 @@ def cmd_lab_fit(args):
            "strong_correlations": [{"a": a, "b": b, "r": r} for a, b, r in result.strong_correlations(0.98)],
            "val": dict(validation, held_out=bool(held_out), in_sample=in_sample),
            "uncorrected": lab.uncorrected_metrics(val, site) if len(val) else {}}
+    if args.output:
+        out["record"] = {"path": args.output, "id": rec.id}
     if args.json:
         print(json.dumps(out, indent=2, default=float))
         return 0
@@ -557,6 +671,9 @@ def cmd_lab_fit(args):
         kind = "held-out (cross-validated)" if held_out else "validation"
         print(f"{kind}: drift RMS {validation['drift_rms_deg']:.4f} deg, azimuth RMS "
               f"{validation['azimuth_rms_deg']:.4f} deg over {validation['stations']} stations")
+    if args.output:
+        print(f"wrote {args.output} (id {rec.id}): the calibration record of this model, for correct, reprocess "
+              "and the correction node")
     return 0
 
 
@@ -597,7 +714,9 @@ def _lab_parser(sub):
     lsub = lab.add_subparsers(dest="lab_command", required=True)
 
     def common(p, effects_help):
-        p.add_argument("--cal", required=True, help="calibration log CSV (twelve poses and/or stand stations)")
+        p.add_argument("--cal", help="calibration log CSV (twelve poses and/or stand stations)")
+        p.add_argument("--bag", help="instead of logs: a recorded run (its captures are the calibration data, its "
+                                     "stations with a reference the validation data)")
         p.add_argument("--val", help="validation / survey log CSV (reference angles)")
         p.add_argument("--free", action="append", help="log CSV without labels (probe turned by hand): its static "
                        "intervals constrain the model through |g|, |B| and dip only (repeatable)")
@@ -613,6 +732,9 @@ def _lab_parser(sub):
     common(f, "effects beyond the paper's base model: NAME[:sensor[:axes]][@scope],...")
     f.add_argument("--fit-on", choices=("all", "cal"), default="all",
                    help="fit on cal + val (validation figures cross-validated) or on cal only")
+    f.add_argument("-o", "--output", help="write the fitted model as a calibration record (YAML, format 2) that "
+                   "correct, reprocess and the correction node apply")
+    f.add_argument("--probe-id", default="probe", help="the probe's id in the record")
     f.set_defaults(func=cmd_lab_fit)
     d = lsub.add_parser("diagnose", help="rank candidate effects by held-out error; recommend the next")
     common(d, "effects already in the model (start of the diagnosis)")
@@ -684,6 +806,10 @@ def build_parser():
     t.add_argument("-o", "--output", required=True, help="coefficient YAML to write")
     t.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2)")
     t.add_argument("--probe-id", default="probe")
+    t.add_argument("--effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
+                   help="effects to fit beyond the paper's model on the captured poses (the lab's fit, e.g. "
+                        "temperature_bias:mag when the rounds span a temperature range)")
+    t.add_argument("--plugin", action="append", help="Python file (or module) defining extra effects (repeatable)")
     _detector_options(t)
     t.set_defaults(func=cmd_twelve_position)
 
@@ -692,7 +818,9 @@ def build_parser():
     c.add_argument("--coeffs", required=True, help="coefficient YAML, or 'none' for uncorrected figures")
     c.add_argument("-o", "--output", help="station CSV to write")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
-    c.add_argument("--site", help="site reference YAML (default: the calibration's site)")
+    c.add_argument("--site", help="site reference YAML overriding the calibration record's (which owns one)")
+    c.add_argument("--plugin", action="append", help="Python file (or module) defining effects the record uses, "
+                   "when it is not where the record says (repeatable)")
     c.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     c.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
     c.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
@@ -710,13 +838,22 @@ def build_parser():
     r = sub.add_parser("reprocess", help="re-run station detection, calibration and correction on a recorded bag (MCAP)")
     r.add_argument("bag", help="recorded bag: .mcap file or bag directory (/probe/imu, /probe/mag, ...)")
     r.add_argument("--coeffs", help="coefficient YAML, or 'none' for uncorrected figures")
+    r.add_argument("--compare", nargs="+", metavar="RECORD", help="replay the bag through each record (YAML, or "
+                   "'none') into -o DIR and write the field effect ladder: compare.md, compare.html (plots), one bag "
+                   "per record")
     r.add_argument("--calibrate", action="store_true",
                    help="calibrate from the bag's twelve poses as the live calibration node does (the coefficients "
                         "are written into the output bag and applied to the stations after them)")
     r.add_argument("--coeffs-out", help="with --calibrate: also write the last solve's coefficient YAML here")
     r.add_argument("--probe-id", default="probe", help="with --calibrate: the probe's id in the record")
-    r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist)")
-    r.add_argument("--site", help="site reference YAML (default: the calibration's site)")
+    r.add_argument("--effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
+                   help="with --calibrate: effects to fit beyond the paper's model on the captured poses")
+    r.add_argument("--plugin", action="append", help="Python file (or module) defining effects (repeatable)")
+    r.add_argument("--monitor-window", type=int, default=30, metavar="N",
+                   help="the field monitor's window: the model check over the last N stations (0: off)")
+    r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist); "
+                   "with --compare the directory of the comparison")
+    r.add_argument("--site", help="site reference YAML overriding the calibration record's (which owns one)")
     r.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
     r.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     r.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")

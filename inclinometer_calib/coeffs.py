@@ -1,7 +1,11 @@
 """The calibration result: a typed, versioned coefficient record with a YAML round trip.
 
-The *calibrator* (``twelve_position``, later the general fit) produces a :class:`Calibration`;
-the record is what travels to the correction node and to files.  Loading checks the version,
+The *calibrators* (``twelve_position``, the lab's fit, the calibration node) produce a
+:class:`Calibration`: the probe model (:class:`model.ProbeModel`, the paper's base model plus any
+lab effects, plug-ins included) and the site reference it owns; the record is what travels to the
+correction node, ``correct``, ``reprocess`` and files.  Format version 2 carries any model
+(``model.effects``: name, sensor, axes, scope, parameters with units, and for a plug-in effect
+its file or module and SHA-256); version 1 files (the base model only) still load.  Loading checks the version,
 shapes, units and the consistency of the correction matrix with the parameters, so a hand-edited
 file that no longer makes sense is refused with a message that says which field is wrong.
 
@@ -10,7 +14,13 @@ Units and conventions written into every record:
 * accelerometer parameters and offsets are in the seed paper's **gravity-vector** convention
   (down positive, m/s²): ``g = -f`` with ``f`` the REP-145 specific force of ``sensor_msgs/Imu``;
 * magnetometer parameters and offsets in nT;
-* correction of a triad: ``v = C·(h - bias) = C·h + D`` with ``C = (K·E)⁻¹``, ``D = -C·bias``.
+* correction of a triad: ``v = C·(h - bias) = C·h + D`` with ``C = (K·E)⁻¹``, ``D = -C·bias``,
+  followed, when the model has effects beyond the paper's, by Newton steps on the whole model
+  (:meth:`model.ProbeModel.correct`);
+* temperature effects relative to 25 °C; time effects in s since the data's first sample.
+
+The record's ``id`` is a hash of the model, the probe and the site: a record means one set of
+numbers, and a station's ``coefficients_id`` says which.
 """
 from __future__ import annotations
 
@@ -18,17 +28,22 @@ import datetime as _dt
 import hashlib
 import json
 import math
-from dataclasses import dataclass, field
+import os
 
 import numpy as np
 import yaml
 
+from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
-from .frames import Site
+from .frames import Site, specific_force_from_gravity
+from .model import CorrectionPlan, ProbeModel
+from .plugins import PluginError
 from .probelog import atomic_write_text
 
 FORMAT = "inclinometer_calib/coefficients"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Versions this code reads: 1 (the paper's base model only), 2 (any lab model).
+READABLE_VERSIONS = (1, 2)
 UNITS = {"acc": "m/s^2", "mag": "nT"}
 TRIAD_KEYS = {"acc": "accelerometer", "mag": "magnetometer"}
 CONVENTIONS = {
@@ -37,7 +52,10 @@ CONVENTIONS = {
     "orientation": "R = Rz(azimuth)·Ry(drift)·Rz(toolface) maps tool to NED",
     "accelerometer": "gravity vector, down positive, m/s^2 (= minus REP-145 specific force)",
     "magnetometer": "nT",
-    "correction": "v = C·(h - bias) = C·h + D, C = (K·E)^-1, D = -C·bias",
+    "correction": "v = C·(h - bias) = C·h + D, C = (K·E)^-1, D = -C·bias; with model.effects, Newton steps "
+                  "v <- v + C·(h - forward(v)) on the whole model from there",
+    "temperature": "degC; temperature effects relative to model.temperature_reference_c",
+    "time": "s since the first sample of the data being corrected (the probe's power-on)",
 }
 
 
@@ -45,40 +63,87 @@ class CoefficientError(ValueError):
     """A coefficient record is malformed, inconsistent or of an unknown version."""
 
 
-@dataclass
 class Calibration:
-    """Calibration of both triads plus metadata and per-pose diagnostics."""
+    """A calibration record: the probe model (:class:`model.ProbeModel`: the paper's base model of
+    both triads plus any lab effects), the site reference it belongs to, and metadata.
 
-    acc: TriadModel
-    mag: TriadModel
-    probe_id: str = "probe"
-    method: str = "twelve_position"
-    created: str = ""
-    site: Site = field(default_factory=Site)
-    effects: tuple = ("bias", "scale", "nonorthogonality")
-    diagnostics: dict = field(default_factory=dict)
-    #: where ``site`` came from: "given" (a site file, node parameters), "measured" (the stand's
-    #: field measured by the twelve poses, its total field in the scale of an assumed vertical
-    #: component: the magnetometer's scale is then relative), "unknown" (an older record)
-    site_source: str = "given"
+    ``Calibration(model, ...)``, or ``Calibration(acc=TriadModel, mag=TriadModel, ...)`` for the
+    paper's model alone.  ``site``: the site reference (the record owns it: QC and azimuths of
+    whatever the record corrects use it unless a user overrides it, loudly); ``site_source``
+    says where it came from: "given" (a site file, node parameters), "measured" (the stand's field
+    measured by the twelve poses, its total field in the scale of an assumed vertical component:
+    the magnetometer's scale is then relative), "unknown" (an older record).
+    ``not_identifiable``: parameters the data could not determine, with the reason (a lab fit)."""
 
-    def __post_init__(self):
-        if not self.created:
-            self.created = _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+    def __init__(self, model: ProbeModel | None = None, *, acc: TriadModel | None = None,
+                 mag: TriadModel | None = None, probe_id: str = "probe", method: str = "twelve_position",
+                 created: str = "", site: Site | None = None, diagnostics: dict | None = None,
+                 site_source: str = "given", not_identifiable=()):
+        if model is None:
+            model = ProbeModel.base(acc, mag)
+        elif acc is not None or mag is not None:
+            raise TypeError("give either a model or acc/mag triads, not both")
+        self.model = model
+        self.probe_id = probe_id
+        self.method = method
+        self.created = created or _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()
+        self.site = site if site is not None else Site()
+        self.diagnostics = dict(diagnostics or {})
+        self.site_source = site_source
+        self.not_identifiable = [dict(x) for x in not_identifiable]
+        self._plan = None
+
+    def __repr__(self):
+        return f"Calibration(id={self.id}, probe={self.probe_id!r}, model={self.model.describe()})"
+
+    @property
+    def acc(self) -> TriadModel:
+        return self.model.acc
+
+    @property
+    def mag(self) -> TriadModel:
+        return self.model.mag
+
+    def triad(self, sensor: str) -> TriadModel:
+        return self.model.triad(sensor)
+
+    @property
+    def effects(self) -> list:
+        """Labels of every term of the model (base terms by name, others as NAME:sensor:axes[@scope])."""
+        return list(fx.BASE) + self.model.labels()
+
+    def _id_blob(self, version: int) -> dict:
+        blob = {"acc": self.acc.parameters(), "mag": self.mag.parameters(), "probe": self.probe_id}
+        if version >= 2:   # the model's effects and the site reference are part of what the record means
+            blob["effects"] = self.model.terms_record()
+            blob["site"] = self.site.to_dict()
+        return blob
 
     @property
     def id(self) -> str:
-        """Content hash of the coefficients (same coefficients → same id)."""
-        blob = json.dumps({"acc": self.acc.parameters(), "mag": self.mag.parameters(),
-                           "probe": self.probe_id}, sort_keys=True).encode()
+        """Content hash of the model, the probe and the site (same content → same id)."""
+        return self._hash(FORMAT_VERSION)
+
+    def _hash(self, version: int) -> str:
+        blob = json.dumps(self._id_blob(version), sort_keys=True).encode()
         return hashlib.sha256(blob).hexdigest()[:12]
 
-    def triad(self, sensor: str) -> TriadModel:
-        return self.acc if sensor == "acc" else self.mag
+    @property
+    def plan(self) -> CorrectionPlan:
+        """The correction of survey data with everything data-independent worked out once."""
+        if self._plan is None:
+            self._plan = CorrectionPlan(self.model, "val")
+        return self._plan
 
-    def correct(self, g_raw, b_raw):
-        """Corrected (gravity vector m/s², field nT) from raw outputs in the same conventions."""
-        return self.acc.inverse(g_raw), self.mag.inverse(b_raw)
+    def correct(self, g_raw, b_raw, temperature_c=None, time_s=None):
+        """Corrected gravity vector (m/s²) and field (nT) from raw outputs in the same conventions,
+        on survey data (:meth:`model.ProbeModel.correct`, the one correction path)."""
+        return self.plan.correct(g_raw, b_raw, temperature_c, time_s)
+
+    @property
+    def needs(self) -> tuple:
+        """What the correction needs besides the vectors: ``temperature``, ``time``."""
+        return self.model.needs("val")
 
     # ---- record ----------------------------------------------------------------------------
     def to_record(self) -> dict:
@@ -92,8 +157,11 @@ class Calibration:
             "conventions": dict(CONVENTIONS),
             "site": self.site.to_dict(),
             "site_source": self.site_source,
-            "model": {"effects": list(self.effects)},
+            "model": {"base": list(fx.BASE), "effects": self.model.terms_record(),
+                      "temperature_reference_c": fx.T_REF_C},
         }
+        if self.not_identifiable:
+            rec["model"]["not_identifiable"] = [dict(x) for x in self.not_identifiable]
         for sensor, key in TRIAD_KEYS.items():
             t = self.triad(sensor)
             rec[key] = {
@@ -110,6 +178,8 @@ class Calibration:
             rec["implied_site"] = self.diagnostics["implied_site"]
         if self.diagnostics.get("notes"):
             rec["notes"] = list(self.diagnostics["notes"])   # what the solve left out or warned about
+        if self.diagnostics.get("fit"):
+            rec["fit"] = self.diagnostics["fit"]             # a lab fit's statistics
         return rec
 
     def to_yaml(self) -> str:
@@ -121,7 +191,9 @@ class Calibration:
         atomic_write_text(path, self.to_yaml())
 
     @classmethod
-    def from_record(cls, rec, source: str = "<record>") -> "Calibration":
+    def from_record(cls, rec, source: str = "<record>", base_dir: str = ".") -> "Calibration":
+        """Check and load a record of any readable version; ``base_dir``: where a plug-in file the
+        record names by a relative path is looked for (the record's folder)."""
         def fail(msg):
             raise CoefficientError(f"{source}: {msg}")
 
@@ -129,8 +201,10 @@ class Calibration:
             fail("not a mapping (expected a coefficient record)")
         if rec.get("format") != FORMAT:
             fail(f"format is {rec.get('format')!r}, expected {FORMAT!r}")
-        if rec.get("format_version") != FORMAT_VERSION:
-            fail(f"format_version {rec.get('format_version')!r} is not supported (this version reads {FORMAT_VERSION})")
+        version = rec.get("format_version")
+        if version not in READABLE_VERSIONS:
+            fail(f"format_version {version!r} is not supported (this version reads "
+                 f"{', '.join(map(str, READABLE_VERSIONS))})")
         triads = {}
         for sensor, key in TRIAD_KEYS.items():
             sec = rec.get(key)
@@ -174,17 +248,39 @@ class Calibration:
             site = Site.from_dict(rec.get("site", {}))
         except (TypeError, ValueError) as exc:
             fail(str(exc))
+        mod = rec.get("model") or {}
+        if not isinstance(mod, dict):
+            fail("model must be a mapping")
+        items = mod.get("effects", ()) if version >= 2 else ()
+        if version == 1:    # v1: a list of the base model's effect names, nothing else
+            extra = [e for e in mod.get("effects", ()) if e not in fx.BASE]
+            if extra:
+                fail(f"a version 1 record cannot carry effects beyond the base model, got {extra}")
+        elif not isinstance(items, list):
+            fail("model.effects must be a list")
+        t_ref = mod.get("temperature_reference_c", fx.T_REF_C)
+        if t_ref != fx.T_REF_C:
+            fail(f"model.temperature_reference_c is {t_ref!r}; this version's effects are relative to {fx.T_REF_C}")
+        try:
+            probe = ProbeModel.from_record(triads["acc"][0], triads["mag"][0], items, base_dir, source)
+        except PluginError as exc:
+            raise CoefficientError(str(exc)) from None
+        except ValueError as exc:
+            fail(str(exc).removeprefix(f"{source}: "))
         diags = {s: d for s, (_, d) in triads.items() if d}
         if "implied_site" in rec:
             diags["implied_site"] = rec["implied_site"]
         if rec.get("notes"):
             diags["notes"] = [str(x) for x in rec["notes"]]
-        cal = cls(acc=triads["acc"][0], mag=triads["mag"][0], probe_id=str(rec.get("probe_id", "probe")),
-                  method=str(rec.get("method", "")), created=str(rec.get("created", "")), site=site,
-                  effects=tuple(rec.get("model", {}).get("effects", ())), diagnostics=diags,
-                  site_source=str(rec.get("site_source", "unknown")))
-        if "id" in rec and rec["id"] != cal.id:
-            fail(f"id {rec['id']!r} does not match the coefficients (expected {cal.id!r}): edited without re-issuing")
+        if rec.get("fit"):
+            diags["fit"] = rec["fit"]
+        cal = cls(probe, probe_id=str(rec.get("probe_id", "probe")), method=str(rec.get("method", "")),
+                  created=str(rec.get("created", "")), site=site, diagnostics=diags,
+                  site_source=str(rec.get("site_source", "unknown")),
+                  not_identifiable=mod.get("not_identifiable", ()) if version >= 2 else ())
+        if "id" in rec and rec["id"] != cal._hash(version):
+            fail(f"id {rec['id']!r} does not match the content (expected {cal._hash(version)!r}): edited without "
+                 "re-issuing")
         return cal
 
     @classmethod
@@ -194,7 +290,7 @@ class Calibration:
                 rec = yaml.safe_load(fh)
         except yaml.YAMLError as exc:
             raise CoefficientError(f"{path}: not valid YAML: {exc}") from None
-        return cls.from_record(rec, source=str(path))
+        return cls.from_record(rec, source=str(path), base_dir=os.path.dirname(os.path.abspath(path)))
 
     @classmethod
     def from_yaml(cls, text: str, source: str = "<yaml>") -> "Calibration":
@@ -217,8 +313,9 @@ def _param_unit(sensor, name):
     return _PARAM_UNITS[sensor][kind]
 
 
-def _residuals(cal: Calibration, sensor: str, sign: float):
-    """Poses with residuals (Table 1 numbering) and their residuals, flattened x, y, z per pose."""
+def _residuals(cal: Calibration, sensor: str, conv):
+    """Poses with residuals (Table 1 numbering) and their residuals (``conv``: into the message's
+    convention), flattened x, y, z per pose."""
     per_pose = (cal.diagnostics.get(sensor) or {}).get("per_pose") or {}
     poses, res = [], []
     for p in sorted(int(k) for k in per_pose):
@@ -226,36 +323,47 @@ def _residuals(cal: Calibration, sensor: str, sign: float):
         if any(x is None or not math.isfinite(float(x)) for x in r):
             continue   # a pose the solve had no capture of
         poses.append(p)
-        res.extend(sign * float(x) for x in r)
+        res.extend(float(x) for x in conv(np.asarray(r, dtype=float)))
     return poses, res
 
 
 def message_fields(cal: Calibration) -> dict:
     """The fields of a ``CalibrationCoefficients`` message (all but the header), plain Python.
 
-    The message's model is ``corrected = matrix·(raw - offset)``: matrix = ``C = (K·E)^-1`` and
-    offset = the bias ``B``.  Its accelerometer fields are REP-145 (specific force): the matrix is
-    the same as in the core's gravity-vector convention, the offset and the bias parameters change
-    sign (``f = -g``), as do the residuals.  ``coefficients_yaml`` carries the core record
-    unchanged (gravity-vector convention, stated in the record).  ``poses_used``: the poses with
-    residuals (a least-squares solve may lack some), Table 1 numbering.
+    The message's base model is ``corrected = matrix·(raw - offset)``: matrix = ``C = (K·E)^-1``
+    and offset = the bias ``B``.  Its accelerometer fields are REP-145 (specific force): the matrix
+    is the same as in the core's gravity-vector convention, the offset and the bias parameters are
+    converted with :func:`frames.specific_force_from_gravity` (they change sign), as are the
+    residuals.  Effects beyond the base model are named in ``*_model_effects``; their values, and
+    everything else, are in ``coefficients_yaml``, the core record unchanged (gravity-vector
+    convention, stated in the record) — the authoritative form a node applies.  ``poses_used``:
+    the poses with residuals (a least-squares solve may lack some), Table 1 numbering.
     """
     out = {"id": cal.id, "probe_id": cal.probe_id, "created": cal.created}
-    for sensor, prefix, sign in (("acc", "accel", -1.0), ("mag", "mag", 1.0)):
+    for sensor, prefix in (("acc", "accel"), ("mag", "mag")):
+        conv = specific_force_from_gravity if sensor == "acc" else (lambda v: v)
         t = cal.triad(sensor)
         out[f"{prefix}_correction_matrix"] = [float(x) for x in t.correction_matrix.reshape(9)]
-        out[f"{prefix}_offset"] = [sign * float(x) for x in t.bias]   # corrected = matrix·(raw - offset)
+        out[f"{prefix}_offset"] = [float(x) for x in conv(t.bias)]   # corrected = matrix·(raw - offset)
         params = t.parameters()
         names = list(params)
         out[f"{prefix}_parameter_names"] = names
-        out[f"{prefix}_parameter_values"] = [(sign if n.startswith("bias") else 1.0) * float(params[n]) for n in names]
+        out[f"{prefix}_parameter_values"] = [float(conv(params[n])) if n.startswith("bias") else float(params[n])
+                                             for n in names]
         out[f"{prefix}_parameter_units"] = [_param_unit(sensor, n) for n in names]
-        poses, res = _residuals(cal, sensor, sign)
+        poses, res = _residuals(cal, sensor, conv)
         out[f"{prefix}_residuals"] = res
         out[f"{prefix}_residual_units"] = UNITS[sensor]
         out[f"{prefix}_rms_residual"] = float(math.sqrt(sum(r * r for r in res) / len(res))) if res else math.nan
-        out[f"{prefix}_model_effects"] = list(cal.effects)
+        out[f"{prefix}_model_effects"] = list(fx.BASE) + [t.label for t in cal.model.extra_terms
+                                                          if t.effect.sensor == sensor]
         if sensor == "acc":
             out["poses_used"] = list(poses)
+    out["not_identifiable"] = [f"{x.get('parameter', '')}: {x.get('reason', '')}" for x in cal.not_identifiable]
+    out["site_total_field_nt"] = float(cal.site.total_field_nt)
+    out["site_dip_deg"] = float(cal.site.dip_deg)
+    out["site_declination_deg"] = float(cal.site.declination_deg)
+    out["site_gravity_mps2"] = float(cal.site.gravity_mps2)
+    out["site_source"] = cal.site_source
     out["coefficients_yaml"] = cal.to_yaml()
     return out

@@ -1,8 +1,13 @@
 """Catalogue of physical error effects of a sensor triad, composable into a probe model.
 
-Each effect is a small object with a stable ``name``, the ``sensor`` it acts on (``"acc"`` or
-``"mag"``), the ``axes`` it acts on (a subset of ``"xyz"``), its parameters (one value per axis,
-with units and a typical magnitude) and one forward function :meth:`Effect.apply`.
+Each effect is a small class with its own metadata: a stable ``name``, the ``sensors`` it can act
+on (``"acc"``, ``"mag"``, or ``"probe"`` for whole-probe effects), the ``axes`` it acts on (a
+subset of ``"xyz"``), its parameters (:class:`ParamSpec`: one value per axis, with unit and
+typical 1σ size per sensor), the nearest ISCWSA MWD error-model term (``iscwsa``), whether it acts
+on survey data only (``survey_only``), what it depends on (``needs``: temperature, time), when
+the data can identify it (:meth:`Effect.identifiability`), the residual signature that betrays it
+(``signature``, ``field_regressors``), and one forward function :meth:`Effect.apply`.  Code
+elsewhere asks the class; no list of effect names lives anywhere else.
 
 Signal chain of one triad (stages applied in this order)::
 
@@ -11,8 +16,21 @@ Signal chain of one triad (stages applied in this order)::
     gain     y  = K(T)·s·(1 + asymmetry·sign s) + nonlinearity(s) + cross_coupling(s)
     output   h  = y + bias(T, t)
 
+Whole-probe effects (stage ``probe``: ``stand_pose_error``, ``time_skew``) act on the probe's
+orientation and sampling rather than on one triad's signal; the simulator applies them.
+
 Units: accelerometer in m/s² of the seed paper's gravity vector (down positive, ``g = -f`` of
-REP-145); magnetometer in nT.  Temperature in °C relative to ``T_REF_C``; time in s.
+REP-145); magnetometer in nT.  Temperature in °C relative to ``T_REF_C``; time in s since the
+data's first sample (the probe's power-on: the first sample of a log, a stream or the first of
+several logs read together).
+
+Effects are named on the command line, in node parameters and in records with one grammar
+(:func:`parse_effects`)::
+
+    NAME[:sensor[:axes]][@scope][=V[,V...]]   items separated by commas
+
+e.g. ``temperature_bias:mag``, ``axial_interference@val=300``, ``bias:mag:xy=10,20,nonlinearity``
+(a bare number continues the previous item's values).
 
 Adding an effect means adding one class here and registering it in :data:`CATALOGUE`.
 """
@@ -31,6 +49,15 @@ T_REF_C = 25.0
 FULL_SCALE = {"acc": 9.80665, "mag": 50000.0}
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
 STAGES = ("tool", "axes", "gain", "output")
+#: Stage of whole-probe effects (not in a triad's signal chain).
+PROBE_STAGE = "probe"
+SCOPES = ("all", "cal", "val")
+#: Spans of the data an effect that depends on temperature or time needs before it is identifiable,
+#: with what to do about it.
+MIN_SPAN = {
+    "temperature": (3.0, "°C", "calibrate at two or more temperatures at least 10 °C apart"),
+    "time": (300.0, "s", "a drift needs stations spread over at least several minutes (repeat poses at the end)"),
+}
 
 
 @dataclass(frozen=True)
@@ -45,10 +72,24 @@ class ParamSpec:
 
 @dataclass
 class Context:
-    """Per-sample conditions an effect may depend on: temperature (°C), time (s), all (N,)."""
+    """Per-sample conditions an effect may depend on: temperature (°C) and time (s since the
+    data's first sample), each (N,)."""
 
     temperature_c: np.ndarray
     time_s: np.ndarray
+
+
+def rotate(m, v) -> np.ndarray:
+    """``v @ m`` for (N, 3) ``v`` and a 3×3 ``m``, written out element by element.
+
+    Not through BLAS: each output element is the same three products added in the same order
+    whatever N is, so one sample corrected alone (a node) and the same sample in a block of a
+    million (the batch path) give the same bits.
+    """
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    return np.stack([x * m[0, 0] + y * m[1, 0] + z * m[2, 0],
+                     x * m[0, 1] + y * m[1, 1] + z * m[2, 1],
+                     x * m[0, 2] + y * m[1, 2] + z * m[2, 2]], axis=1)
 
 
 @dataclass
@@ -67,21 +108,42 @@ class Effect(abc.ABC):
     sensors: ClassVar[tuple] = ("acc", "mag")
     specs: ClassVar[tuple] = ()
     default_axes: ClassVar[str] = "xyz"
-    description: ClassVar[str] = ""
     #: The nearest ISCWSA MWD error-model terms, per sensor (for users who think in those codes).
     iscwsa: ClassVar[dict] = {}
+    #: Part of the seed paper's base model (bias, scale, non-orthogonality).
+    base: ClassVar[bool] = False
+    #: Acts on survey data only (not on the non-magnetic lab stand): default scope ``val``.
+    survey_only: ClassVar[bool] = False
+    #: What the effect depends on besides the signal: ``"temperature"``, ``"time"``.  None: found
+    #: out by evaluating the effect (:meth:`context_needs`; for plug-ins that do not say).
+    needs: ClassVar[tuple | None] = None
+    #: Why static stand data can never reveal the effect (empty: they can).
+    not_from_static: ClassVar[str] = ""
+    #: The residual signature that betrays the effect when it is missing from a model.
+    signature: ClassVar[str] = ""
+    #: What a survey's residuals against the site (|G|, |B|, dip) follow when the effect is missing
+    #: from the model applied in the field: ``"temperature"``, ``"time"``, ``"orientation"``.
+    field_regressors: ClassVar[tuple] = ()
+    #: Set on plug-in classes by :func:`plugins.load_plugin`: ``{"file" or "module": ..., "sha256": ...}``.
+    plugin: ClassVar[dict | None] = None
 
     def __post_init__(self):
         if self.sensor not in self.sensors:
             raise ValueError(f"effect {self.name!r} does not act on sensor {self.sensor!r} "
                              f"(it acts on {', '.join(self.sensors)})")
-        if not self.axes or any(a not in AXIS_INDEX for a in self.axes) or len(set(self.axes)) != len(self.axes):
+        if self.stage == PROBE_STAGE:
+            self.axes = ""     # a whole-probe effect has one value, not one per axis
+        elif not self.axes or any(a not in AXIS_INDEX for a in self.axes) or len(set(self.axes)) != len(self.axes):
             raise ValueError(f"effect {self.name!r}: axes must be distinct letters of 'xyz', got {self.axes!r}")
         self.axes = "".join(sorted(self.axes, key="xyz".index))
         values = {}
         for spec in self.specs:
             v = np.asarray(self.values.get(spec.name, 0.0), dtype=float)
-            values[spec.name] = np.broadcast_to(v, (len(self.axes),)).astype(float).copy()
+            try:
+                values[spec.name] = np.broadcast_to(v, (self._n_axes,)).astype(float).copy()
+            except ValueError:
+                raise ValueError(f"effect {self.key}: {spec.name} needs 1 or {self._n_axes} values, got "
+                                 f"{v.size}") from None
         unknown = set(self.values) - {s.name for s in self.specs}
         if unknown:
             raise ValueError(f"effect {self.name!r}: unknown parameter(s) {sorted(unknown)}")
@@ -89,30 +151,36 @@ class Effect(abc.ABC):
 
     # ---- parameter vector (for fitting) ----------------------------------------------------
     @property
+    def _n_axes(self) -> int:
+        return len(self.axes) if self.stage != PROBE_STAGE else 1
+
+    @property
     def key(self) -> str:
-        return f"{self.name}:{self.sensor}:{self.axes}"
+        return f"{self.name}:{self.sensor}:{self.axes}" if self.stage != PROBE_STAGE else self.name
 
     def param_names(self) -> list:
+        if self.stage == PROBE_STAGE:
+            return [f"{self.key}.{s.name}" for s in self.specs]
         return [f"{self.key}.{s.name}_{a}" for s in self.specs for a in self.axes]
 
     def param_units(self) -> list:
-        return [s.unit[self.sensor] for s in self.specs for _ in self.axes]
+        return [s.unit[self.sensor] for s in self.specs for _ in range(self._n_axes)]
 
     def param_typical(self) -> np.ndarray:
-        return np.array([s.typical[self.sensor] for s in self.specs for _ in self.axes], dtype=float)
+        return np.array([s.typical[self.sensor] for s in self.specs for _ in range(self._n_axes)], dtype=float)
 
     def get_vector(self) -> np.ndarray:
         return np.concatenate([self.values[s.name] for s in self.specs]) if self.specs else np.zeros(0)
 
     def set_vector(self, vec) -> None:
         vec = np.asarray(vec, dtype=float)
-        n = len(self.axes)
+        n = self._n_axes
         for i, s in enumerate(self.specs):
             self.values[s.name] = vec[i * n:(i + 1) * n].copy()
 
     @property
     def n_params(self) -> int:
-        return len(self.specs) * len(self.axes)
+        return len(self.specs) * self._n_axes
 
     def _idx(self):
         return [AXIS_INDEX[a] for a in self.axes]
@@ -132,6 +200,46 @@ class Effect(abc.ABC):
                          for s in self.specs)
         return f"{self.key} ({vals})"
 
+    # ---- metadata ----------------------------------------------------------------------------
+    @classmethod
+    def summary(cls) -> str:
+        """One line: the first line of the class docstring."""
+        return (cls.__doc__ or cls.name).strip().splitlines()[0]
+
+    @classmethod
+    def context_needs(cls) -> tuple:
+        """``needs`` as declared, else found by evaluating the effect at its typical size with two
+        temperatures and two times (a plug-in that does not declare it is still checked)."""
+        if cls.needs is not None:
+            return tuple(cls.needs)
+        if cls.stage == PROBE_STAGE:
+            return ()
+        out = []
+        for sensor in cls.sensors:
+            eff = cls(sensor=sensor, axes=cls.default_axes,
+                      values={s.name: s.typical[sensor] or 1.0 for s in cls.specs})
+            v = np.array([[3.0, -4.0, 8.0]] * 2)
+            for what, ctx in (("temperature", Context(np.array([T_REF_C, T_REF_C + 20.0]), np.zeros(2))),
+                              ("time", Context(np.full(2, T_REF_C), np.array([0.0, 3600.0])))):
+                y = eff.apply(v, ctx)
+                if what not in out and not np.array_equal(y[0], y[1]):
+                    out.append(what)
+        return tuple(out)
+
+    def identifiability(self, temperature_span_c: float, time_span_s: float, kinds=frozenset()) -> str:
+        """Why the data described cannot determine this effect, or "" when they can.
+
+        ``temperature_span_c`` / ``time_span_s``: spans of the stations it acts on; ``kinds``:
+        the kinds of station they are (``pose``, ``ref``, ``free``)."""
+        if self.not_from_static:
+            return self.not_from_static
+        spans = {"temperature": temperature_span_c, "time": time_span_s}
+        for what in self.context_needs():
+            lo, unit, advice = MIN_SPAN[what]
+            if spans[what] < lo:
+                return f"{what} span {spans[what]:.1f} {unit} is too small: {advice}"
+        return ""
+
 
 def _spec(name, unit_acc, unit_mag, typ_acc, typ_mag, doc=""):
     return ParamSpec(name, {"acc": unit_acc, "mag": unit_mag}, {"acc": typ_acc, "mag": typ_mag}, doc)
@@ -146,6 +254,8 @@ class Bias(Effect):
 
     iscwsa: ClassVar[dict] = {"acc": "ABXY-TI1S/ABZ", "mag": "MBXY/MBZ"}
     name: ClassVar[str] = "bias"
+    base: ClassVar[bool] = True
+    needs: ClassVar[tuple] = ()
     stage: ClassVar[str] = "output"
     specs: ClassVar[tuple] = (_spec("b", "m/s^2", "nT", 0.004, 70.0, "zero bias"),)
 
@@ -159,6 +269,8 @@ class Scale(Effect):
 
     iscwsa: ClassVar[dict] = {"acc": "ASXY/ASZ", "mag": "MSXY/MSZ"}
     name: ClassVar[str] = "scale"
+    base: ClassVar[bool] = True
+    needs: ClassVar[tuple] = ()
     stage: ClassVar[str] = "gain"
     specs: ClassVar[tuple] = (_spec("k", "1", "1", 0.0005, 0.0016, "scale-factor error (K-1)"),)
 
@@ -175,6 +287,9 @@ class NonOrthogonality(Effect):
 
     name: ClassVar[str] = "nonorthogonality"
     stage: ClassVar[str] = "axes"
+    base: ClassVar[bool] = True
+    needs: ClassVar[tuple] = ()
+    iscwsa: ClassVar[dict] = {"acc": "XYM", "mag": "XYM"}
     specs: ClassVar[tuple] = (
         _spec("e1", "rad", "rad", 0.0017, 0.0017, "E[b, first other axis]: e_yx, e_xy, e_xz for b=x, y, z"),
         _spec("e2", "rad", "rad", 0.0017, 0.0017, "E[b, second other axis]: e_zx, e_zy, e_yz for b=x, y, z"),
@@ -221,6 +336,9 @@ class Misalignment(Effect):
     iscwsa: ClassVar[dict] = {"acc": "XYM1/XYM2", "mag": "XYM1/XYM2"}
     name: ClassVar[str] = "misalignment"
     stage: ClassVar[str] = "axes"
+    needs: ClassVar[tuple] = ()
+    not_from_static: ClassVar[str] = ("a rigid rotation of a triad is already inside the base model's K·E (9 degrees "
+                                      "of freedom): not separable without an external reference of the housing axes")
     specs: ClassVar[tuple] = (_spec("angle", "rad", "rad", 0.0017, 0.0017, "rotation about the axis"),)
 
     def _rotation(self):
@@ -229,7 +347,7 @@ class Misalignment(Effect):
         return _small_rotation(*w)
 
     def _apply(self, v, ctx):
-        v[:] = v @ self._rotation()  # sensor axes rotated by R: s = Rᵀ v
+        v[:] = rotate(self._rotation(), v)  # sensor axes rotated by R: s = Rᵀ v
 
 
 @dataclass
@@ -239,6 +357,8 @@ class TriadMisalignment(Misalignment):
     iscwsa: ClassVar[dict] = {}
     name: ClassVar[str] = "triad_misalignment"
     sensors: ClassVar[tuple] = ("mag",)
+    not_from_static: ClassVar[str] = ("a rotation of the magnetometer against the accelerometer is inside the base "
+                                      "model's K·E: not separable from static stations")
 
 
 @dataclass
@@ -253,10 +373,20 @@ class AxialInterference(Effect):
     stage: ClassVar[str] = "tool"
     sensors: ClassVar[tuple] = ("mag",)
     default_axes: ClassVar[str] = "z"
+    survey_only: ClassVar[bool] = True
+    needs: ClassVar[tuple] = ()
+    signature: ClassVar[str] = "azimuth error varying with sin(drift)·sin(azimuth), |B| and dip off the reference"
+    field_regressors: ClassVar[tuple] = ("orientation",)
     specs: ClassVar[tuple] = (_spec("field", "m/s^2", "nT", 0.0, 220.0, "field along the axis"),)
 
     def _apply(self, v, ctx):
         v[:, self._idx()] += self.values["field"]
+
+    def identifiability(self, temperature_span_c, time_span_s, kinds=frozenset()) -> str:
+        if kinds and set(kinds) <= {"pose"}:
+            return ("on twelve-position poses a field fixed along tool Z is indistinguishable from the Z bias: needs "
+                    "survey stations of known orientation or the site invariants at several azimuths")
+        return super().identifiability(temperature_span_c, time_span_s, kinds)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -268,6 +398,9 @@ class TemperatureScale(Effect):
 
     name: ClassVar[str] = "temperature_scale"
     stage: ClassVar[str] = "gain"
+    needs: ClassVar[tuple] = ("temperature",)
+    signature: ClassVar[str] = "residuals following temperature in proportion to the input"
+    field_regressors: ClassVar[tuple] = ("temperature",)
     specs: ClassVar[tuple] = (_spec("c", "1/degC", "1/degC", 5e-5, 1e-4, "scale temperature coefficient"),)
 
     def _apply(self, v, ctx):
@@ -281,6 +414,9 @@ class ScaleAsymmetry(Effect):
 
     name: ClassVar[str] = "scale_asymmetry"
     stage: ClassVar[str] = "gain"
+    needs: ClassVar[tuple] = ()
+    signature: ClassVar[str] = "residuals following the sign of the input (|input|)"
+    field_regressors: ClassVar[tuple] = ("orientation",)
     specs: ClassVar[tuple] = (_spec("a", "1", "1", 5e-4, 1e-3, "half the difference of ± scales"),)
 
     def _apply(self, v, ctx):
@@ -297,6 +433,9 @@ class Nonlinearity(Effect):
 
     name: ClassVar[str] = "nonlinearity"
     stage: ClassVar[str] = "gain"
+    needs: ClassVar[tuple] = ()
+    signature: ClassVar[str] = "residuals following input² / input³"
+    field_regressors: ClassVar[tuple] = ("orientation",)
     specs: ClassVar[tuple] = (
         _spec("q", "1", "1", 5e-4, 1e-3, "quadratic coefficient at full scale"),
         _spec("c", "1", "1", 5e-4, 1e-3, "cubic coefficient at full scale"),
@@ -320,6 +459,9 @@ class CrossCoupling(Effect):
     name: ClassVar[str] = "cross_coupling"
     stage: ClassVar[str] = "gain"
     sensors: ClassVar[tuple] = ("acc",)
+    needs: ClassVar[tuple] = ()
+    signature: ClassVar[str] = "accelerometer residuals following products of the other axes' inputs"
+    field_regressors: ClassVar[tuple] = ("orientation",)
     specs: ClassVar[tuple] = (
         _spec("k_ij", "1", "1", 5e-4, 0.0, "s_i·s_j (input × first other axis)"),
         _spec("k_ik", "1", "1", 5e-4, 0.0, "s_i·s_k (input × second other axis)"),
@@ -345,6 +487,9 @@ class TemperatureBias(Effect):
 
     name: ClassVar[str] = "temperature_bias"
     stage: ClassVar[str] = "output"
+    needs: ClassVar[tuple] = ("temperature",)
+    signature: ClassVar[str] = "residuals following temperature"
+    field_regressors: ClassVar[tuple] = ("temperature",)
     specs: ClassVar[tuple] = (_spec("c", "m/s^2/degC", "nT/degC", 2e-4, 3.0, "bias temperature coefficient"),)
 
     def _apply(self, v, ctx):
@@ -357,27 +502,78 @@ class BiasDrift(Effect):
 
     name: ClassVar[str] = "bias_drift"
     stage: ClassVar[str] = "output"
+    needs: ClassVar[tuple] = ("time",)
+    signature: ClassVar[str] = "residuals following time"
+    field_regressors: ClassVar[tuple] = ("time",)
     specs: ClassVar[tuple] = (_spec("rate", "m/s^2/h", "nT/h", 0.002, 30.0, "bias drift per hour"),)
 
     def _apply(self, v, ctx):
         v[:, self._idx()] += self.values["rate"] * (ctx.time_s / 3600.0)[:, None]
 
 
-#: Effects by name.  ``stand_pose_error`` and ``time_skew`` act on the orientation and sampling
-#: of the whole probe rather than on one triad's signal, so they live in ``simulate``.
+# ---------------------------------------------------------------------------------------------
+# Whole-probe effects (the simulator applies them; no triad signal chain)
+# ---------------------------------------------------------------------------------------------
+@dataclass
+class StandPoseError(Effect):
+    """Random orientation error of each static station of the stand (1σ per axis, deg)."""
+
+    name: ClassVar[str] = "stand_pose_error"
+    stage: ClassVar[str] = PROBE_STAGE
+    sensors: ClassVar[tuple] = ("probe",)
+    default_axes: ClassVar[str] = ""
+    needs: ClassVar[tuple] = ()
+    not_from_static: ClassVar[str] = ("random per-station orientation errors are not a fittable signature: they show "
+                                      "as unstructured excess scatter, reported with its size as an equivalent stand "
+                                      "pose error")
+    specs: ClassVar[tuple] = (ParamSpec("sigma", {"probe": "deg"}, {"probe": 0.05}, "1σ per axis"),)
+
+    def _apply(self, v, ctx):
+        raise TypeError("stand_pose_error acts on the probe's orientation (the simulator), not on a signal")
+
+
+@dataclass
+class TimeSkew(Effect):
+    """The magnetometer samples this much later than the accelerometer (s)."""
+
+    name: ClassVar[str] = "time_skew"
+    stage: ClassVar[str] = PROBE_STAGE
+    sensors: ClassVar[tuple] = ("probe",)
+    default_axes: ClassVar[str] = ""
+    needs: ClassVar[tuple] = ()
+    not_from_static: ClassVar[str] = ("a sampling offset between the triads is invisible in static stations: it needs "
+                                      "data recorded while the probe rotates")
+    specs: ClassVar[tuple] = (ParamSpec("skew", {"probe": "s"}, {"probe": 0.005}, "magnetometer minus accelerometer "
+                                        "sampling time"),)
+
+    def _apply(self, v, ctx):
+        raise TypeError("time_skew acts on the probe's sampling (the simulator), not on a signal")
+
+
+#: Effects by name (plug-ins are added by :func:`register`).
 CATALOGUE = {cls.name: cls for cls in (
     Bias, Scale, NonOrthogonality, Misalignment, TriadMisalignment, AxialInterference,
     TemperatureScale, ScaleAsymmetry, Nonlinearity, CrossCoupling, TemperatureBias, BiasDrift,
+    StandPoseError, TimeSkew,
 )}
+#: The seed paper's base model of a triad, in signal-chain order (E, then K, then B).
+BASE = ("nonorthogonality", "scale", "bias")
+assert set(BASE) == {name for name, cls in CATALOGUE.items() if cls.base}
 
 
-def make_effect(name: str, sensor: str, axes: str | None = None, **values) -> Effect:
-    """Build a catalogue (or registered plug-in) effect by name."""
+def effect_class(name: str):
+    """The registered class of an effect name; unknown names raise with the known ones."""
     try:
-        cls = CATALOGUE[name]
+        return CATALOGUE[name]
     except KeyError:
-        raise ValueError(f"unknown effect {name!r}; known: {', '.join(sorted(CATALOGUE))}") from None
-    return cls(sensor=sensor, axes=axes or cls.default_axes, values=values)
+        raise ValueError(f"unknown effect {name!r}; known: {', '.join(sorted(CATALOGUE))} "
+                         "(or load a plug-in with --plugin)") from None
+
+
+def make_effect(name: str, sensor: str | None = None, axes: str | None = None, **values) -> Effect:
+    """Build a catalogue (or registered plug-in) effect by name; default sensor: its first."""
+    cls = effect_class(name)
+    return cls(sensor=sensor or cls.sensors[0], axes=cls.default_axes if axes is None else axes, values=values)
 
 
 def register(cls):
@@ -400,3 +596,88 @@ def apply_chain(v: np.ndarray, effects, ctx: Context, stages=STAGES) -> np.ndarr
             if eff.stage == stage:
                 out = eff.apply(out, ctx)
     return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The one grammar of effect specifications
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class EffectSpec:
+    """One item of :func:`parse_effects`: ``NAME[:sensor[:axes]][@scope][=V[,V...]]``.
+
+    ``sensors``: the sensors named, or every sensor the effect acts on; ``axes`` None: the
+    effect's default axes; ``scope`` ``all``/``cal``/``val`` (default ``val`` for a survey-only
+    effect, else ``all``); ``values`` the first parameter's values (empty: not given)."""
+
+    name: str
+    sensors: tuple
+    axes: str | None
+    scope: str
+    values: tuple
+    text: str
+
+    def build(self, need_values: bool = False) -> list:
+        """One effect per sensor; the values (if given) set its first parameter."""
+        cls = effect_class(self.name)
+        if need_values and not self.values and cls.specs:
+            raise ValueError(f"effect {self.text!r}: give its size, e.g. "
+                             f"{self.name}={cls.specs[0].typical[cls.sensors[0]]:g}")
+        out = []
+        for s in self.sensors:
+            vals = {cls.specs[0].name: list(self.values)} if self.values and cls.specs else {}
+            try:
+                out.append(cls(sensor=s, axes=cls.default_axes if self.axes is None else self.axes, values=vals))
+            except ValueError as exc:
+                raise ValueError(f"effect {self.text!r}: {exc}") from None
+        return out
+
+
+def parse_effects(text) -> list:
+    """Parse effect specifications (a string, or a list of strings) into :class:`EffectSpec` items.
+
+    Grammar: items ``NAME[:sensor[:axes]][@scope][=V[,V...]]`` separated by commas; a bare number
+    continues the values of the item before it.  Names must be registered (catalogue or loaded
+    plug-ins); every error names the item."""
+    if text is None:
+        return []
+    texts = [text] if isinstance(text, str) else list(text)
+    tokens = [tok.strip() for t in texts for tok in str(t).split(",")]
+    items = []
+    for tok in tokens:
+        if not tok:
+            continue
+        try:
+            float(tok)
+            is_number = True
+        except ValueError:
+            is_number = False
+        if is_number:
+            if not items or "=" not in items[-1]:
+                raise ValueError(f"effect value {tok!r} without an effect before it (NAME=V[,V...])")
+            items[-1] += "," + tok
+        else:
+            items.append(tok)
+    return [_parse_item(item) for item in items]
+
+
+def _parse_item(item: str) -> EffectSpec:
+    lhs, eq, rhs = item.partition("=")
+    spec, _, scope = lhs.partition("@")
+    parts = spec.strip().split(":")
+    if len(parts) > 3 or not parts[0]:
+        raise ValueError(f"effect {item!r}: expected NAME[:sensor[:axes]][@scope][=V[,V...]]")
+    cls = effect_class(parts[0])
+    sensor = parts[1] if len(parts) > 1 and parts[1] else None
+    if sensor is not None and sensor not in cls.sensors:
+        raise ValueError(f"effect {item!r}: {cls.name} acts on {', '.join(cls.sensors)}, not {sensor!r}")
+    axes = parts[2] if len(parts) > 2 and parts[2] else None
+    scope = scope.strip() or ("val" if cls.survey_only else "all")
+    if scope not in SCOPES:
+        raise ValueError(f"effect {item!r}: scope must be one of {', '.join(SCOPES)}")
+    values = ()
+    if eq:
+        try:
+            values = tuple(float(v) for v in rhs.split(","))
+        except ValueError:
+            raise ValueError(f"effect {item!r}: values must be numbers") from None
+    return EffectSpec(cls.name, (sensor,) if sensor else tuple(cls.sensors), axes, scope, values, item)

@@ -101,8 +101,16 @@ class TriadModel:
         return np.asarray(m, dtype=float) @ self.A.T + self.bias
 
     def inverse(self, h) -> np.ndarray:
-        """Corrected vectors ``M = C·(H - B)`` for outputs ``h`` of shape (..., 3)."""
-        return (np.asarray(h, dtype=float) - self.bias) @ self.correction_matrix.T
+        """The linear part of the correction, ``M = C·(H - B)``, for outputs ``h`` (N, 3).
+
+        A building block of :meth:`model.ProbeModel.correct`, the one correction path (which
+        adds the effects beyond the paper); the twelve-position solver also uses it on its own
+        triad before any record exists.  Written out element by element (:func:`effects.rotate`)
+        so that every batch size gives the same bits."""
+        from .effects import rotate
+
+        h = np.asarray(h, dtype=float)
+        return rotate(self.correction_matrix.T, h.reshape(-1, 3) - self.bias).reshape(h.shape)
 
     # ---- records ---------------------------------------------------------------------------
     def parameters(self) -> dict:

@@ -155,12 +155,22 @@ class Site:
 # Boundary conversions
 # --------------------------------------------------------------------------------------------
 def gravity_from_specific_force(f):
-    """Paper-convention gravity vector (down positive) from REP-145 specific force: ``g = -f``."""
+    """Paper-convention gravity vector (down positive) from REP-145 specific force: ``g = -f``.
+
+    The one place where samples change convention on their way in (the static detector, the
+    batch path); a tuple gives a tuple (the per-sample path), anything else an array."""
+    if isinstance(f, tuple):
+        return (-f[0], -f[1], -f[2])
     return -np.asarray(f, dtype=float)
 
 
 def specific_force_from_gravity(g):
-    """REP-145 specific force (a resting probe reads -gravity) from the gravity vector: ``f = -g``."""
+    """REP-145 specific force (a resting probe reads -gravity) from the gravity vector: ``f = -g``.
+
+    The one place where values change convention on their way out (corrected ``Imu`` streams,
+    the accelerometer fields of a ``CalibrationCoefficients`` message, the simulator's output)."""
+    if isinstance(g, tuple):
+        return (-g[0], -g[1], -g[2])
     return -np.asarray(g, dtype=float)
 
 

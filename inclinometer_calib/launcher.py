@@ -181,6 +181,8 @@ def build_params(args, out):
         if args.no_calibration:
             probe["calibration_session"] = False
     p["calibration"]["output"] = os.path.join(out, "coeffs.yaml")
+    if args.model_effects:
+        p["calibration"]["model.effects"] = args.model_effects
     if args.coeffs:
         p["correction"]["coeffs_file"] = os.path.abspath(args.coeffs)
     if not args.no_calibration:
@@ -201,6 +203,8 @@ def build_params(args, out):
             raise SystemExit(f"--site: {exc}") from None
         for n in ("probe", "calibration", "correction"):
             p[n].update({f"site.{k}": float(v) for k, v in site.to_dict().items()})
+        for n in ("calibration", "correction"):
+            p[n]["site.given"] = True
     for spec in args.param:
         node, _, rest = spec.partition(":")
         key, sep, value = rest.partition(":=")
@@ -486,71 +490,6 @@ def coefficient_errors(cal, truth):
     return out
 
 
-def raw_station_means(bag_paths, stations):
-    """Uncorrected mean specific force (m/s²) and field (nT) over each station's averaging window,
-    re-derived from the raw /probe/imu and /probe/mag streams of the bag (an independent path:
-    the bag's raw samples, not the node's arithmetic).  ``bag_paths``: one bag or the list of a
-    run's readable parts; a window no part holds samples of (lost while a recorder restarted)
-    gives NaN."""
-    from pathlib import Path
-
-    require("rosbags.highlevel", "bag", "the run summary")
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    t_imu, f, t_mag, m = [], [], [], []
-    for bag_path in [bag_paths] if isinstance(bag_paths, (str, os.PathLike)) else bag_paths:
-        with AnyReader([Path(bag_path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-            conns = [x for x in reader.connections if x.topic in ("/probe/imu", "/probe/mag")]
-            for conn, _, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
-                t = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-                if conn.topic == "/probe/imu":
-                    a = msg.linear_acceleration
-                    t_imu.append(t)
-                    f.append((a.x, a.y, a.z))
-                else:
-                    v = msg.magnetic_field
-                    t_mag.append(t)
-                    m.append((v.x * 1e9, v.y * 1e9, v.z * 1e9))
-    t_imu, f, t_mag, m = np.array(t_imu), np.array(f).reshape(-1, 3), np.array(t_mag), np.array(m).reshape(-1, 3)
-    out = []
-    for s in stations:
-        t1 = s["stamp"]
-        t0 = t1 - s["duration_s"] - 1e-6
-        si = (t_imu >= t0) & (t_imu <= t1 + 1e-6)
-        sm = (t_mag >= t0) & (t_mag <= t1 + 1e-6)
-        out.append((f[si].mean(axis=0) if si.any() else np.full(3, np.nan),
-                    m[sm].mean(axis=0) if sm.any() else np.full(3, np.nan)))
-    return out
-
-
-def before_after(bag_path, stations, cal):
-    """Station errors before (raw sensors) and after (the node's corrected stations) calibration;
-    ``bag_path``: one bag or the list of a run's readable parts."""
-    from .frames import gravity_from_specific_force, wrap180
-    from .survey import evaluate
-
-    sel = [s for s in stations if math.isfinite(s["reference_drift_deg"]) and s["coefficients_id"]]
-    if not sel or cal is None:
-        return []
-    raw = raw_station_means(bag_path, sel)
-    g = gravity_from_specific_force(np.array([r[0] for r in raw]))
-    b = np.array([r[1] for r in raw])
-    ref = np.array([[s["reference_drift_deg"], s["reference_azimuth_deg"], s["reference_toolface_deg"]] for s in sel])
-    before = evaluate(g, b, cal.site, ref=ref)
-    rows = []
-    for k, s in enumerate(sel):
-        az_after = float(wrap180(s["azimuth_deg"] - ref[k, 1])) if math.isfinite(s["azimuth_deg"]) else float("nan")
-        rows.append({"ref_drift_deg": float(ref[k, 0]), "ref_azimuth_deg": float(ref[k, 1]),
-                     "drift_err_before": float(before["drift_err"][k]),
-                     "drift_err_after": float(s["drift_deg"] - ref[k, 0]),
-                     # no azimuth to compare where the reference itself is (near) vertical
-                     "azimuth_err_before": float(before["azimuth_err"][k]) if ref[k, 0] >= 0.5 else float("nan"),
-                     "azimuth_err_after": az_after if ref[k, 0] >= 0.5 else float("nan")})
-    return rows
-
-
 DASH = "—"  # a value that does not exist (NaN: no reference, no azimuth near vertical, no data)
 
 
@@ -561,28 +500,6 @@ def _num(value, spec: str) -> str:
     except TypeError:
         ok = False
     return format(value, spec) if ok else DASH
-
-
-def format_before_after(rows) -> list:
-    if not rows:
-        return []
-
-    def rms(key):
-        x = np.array([r[key] for r in rows], dtype=float)
-        x = x[np.isfinite(x)]
-        return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
-
-    def fmt(v, spec=".3f"):
-        return f"{_num(v, spec):>9}"
-
-    lines = ["", "before/after calibration (errors against the reference, deg; 'before' from the bag's raw streams)",
-             f"{'drift':>7} {'azimuth':>8} {'Δdrift before':>14} {'after':>9} {'Δazimuth before':>16} {'after':>9}"]
-    for r in rows:
-        lines.append(f"{r['ref_drift_deg']:>7.1f} {r['ref_azimuth_deg']:>8.1f} {fmt(r['drift_err_before']):>14} "
-                     f"{fmt(r['drift_err_after'])} {fmt(r['azimuth_err_before']):>16} {fmt(r['azimuth_err_after'])}")
-    lines.append(f"{'RMS':>16} {_num(rms('drift_err_before'), '.3f'):>14} {_num(rms('drift_err_after'), '.4f'):>9} "
-                 f"{_num(rms('azimuth_err_before'), '.3f'):>16} {_num(rms('azimuth_err_after'), '.4f'):>9}")
-    return lines
 
 
 def readable_parts(out, print_fn=print) -> list:
@@ -687,23 +604,89 @@ def summarize_run(out, print_fn=print) -> dict:
             truth = json.load(fh)
         summary["coefficient_errors"] = coefficient_errors(cal, truth)
     summary["survey"] = station_errors(stations, cal.id if cal is not None else None)
-    rows = []
-    if stations and cal is not None and readable:
-        try:
-            rows = before_after(readable, stations, cal)
-        except (OSError, ValueError, KeyError) as exc:
-            print_fn(f"[summary] before/after not available: {exc}")
-    summary["before_after"] = rows
     summary["raw_stations"] = sum(1 for s in stations if not s["coefficients_id"])
+    misfit = [s for s in stations if s.get("model_misfit")]
+    summary["model_misfit_stations"] = len(misfit)
+    if misfit:
+        summary["model_diagnosis"] = misfit[-1]["model_diagnosis"]
+    loop = None
+    if stations and cal is not None and readable:
+        loop = model_loop(out, readable, cal, print_fn)
+        if loop is not None:
+            summary["model_loop"] = loop_summary(loop)
     from .probelog import atomic_write_text
     atomic_write_text(os.path.join(out, "summary.json"), json.dumps(summary, indent=1, default=float) + "\n")
-    lines = format_summary(summary) + format_before_after(rows)
-    atomic_write_text(os.path.join(out, "report.md"), format_report(summary, lines, cal, stations))
+    lines = format_summary(summary) + (loop.lines if loop is not None else [])
+    atomic_write_text(os.path.join(out, "report.md"), format_report(summary, lines, cal, stations, loop))
+    page = write_html_report(out, summary, cal, loop, print_fn)
     for line in lines:
         print_fn(line)
     bags = ", ".join(p["file"] for p in parts) or "none"
-    print_fn(f"report: {os.path.join(out, 'report.md')}; bag: {bags}")
+    print_fn(f"report: {os.path.join(out, 'report.md')}" + (f" and {page}" if page else "") + f"; bag: {bags}")
     return summary
+
+
+def model_loop(out, readable, cal, print_fn):
+    """The model loop of the run (:func:`lab.loop.run_loop`) on its bag: the lab's finding on the
+    captured data and the field effect ladder.  With several bag parts (a recorder restarted) the
+    largest is used, and said.  None (said) when it cannot run."""
+    from .coeffs import Calibration, CoefficientError
+    from .lab.loop import run_loop
+
+    bag = max(readable, key=os.path.getsize)
+    if len(readable) > 1:
+        print_fn(f"[summary] model loop on the largest bag part, {os.path.basename(bag)}")
+    truth = None
+    truth_path = os.path.join(out, "truth_coeffs.yaml")
+    if os.path.exists(truth_path):
+        try:
+            truth = Calibration.load(truth_path)
+        except (OSError, CoefficientError) as exc:
+            print_fn(f"[summary] {truth_path} not used: {exc}")
+    try:
+        require("matplotlib", "report", "the run report's plots")
+        return run_loop(bag, cal, out, truth=truth, warn=lambda m: None)
+    except (MissingDependency, OSError, ValueError) as exc:
+        print_fn(f"[summary] the model loop did not run: {type(exc).__name__}: {exc}")
+        return None
+
+
+def loop_summary(loop) -> dict:
+    """The loop's figures for summary.json."""
+    out = {"ladder": [{"model": r.name, "record": r.calibration.id if r.calibration is not None else None,
+                       **r.metrics} for r in loop.runs]}
+    if loop.skipped:
+        out["lab_skipped"] = loop.skipped
+    if loop.diagnosis is not None:
+        rec = loop.diagnosis.recommended
+        out["lab_finding"] = rec.label if rec is not None else None
+        out["lab_verdict"] = loop.diagnosis.verdict
+    if loop.record is not None:
+        out["lab_record"] = loop.record.id
+        out["lab_model"] = loop.record.model.describe()
+    return out
+
+
+def write_html_report(out, summary, cal, loop, print_fn):
+    """``report.html``: the run's figures with plots (the field effect ladder, residuals model by
+    model).  None (said) without matplotlib or a loop."""
+    if loop is None or not loop.runs:
+        return None
+    from . import compare
+    from .probelog import atomic_write_text
+
+    try:
+        page = compare.to_html(loop.runs, os.path.basename(bag_parts(out)[0]) if bag_parts(out) else "",
+                               title="Survey run report: the model loop",
+                               intro=[ln for ln in format_summary(summary) if ln and not ln.startswith("===")]
+                               + ([loop.skipped] if loop.skipped else [])
+                               + ([loop.diagnosis.verdict] if loop.diagnosis is not None else []))
+    except MissingDependency as exc:
+        print_fn(f"[summary] report.html not written: {exc}")
+        return None
+    path = os.path.join(out, "report.html")
+    atomic_write_text(path, page)
+    return path
 
 
 def station_label(s) -> str:
@@ -717,14 +700,26 @@ def station_label(s) -> str:
     return ["ok", "warn", "error"][min(int(s["status"]), 2)] + (f" ({', '.join(flags)})" if flags else "")
 
 
-def format_report(summary, summary_lines, cal, stations) -> str:
-    """A Markdown run report: summary, the coefficients (paper Tables 2 and 3) and every station."""
+def format_report(summary, summary_lines, cal, stations, loop=None) -> str:
+    """A Markdown run report: summary, the model loop (the lab's finding, the field effect ladder),
+    the coefficients (paper Tables 2 and 3) and every station."""
     import datetime
 
     from .twelve_position import format_table2, format_table3
 
     out = [f"# Survey run report — {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M UTC}", "",
            "```", *[ln for ln in summary_lines if ln and not ln.startswith("===")], "```", ""]
+    if loop is not None and loop.runs:
+        from . import compare
+        md = compare.to_markdown(loop.runs, "survey.mcap", title="The model loop")
+        out += ["## The model loop", ""]
+        if loop.skipped:
+            out += [loop.skipped, ""]
+        if loop.diagnosis is not None:
+            out += ["The lab on the run's captured data:", "", "```", loop.diagnosis.verdict, "```", ""]
+        if loop.record is not None:
+            out += [f"The lab's record `{loop.record.id}` ({loop.record.model.describe()}) is `lab_model.yaml`.", ""]
+        out += md.split("\n", 2)[2].splitlines() + ["", "Plots: `report.html`.", ""]
     if cal is not None:
         out += ["## Calibration coefficients", "", "```", format_table2(cal.acc, cal.mag), "",
                 format_table3(cal.acc, cal.mag), "```", ""]
@@ -792,6 +787,11 @@ def format_summary(s) -> list:
                      f"{_num(sv['max_abs_delta_g_mps2'], '.4f')} m/s^2")
     else:
         lines.append("survey: no corrected stations with a reference")
+    if s.get("model_misfit_stations"):
+        lines.append(f"field monitor (live): {s['model_misfit_stations']} station(s) flagged — the last said: "
+                     f"{s['model_diagnosis']}")
+    elif sv.get("stations"):
+        lines.append("field monitor (live): the record's model explained every station tested")
     return lines
 
 
@@ -811,6 +811,9 @@ def parse_args(argv=None):
     ap.add_argument("--station-seconds", type=float, help="time held at each station, s")
     ap.add_argument("--effect", action="append", default=[], help="extra simulated effect, e.g. axial_interference=300")
     ap.add_argument("--coeffs", help="coefficient YAML for the correction node (else: from the calibration node)")
+    ap.add_argument("--model-effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
+                    help="effects the calibration node fits beyond the paper's model on the captured poses, e.g. "
+                         "temperature_bias:mag")
     ap.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2) for "
                                    "the calibration and correction nodes (and the simulated probe)")
     ap.add_argument("--no-calibration", action="store_true", help="no calibration node and no twelve-pose session")
@@ -860,7 +863,7 @@ def _lock_out_dir(out):
 
 def run_files(out) -> list:
     """Files of an earlier run in ``out`` that a new run would mix with (refused without --overwrite)."""
-    names = ["coeffs.yaml", "summary.json", "truth.json", STATE_FILE]
+    names = ["coeffs.yaml", "summary.json", "truth.json", STATE_FILE, "lab_model.yaml", "report.html", "compare"]
     found = [os.path.basename(p) for p in bag_parts(out)]
     return found + [f for f in names if os.path.exists(os.path.join(out, f))]
 

@@ -11,9 +11,10 @@ written with :mod:`inclinometer_calib.bag`.  It does offline what the correction
 * ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, drift/azimuth/toolface in degrees,
   NaN = none), if present, is copied into the stations' ``reference_*`` fields;
 * each pair goes through :class:`streaming.StaticDetector` (thresholds from the noise the data
-  show; the messages' covariance is a prior); every closed station is gated, corrected and
-  checked by :class:`streaming.SurveyProcessor` and written as one ``/survey/station`` message
-  (fields as the correction node fills them);
+  show; the messages' covariance is a prior); every closed station goes through the survey
+  pipeline (:class:`pipeline.SurveyProcessor`: gates, the record's model with the station's
+  temperature and time, QC against the record's site, the field monitor) and is written as one
+  ``/survey/station`` message (fields as the correction node fills them);
 * with ``calibrate`` the same stations go through the live calibration node's twelve-pose
   session (:class:`capture.CaptureSession`): each solve is written as one
   ``/calibration/coefficients`` message and corrects the stations that follow — offline, the
@@ -38,13 +39,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Dict, List, Optional
 
+import numpy as np
+
 from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
 from .capture import CaptureSession
 from .deps import require
 from .frames import NT_PER_TESLA, Site
 from .probelog import Limits, check_sample
 from .coeffs import message_fields
-from .streaming import ReferenceTrack, StaticDetector, StreamPairer, SurveyProcessor, station_fields
+from .pipeline import SurveyProcessor
+from .streaming import ReferenceTrack, StaticDetector, StreamPairer
 from .survey import Tolerances
 from .topics import (COEFFICIENTS_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
                      STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_IMU, TOPIC_MAG, TOPIC_REFERENCE,
@@ -138,8 +142,6 @@ class MessageEncoder:
         self._time = self.store.types["builtin_interfaces/msg/Time"]
 
     def encode(self, type_name: str, stamp_ns: int, frame_id: str, fields: dict) -> bytes:
-        import numpy as np
-
         sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
         cls = self.store.types[type_name]
         # rosbags wants numpy arrays for numeric sequences
@@ -188,6 +190,10 @@ class ReprocessReport:
     calibration_state: str = ""                            # calibrate: done | error | collecting
     calibration_message: str = ""
     noise: object = None                                   # the noise.NoiseLevel the detector used
+    notes: List[str] = field(default_factory=list)         # what the pipeline said (a site override)
+    raw_stations: List[object] = field(default_factory=list)   # each station.Station published, raw means, with
+    #                                                            its reference in .ref (NaN: none): the lab's input
+    captures: List[object] = field(default_factory=list)   # calibrate: the capture session's accepted poses
 
     def _issue(self, kind: str, where: str, n: int = 1) -> None:
         self.issues.setdefault(kind, _Issue()).add(where, n)
@@ -199,6 +205,7 @@ class ReprocessReport:
         if self.short_intervals:
             out.append(f"{self.short_intervals} static interval(s) shorter than the minimum duration "
                        "not reported as stations (static window too short)")
+        out.extend(self.notes)
         out.extend(self.events)
         out.extend(self.calibration_warnings)
         moved = sum(1 for st in self.stations if st["moved_during_capture"])
@@ -208,18 +215,36 @@ class ReprocessReport:
         return out
 
 
+class _NoWriter:
+    """Stands in for the BagWriter when only the report is wanted (``dst`` None)."""
+
+    def add_topic(self, *args, **kwargs) -> int:
+        return -1
+
+    def write(self, *args) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+
 def _where(topic: str, log_time: int) -> str:
     return f"{topic} at log time {log_time / 1e9:.9f} s"
 
 
-def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Tolerances = Tolerances(),
+def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerances: Tolerances = Tolerances(),
               detector: Optional[StaticDetector] = None, *, compression: str = "zstd",
               frame_id: str = "probe", copy_input: bool = True,
               warn: Optional[Callable[[str], None]] = None, calibrate: bool = False,
-              probe_id: str = "probe") -> ReprocessReport:
-    """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten).
+              probe_id: str = "probe", effects: str = "", monitor=None) -> ReprocessReport:
+    """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten;
+    None: nothing is written, the report's stations are the result).
 
-    ``calibration``: a :class:`coeffs.Calibration` or None (uncorrected figures).  ``detector``:
+    ``calibration``: a :class:`coeffs.Calibration` or None (uncorrected figures).  ``site``: a site
+    reference overriding the record's (None: the record owns it; with ``calibrate`` and no site,
+    the stand's measured one).  ``effects``: with ``calibrate``, the model to fit on the captures
+    beyond the paper's (the package's effect grammar).  ``monitor``: a
+    :class:`lab.field.FieldMonitor` (the correction node's model check) or None.  ``detector``:
     a configured :class:`streaming.StaticDetector` (default: thresholds from the noise the data
     show).  ``calibrate``: run the live calibration node's twelve-pose session
     (:class:`capture.CaptureSession`) on the bag's stations, as the live graph does: each solve
@@ -237,15 +262,17 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     for module in ("mcap.writer", "rosbags.typesys"):  # MissingDependency before any work
         require(module, "bag", "reprocess")
     reader = open_bag(src)                      # BagError: not an MCAP / unreadable header
-    report = ReprocessReport(Path(src), Path(dst))
+    report = ReprocessReport(Path(src), Path(dst) if dst is not None else None)
     det = detector if detector is not None else StaticDetector()
-    proc = SurveyProcessor(site, tolerances, calibration)
-    session = CaptureSession(site=site, probe_id=probe_id) if calibrate else None
+    proc = SurveyProcessor(tolerances, site=site, monitor=monitor)
+    if calibration is not None:
+        report.notes.extend(proc.set_calibration(calibration))
+    session = CaptureSession(site=site, probe_id=probe_id, effects=effects) if calibrate else None
     encoder = MessageEncoder()
-    az_ref = "true" if site.declination_deg else "magnetic"
     limits = Limits()
 
-    writer = BagWriter(dst, compression=compression)   # FileExistsError before anything is read
+    # FileExistsError before anything is read; no destination: the stations only (the lab's input)
+    writer = BagWriter(dst, compression=compression) if dst is not None else _NoWriter()
     station_cid = writer.add_topic(TOPIC_STATION, STATION_TYPE,
                                    qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)])
     coeff_cid = writer.add_topic(TOPIC_COEFFICIENTS, COEFFICIENTS_TYPE, qos_profiles=[dict(
@@ -281,8 +308,10 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
     def publish_station(st, log_time):
         nonlocal n_warned
         ref = refs.at(0.5 * (st.t_start + st.t_end))
-        rec = proc.process(st, ref=ref)
-        fields = station_fields(rec, ref, az_ref, have_temp, proc.calibration is not None)
+        fields = proc.process(st, ref=ref, have_temperature=have_temp)
+        if ref is not None:
+            st.ref = np.asarray(ref, dtype=float)
+        report.raw_stations.append(st)
         writer.write(station_cid, encoder.encode(STATION_TYPE, int(round(st.t_end * 1e9)), frame_id, fields), log_time)
         stations.append(fields)
         if session is not None:
@@ -295,7 +324,7 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
                 publish(session.calibration, st.t_end, log_time)
 
     def publish(cal, t_data, log_time):
-        proc.set_calibration(cal)
+        report.notes.extend(n for n in proc.set_calibration(cal) if n not in report.notes)
         report.calibrations.append(cal)
         writer.write(coeff_cid, encoder.encode(COEFFICIENTS_TYPE, int(round(t_data * 1e9)), frame_id,
                                                message_fields(cal)), log_time)
@@ -412,6 +441,7 @@ def reprocess(src, dst, calibration=None, site: Site = Site(), tolerances: Toler
             if session.solves != n_before and session.calibration is not None:
                 publish(session.calibration, pairer.last_t, last_log or 0)   # stamped at the data's end
             report.calibration_state, report.calibration_message = session.state, session.message
+            report.captures = list(session.captures)
     finally:
         writer.close()
     report.events = det.pop_events()
@@ -439,8 +469,6 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
     force (m/s², as in the log), magnetometer converted nT → tesla; the covariances state the noise
     the log shows (:func:`noise.estimate_noise`), as the probe node does.  Returns messages per topic.
     """
-    import numpy as np
-
     for module in ("mcap.writer", "rosbags.typesys"):  # MissingDependency before any work
         require(module, "bag", "writing a probe log as a bag")
     from rosbags.typesys import Stores, get_typestore

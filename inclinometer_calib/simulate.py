@@ -1,8 +1,9 @@
 """Probe simulator: a probe on a three-axis non-magnetic calibration stand in a site field.
 
-The probe's two triads each follow the seed paper's Poisson model (bias, scale, six
-non-orthogonality terms) plus any catalogue effects from :mod:`effects`, plus white noise.  Beyond
-the triad signal chain the simulator models two whole-probe effects:
+The probe measures with the package's probe model (:class:`model.ProbeModel`: the seed paper's
+Poisson model of each triad — bias, scale, six non-orthogonality terms — plus any catalogue or
+plug-in effects, each with its scope: survey-only effects such as axial interference act on the
+survey, not on the stand), plus white noise, plus the whole-probe effects of :mod:`effects`:
 
 * ``stand_pose_error`` (deg, 1σ): each static station's real orientation is the set orientation
   rotated by a small random rotation (the stand's pose errors); the labels keep the set values.
@@ -23,50 +24,57 @@ from scipy.spatial.transform import Rotation, Slerp
 from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
 from .frames import Site, attitude_angles, orientation_matrix, specific_force_from_gravity
+from .model import ProbeModel
 from .probelog import ProbeLog
+from .station import Station
 from .twelve_position import POSES, pose_matrix
-
-#: Whole-probe effects handled here rather than in a triad's signal chain.
-PROBE_EFFECTS = {"stand_pose_error": "deg", "time_skew": "s"}
 
 
 @dataclass
-class ProbeModel:
-    """A simulated probe: the base Poisson model of each triad plus extra effects and noise.
+class SimulatedProbe:
+    """A simulated probe: its true model (:class:`model.ProbeModel`), white noise and the
+    whole-probe effects.  ``model.acc`` is in the gravity-vector convention (m/s²), ``model.mag``
+    in nT."""
 
-    ``acc`` is in the gravity-vector convention (m/s²), ``mag`` in nT.  ``survey_only`` lists
-    effects present in survey/validation logs but not on the non-magnetic calibration stand
-    (axial drill-string interference by default).
-    """
-
-    acc: TriadModel
-    mag: TriadModel
-    effects: list = field(default_factory=list)
+    model: ProbeModel
     noise_acc: float = 0.002   # m/s² per sample, 1σ
     noise_mag: float = 20.0    # nT per sample, 1σ
-    stand_pose_error_deg: float = 0.0
-    time_skew_s: float = 0.0
-    survey_only: tuple = ("axial_interference",)
+    whole_probe: list = field(default_factory=list)   # effects of stage "probe"
 
-    def chain(self, sensor: str, survey: bool) -> list:
-        """Signal chain of one triad: extra effects around the base model (E, K, B)."""
-        base = self.acc if sensor == "acc" else self.mag
-        chain = [fx.NonOrthogonality(sensor=sensor, values=_e_values(base)),
-                 fx.Scale(sensor=sensor, values={"k": base.scale - 1.0}),
-                 fx.Bias(sensor=sensor, values={"b": base.bias})]
-        for eff in self.effects:
-            if eff.sensor == sensor and (survey or eff.name not in self.survey_only):
-                chain.append(eff)
-        return chain
+    @property
+    def acc(self) -> TriadModel:
+        return self.model.acc
+
+    @property
+    def mag(self) -> TriadModel:
+        return self.model.mag
+
+    @property
+    def effects(self) -> list:
+        """The effects beyond the base model (triad ones, then whole-probe ones)."""
+        return [t.effect for t in self.model.extra_terms] + list(self.whole_probe)
+
+    def _whole(self, name: str) -> float:
+        for e in self.whole_probe:
+            if e.name == name:
+                return float(e.get_vector()[0])
+        return 0.0
+
+    @property
+    def stand_pose_error_deg(self) -> float:
+        return self._whole("stand_pose_error")
+
+    @property
+    def time_skew_s(self) -> float:
+        return self._whole("time_skew")
 
     def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool):
-        """Raw outputs for true tool-frame gravity (m/s², down) and field (nT), (N, 3) each.
+        """Raw outputs for true tool-frame gravity (m/s², down) and field (nT), (N, 3) each, on the
+        stand (``survey`` False) or in the survey; ``t_s`` s since the data's first sample.
 
         Returns ``(specific_force_mps2, field_nt)``.
         """
-        ctx = fx.Context(temperature_c=np.asarray(temp_c, float), time_s=np.asarray(t_s, float))
-        a = fx.apply_chain(g_tool, self.chain("acc", survey), ctx)
-        m = fx.apply_chain(b_tool, self.chain("mag", survey), ctx)
+        a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role="val" if survey else "cal")
         a = a + rng.normal(0.0, self.noise_acc, a.shape)
         m = m + rng.normal(0.0, self.noise_mag, m.shape)
         return specific_force_from_gravity(a), m
@@ -74,21 +82,25 @@ class ProbeModel:
     def to_dict(self) -> dict:
         return {
             "acc": self.acc.parameters(), "mag": self.mag.parameters(),
-            "effects": [{"name": e.name, "sensor": e.sensor, "axes": e.axes,
-                         "values": {k: v.tolist() for k, v in e.values.items()}} for e in self.effects],
+            "effects": [{"name": t.effect.name, "sensor": t.effect.sensor, "axes": t.effect.axes, "scope": t.scope,
+                         "values": {k: v.tolist() for k, v in t.effect.values.items()}}
+                        for t in self.model.extra_terms],
             "noise_acc_mps2": self.noise_acc, "noise_mag_nt": self.noise_mag,
             "stand_pose_error_deg": self.stand_pose_error_deg, "time_skew_s": self.time_skew_s,
-            "survey_only": list(self.survey_only),
         }
 
-
-def _e_values(model: TriadModel):
-    e1, e2 = [], []
-    for a in "xyz":
-        n1, n2 = fx.NonOrthogonality.term_names(a)
-        e1.append(model.e[n1])
-        e2.append(model.e[n2])
-    return {"e1": np.array(e1), "e2": np.array(e2)}
+    @classmethod
+    def from_dict(cls, d: dict) -> "SimulatedProbe":
+        """The probe of a ``truth.json`` (:meth:`to_dict`); plug-in effects must be loaded first."""
+        model = ProbeModel.base(TriadModel.from_parameters(d["acc"]), TriadModel.from_parameters(d["mag"]))
+        for e in d.get("effects", ()):
+            ecls = fx.effect_class(e["name"])
+            eff = ecls(sensor=e["sensor"], axes=e["axes"], values={k: np.asarray(v) for k, v in e["values"].items()})
+            model = model.with_effect(eff, e.get("scope"))
+        whole = [fx.make_effect(name, "probe", **{fx.CATALOGUE[name].specs[0].name: d[key]})
+                 for name, key in (("stand_pose_error", "stand_pose_error_deg"), ("time_skew", "time_skew_s"))
+                 if d.get(key)]
+        return cls(model, d.get("noise_acc_mps2", 0.002), d.get("noise_mag_nt", 20.0), whole)
 
 
 def random_probe(rng: np.random.Generator, severity: float = 1.0) -> tuple:
@@ -105,19 +117,8 @@ def random_probe(rng: np.random.Generator, severity: float = 1.0) -> tuple:
 
 
 # --------------------------------------------------------------------------------------------
-# Sessions: static stations joined by moves
+# Sessions: static stations (:meth:`station.Station.planned`) joined by moves
 # --------------------------------------------------------------------------------------------
-@dataclass
-class Stationary:
-    """A static station of a session: set orientation (tool→NED), labels, duration and temperature."""
-
-    rotation: np.ndarray
-    duration_s: float
-    pose: int = 0
-    ref: tuple = (np.nan, np.nan, np.nan)
-    temp_c: float = 25.0
-
-
 def twelve_pose_session(rounds_temp_c=(25.0,), duration_s: float = 2.0, azimuth_deg: float = 0.0,
                         refs: bool = False):
     """The twelve poses of Table 1, once per round, at each round's temperature.
@@ -127,8 +128,8 @@ def twelve_pose_session(rounds_temp_c=(25.0,), duration_s: float = 2.0, azimuth_
     vertical poses 9–12 without azimuth (:func:`frames.attitude_angles`).
     """
     rz = orientation_matrix(0.0, azimuth_deg, 0.0)
-    return [Stationary(rz @ pose_matrix(p), duration_s, pose=p, temp_c=t,
-                       ref=attitude_angles(rz @ pose_matrix(p)) if refs else (np.nan, np.nan, np.nan))
+    return [Station.planned(rz @ pose_matrix(p), duration_s, pose=p, temp_c=t,
+                            ref=attitude_angles(rz @ pose_matrix(p)) if refs else (np.nan, np.nan, np.nan))
             for t in rounds_temp_c for p in POSES]
 
 
@@ -147,13 +148,14 @@ def stand_grid_session(drifts=VAL_DRIFTS, azimuths=VAL_AZIMUTHS, toolfaces=VAL_T
     combos = [(i, a, t) for i in drifts for a in azimuths for t in toolfaces]
     prof = np.atleast_1d(np.asarray(temp_profile_c, dtype=float))
     temps = np.interp(np.linspace(0, 1, len(combos)), np.linspace(0, 1, len(prof)), prof) if combos else []
-    return [Stationary(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), float(t)),
-                       temp_c=float(tc)) for (i, a, t), tc in zip(combos, temps)]
+    return [Station.planned(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), float(t)),
+                            temp_c=float(tc)) for (i, a, t), tc in zip(combos, temps)]
 
 
-def run_session(probe: ProbeModel, site: Site, stations, rng: np.random.Generator, rate_hz: float = 100.0,
+def run_session(probe: SimulatedProbe, site: Site, stations, rng: np.random.Generator, rate_hz: float = 100.0,
                 move_s: float = 1.0, t0: float = 0.0, survey: bool = False, lead_in=None) -> ProbeLog:
-    """Simulate a session: each station held for its duration, with moves of ``move_s`` between.
+    """Simulate a session: each planned station (:meth:`station.Station.planned`) held for its
+    duration, with moves of ``move_s`` between.  Times (and time-dependent effects) are log time.
 
     During moves the orientation follows a slerp between the stations (rows carry no labels).
     ``lead_in = (rotation, seconds)``: the session starts with a move of that length from that
@@ -230,55 +232,27 @@ def run_session(probe: ProbeModel, site: Site, stations, rng: np.random.Generato
     return ProbeLog(t_all, f, m, temp, np.concatenate(pose), np.concatenate(ref))
 
 
-def build_probe(seed: int, effects_spec=(), severity: float = 1.0, noise_acc: float = 0.002,
-                noise_mag: float = 20.0) -> ProbeModel:
+def build_probe(seed: int, effects=(), severity: float = 1.0, noise_acc: float = 0.002,
+                noise_mag: float = 20.0) -> SimulatedProbe:
     """A random probe (seeded) with the named extra effects.
 
-    ``effects_spec`` items are ``(name, sensor or None, axes or None, values)`` where values is a
-    list of floats (one, or one per axis) for the effect's first parameter; whole-probe effects
-    ``stand_pose_error`` (deg) and ``time_skew`` (s) take one value.
+    ``effects``: specifications in the package's grammar (:func:`effects.parse_effects`, a
+    string or a list of them, e.g. ``["axial_interference=300", "temperature_bias:mag=2"]``);
+    each needs its size, the value(s) of its first parameter (one, or one per axis); without a
+    sensor an effect acts on every sensor it can.  Whole-probe effects (``stand_pose_error`` deg,
+    ``time_skew`` s) take one value.
     """
     rng = np.random.default_rng(seed)
     acc, mag = random_probe(rng, severity)
-    probe = ProbeModel(acc=acc, mag=mag, noise_acc=noise_acc, noise_mag=noise_mag)
-    for name, sensor, axes, values in effects_spec:
-        if name == "stand_pose_error":
-            probe.stand_pose_error_deg = float(values[0])
-            continue
-        if name == "time_skew":
-            probe.time_skew_s = float(values[0])
-            continue
-        cls = fx.CATALOGUE.get(name)
-        if cls is None:
-            raise ValueError(f"unknown effect {name!r}; known: "
-                             f"{', '.join(sorted(list(fx.CATALOGUE) + list(PROBE_EFFECTS)))}")
-        sensors = [sensor] if sensor else list(cls.sensors)
-        for s in sensors:
-            eff = cls(sensor=s, axes=axes or cls.default_axes)
-            first = cls.specs[0].name
-            eff.values[first] = np.broadcast_to(np.asarray(values, float), (len(eff.axes),)).copy()
-            probe.effects.append(eff)
-    return probe
-
-
-def parse_effect_arg(text: str):
-    """Parse ``NAME[:sensor[:axes]]=V[,V,...]`` into ``(name, sensor, axes, [values])``."""
-    if "=" not in text:
-        raise ValueError(f"--effect {text!r}: expected NAME[:sensor[:axes]]=VALUE[,VALUE...]")
-    lhs, rhs = text.split("=", 1)
-    parts = lhs.split(":")
-    if len(parts) > 3 or not parts[0]:
-        raise ValueError(f"--effect {text!r}: expected NAME[:sensor[:axes]]=VALUE")
-    name = parts[0]
-    sensor = parts[1] if len(parts) > 1 and parts[1] else None
-    axes = parts[2] if len(parts) > 2 and parts[2] else None
-    try:
-        values = [float(v) for v in rhs.split(",")]
-    except ValueError:
-        raise ValueError(f"--effect {text!r}: values must be numbers") from None
-    if sensor not in (None, "acc", "mag"):
-        raise ValueError(f"--effect {text!r}: sensor must be 'acc' or 'mag'")
-    return name, sensor, axes, values
+    model = ProbeModel.base(acc, mag)
+    whole = []
+    for spec in fx.parse_effects(effects):
+        for eff in spec.build(need_values=True):
+            if eff.stage == fx.PROBE_STAGE:
+                whole.append(eff)
+            else:
+                model = model.with_effect(eff, spec.scope)
+    return SimulatedProbe(model, noise_acc=noise_acc, noise_mag=noise_mag, whole_probe=whole)
 
 
 def well_path_session(n_stations: int = 30, kickoff_deg: float = 0.0, build_deg_per_station: float = 3.0,
@@ -298,6 +272,6 @@ def well_path_session(n_stations: int = 30, kickoff_deg: float = 0.0, build_deg_
         i = min(kickoff_deg + build_deg_per_station * k, max_drift_deg)
         a = (azimuth_start_deg + turn_deg_per_station * k) % 360.0
         t = float(rng.uniform(0, 360))
-        out.append(Stationary(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), t),
-                              temp_c=float(temps[k])))
+        out.append(Station.planned(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), t),
+                                   temp_c=float(temps[k])))
     return out

@@ -2,7 +2,9 @@
 
 One type for every path: the live nodes' detector closes it from a stream, a probe log's rows
 are segmented into it (the same detector, :func:`probelog.segment_stations`), the twelve-pose
-capture keeps it, the survey corrects it.
+capture keeps it, the survey corrects it, the simulator plans its sessions with it
+(:meth:`Station.planned`).  :class:`Stations` is the same thing as a struct of arrays, for the
+lab's fits (built only from :class:`Station` objects).
 
 Conventions: ``g`` is the seed paper's **gravity vector** (down positive, m/s²) — the REP-145
 specific force of ``sensor_msgs/Imu`` and of the probe-log CSV is negated once, where samples
@@ -47,8 +49,11 @@ class Station:
 
     Labels (from a log; a stream has none): ``pose`` 1..12 of the paper's Table 1 (0: none),
     ``ref`` (3,) the stand's set (drift, azimuth, toolface) in degrees, NaN where unknown — a
-    vertical stand pose gives drift and toolface but no azimuth; ``first_row`` the 1-based data
-    row of the first sample and ``last_row`` of the last (0 for streams).  ``index`` numbers the stations of one log/stream.
+    vertical stand pose gives drift and toolface but no azimuth; ``rotation`` (3, 3) the set
+    orientation (tool → NED) when it is known as a matrix (a plan of the simulator; NaN
+    otherwise); ``first_row`` the 1-based data row of the first sample and ``last_row`` of the
+    last (0 for streams).  ``index`` numbers the stations of one log/stream; ``t_origin`` is the
+    time of the data's first sample (the probe's power-on: the origin of time-dependent effects).
     ``warnings`` collects what the acceptance gates (:mod:`gates`) found, as text; ``unusable``
     names the sensors (``"acc"``, ``"mag"``) whose data in this station a gate refused; ``moved``
     says the probe moved during the hold (in-hold motion gates); ``gated``: the gates have run.
@@ -79,14 +84,37 @@ class Station:
     unusable: tuple = ()
     moved: bool = False
     gated: bool = False
+    rotation: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
+    t_origin: float = 0.0
 
     def __post_init__(self):
         for name in ("g", "b", "g_std", "b_std", "g_rate", "b_rate", "g_noise", "b_noise", "ref"):
             setattr(self, name, _vec(getattr(self, name)))
+        self.rotation = np.asarray(self.rotation, dtype=float).reshape(3, 3)
+
+    @classmethod
+    def planned(cls, rotation, duration_s: float, pose: int = 0, ref=NAN3, temp_c: float = 25.0) -> "Station":
+        """A station to be held (the simulator's session plan): set orientation ``rotation`` (tool →
+        NED), how long, its labels and temperature; nothing measured yet."""
+        return cls(t_start=0.0, t_end=float(duration_s), n=0, g=NAN3, b=NAN3, temp_c=float(temp_c), pose=int(pose),
+                   ref=np.asarray(ref, dtype=float), rotation=rotation)
+
+    @property
+    def t_mid(self) -> float:
+        return 0.5 * (self.t_start + self.t_end)
+
+    @property
+    def time_s(self) -> float:
+        """Seconds from the data's first sample to the middle of the hold (time-dependent effects)."""
+        return self.t_mid - self.t_origin
 
     @property
     def duration_s(self) -> float:
         return self.t_end - self.t_start
+
+    @duration_s.setter
+    def duration_s(self, value: float) -> None:   # a plan's hold made longer or shorter
+        self.t_end = self.t_start + float(value)
 
     @property
     def has_ref(self) -> bool:
@@ -141,4 +169,123 @@ def merge_stations(a: Station, b: Station) -> Station:
         ended_by=b.ended_by, index=a.index, pose=a.pose or b.pose, ref=a.ref if a.has_partial_ref else b.ref,
         first_row=a.first_row, last_row=b.last_row, warnings=a.warnings + b.warnings,
         unusable=tuple(sorted(set(a.unusable) | set(b.unusable))), moved=a.moved or b.moved,
-        gated=a.gated and b.gated)
+        gated=a.gated and b.gated, rotation=a.rotation, t_origin=a.t_origin)
+
+
+# ---------------------------------------------------------------------------------------------
+# Stations as a struct of arrays (the lab's fits)
+# ---------------------------------------------------------------------------------------------
+#: Floors of the per-station noise estimate of a mean (std/√n): m/s², nT.
+SIGMA_FLOOR = {"acc": 2e-6, "mag": 0.05}
+#: What constrains a station's model residuals: a twelve-position pose (orientation from Table 1),
+#: a reference attitude (stand grid, survey with a reference), or nothing (site invariants only).
+KINDS = ("pose", "ref", "free")
+
+
+@dataclass
+class Stations:
+    """N stations as arrays, built from :class:`Station` objects by :meth:`from_list`.
+
+    g, b : (N, 3) measured means (gravity vector m/s², field nT)
+    g_sigma, b_sigma : (N, 3) noise of the means (within-station std / √n, floored)
+    g_scatter, b_scatter : (N, 3) within-station sample std (the raw noise estimate)
+    temp_c : (N,) °C;  time_s : (N,) s since the data's first sample (:attr:`Station.time_s`)
+    rotation : (N, 3, 3) tool→NED for pose/ref stations, NaN for free ones
+    kind : (N,) 'pose' | 'ref' | 'free';   role : (N,) 'cal' (the stand) | 'val' (the survey)
+    pose : (N,) 1..12 or 0;   ref : (N, 3) deg or NaN;   n : (N,) samples;  source : (N,) where from
+    """
+
+    g: np.ndarray
+    b: np.ndarray
+    g_sigma: np.ndarray
+    b_sigma: np.ndarray
+    g_scatter: np.ndarray
+    b_scatter: np.ndarray
+    temp_c: np.ndarray
+    time_s: np.ndarray
+    rotation: np.ndarray
+    kind: np.ndarray
+    role: np.ndarray
+    pose: np.ndarray
+    ref: np.ndarray
+    n: np.ndarray
+    source: np.ndarray
+
+    def __len__(self):
+        return len(self.g)
+
+    def subset(self, mask) -> "Stations":
+        mask = np.asarray(mask)
+        return Stations(**{k: getattr(self, k)[mask] for k in self.__dataclass_fields__})
+
+    @classmethod
+    def concatenate(cls, parts) -> "Stations":
+        parts = [p for p in parts if len(p)]
+        return cls(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in cls.__dataclass_fields__})
+
+    @property
+    def oriented(self) -> np.ndarray:
+        return self.kind != "free"
+
+    def describe(self) -> str:
+        parts = []
+        for role in ("cal", "val"):
+            m = self.role == role
+            if m.any():
+                kinds = ", ".join(f"{int(np.sum(m & (self.kind == k)))} {k}" for k in KINDS
+                                  if np.any(m & (self.kind == k)))
+                t = self.temp_c[m]
+                parts.append(f"{role}: {int(m.sum())} stations ({kinds}), {t.min():.1f}–{t.max():.1f} °C")
+        return "; ".join(parts)
+
+    @classmethod
+    def from_list(cls, stations, role: str, source: str = "", use_ref: bool = True,
+                  t_origin: float | None = None) -> "Stations":
+        """Stations of one log or stream with a role (``cal``: the stand, ``val``: the survey).
+
+        Orientation: a pose label gives Table 1's matrix, a reference attitude its matrix (a
+        vertical reference without azimuth too: its rotation about the vertical is the
+        toolface, as for azimuth 0); otherwise the station is ``free``.  ``t_origin``: the time
+        origin of time effects when several logs are read together (default: each station's).
+        An unknown temperature becomes the log's mean (else the effects' reference): temperature
+        effects then see no span and are reported as not identifiable, instead of poisoning the fit.
+        """
+        from .effects import T_REF_C
+        from .frames import orientation_matrix
+        from .survey import Tolerances, in_vertical_cone
+        from .twelve_position import pose_matrix
+
+        if role not in ("cal", "val"):
+            raise ValueError(f"role must be 'cal' or 'val', got {role!r}")
+        n = len(stations)
+        rot = np.full((n, 3, 3), np.nan)
+        kind = np.empty(n, dtype=object)
+        for i, st in enumerate(stations):
+            if st.pose:
+                rot[i] = pose_matrix(st.pose)
+                kind[i] = "pose"
+            elif use_ref and st.has_ref:
+                rot[i] = orientation_matrix(*st.ref)
+                kind[i] = "ref"
+            elif (use_ref and np.isfinite(st.ref[0]) and np.isfinite(st.ref[2])
+                  and in_vertical_cone(st.ref[0], Tolerances().min_drift_deg)):
+                rot[i] = orientation_matrix(st.ref[0], 0.0, st.ref[2])
+                kind[i] = "ref"
+            else:
+                kind[i] = "free"
+        cnt = np.array([max(st.n, 1) for st in stations], dtype=float)
+        temps = np.array([st.temp_c for st in stations], dtype=float)
+        if not np.all(np.isfinite(temps)):
+            known = temps[np.isfinite(temps)]
+            temps = np.where(np.isfinite(temps), temps, known.mean() if len(known) else T_REF_C)
+        g_sc = np.array([st.g_std for st in stations]).reshape(n, 3)
+        b_sc = np.array([st.b_std for st in stations]).reshape(n, 3)
+        times = np.array([st.t_mid - (st.t_origin if t_origin is None else t_origin) for st in stations], dtype=float)
+        return cls(
+            g=np.array([st.g for st in stations]).reshape(n, 3), b=np.array([st.b for st in stations]).reshape(n, 3),
+            g_sigma=np.maximum(np.nan_to_num(g_sc) / np.sqrt(cnt)[:, None], SIGMA_FLOOR["acc"]),
+            b_sigma=np.maximum(np.nan_to_num(b_sc) / np.sqrt(cnt)[:, None], SIGMA_FLOOR["mag"]),
+            g_scatter=g_sc, b_scatter=b_sc, temp_c=temps, time_s=times,
+            rotation=rot, kind=kind.astype(str), role=np.full(n, role), pose=np.array([st.pose for st in stations]),
+            ref=np.array([st.ref for st in stations], dtype=float).reshape(n, 3), n=cnt.astype(int),
+            source=np.full(n, source))

@@ -3,8 +3,9 @@
 * :class:`StaticDetector` finds static intervals in a live stream and closes them as stations
   (:class:`station.Station`), with thresholds taken from the noise the data show (:mod:`noise`);
 * :class:`StreamPairer` pairs the Imu and MagneticField samples of one stamp;
-* :class:`SurveyProcessor` corrects each closed station with the current calibration and evaluates
-  it against the site reference (QC), producing plain records that a node converts to messages.
+* :class:`ReferenceTrack` keeps the reference attitudes of a stream and says when they are current.
+
+What happens to a closed station next (correction, QC, the field monitor) is in :mod:`pipeline`.
 
 Inputs follow the boundary convention: accelerometer as REP-145 specific force (m/s²), converted
 here once to the gravity vector; magnetometer in nT (a node converts from tesla before calling).
@@ -13,16 +14,12 @@ from __future__ import annotations
 
 import bisect
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
-from .axial import evaluate_with_axial
-from .frames import Site, angle_between_deg
-from .gates import apply_gates
+from .frames import angle_between_deg, gravity_from_specific_force
 from .noise import AXES6, UNITS6, NoiseEstimator
 from .station import Station
-from .survey import Tolerances, evaluate
 
 
 _NO_STATIONS = ()
@@ -55,8 +52,8 @@ class StaticDetector:
     with a guessed noise.  ``noise_acc`` / ``noise_mag`` > 0 override the data (per-sample σ,
     m/s² and nT); a noise stated by the messages (covariance) is a prior: :meth:`set_prior`.
 
-    Inputs follow the boundary convention: ``f`` REP-145 specific force (m/s²), negated here
-    once to the gravity vector of the stations; ``m`` the field in nT.
+    Inputs follow the boundary convention: ``f`` REP-145 specific force (m/s²), converted here
+    once to the gravity vector of the stations (:func:`frames.gravity_from_specific_force`); ``m`` the field in nT.
 
     :meth:`update` returns a tuple of the stations closed by that sample (usually empty; several
     when the warm-up buffer is replayed).  Messages for the user (a hold cut into pieces and why,
@@ -86,6 +83,7 @@ class StaticDetector:
         self.gaps = 0                # breaks in the sample times (lost samples)
         self.samples_missing = 0
         self._t_prev = math.inf
+        self.t_first = math.nan      # time of the first sample: the origin of time-dependent effects
         self._dt = math.inf          # the typical sample interval (running mean of the non-gap ones)
         self.events: list = []
         self._warming = not (noise_acc > 0 and noise_mag > 0)
@@ -156,8 +154,11 @@ class StaticDetector:
         """Feed one sample (specific force m/s², field nT, temperature °C or NaN).
 
         Returns the stations closed by it (a tuple, usually empty)."""
-        x = (-float(f[0]), -float(f[1]), -float(f[2]), float(m[0]), float(m[1]), float(m[2]))
+        x = gravity_from_specific_force((float(f[0]), float(f[1]), float(f[2]))) + (float(m[0]), float(m[1]),
+                                                                                     float(m[2]))
         t = float(t)
+        if self.t_first != self.t_first:
+            self.t_first = t
         if not math.isfinite(x[0] + x[1] + x[2] + x[3] + x[4] + x[5] + t):
             self.noise.gap()
             if self._warming:
@@ -296,7 +297,8 @@ class StaticDetector:
                        b_std=std[3:], temp_c=self._sum_t / self._n_t if self._n_t else math.nan,
                        g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)),
                        g_noise=sig[:3], b_noise=sig[3:], outliers=self._outliers,
-                       short=(self._t_last - self._t0) < self.min_duration_s - TIME_EPS, ended_by=reason)
+                       short=(self._t_last - self._t0) < self.min_duration_s - TIME_EPS, ended_by=reason,
+                       t_origin=self.t_first)
 
     def _pieces(self, st):
         """Say so when a hold was cut into pieces, with the likely reason and the setting that fixes
@@ -429,110 +431,3 @@ class ReferenceTrack:
     def current_at(self, t: float) -> bool:
         """No reference can still arrive for times up to ``t`` (or there is no reference at all)."""
         return not self._t or self.latest >= t - TIME_EPS
-
-
-@dataclass
-class StationRecord:
-    """A corrected, quality-checked survey station (plain data for a SurveyStation message)."""
-
-    station_id: int
-    station: Station
-    values: dict
-    coefficients_id: str
-
-
-class SurveyProcessor:
-    """Corrects closed stations with the current calibration and checks them against the site.
-
-    ``axial=True``: azimuths from the short-collar correction of axial drill-string interference
-    (:func:`axial.evaluate_with_axial`); QC stays on the measured field.
-    """
-
-    def __init__(self, site: Site, tolerances: Tolerances = Tolerances(), calibration=None, axial: bool = False):
-        self.site = site
-        self.tolerances = tolerances
-        self.calibration = calibration
-        self.axial = axial
-        self._next_id = 0
-
-    def set_calibration(self, calibration):
-        self.calibration = calibration
-
-    def correct_vectors(self, g, b):
-        """Corrected gravity vector (m/s²) and field (nT); identity without a calibration."""
-        if self.calibration is None:
-            return np.asarray(g, float), np.asarray(b, float)
-        return self.calibration.correct(g, b)
-
-    def process(self, st: Station, ref=None) -> StationRecord:
-        """Gate (:func:`gates.apply_gates`: in-hold motion, flat axes), correct and evaluate one
-        station; a station in which the probe moved is still evaluated, and flagged.  ``ref``:
-        the reference attitude (drift, azimuth, toolface deg; NaN where not given), or None."""
-        apply_gates(st)
-        if ref is not None and not any(math.isfinite(x) for x in ref):
-            ref = None
-        g, b = self.correct_vectors(st.g, st.b)
-        if self.axial:
-            res = evaluate_with_axial(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
-        else:
-            res = evaluate(g, b, self.site, self.tolerances, ref=None if ref is None else [ref])
-        values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
-        rec = StationRecord(self._next_id, st, values,
-                            self.calibration.id if self.calibration is not None else "none")
-        self._next_id += 1
-        return rec
-
-
-NAN = float("nan")
-
-
-def _finite_or_nan(x) -> float:
-    x = float(x)
-    return x if math.isfinite(x) else NAN
-
-
-def station_fields(rec: StationRecord, ref, azimuth_reference: str, have_temperature: bool,
-                   calibrated: bool) -> dict:
-    """The fields of a ``SurveyStation`` message (all but the header) for a processed station.
-
-    Plain Python values, shared by the correction node (rclpy message) and offline reprocessing
-    (rosbags type store), so both publish the same thing.  Undefined values are NaN, never 0.
-    """
-    v, seg = rec.values, rec.station
-    ref = (NAN, NAN, NAN) if ref is None else tuple(float(x) for x in ref)  # NaN: not given (partial is fine)
-    axial = "azimuth_method" in v
-    return dict(
-        station_id=int(rec.station_id),
-        drift_deg=_finite_or_nan(v["drift_deg"]),
-        azimuth_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["azimuth_deg"]),
-        azimuth_reference=azimuth_reference,
-        azimuth_method=str(v["azimuth_method"]) if axial else "standard",
-        axial_field_nt=_finite_or_nan(v["axial_field_nt"]) if axial else NAN,
-        azimuth_sigma_deg=_finite_or_nan(v["azimuth_sigma_deg"]) if axial else NAN,
-        axial_degenerate=bool(v["axial_degenerate"]) if axial else False,
-        toolface_deg=_finite_or_nan(v["toolface_deg"]),
-        toolface_type="gravity" if v["toolface_is_gravity"] else "magnetic",
-        # defined down to the azimuth threshold; it is *reported* (toolface_deg) above the switch-over
-        gravity_toolface_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["gravity_toolface_deg"]),
-        magnetic_toolface_deg=_finite_or_nan(v["magnetic_toolface_deg"]),
-        total_gravity_mps2=float(v["total_gravity"]),
-        total_field_nt=float(v["total_field"]),
-        dip_deg=_finite_or_nan(v["dip_deg"]),
-        delta_g_mps2=float(v["delta_g"]),
-        delta_b_nt=float(v["delta_b"]),
-        delta_dip_deg=_finite_or_nan(v["delta_dip"]),
-        status=2 if seg.moved else int(v["status"]),
-        is_static=not seg.short,
-        interference_suspected=bool(v["interference_suspected"]),
-        azimuth_undefined=bool(v["azimuth_undefined"]),
-        gravity_out_of_tolerance=bool(v["gravity_out_of_tolerance"]),
-        moved_during_capture=bool(seg.moved),
-        warnings=[str(w) for w in seg.warnings],
-        samples_averaged=int(seg.n),
-        duration_s=float(seg.duration_s),
-        temperature_c=float(seg.temp_c) if have_temperature else NAN,
-        coefficients_id=rec.coefficients_id if calibrated else "",
-        reference_drift_deg=ref[0],
-        reference_azimuth_deg=ref[1],
-        reference_toolface_deg=ref[2],
-    )

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import frames
-from .frames import Site, wrap180, wrap360
+from .frames import Site, gravity_from_specific_force, wrap180, wrap360
 
 
 @dataclass(frozen=True)
@@ -197,17 +197,22 @@ FLAG_NOT_FINITE = 16
 BATCH_KEYS = ("drift_deg", "azimuth_deg", "toolface_deg", "total_gravity", "total_field", "dip_deg")
 
 
-def correct_samples(f, m_nt, calibration=None, site: Site = Site(), tol: Tolerances = Tolerances(), *,
-                    block: int = 16384, out: dict | None = None) -> dict:
+def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
+                    temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None) -> dict:
     """Correct and evaluate raw samples in bulk: both triads, angles and QC per sample.
 
     Parameters
     ----------
     f : (N, 3) float64 — accelerometer, REP-145 specific force, m/s² (converted here to the
-        gravity vector ``g = -f``, as :func:`streaming.StaticDetector` does for a stream).
+        gravity vector by :func:`frames.gravity_from_specific_force`, as the static detector does
+        for a stream).
     m_nt : (N, 3) float64 — magnetometer, nT.
-    calibration : :class:`coeffs.Calibration` or None (uncorrected).
-    site, tol : reference and tolerances, as for :func:`evaluate`.
+    calibration : :class:`coeffs.Calibration` or None (uncorrected).  The correction is its
+        :meth:`~coeffs.Calibration.correct` (the package's one correction path), block by block.
+    site : the site reference; None: the calibration's (the record owns it).
+    tol : QC tolerances, as for :func:`evaluate`.
+    temperature_c, time_s : (N,) or scalars, °C and s since the data's first sample: needed when
+        the calibration's model has effects that depend on them.
     block : samples per block: the work runs block by block so that every temporary stays in
         the CPU cache and the arrays of N samples are read once and written once.
     out : optional dict of preallocated output arrays (keys as returned) to write into.
@@ -219,29 +224,28 @@ def correct_samples(f, m_nt, calibration=None, site: Site = Site(), tol: Toleran
     below), ``total_gravity`` (m/s²), ``total_field`` (nT), ``dip_deg``, float64; ``flags`` uint8
     (bits ``FLAG_*``), ``status`` uint8 (0 ok, 1 warn, 2 error, as :func:`evaluate`).
 
-    The arithmetic is that of ``evaluate(*calibration.correct(-f, m_nt), site, tol)`` operation
-    for operation (same correction product, same formulas and evaluation order), so the values
-    agree with it exactly; only the intermediate storage differs.
+    The values agree exactly with ``evaluate(*calibration.correct(g, m_nt, ...), site, tol)``:
+    the same correction, then the same formulas in the same evaluation order; only the
+    intermediate storage differs.
     """
     f = np.asarray(f, dtype=np.float64)
     m = np.asarray(m_nt, dtype=np.float64)
     if f.ndim != 2 or f.shape[1] != 3 or m.shape != f.shape:
         raise ValueError(f"correct_samples: f and m_nt must both be (N, 3), got {f.shape} and {m.shape}")
+    if site is None:
+        if calibration is None:
+            raise ValueError("correct_samples: no site reference: give a site, or a calibration (which owns one)")
+        site = calibration.site
     n = len(f)
+    temp = None if temperature_c is None else np.broadcast_to(np.asarray(temperature_c, dtype=float), (n,))
+    tim = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=float), (n,))
+    if calibration is not None:
+        calibration.model.context(0, temp, tim, "val", "correct_samples: ")   # what the model needs: said up front
     if out is None:
         out = {k: np.empty(n) for k in BATCH_KEYS}
         out["flags"] = np.empty(n, dtype=np.uint8)
         out["status"] = np.empty(n, dtype=np.uint8)
     blk = max(1, min(int(block), n)) if n else 1
-    if calibration is not None:
-        # g = -f; (g - bias_a)·Caᵀ == (f + bias_a)·(-Ca)ᵀ exactly (IEEE rounding is sign-symmetric)
-        ba = np.tile(np.asarray(calibration.acc.bias, dtype=np.float64), blk)
-        neg_ca = np.ascontiguousarray(-calibration.acc.correction_matrix)
-        bm = np.tile(np.asarray(calibration.mag.bias, dtype=np.float64), blk)
-        cm = np.ascontiguousarray(calibration.mag.correction_matrix)
-    else:
-        ba = neg_ca = bm = cm = None
-    a3 = np.empty(3 * blk)
     gt = np.empty((3, blk))
     bt = np.empty((3, blk))
     t = np.empty((6, blk))
@@ -250,29 +254,26 @@ def correct_samples(f, m_nt, calibration=None, site: Site = Site(), tol: Toleran
     decl = float(site.declination_deg)
     with np.errstate(invalid="ignore", divide="ignore"):  # NaN/inf samples are flagged, not warned
         for s in range(0, n, blk):
-            _correct_block(f, m, s, min(s + blk, n), out, calibration, ba, neg_ca, bm, cm, a3,
-                           gt, bt, t, masks, u8, site, tol, decl)
+            e = min(s + blk, n)
+            g = gravity_from_specific_force(f[s:e])
+            if calibration is not None:
+                g, b = calibration.correct(g, m[s:e], None if temp is None else temp[s:e],
+                                           None if tim is None else tim[s:e])
+            else:
+                b = m[s:e]
+            np.copyto(gt[:, :e - s], g.T)
+            np.copyto(bt[:, :e - s], b.T)
+            _evaluate_block(s, e, out, gt, bt, t, masks, u8, site, tol, decl)
     return out
 
 
-def _correct_block(f, m, s, e, out, calibration, ba, neg_ca, bm, cm, a3, gt, bt, t, masks, u8,
-                   site, tol, decl):
+def _evaluate_block(s, e, out, gt, bt, t, masks, u8, site, tol, decl):
+    """Angles and QC of corrected samples s..e (components in the rows of ``gt``, ``bt``)."""
     rad2deg = np.degrees
     thr_tf = tol.gravity_toolface_min_drift_deg
     k = e - s
     gx, gy, gz = gt[:, :k]
     bx, by, bz = bt[:, :k]
-    if calibration is not None:
-        # the product of TriadModel.inverse, (h - bias) @ C.T, computed transposed as C @ (h - bias).T
-        # straight into component rows (same dot products); the bias is added on the flat block
-        a = a3[:3 * k]
-        np.add(f[s:e].reshape(-1), ba[:3 * k], out=a)
-        np.matmul(neg_ca, a.reshape(k, 3).T, out=gt[:, :k])
-        np.subtract(m[s:e].reshape(-1), bm[:3 * k], out=a)
-        np.matmul(cm, a.reshape(k, 3).T, out=bt[:, :k])
-    else:
-        np.negative(f[s:e].T, out=gt[:, :k])
-        np.copyto(bt[:, :k], m[s:e].T)
     t1, t2, t3, t4, h2, sb = t[:, :k]
     drift, az, tf = out["drift_deg"][s:e], out["azimuth_deg"][s:e], out["toolface_deg"][s:e]
     gn, bn, dip = out["total_gravity"][s:e], out["total_field"][s:e], out["dip_deg"][s:e]

@@ -277,7 +277,7 @@ def test_two_physically_identical_poses_are_named_and_the_pose_solved_without(si
     (lambda r: r["accelerometer"].update(correction_matrix=[[1, 0, 0], [0, 1, 0]]),
      "accelerometer.correction_matrix has shape (2, 3), expected 3×3"),
     (lambda r: r["magnetometer"]["units"].update(input="uT"), "magnetometer.units.input is 'uT', expected 'nT'"),
-    (lambda r: r.update(format_version=2), "format_version 2 is not supported"),
+    (lambda r: r.update(format_version=99), "format_version 99 is not supported"),
 ])
 def test_malformed_coefficient_file_is_refused_by_correct_naming_file_and_field(simdir, tmp_path, capsys, edit, msg):
     rec = yaml.safe_load((simdir / "truth_coeffs.yaml").read_text())

@@ -60,7 +60,8 @@ def station_cdr(store, i: int) -> bytes:
             stamp=t["builtin_interfaces/msg/Time"](sec=i, nanosec=0), frame_id="probe"),
         "station_id": i, "azimuth_reference": "true", "toolface_type": "gravity",
         "coefficients_id": "cal-1", "status": 0, "azimuth_method": "standard", "axial_degenerate": False,
-        "moved_during_capture": False, "warnings": ["a hold cut into pieces"],
+        "moved_during_capture": False, "warnings": ["a hold cut into pieces"], "model_misfit": False,
+        "model_diagnosis": "",
     }
     for name in cls.__dataclass_fields__:
         if name in fields:

@@ -50,6 +50,28 @@ def test_batch_equals_station_path_bitwise(declination, calibrated):
 
 def test_batch_shapes_are_checked():
     with pytest.raises(ValueError, match="must both be \\(N, 3\\)"):
-        correct_samples(np.zeros((4, 3)), np.zeros((4, 2)))
-    out = correct_samples(np.zeros((0, 3)), np.zeros((0, 3)))
+        correct_samples(np.zeros((4, 3)), np.zeros((4, 2)), site=Site())
+    with pytest.raises(ValueError, match="no site reference"):
+        correct_samples(np.zeros((4, 3)), np.zeros((4, 3)))   # no record owns one: never a default
+    out = correct_samples(np.zeros((0, 3)), np.zeros((0, 3)), site=Site())
     assert all(len(v) == 0 for v in out.values())
+
+
+def test_a_lab_model_gives_the_same_bits_sample_by_sample_and_in_blocks():
+    """The one correction path with effects beyond the paper's (Newton steps, temperature and time
+    of each sample): a node's sample-by-sample correction equals the batch path's, bit for bit."""
+    probe = sim.build_probe(4, ["temperature_bias:mag=3", "nonlinearity:acc=1e-3", "bias_drift:mag=40"])
+    site = Site()
+    cal = Calibration(probe.model, site=site)
+    f, m = _samples(site, n=6000)
+    temp = np.linspace(20.0, 60.0, len(f))
+    t = np.arange(len(f)) * 0.01
+    out = correct_samples(f, m, cal, temperature_c=temp, time_s=t, block=777)
+    idx = np.arange(0, len(f), 97)
+    one = [cal.correct(-f[i], m[i], temp[i], t[i]) for i in idx]
+    with np.errstate(invalid="ignore"):
+        ref = evaluate(np.array([g for g, _ in one]), np.array([b for _, b in one]), site)
+    for k in BATCH_KEYS:
+        np.testing.assert_array_equal(out[k][idx], ref[k], err_msg=k)
+    with pytest.raises(ValueError, match="depend on temperature"):
+        correct_samples(f, m, cal, time_s=t)          # the model needs a temperature: said, not defaulted

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from inclinometer_calib.station import Station
 from inclinometer_calib import simulate as sim
 from inclinometer_calib.capture import CaptureSession
 from inclinometer_calib.frames import Site, orientation_matrix
@@ -101,7 +102,7 @@ def test_a_missing_pose_completed_by_a_survey_station_is_left_out_and_the_rest_s
     # the log lacks pose 9 (tool Z down, X north); the survey's first station, 2° off vertical,
     # looks like it: accepted as pose 9, then found not to fit and left out
     stations = sim.twelve_pose_session(duration_s=2.0)
-    survey = sim.Stationary(orientation_matrix(2.0, 0.0, 0.0), 2.0, ref=(2.0, 0.0, 0.0))
+    survey = Station.planned(orientation_matrix(2.0, 0.0, 0.0), 2.0, ref=(2.0, 0.0, 0.0))
     probe, log = _log([st for st in stations if st.pose != 9] + [survey])
     s = CaptureSession(site=Site())
     _feed(s, log, finish=True)

@@ -20,7 +20,7 @@ def test_yaml_round_trip_is_exact(tmp_path, cal):
     assert back.id == cal.id
     np.testing.assert_array_equal(back.mag.correction_matrix, cal.mag.correction_matrix)
     rec = yaml.safe_load(path.read_text())
-    assert rec["format_version"] == 1
+    assert rec["format_version"] == 2
     assert rec["accelerometer"]["units"]["offset"] == "m/s^2"
     assert rec["magnetometer"]["units"]["offset"] == "nT"
 
@@ -41,7 +41,7 @@ def _edit(cal, fn):
     (lambda r: r["magnetometer"]["parameters"].update(bias_x="abc"), "must all be numbers"),
     (lambda r: r["magnetometer"]["parameters"].update(bias_x=123.0), "disagree with the parameters"),
     (lambda r: r["magnetometer"]["parameters"].update(scale_x=0.0, scale_y=0.0), "singular"),
-    (lambda r: r.update(id="0123456789ab"), "does not match the coefficients"),
+    (lambda r: r.update(id="0123456789ab"), "does not match the content"),
 ])
 def test_malformed_record_is_refused_naming_the_field(cal, edit, msg):
     with pytest.raises(CoefficientError, match=msg):

@@ -4,9 +4,9 @@ import subprocess
 import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-CORE = ["frames", "errormodel", "twelve_position", "effects", "simulate", "probelog", "coeffs", "survey",
-        "streaming", "capture", "axial", "bag", "reprocess", "cli", "lab", "lab.fit", "lab.diagnose",
-        "lab.report", "lab.plugins"]
+CORE = ["frames", "errormodel", "twelve_position", "effects", "model", "plugins", "simulate", "probelog", "coeffs",
+        "survey", "noise", "station", "gates", "streaming", "capture", "pipeline", "axial", "bag", "reprocess", "cli",
+        "lab", "lab.fit", "lab.diagnose", "lab.report", "lab.field", "lab.stats"]
 
 
 def test_core_modules_import_no_ros():

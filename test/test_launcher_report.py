@@ -41,9 +41,6 @@ def test_missing_values_print_as_a_dash_not_nan():
                           "toolface_rms_deg": NAN, "status_counts": {"0": 0, "1": 1, "2": 0},
                           "max_abs_delta_b_nt": 3.0, "max_abs_delta_dip_deg": 0.01, "max_abs_delta_g_mps2": 0.0}}
     lines = launcher.format_summary(summary)
-    rows = [{"ref_drift_deg": 0.0, "ref_azimuth_deg": 40.0, "drift_err_before": 1.5, "drift_err_after": 0.001,
-             "azimuth_err_before": NAN, "azimuth_err_after": NAN}]
-    lines += launcher.format_before_after(rows)
     report = launcher.format_report(summary, lines, None, stations)
     for text in ("\n".join(lines), report):
         assert "nan" not in text.lower(), text

@@ -27,7 +27,7 @@ def survey(tmp_path_factory):
     """A simulated stand survey (15 stations, 2 s each at 100 Hz) recorded as a bag, plus the
     simulator's true coefficients."""
     d = tmp_path_factory.mktemp("reprocess")
-    probe = sim.build_probe(5, [("temperature_bias", "mag", None, [2.0])])
+    probe = sim.build_probe(5, ["temperature_bias:mag=2"])
     sess = sim.stand_grid_session(drifts=DRIFTS, azimuths=AZIMUTHS, toolfaces=(60,), duration_s=2.0,
                                   temp_profile_c=(25, 35))
     log = sim.run_session(probe, SITE, sess, np.random.default_rng(2), rate_hz=100)

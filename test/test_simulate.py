@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from inclinometer_calib import effects as fx
 from inclinometer_calib import simulate as sim
 from inclinometer_calib.frames import Site, drift_deg, total_field, total_gravity
 from inclinometer_calib.probelog import segment_stations
@@ -19,7 +20,7 @@ def test_same_seed_gives_identical_samples():
 
 
 def test_ideal_probe_reads_minus_gravity_and_the_site_field():
-    probe = sim.ProbeModel(acc=sim.TriadModel(), mag=sim.TriadModel(), noise_acc=0, noise_mag=0)
+    probe = sim.SimulatedProbe(sim.ProbeModel.base(), noise_acc=0, noise_mag=0)
     log = _run(probe, sim.stand_grid_session(drifts=(30,), azimuths=(60,), toolfaces=(0,)))
     st = log.pose == 0
     assert total_gravity(log.acc[st]) == pytest.approx(9.80665)
@@ -28,14 +29,14 @@ def test_ideal_probe_reads_minus_gravity_and_the_site_field():
 
 
 def test_noise_has_the_configured_sigma():
-    probe = sim.ProbeModel(acc=sim.TriadModel(), mag=sim.TriadModel(), noise_acc=0.01, noise_mag=50)
+    probe = sim.SimulatedProbe(sim.ProbeModel.base(), noise_acc=0.01, noise_mag=50)
     log = _run(probe, sim.stand_grid_session(drifts=(10,), azimuths=(0,), toolfaces=(0,), duration_s=40))
     assert np.std(log.acc[:, 0]) == pytest.approx(0.01, rel=0.05)
     assert np.std(log.mag[:, 2]) == pytest.approx(50, rel=0.05)
 
 
 def test_axial_interference_is_present_in_survey_logs_only():
-    probe = sim.build_probe(2, [("axial_interference", None, None, [400.0])], noise_acc=0, noise_mag=0)
+    probe = sim.build_probe(2, ["axial_interference=400"], noise_acc=0, noise_mag=0)
     grid = sim.stand_grid_session(drifts=(40,), azimuths=(90,), toolfaces=(0,))
     clean = _run(probe, grid, survey=False)
     dirty = _run(probe, grid, survey=True)
@@ -45,7 +46,7 @@ def test_axial_interference_is_present_in_survey_logs_only():
 
 
 def test_temperature_bias_follows_temperature():
-    probe = sim.build_probe(2, [("temperature_bias", "acc", "x", [0.001])], noise_acc=0, noise_mag=0)
+    probe = sim.build_probe(2, ["temperature_bias:acc:x=0.001"], noise_acc=0, noise_mag=0)
     base = sim.build_probe(2, noise_acc=0, noise_mag=0)
     grid = sim.stand_grid_session(drifts=(20,), azimuths=(0, 60), toolfaces=(0,), temp_profile_c=(25, 45))
     d = _run(probe, grid).acc - _run(base, grid).acc
@@ -55,11 +56,11 @@ def test_temperature_bias_follows_temperature():
 
 
 def test_stand_pose_error_moves_the_real_orientation_but_not_the_labels():
-    probe = sim.build_probe(4, [("stand_pose_error", None, None, [0.2])], noise_acc=0, noise_mag=0)
+    probe = sim.build_probe(4, ["stand_pose_error=0.2"], noise_acc=0, noise_mag=0)
     grid = sim.stand_grid_session(drifts=(30,), azimuths=(0,), toolfaces=(0, 120, 240))
     log = _run(probe, grid)
     stations, _ = segment_stations(log)
-    g_true = np.array([probe.acc.inverse(s.g) for s in stations])
+    g_true = probe.model.correct(np.array([s.g for s in stations]), np.array([s.b for s in stations]))[0]
     err = drift_deg(g_true) - 30.0
     assert 0.01 < np.max(np.abs(err)) < 1.0
     assert all(s.ref[0] == 30.0 for s in stations)
@@ -67,7 +68,7 @@ def test_stand_pose_error_moves_the_real_orientation_but_not_the_labels():
 
 def test_time_skew_only_shows_while_moving():
     base = sim.build_probe(6, noise_acc=0, noise_mag=0)
-    skew = sim.build_probe(6, [("time_skew", None, None, [0.05])], noise_acc=0, noise_mag=0)
+    skew = sim.build_probe(6, ["time_skew=0.05"], noise_acc=0, noise_mag=0)
     sess = sim.twelve_pose_session(duration_s=1.0)
     a, b = _run(base, sess), _run(skew, sess)
     moving = a.pose == 0
@@ -78,14 +79,27 @@ def test_time_skew_only_shows_while_moving():
 
 
 @pytest.mark.parametrize("text,expected", [
-    ("axial_interference=300", ("axial_interference", None, None, [300.0])),
-    ("temperature_bias:mag:xy=2,3", ("temperature_bias", "mag", "xy", [2.0, 3.0])),
+    ("axial_interference=300", [("axial_interference", ("mag",), None, "val", (300.0,))]),
+    ("temperature_bias:mag:xy=2,3", [("temperature_bias", ("mag",), "xy", "all", (2.0, 3.0))]),
+    ("bias:acc:xyz=1,2,3,nonlinearity@cal", [("bias", ("acc",), "xyz", "all", (1.0, 2.0, 3.0)),
+                                             ("nonlinearity", ("acc", "mag"), None, "cal", ())]),
 ])
-def test_effect_argument_parsing(text, expected):
-    assert sim.parse_effect_arg(text) == expected
+def test_one_grammar_names_effects_everywhere(text, expected):
+    got = [(e.name, e.sensors, e.axes, e.scope, e.values) for e in fx.parse_effects(text)]
+    assert got == expected
 
 
-@pytest.mark.parametrize("text,msg", [("foo=1", "unknown effect 'foo'"), ("cross_coupling:mag=1", "does not act on")])
+@pytest.mark.parametrize("text,msg", [("foo=1", "unknown effect 'foo'"), ("cross_coupling:mag=1", "acts on acc"),
+                                      ("bias@somewhere", "scope must be"), ("temperature_bias", "give its size"),
+                                      ("3,bias=1", "without an effect before it")])
 def test_unknown_or_misapplied_effect_is_refused(text, msg):
     with pytest.raises(ValueError, match=msg):
-        sim.build_probe(1, [sim.parse_effect_arg(text)])
+        sim.build_probe(1, [text])
+
+
+def test_a_simulated_probe_round_trips_through_its_truth():
+    probe = sim.build_probe(3, ["temperature_bias:mag=2", "axial_interference=300", "stand_pose_error=0.1"])
+    again = sim.SimulatedProbe.from_dict(probe.to_dict())
+    assert again.model.labels() == probe.model.labels() == ["temperature_bias:mag:xyz", "axial_interference:mag:z@val"]
+    np.testing.assert_array_equal(again.model.get_vector(), probe.model.get_vector())
+    assert again.stand_pose_error_deg == 0.1

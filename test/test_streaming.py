@@ -4,7 +4,7 @@ import pytest
 
 from inclinometer_calib import simulate as sim
 from inclinometer_calib.frames import Site
-from inclinometer_calib.streaming import StaticDetector, SurveyProcessor
+from inclinometer_calib.streaming import StaticDetector
 
 
 def _stations(log, **kw):
@@ -132,58 +132,3 @@ def test_a_creep_during_the_hold_is_measured_as_a_trend():
     s = max(segs, key=lambda x: x.n)
     assert s.g_rate[0] == pytest.approx(-0.02 / 4.0, rel=0.15)     # gravity vector = -f
     assert abs(s.g_rate[1]) < 0.002
-
-
-def test_processor_corrects_and_evaluates_a_station():
-    probe = sim.build_probe(2)
-    site = Site()
-    log = sim.run_session(probe, site, sim.stand_grid_session(drifts=(45,), azimuths=(120,), toolfaces=(30,),
-                                                               duration_s=3.0), np.random.default_rng(0))
-    segs, _ = _stations(log)
-    from inclinometer_calib.coeffs import Calibration
-    proc = SurveyProcessor(site, calibration=Calibration(acc=probe.acc, mag=probe.mag))
-    rec = proc.process(segs[0], ref=(45.0, 120.0, 30.0))
-    assert rec.values["drift_deg"] == pytest.approx(45.0, abs=0.01)
-    assert abs(rec.values["azimuth_err"]) < 0.05
-    assert rec.values["status"] == 0
-    assert rec.coefficients_id == proc.calibration.id
-
-
-def test_station_fields_carry_a_partial_reference_and_the_gates_outcome():
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.streaming import station_fields
-
-    probe = sim.build_probe(2)
-    site = Site()
-    log = sim.run_session(probe, site, sim.stand_grid_session(drifts=(0,), azimuths=(0,), toolfaces=(40,),
-                                                               duration_s=3.0), np.random.default_rng(0))
-    segs, _ = _stations(log)
-    cal = Calibration(acc=probe.acc, mag=probe.mag)
-    ref = (0.0, float("nan"), 40.0)                 # a vertical stand pose: no azimuth
-    f = station_fields(SurveyProcessor(site, calibration=cal).process(segs[0], ref=ref), ref, "magnetic", True, True)
-    assert f["reference_drift_deg"] == 0.0 and np.isnan(f["reference_azimuth_deg"])
-    assert f["reference_toolface_deg"] == 40.0
-    assert f["azimuth_undefined"] and f["moved_during_capture"] is False and f["warnings"] == []
-
-
-def test_station_fields_carry_the_short_collar_azimuth_when_enabled():
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.streaming import station_fields
-
-    probe = sim.build_probe(2, [("axial_interference", None, None, [400.0])])
-    site = Site()
-    log = sim.run_session(probe, site, sim.stand_grid_session(drifts=(60,), azimuths=(30,), toolfaces=(0,),
-                                                               duration_s=3.0), np.random.default_rng(0),
-                          survey=True)
-    segs, _ = _stations(log)
-    cal = Calibration(acc=probe.acc, mag=probe.mag)
-    ref = (60.0, 30.0, 0.0)
-    plain = station_fields(SurveyProcessor(site, calibration=cal).process(segs[0], ref=ref), ref, "magnetic",
-                           True, True)
-    fixed = station_fields(SurveyProcessor(site, calibration=cal, axial=True).process(segs[0], ref=ref), ref,
-                           "magnetic", True, True)
-    assert plain["azimuth_method"] == "standard" and np.isnan(plain["axial_field_nt"])
-    assert plain["interference_suspected"] and fixed["interference_suspected"]  # QC on the measured field
-    assert fixed["azimuth_method"] == "short_collar"
-    assert fixed["axial_field_nt"] == pytest.approx(400.0, abs=15.0)
-    assert abs(fixed["azimuth_deg"] - 30.0) < 0.05 < abs(plain["azimuth_deg"] - 30.0)

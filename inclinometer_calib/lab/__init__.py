@@ -14,13 +14,13 @@ Python API (the CLI ``inclinometer-calib lab ...`` is a thin layer over it)::
     steps = lab.ladder(data, Site())                          # effect ladder
     lab.write_report("report.html", data, Site())             # self-contained HTML
 """
-from .data import LabData, from_stations, load_logs
+from ..plugins import PluginError, load_plugin
+from .data import load_bag, load_logs
 from .diagnose import Diagnosis, cross_validate, diagnose, ladder, val_metrics
 from .fit import FitResult, fit
 from .model import LabModel
-from .plugins import PluginError, load_plugin
-from .spec import effect, model_from_truth, parse_effects, uncorrected_metrics, write_report
+from .spec import build_model, effect, model_from_truth, uncorrected_metrics, write_report
 
-__all__ = ["LabData", "from_stations", "load_logs", "Diagnosis", "cross_validate", "diagnose", "ladder",
-           "val_metrics", "FitResult", "fit", "LabModel", "PluginError", "load_plugin", "effect",
-           "parse_effects", "uncorrected_metrics", "write_report", "model_from_truth"]
+__all__ = ["load_logs", "load_bag", "Diagnosis", "cross_validate", "diagnose", "ladder", "val_metrics", "FitResult", "fit",
+           "LabModel", "PluginError", "load_plugin", "effect", "build_model", "uncorrected_metrics", "write_report",
+           "model_from_truth"]

@@ -21,27 +21,17 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
 
 from .. import effects as fx
-from .fit import fit, physical_hints, residual_vector
-from .model import BASE_NAMES, LabModel
+from .fit import fit, physical_hints
+from .model import LabModel
+from .stats import regress
 
-#: Effects the static stand data cannot reveal as such, with the reason.
-NOT_FROM_STATIC = {
-    "misalignment": "a rigid rotation of a triad is inside the base model's K·E",
-    "triad_misalignment": "a rotation of the magnetometer against the accelerometer is inside the base model's K·E",
-}
-#: Whole-probe effects of the simulator, not fitted as effects, and how the diagnosis treats them.
-PROBE_LEVEL = {
-    "stand_pose_error": "random per-station orientation errors are not a fittable signature: they show as "
-                        "unstructured excess scatter, reported with its size as an equivalent stand pose error",
-    "time_skew": "a sampling offset between the triads is invisible in static stations: it needs data "
-                 "recorded while the probe rotates",
-}
 Z_RMS_LIMIT = 1.3
 #: Pseudo-effect: a heading offset between the stand's north and the site reference's north.
 HEADING = "heading_offset"
+HEADING_SIGNATURE = ("a constant azimuth error: the stand's north (or the declination) differs from the site "
+                     "reference's — check the declination in the site file, or keep the offset fitted (--fit-heading)")
 
 
 @dataclass
@@ -154,11 +144,12 @@ def cross_validate(model: LabModel, data, folds) -> dict:
 
 # ------------------------------------------------------------------------------------------------
 def candidate_effects(model: LabModel, names=None):
-    """(effect, scope) pairs to try: catalogue effects not in the model, per sensor, default axes."""
+    """(effect, scope) pairs to try: registered effects not in the model that static data can
+    reveal, per sensor, default axes; a survey-only effect both on the survey and on all data."""
     have = {t.effect.key for t in model.terms}
     out = []
     for name, cls in sorted(fx.CATALOGUE.items()):
-        if name in BASE_NAMES or name in NOT_FROM_STATIC:
+        if cls.base or cls.not_from_static or cls.stage == fx.PROBE_STAGE:
             continue
         if names is not None and name not in names:
             continue
@@ -166,10 +157,15 @@ def candidate_effects(model: LabModel, names=None):
             eff = cls(sensor=sensor, axes=cls.default_axes)
             if eff.key in have:
                 continue
-            scopes = ("val", "all") if name == "axial_interference" else ("all",)
-            for scope in scopes:
+            for scope in (("val", "all") if cls.survey_only else ("all",)):
                 out.append((eff, scope))
     return out
+
+
+def untestable_effects() -> list:
+    """The registered effects static data can never reveal, with each class's own reason."""
+    return [{"effect": name, "reason": cls.not_from_static} for name, cls in sorted(fx.CATALOGUE.items())
+            if cls.not_from_static]
 
 
 def regressors(data, model: LabModel) -> dict:
@@ -212,26 +208,13 @@ def residual_structure(model: LabModel, data, alpha: float = 1e-3, top: int = 8)
     n_tests = len(chans) * len(regs)
     found = []
     for cname, y in chans.items():
-        ok = np.isfinite(y)
         for rname, x in regs.items():
-            xo, yo = x[ok], y[ok]
-            if len(yo) < 8 or np.ptp(xo) == 0:
+            tr = regress(y, x)          # y = a + b x: the F-test the field monitor uses too
+            if tr is None or tr.n < 8:
                 continue
-            # y = a + b x: F = explained / residual variance
-            xc = xo - xo.mean()
-            yc = yo - yo.mean()
-            sxx = xc @ xc
-            b = (xc @ yc) / sxx
-            ss_res = float(np.sum((yc - b * xc) ** 2))
-            ss_reg = float(b * b * sxx)
-            dof = len(yo) - 2
-            if ss_res <= 0:
-                continue
-            f = ss_reg / (ss_res / dof)
-            p = float(stats.f.sf(f, 1, dof))
-            if p * n_tests < alpha:
-                found.append({"channel": cname, "regressor": rname, "r2": ss_reg / (ss_reg + ss_res),
-                              "p": p * n_tests, "slope": float(b)})
+            if tr.p * n_tests < alpha:
+                found.append({"channel": cname, "regressor": rname, "r2": tr.r2, "p": tr.p * n_tests,
+                              "slope": float(tr.coef[0])})
     found.sort(key=lambda e: -e["r2"])
     # keep the strongest regressor per channel first, then the rest
     best, rest, seen = [], [], set()
@@ -256,7 +239,7 @@ def diagnose(data, model: LabModel | None = None, site=None, k_folds: int = 4, m
     base_score = base_cv.get("pointing_rms_deg", float("nan"))
     structure = residual_structure(model, data)
     pairs = candidate_effects(model, candidates)
-    untestable = [{"effect": n, "reason": r} for n, r in {**NOT_FROM_STATIC, **PROBE_LEVEL}.items()]
+    untestable = untestable_effects()
     ranked = []
     def score(trial, name, sensor, axes, scope):
         f_all = fit(trial, data, uncertainty=False)
@@ -315,17 +298,12 @@ def orientation_scatter_deg(model: LabModel, data) -> dict:
     return out
 
 
-_SIGNATURES = {
-    "axial_interference": "azimuth error varying with sin(drift)·sin(azimuth), |B| and dip off the reference",
-    "temperature_bias": "residuals following temperature",
-    "temperature_scale": "residuals following temperature in proportion to the input",
-    "scale_asymmetry": "residuals following the sign of the input (|input|)",
-    "nonlinearity": "residuals following input² / input³",
-    "cross_coupling": "accelerometer residuals following products of the other axes' inputs",
-    "bias_drift": "residuals following time",
-    HEADING: "a constant azimuth error: the stand's north (or the declination) differs from the site "
-             "reference's — check the declination in the site file, or keep the offset fitted (--fit-heading)",
-}
+def signature(candidate) -> str:
+    """The residual signature of a candidate, as its effect class states it."""
+    if candidate.effect == HEADING:
+        return HEADING_SIGNATURE
+    cls = fx.CATALOGUE.get(candidate.effect)
+    return (cls.signature if cls is not None else "") or "the residual structure above"
 
 
 def _verdict(model, base_fit, base_cv, structure, best, ranked, misfit, scatter=None) -> str:
@@ -340,7 +318,7 @@ def _verdict(model, base_fit, base_cv, structure, best, ranked, misfit, scatter=
         lines.append(f"Strongest residual structure: {s['channel']} follows {s['regressor']} "
                      f"(R² {s['r2']:.2f}, p {s['p']:.1e}).")
     if best is not None:
-        sig = _SIGNATURES.get(best.effect, "the residual structure above")
+        sig = signature(best)
         changes = []
         for key, name, digits in (("azimuth_rms_deg", "azimuth", 3), ("drift_rms_deg", "drift", 4)):
             before, after = base_cv.get(key, float("nan")), best.val.get(key, float("nan"))

@@ -22,7 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from .model import BASE_NAMES, LabModel
+from .. import effects as fx
+from .model import LabModel
 
 PRIOR_FACTOR = 100.0
 
@@ -58,15 +59,8 @@ def residual_vector(model: LabModel, data, theta=None, prior=True) -> np.ndarray
     return np.concatenate(parts)
 
 
-def _prior_mask(model: LabModel) -> np.ndarray:
-    m = []
-    for t in model.terms:
-        m += [t.effect.name not in BASE_NAMES] * t.effect.n_params
-    return np.array(m + [False] * (int(model.fit_dip) + int(model.fit_heading)))
-
-
 def _prior_residual(model: LabModel) -> np.ndarray:
-    mask = _prior_mask(model)
+    mask = model.prior_mask()
     return model.get_vector()[mask] / (PRIOR_FACTOR * model.param_scale()[mask])
 
 
@@ -111,7 +105,7 @@ class FitResult:
     def parameter_table(self, extras_only: bool = False) -> list:
         rows = []
         for i, (n, u, v, s) in enumerate(zip(self.names, self.units, self.values, self.std)):
-            if extras_only and n.split(":")[0] in BASE_NAMES:
+            if extras_only and n.split(":")[0] in fx.BASE:
                 continue
             rows.append({"name": n, "value": float(v), "std": float(s), "unit": u})
         return rows
@@ -165,7 +159,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
 def _uncertainty(model, jac, scale, red_chi2, data):
     js = np.asarray(jac) * scale  # dimensionless columns
     # drop the prior rows: identifiability is a property of the data
-    n_prior = int(_prior_mask(model).sum())
+    n_prior = int(model.prior_mask().sum())
     jd = js[:len(js) - n_prior] if n_prior else js
     u, s, vt = np.linalg.svd(jd, full_matrices=False)
     names = model.param_names()
@@ -198,7 +192,8 @@ def _uncertainty(model, jac, scale, red_chi2, data):
 
 
 def physical_hints(model: LabModel, data) -> list:
-    """Name parameters the data cannot determine, and what data would determine them."""
+    """Name the effects the data cannot determine, and what data would determine them (each
+    effect class says so itself: :meth:`effects.Effect.identifiability`)."""
     out = []
     for t in model.extra_terms:
         e = t.effect
@@ -206,23 +201,8 @@ def physical_hints(model: LabModel, data) -> list:
         if not sel.any():
             out.append(Identifiability(e.key, f"acts on '{t.scope}' logs only, and none was given"))
             continue
-        temps = data.temp_c[sel]
-        span_t = float(np.ptp(temps)) if len(temps) else 0.0
-        if e.name.startswith("temperature_") and span_t < 3.0:
-            out.append(Identifiability(e.key, f"temperature span {span_t:.1f} °C is too small: calibrate at two or "
-                                              f"more temperatures at least 10 °C apart"))
-        span_s = float(np.ptp(data.time_s[sel])) if sel.any() else 0.0
-        if e.name == "bias_drift" and span_s < 300.0:
-            out.append(Identifiability(e.key, f"log spans {span_s:.0f} s: a bias drift needs stations spread over "
-                                              f"at least several minutes (repeat poses at the end)"))
-        if e.name in ("misalignment", "triad_misalignment"):
-            out.append(Identifiability(e.key, "a rigid rotation of a triad is already inside the base model's K·E "
-                                              "(9 degrees of freedom): not separable without an external "
-                                              "reference of the housing axes"))
-        if e.name == "axial_interference":
-            kinds = set(data.kind[sel])
-            if kinds <= {"pose"}:
-                out.append(Identifiability(e.key, "on twelve-position poses a field fixed along tool Z is "
-                                                  "indistinguishable from the Z bias: needs survey stations of known "
-                                                  "orientation or the site invariants at several azimuths"))
+        why = e.identifiability(float(np.ptp(data.temp_c[sel])), float(np.ptp(data.time_s[sel])),
+                                frozenset(data.kind[sel]))
+        if why:
+            out.append(Identifiability(e.key, why))
     return out

@@ -1,13 +1,11 @@
-"""A probe model for the lab: the paper's base model plus any effects, as one parameter vector.
+"""A probe model in the lab: the package's :class:`model.ProbeModel` plus what a fit needs of the site.
 
-The base model of each triad is the seed paper's: ``nonorthogonality`` (six e-terms), ``scale``
-and ``bias`` (eqs. 3–4).  Extra effects from :mod:`inclinometer_calib.effects` (or plug-ins) are
-added to a triad's signal chain; each has a *scope*: ``"all"`` logs, or only ``"cal"`` / ``"val"``
-(e.g. axial drill-string interference acts on survey data, not on the non-magnetic stand).
-
-Besides the effects the model holds the site: gravity and total field are fixed (they only set the
-overall scale of each triad, as the paper notes for M_d); the dip is fitted by default, the stand's
-heading offset (stand north vs the site's north) optionally.
+The probe model (the paper's base model of each triad plus any effects, each with a scope ``all``,
+``cal`` or ``val``) is the one the simulator measures with and a calibration record carries; the
+lab adds the site: gravity and total field are fixed (they only set the overall scale of each
+triad, as the paper notes for M_d); the dip is fitted by default, the stand's heading offset
+(stand north vs the site's north) optionally.  :meth:`LabModel.record` turns a fitted model into
+the calibration record that ``correct``, ``reprocess`` and the nodes apply.
 """
 from __future__ import annotations
 
@@ -19,41 +17,16 @@ import numpy as np
 from .. import effects as fx
 from ..errormodel import TriadModel
 from ..frames import Site
+from ..model import ProbeModel
 from ..survey import evaluate
 
 SENSORS = ("acc", "mag")
-BASE_NAMES = ("nonorthogonality", "scale", "bias")
-
-
-def base_effects(sensor: str, triad: TriadModel | None = None) -> list:
-    """The paper's base model as effects, optionally initialised from a TriadModel."""
-    e1 = e2 = np.zeros(3)
-    k = b = np.zeros(3)
-    if triad is not None:
-        e1 = np.array([triad.e[fx.NonOrthogonality.term_names(a)[0]] for a in "xyz"])
-        e2 = np.array([triad.e[fx.NonOrthogonality.term_names(a)[1]] for a in "xyz"])
-        k, b = triad.scale - 1.0, triad.bias
-    return [fx.NonOrthogonality(sensor=sensor, values={"e1": e1, "e2": e2}),
-            fx.Scale(sensor=sensor, values={"k": k}),
-            fx.Bias(sensor=sensor, values={"b": b})]
-
-
-@dataclass
-class Term:
-    """An effect in the model with the logs it acts on."""
-
-    effect: fx.Effect
-    scope: str = "all"
-
-    @property
-    def label(self) -> str:
-        return self.effect.key + ("" if self.scope == "all" else f"@{self.scope}")
 
 
 @dataclass
 class LabModel:
     site: Site
-    terms: list = field(default_factory=list)
+    probe: ProbeModel = field(default_factory=ProbeModel.base)
     fit_dip: bool = True
     fit_heading: bool = False
     dip_deg: float = float("nan")
@@ -66,49 +39,48 @@ class LabModel:
     # ---- construction ------------------------------------------------------------------------
     @classmethod
     def base(cls, site: Site, acc: TriadModel | None = None, mag: TriadModel | None = None, **kw) -> "LabModel":
-        terms = [Term(e) for e in base_effects("acc", acc)] + [Term(e) for e in base_effects("mag", mag)]
-        return cls(site=site, terms=terms, **kw)
+        return cls(site=site, probe=ProbeModel.base(acc, mag), **kw)
 
-    def with_effect(self, effect: fx.Effect, scope: str = "all") -> "LabModel":
-        """A copy with one more effect; adding an effect twice raises."""
+    @classmethod
+    def from_calibration(cls, cal, **kw) -> "LabModel":
+        """A record's model, with the record's site, as the start of a fit."""
+        return cls(site=cal.site, probe=copy.deepcopy(cal.model), **kw)
+
+    def with_effect(self, effect: fx.Effect, scope: str | None = None) -> "LabModel":
+        """A copy with one more effect (see :meth:`model.ProbeModel.with_effect`)."""
         new = copy.deepcopy(self)
-        if any(t.effect.key == effect.key for t in new.terms):
-            raise ValueError(f"effect {effect.key} is already in the model")
-        if scope not in ("all", "cal", "val"):
-            raise ValueError(f"scope must be all, cal or val, got {scope!r}")
-        new.terms.append(Term(copy.deepcopy(effect), scope))
+        new.probe = new.probe.with_effect(effect, scope)
         return new
 
     @property
+    def terms(self) -> list:
+        return self.probe.terms
+
+    @property
     def extra_terms(self) -> list:
-        return [t for t in self.terms if t.effect.name not in BASE_NAMES]
+        return self.probe.extra_terms
 
     def labels(self) -> list:
-        return [t.label for t in self.extra_terms] + (["heading_offset"] if self.fit_heading else [])
+        return self.probe.labels() + (["heading_offset"] if self.fit_heading else [])
 
     # ---- parameter vector --------------------------------------------------------------------
     def param_names(self) -> list:
-        names = [n for t in self.terms for n in t.effect.param_names()]
-        if self.fit_dip:
-            names.append("site.dip_deg")
-        if self.fit_heading:
-            names.append("site.heading_deg")
-        return names
+        return self.probe.param_names() + (["site.dip_deg"] if self.fit_dip else []) + \
+            (["site.heading_deg"] if self.fit_heading else [])
 
     def param_units(self) -> list:
-        units = [u for t in self.terms for u in t.effect.param_units()]
-        return units + ["deg"] * (int(self.fit_dip) + int(self.fit_heading))
+        return self.probe.param_units() + ["deg"] * (int(self.fit_dip) + int(self.fit_heading))
 
     def param_scale(self) -> np.ndarray:
         """Typical magnitude of each parameter (for conditioning and priors)."""
-        s = []
-        for t in self.terms:
-            typ = t.effect.param_typical()
-            s.append(np.where(typ > 0, typ, 1.0))
-        return np.concatenate(s + [np.array([0.1] * (int(self.fit_dip) + int(self.fit_heading)))])
+        return np.concatenate([self.probe.param_scale(), np.full(int(self.fit_dip) + int(self.fit_heading), 0.1)])
+
+    def prior_mask(self) -> np.ndarray:
+        """Parameters held by a weak prior: those of the effects beyond the base model."""
+        return np.concatenate([self.probe.extra_mask(), np.zeros(int(self.fit_dip) + int(self.fit_heading), bool)])
 
     def get_vector(self) -> np.ndarray:
-        v = [t.effect.get_vector() for t in self.terms]
+        v = [self.probe.get_vector()]
         if self.fit_dip:
             v.append(np.array([self.dip_deg]))
         if self.fit_heading:
@@ -117,11 +89,9 @@ class LabModel:
 
     def set_vector(self, vec) -> None:
         vec = np.asarray(vec, dtype=float)
-        i = 0
-        for t in self.terms:
-            n = t.effect.n_params
-            t.effect.set_vector(vec[i:i + n])
-            i += n
+        n = len(self.probe.param_names())
+        self.probe.set_vector(vec[:n])
+        i = n
         if self.fit_dip:
             self.dip_deg = float(vec[i])
             i += 1
@@ -140,19 +110,10 @@ class LabModel:
         return rt @ self.site.gravity_ned(), rt @ self.field_ned()
 
     def chain(self, sensor: str, role: str) -> list:
-        return [t.effect for t in self.terms if t.effect.sensor == sensor and t.scope in ("all", role)]
+        return self.probe.chain(sensor, role)
 
     def base_triad(self, sensor: str) -> TriadModel:
-        ch = {t.effect.name: t.effect for t in self.terms if t.effect.sensor == sensor and t.effect.name in BASE_NAMES}
-        e = {}
-        for j, a in enumerate("xyz"):
-            n1, n2 = fx.NonOrthogonality.term_names(a)
-            e[n1] = ch["nonorthogonality"].values["e1"][j]
-            e[n2] = ch["nonorthogonality"].values["e2"][j]
-        return TriadModel(scale=1.0 + ch["scale"].values["k"], bias=ch["bias"].values["b"], e=e)
-
-    def _ctx(self, data, mask):
-        return fx.Context(temperature_c=data.temp_c[mask], time_s=data.time_s[mask])
+        return self.probe.triad(sensor)
 
     def forward(self, data, g_true, b_true):
         """Predicted outputs (gravity-vector m/s², nT) for true vectors, station by station."""
@@ -160,38 +121,19 @@ class LabModel:
         h_b = np.empty_like(b_true)
         for role in ("cal", "val"):
             m = data.role == role
-            if not m.any():
-                continue
-            ctx = self._ctx(data, m)
-            h_g[m] = fx.apply_chain(g_true[m], self.chain("acc", role), ctx)
-            h_b[m] = fx.apply_chain(b_true[m], self.chain("mag", role), ctx)
+            if m.any():
+                h_g[m], h_b[m] = self.probe.forward(g_true[m], b_true[m], data.temp_c[m], data.time_s[m], role)
         return h_g, h_b
 
-    def correct(self, data, iterations: int = 6):
-        """Corrected (true) vectors from the measured ones by Newton iteration on the forward model.
-
-        Starts from the base model's linear inverse; each step solves with the base sensitivity
-        ``K·E`` (the extra effects are small), so it converges in a few steps.
-        """
-        out = []
-        for sensor, meas in (("acc", data.g), ("mag", data.b)):
-            tri = self.base_triad(sensor)
-            a_inv = tri.correction_matrix
-            v = np.empty_like(meas)
-            for role in ("cal", "val"):
-                m = data.role == role
-                if not m.any():
-                    continue
-                ctx = self._ctx(data, m)
-                chain = self.chain(sensor, role)
-                h = meas[m]
-                x = tri.inverse(h)
-                if len(chain) > 3:
-                    for _ in range(iterations):
-                        x = x + (h - fx.apply_chain(x, chain, ctx)) @ a_inv.T
-                v[m] = x
-            out.append(v)
-        return out[0], out[1]
+    def correct(self, data):
+        """Corrected (true) vectors of the stations: :meth:`model.ProbeModel.correct`, role by role."""
+        g = np.empty_like(data.g)
+        b = np.empty_like(data.b)
+        for role in ("cal", "val"):
+            m = data.role == role
+            if m.any():
+                g[m], b[m] = self.probe.correct(data.g[m], data.b[m], data.temp_c[m], data.time_s[m], role)
+        return g, b
 
     def angle_errors(self, data, tol=None):
         """Corrected angles of the stations and, for those with a reference, their errors."""
@@ -205,3 +147,20 @@ class LabModel:
     def describe(self) -> str:
         extra = ", ".join(self.labels()) or "none"
         return f"base (bias, scale, nonorthogonality) + [{extra}]"
+
+    # ---- the record ---------------------------------------------------------------------------
+    def record(self, probe_id: str = "probe", method: str = "lab fit", site_source: str = "given",
+               not_identifiable=(), fit_stats: dict | None = None):
+        """The fitted model as a calibration record (:class:`coeffs.Calibration`) for ``correct``,
+        ``reprocess`` and the nodes.  The site is the lab's (its total field and gravity set the
+        triads' scale); a fitted dip and heading offset are kept as diagnostics, not applied: the
+        dip of the site reference stays the one given, the heading belongs to the stand."""
+        from ..coeffs import Calibration
+
+        diags = {"fit": dict(fit_stats or {})}
+        diags["fit"].update({"fitted_dip_deg": float(self.dip_deg)})
+        if self.fit_heading:
+            diags["fit"]["stand_heading_offset_deg"] = float(self.heading_deg)
+        return Calibration(copy.deepcopy(self.probe), probe_id=probe_id, method=method, site=self.site,
+                           site_source=site_source, diagnostics=diags,
+                           not_identifiable=[{"parameter": n.parameter, "reason": n.reason} for n in not_identifiable])

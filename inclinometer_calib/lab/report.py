@@ -16,7 +16,7 @@ from ..deps import require
 from ..survey import table4, table5
 
 
-def _png(fig) -> str:
+def figure_png(fig) -> str:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     import matplotlib.pyplot as plt
@@ -25,7 +25,7 @@ def _png(fig) -> str:
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
 
 
-def _plt():
+def pyplot():
     matplotlib = require("matplotlib", "report", "lab report")
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -35,7 +35,7 @@ def _plt():
 
 def ladder_figure(steps, uncorrected: dict) -> str:
     """Validation error after each rung: uncorrected, the paper's base model, then each added effect."""
-    plt = _plt()
+    plt = pyplot()
     labels = ["uncorrected", "base (paper)"] + ["+ " + s.recommended.label for s in steps if s.recommended]
     drift = [uncorrected["drift_rms_deg"]] + [s.base_val.get("drift_rms_deg", np.nan) for s in steps]
     az = [uncorrected["azimuth_rms_deg"]] + [s.base_val.get("azimuth_rms_deg", np.nan) for s in steps]
@@ -51,11 +51,11 @@ def ladder_figure(steps, uncorrected: dict) -> str:
         for xi, yi in zip(x, y):
             a.annotate(f"{yi:.3g}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
     fig.suptitle("Effect ladder: validation error after each added effect")
-    return _png(fig)
+    return figure_png(fig)
 
 
 def residual_figure(model, data, title) -> str:
-    plt = _plt()
+    plt = pyplot()
     has = np.all(np.isfinite(data.ref), axis=1)
     d = data.subset(has)
     r = model.angle_errors(d)
@@ -75,11 +75,11 @@ def residual_figure(model, data, title) -> str:
             a.grid(alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
-    return _png(fig)
+    return figure_png(fig)
 
 
 def sensor_residual_figure(model, data, title) -> str:
-    plt = _plt()
+    plt = pyplot()
     d = data.subset(data.oriented)
     g_t, b_t = model.true_vectors(d)
     h_g, h_b = model.forward(d, g_t, b_t)
@@ -94,10 +94,10 @@ def sensor_residual_figure(model, data, title) -> str:
         a.legend(fontsize=8)
         a.grid(alpha=0.3)
     fig.suptitle(title)
-    return _png(fig)
+    return figure_png(fig)
 
 
-def _table_html(title, header, rows) -> str:
+def table_html(title, header, rows) -> str:
     h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
     body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
     return f"<h3>{html.escape(title)}</h3><table><tr>{h}</tr>{body}</table>"
@@ -111,13 +111,13 @@ def paper_tables_html(before: dict, after: dict, ref) -> str:
     t4b, t4a = table4(before, ref), table4(after, ref)
     rows = [["before"] + [_fmt(v) for v in t4b["mean_err"]] + [_fmt(t4b["overall_rms"])],
             ["after"] + [_fmt(v) for v in t4a["mean_err"]] + [_fmt(t4a["overall_rms"])]]
-    out = _table_html("Table 4 layout — drift error (deg) by set drift", ["state"] + [f"{d:g}" for d in t4a["drifts"]] + ["RMS"], rows)
+    out = table_html("Table 4 layout — drift error (deg) by set drift", ["state"] + [f"{d:g}" for d in t4a["drifts"]] + ["RMS"], rows)
     t5b, t5a = table5(before, ref), table5(after, ref)
     rows = []
     for i, dr in enumerate(t5a["drifts"]):
         for name, t in (("before", t5b), ("after", t5a)):
             rows.append([f"{dr:g}", name] + [_fmt(v, 2) for v in t["cells"][i]] + [_fmt(t["rms_err"][i], 2)])
-    out += _table_html(f"Table 5 layout — azimuth error (deg) at toolface {t5a['toolface_deg']:g}",
+    out += table_html(f"Table 5 layout — azimuth error (deg) at toolface {t5a['toolface_deg']:g}",
                        ["drift", "state"] + [f"{a:g}" for a in t5a["azimuths"]] + ["RMS"], rows)
     return out
 
@@ -139,12 +139,12 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
         rows = [[html.escape(c.label), _fmt(c.val.get('drift_rms_deg'), 4), _fmt(c.val.get('azimuth_rms_deg'), 4),
                  _fmt(c.score, 4), f"{100 * c.gain:.0f} %", f"{c.delta_bic:.0f}", "yes" if c.significant else ""]
                 for c in s.ranked[:8]]
-        parts.append(_table_html("Candidates (held-out errors)", ["effect", "drift RMS", "azimuth RMS", "pointing RMS",
+        parts.append(table_html("Candidates (held-out errors)", ["effect", "drift RMS", "azimuth RMS", "pointing RMS",
                                                                   "gain", "ΔBIC", "significant"], rows))
         if s.structure:
             rows = [[html.escape(e["channel"]), html.escape(e["regressor"]), f"{e['r2']:.2f}", f"{e['p']:.1e}"]
                     for e in s.structure]
-            parts.append(_table_html("Residual structure (F-test vs regressors, Bonferroni)",
+            parts.append(table_html("Residual structure (F-test vs regressors, Bonferroni)",
                                      ["residual", "regressor", "R²", "p"], rows))
     parts.append("<h2>Effect ladder</h2>")
     parts.append(f"<img src='{ladder_figure(steps, uncorrected)}'>")
@@ -165,7 +165,7 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
     if final_fit is not None:
         rows = [[html.escape(r["name"]), f"{r['value']:.6g}", f"{r['std']:.2g}", html.escape(r["unit"])]
                 for r in final_fit.parameter_table()]
-        parts.append("<h2>Final model parameters</h2>" + _table_html("", ["parameter", "value", "1σ", "unit"], rows))
+        parts.append("<h2>Final model parameters</h2>" + table_html("", ["parameter", "value", "1σ", "unit"], rows))
         if final_fit.not_identifiable:
             parts.append("<ul>" + "".join(f"<li>{html.escape(n.parameter)}: {html.escape(n.reason)}</li>"
                                           for n in final_fit.not_identifiable) + "</ul>")

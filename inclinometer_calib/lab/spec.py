@@ -1,4 +1,4 @@
-"""Effect specifications as users write them, and the report entry point."""
+"""Models as users name them (the package's one effect grammar), and the report entry point."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,49 +8,19 @@ from ..probelog import atomic_write_text
 from ..survey import evaluate, summarize
 from .model import LabModel
 
-#: Effects whose default scope is the validation/survey logs only.
-SURVEY_ONLY = ("axial_interference",)
-
 
 def effect(name: str, sensor: str | None = None, axes: str | None = None) -> fx.Effect:
     """A catalogue or plug-in effect with zero parameters (to be fitted)."""
-    cls = fx.CATALOGUE.get(name)
-    if cls is None:
-        raise ValueError(f"unknown effect {name!r}; known: {', '.join(sorted(fx.CATALOGUE))} "
-                         f"(or load a plug-in with --plugin)")
-    return cls(sensor=sensor or cls.sensors[0], axes=axes or cls.default_axes)
+    return fx.make_effect(name, sensor, axes)
 
 
-def parse_effects(text: str | None) -> list:
-    """``NAME[:sensor[:axes]][@scope],...`` → [(Effect, scope)].  No sensor: every sensor it acts on."""
-    out = []
-    if not text:
-        return out
-    for item in (s.strip() for s in text.split(",")):
-        if not item:
-            continue
-        spec, _, scope = item.partition("@")
-        parts = spec.split(":")
-        if len(parts) > 3 or not parts[0]:
-            raise ValueError(f"effect {item!r}: expected NAME[:sensor[:axes]][@scope]")
-        name = parts[0]
-        cls = fx.CATALOGUE.get(name)
-        if cls is None:
-            raise ValueError(f"unknown effect {name!r}; known: {', '.join(sorted(fx.CATALOGUE))}")
-        sensors = [parts[1]] if len(parts) > 1 and parts[1] else list(cls.sensors)
-        axes = parts[2] if len(parts) > 2 and parts[2] else None
-        scope = scope or ("val" if name in SURVEY_ONLY else "all")
-        if scope not in ("all", "cal", "val"):
-            raise ValueError(f"effect {item!r}: scope must be all, cal or val")
-        for s in sensors:
-            out.append((effect(name, s, axes), scope))
-    return out
-
-
-def build_model(site, effects_text: str | None = None, **kw) -> LabModel:
+def build_model(site, effects_text=None, **kw) -> LabModel:
+    """The paper's base model plus the effects named in the package's grammar
+    (:func:`effects.parse_effects`; values given there are the starting point of a fit)."""
     model = LabModel.base(site, **kw)
-    for eff, scope in parse_effects(effects_text):
-        model = model.with_effect(eff, scope)
+    for spec in fx.parse_effects(effects_text):
+        for eff in spec.build():
+            model = model.with_effect(eff, spec.scope)
     return model
 
 
@@ -87,16 +57,7 @@ def model_from_truth(truth: dict) -> LabModel:
 
     Gives the 'true-model' figures: the validation errors a perfect model reaches on the same data.
     """
-    from ..errormodel import TriadModel
     from ..frames import Site
+    from ..simulate import SimulatedProbe
 
-    probe = truth["probe"]
-    model = LabModel.base(Site(**truth["site"]), TriadModel.from_parameters(probe["acc"]),
-                          TriadModel.from_parameters(probe["mag"]))
-    for e in probe["effects"]:
-        cls = fx.CATALOGUE.get(e["name"])
-        if cls is None:
-            raise ValueError(f"truth names effect {e['name']!r}, which is not registered (load its plug-in)")
-        eff = cls(sensor=e["sensor"], axes=e["axes"], values={k: np.asarray(v) for k, v in e["values"].items()})
-        model = model.with_effect(eff, "val" if e["name"] in probe.get("survey_only", ()) else "all")
-    return model
+    return LabModel(site=Site(**truth["site"]), probe=SimulatedProbe.from_dict(truth["probe"]).model)

@@ -8,6 +8,13 @@ to the capture session (:class:`capture.CaptureSession`) and, when all twelve po
   (reliable, transient local: late joiners get the latest set);
 * writes the coefficient record (YAML) to the ``output`` parameter's path (atomically).
 
+The record is the paper's twelve-position model, or — with ``model.effects`` (the package's effect
+grammar, e.g. ``temperature_bias:mag`` when the rounds span a temperature range) — that model plus
+the named effects fitted to the captures by the lab's fit; parameters the captures cannot
+identify are said at WARNING and named in the record (``not_identifiable``).  Its site reference
+is the one given (``site.given:=true`` and ``site.*``) or, without one, the one the stand
+measures (dip and the horizontal field's direction; said at WARNING), never a default.
+
 ``/calibration/status`` (``CalibrationStatus``) is published on every change and at
 ``status_rate_hz``.  Pose numbers in messages and services are those of the paper's Table 1
 (1..12), as everywhere in the package.  Services: ``~/reset`` (std_srvs/Trigger)
@@ -25,12 +32,22 @@ from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_srvs.srv import Trigger
 
 from ..capture import CaptureSession
+from ..effects import parse_effects
+from ..frames import gravity_from_specific_force
 from ..gates import GateLimits
 from ..streaming import StaticDetector
 from ..twelve_position import POSES
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, CalibrationStatus
 from inclinometer_calib.srv import RecapturePose
+
+
+def _check_effects(text):
+    try:
+        parse_effects(text)
+    except ValueError as exc:
+        return str(exc)
+    return None
 
 
 class CalibrationNode(Node):
@@ -62,7 +79,12 @@ class CalibrationNode(Node):
         rounds = p.declare("rounds", True, "After the first solve, accept further complete rounds of the twelve "
                            "poses in Table 1 order (starting at pose 1) and solve again with all of them; "
                            "false: the first solve is final", read_only=True)
-        site = c.declare_site(p)
+        site = c.declare_site(p, given_flag="true: the site.* values are the site reference of the record; "
+                              "false: the record's site is what the stand measures (dip, the horizontal field's "
+                              "direction; the total field in the scale of the assumed vertical component)")
+        effects = p.declare("model.effects", "", "Effects to fit beyond the paper's model on the captured poses, "
+                            "NAME[:sensor[:axes]][@scope],... (e.g. temperature_bias:mag); empty: the paper's model",
+                            read_only=True, check=_check_effects)
         det = c.declare_detector(p, max_duration_s=600.0)
         qos = c.declare_qos(p)
 
@@ -70,7 +92,7 @@ class CalibrationNode(Node):
         self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
         self.implausible_samples = 0
         self.session = CaptureSession(site=site, min_capture_s=min_capture, pose_tolerance_deg=pose_tol,
-                                      rounds=rounds, probe_id=self.probe_id,
+                                      rounds=rounds, probe_id=self.probe_id, effects=effects,
                                       limits=GateLimits(max_creep_deg=max_creep, max_scatter_ratio=max_ratio))
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
@@ -171,7 +193,15 @@ class CalibrationNode(Node):
         msg = c.coefficients_to_msg(cal, CalibrationCoefficients, self.get_clock().now().to_msg(), self.frame_id)
         self.pub_coeffs.publish(msg)
         self.coefficients = msg
-        self.get_logger().info(f"solved: {self.session.message}; published coefficients {cal.id}")
+        self.get_logger().info(f"solved: {self.session.message}; published coefficients {cal.id} "
+                               f"(model {cal.model.describe()})")
+        if cal.site_source == "measured":
+            st = cal.site
+            self.get_logger().warning(
+                f"no site given (site.given is false): the record's site reference is what the stand measured — dip "
+                f"{st.dip_deg:.3f} deg, horizontal field {st.declination_deg:+.3f} deg from the stand's north (azimuths "
+                f"are from the stand's north), total field {st.total_field_nt:.0f} nT in the scale of an assumed "
+                "vertical component; give the site for a survey elsewhere")
         if self.output:
             try:
                 cal.save(self.output)
@@ -194,7 +224,7 @@ class CalibrationNode(Node):
             return
         # Live pose while static (the session only identifies closed segments).
         if self._last is not None and self.detector.static_for_s > 0:
-            pose, _ = self.session.identify(tuple(-x for x in self._last[1]), self._last[2])  # g = -f
+            pose, _ = self.session.identify(gravity_from_specific_force(tuple(self._last[1])), self._last[2])
             self._live_pose = pose if pose is not None else -1
         else:
             self._live_pose = -1

@@ -15,7 +15,6 @@ import math
 import re
 import sys
 import time
-from dataclasses import dataclass
 
 import numpy as np
 import rclpy
@@ -148,9 +147,17 @@ class Params:
         return SetParametersResult(successful=True)
 
 
-def declare_site(params: Params, site: Site = Site(), prefix: str = "site") -> Site:
-    """Site reference field parameters (read-only: the reference of a run does not change)."""
+def declare_site(params: Params, site: Site = Site(), prefix: str = "site", given_flag: str | None = None):
+    """Site reference field parameters (read-only: the reference of a run does not change).
+
+    With ``given_flag`` (a description) a bool parameter ``<prefix>.given`` says whether the values
+    are a site at all: false (the default) returns None — the node then uses the site the
+    calibration record owns (or the calibration node the one the stand measures), never these
+    defaults silently."""
     p = prefix
+    given = True
+    if given_flag is not None:
+        given = params.declare(f"{p}.given", False, given_flag, read_only=True)
     s = Site(
         total_field_nt=params.declare(f"{p}.total_field_nt", float(site.total_field_nt),
                                       "Reference total magnetic field |B|, nT", read_only=True,
@@ -165,7 +172,7 @@ def declare_site(params: Params, site: Site = Site(), prefix: str = "site") -> S
                                     "Reference local gravity |g|, m/s^2", read_only=True,
                                     range=(9.7, 9.9)),
     )
-    return s
+    return s if given else None
 
 
 def declare_tolerances(params: Params, prefix: str = "tolerances") -> Tolerances:
@@ -413,39 +420,6 @@ def coefficients_to_msg(cal: Calibration, msg_type, stamp_msg=None, frame_id: st
 def coefficients_from_msg(msg) -> Calibration:
     """The :class:`coeffs.Calibration` carried by a message (checked; raises CoefficientError)."""
     return Calibration.from_yaml(msg.coefficients_yaml, source=f"CalibrationCoefficients {msg.id!r}")
-
-
-@dataclass
-class FastCorrection:
-    """Calibration correction as plain floats for per-sample use (no numpy per sample).
-
-    ``f`` is REP-145 specific force (m/s^2), ``m`` field in nT.  In the gravity convention
-    ``g_c = C·(g - B)``; with ``f = -g`` this is ``f_c = C·(f + B)``.
-    """
-
-    ca: tuple
-    ba: tuple
-    cm: tuple
-    bm: tuple
-
-    @classmethod
-    def from_calibration(cls, cal: Calibration):
-        return cls(tuple(float(x) for x in cal.acc.correction_matrix.reshape(9)),
-                   tuple(float(x) for x in cal.acc.bias),
-                   tuple(float(x) for x in cal.mag.correction_matrix.reshape(9)),
-                   tuple(float(x) for x in cal.mag.bias))
-
-    @staticmethod
-    def _apply(c, x, y, z):
-        return (c[0] * x + c[1] * y + c[2] * z, c[3] * x + c[4] * y + c[5] * z, c[6] * x + c[7] * y + c[8] * z)
-
-    def specific_force(self, f):
-        b = self.ba
-        return self._apply(self.ca, f[0] + b[0], f[1] + b[1], f[2] + b[2])
-
-    def field(self, m):
-        b = self.bm
-        return self._apply(self.cm, m[0] - b[0], m[1] - b[1], m[2] - b[2])
 
 
 def finite_or_nan(x) -> float:

@@ -15,15 +15,23 @@ station), so the ids of a restarted node continue instead of starting again at 0
 Outputs:
 
 * ``/survey/station`` (``SurveyStation``, reliable): one per static interval closed by the
-  static detector, corrected with the current coefficients and evaluated against the site
-  reference (:class:`streaming.SurveyProcessor`);
+  static detector, through the survey pipeline (:class:`pipeline.SurveyProcessor`): corrected by
+  the current record's model (its lab effects too, with the station's temperature and time),
+  evaluated against the site reference **the record owns** (``site.given:=true`` overrides it
+  with the ``site.*`` parameters, said at WARNING for every record it overrides; before any
+  record and without a given site there is no reference and the stations say so), and checked
+  by the field monitor (:class:`lab.field.FieldMonitor`, ``monitor.window`` stations): when the
+  residuals against the site follow temperature, time or orientation beyond chance, the station
+  carries ``model_misfit`` and ``model_diagnosis`` (the likely missing effect, in words);
 * ``/probe/imu_corrected``, ``/probe/mag_corrected`` (``publish_corrected``): the corrected
-  streams, sample by sample, once coefficients are known;
+  streams, sample by sample, once coefficients are known (the same correction path, with the
+  latest temperature);
 * ``/diagnostics`` (``diagnostic_msgs/DiagnosticArray``): G-total, B-total and dip of the latest
-  station against the site reference and the configured tolerances (per station and at 1 Hz).
+  station against the site reference and the configured tolerances, and the field monitor's
+  verdict on the model (per station and at 1 Hz).
 
-Per-sample work is a few float operations and one static-detector update; stations (a few per
-minute) do the heavier evaluation.
+Per-sample work is one static-detector update (and, with ``publish_corrected``, one correction);
+stations (a few per minute) do the heavier evaluation.
 """
 from __future__ import annotations
 
@@ -40,8 +48,11 @@ from rclpy.node import Node
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..coeffs import Calibration, CoefficientError
+from ..frames import gravity_from_specific_force, specific_force_from_gravity
+from ..lab.field import FieldMonitor
+from ..pipeline import NO_SITE, SurveyProcessor
 from ..probelog import atomic_write_text
-from ..streaming import ReferenceTrack, StaticDetector, SurveyProcessor, station_fields
+from ..streaming import ReferenceTrack, StaticDetector
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
 
@@ -82,8 +93,16 @@ class CorrectionNode(Node):
         self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
                                     "arrived for this long (wall clock), s; 0 disables", read_only=True,
                                     range=(0.0, 60.0))
-        self.site = c.declare_site(p)
+        site = c.declare_site(p, given_flag="true: the site.* values are the site reference and override the one "
+                              "the calibration record owns (said at WARNING for every record they override); "
+                              "false: the record's site is used")
         self.tol = c.declare_tolerances(p)
+        window = p.declare("monitor.window", 30, "The field monitor tests the residuals of the last this many "
+                           "stations against the site for the trend a missing effect leaves (temperature, time, "
+                           "orientation); 0 disables it", read_only=True, range=(0, 1000))
+        materiality = p.declare("monitor.materiality", 0.1, "Smallest trend that counts, as a fraction of each "
+                                "channel's QC tolerance (RMS of the part it explains)", read_only=True,
+                                range=(0.0, 10.0))
         det = c.declare_detector(p)
         qos = c.declare_qos(p)
         self.add_post_set_parameters_callback(self._after_set)
@@ -91,21 +110,23 @@ class CorrectionNode(Node):
         self.detector = StaticDetector(**det)
         self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
         self.implausible_samples = 0
-        self.processor = SurveyProcessor(self.site, self.tol, axial=axial)
+        monitor = FieldMonitor(window=window, materiality=materiality, tolerances=self.tol) if window else None
+        self.processor = SurveyProcessor(self.tol, site=site, axial=axial, monitor=monitor)
         self.processor._next_id = self._read_state()  # station ids continue across restarts
+        if site is None:
+            self.get_logger().info("the site reference is the calibration record's (site.given is false)")
         self._fallback_id = None     # id of the record applied from fallback_coeffs_file, until replaced
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
         self._unpaired_seen = self._paired_seen = self._waiting_seen = 0
-        self.fast = None
         self._temp = c.NAN
         self._have_temp = False
         self._last_wall = None
         self.refs = ReferenceTrack()
         self._pending = collections.deque()   # (station, monotonic time) waiting for the reference
         self._last_diag = None
-        self.azimuth_reference = (SurveyStation.AZIMUTH_REFERENCE_TRUE if self.site.declination_deg
-                                  else SurveyStation.AZIMUTH_REFERENCE_MAGNETIC)
+        self._last_verdict = None
+        self._no_site_said = False
         if coeffs_file:
             self._apply(Calibration.load(coeffs_file), f"file {coeffs_file}")
         elif fallback:
@@ -143,10 +164,19 @@ class CorrectionNode(Node):
             elif prm.name in ("publish_corrected", "publish_short"):
                 setattr(self, prm.name, prm.value)
 
-    def _apply(self, cal: Calibration, origin: str):
-        self.processor.set_calibration(cal)
-        self.fast = c.FastCorrection.from_calibration(cal)
-        self.get_logger().info(f"applying coefficients {cal.id} (probe {cal.probe_id}) from {origin}")
+    @property
+    def calibration(self):
+        return self.processor.calibration
+
+    def _apply(self, cal: Calibration, origin: str, fallback: bool = False):
+        notes = self.processor.set_calibration(cal)
+        self.get_logger().info(f"applying coefficients {cal.id} (probe {cal.probe_id}, model {cal.model.describe()}, "
+                               f"site {cal.site_source}) from {origin}")
+        for note in notes:
+            self.get_logger().warning(note)
+        if "temperature" in cal.needs and not self._have_temp:
+            self.get_logger().warning(f"record {cal.id} has temperature effects ({', '.join(cal.model.labels())}): "
+                                      f"stations need {c.TOPIC_TEMPERATURE}, none received yet")
 
     def _apply_fallback(self, path):
         """Apply the last valid record on disk until the topic delivers one (see the module docstring)."""
@@ -158,8 +188,7 @@ class CorrectionNode(Node):
         except (OSError, CoefficientError) as exc:
             self.get_logger().error(f"fallback record {path} is not valid, not used: {exc}")
             return
-        self.processor.set_calibration(cal)
-        self.fast = c.FastCorrection.from_calibration(cal)
+        self._apply(cal, f"the fallback record {path}")
         self._fallback_id = cal.id
         self.get_logger().warning(f"no record received yet; applying the last valid record on disk {path} "
                                   f"(id {cal.id}, created {cal.created}) until one arrives on "
@@ -178,7 +207,7 @@ class CorrectionNode(Node):
         elif fallback is not None:
             self.get_logger().info(f"record {cal.id} received on {c.TOPIC_COEFFICIENTS} is the fallback record "
                                    "already applied")
-        if self.processor.calibration is None or cal.id != self.processor.calibration.id:
+        if self.calibration is None or cal.id != self.calibration.id:
             self._apply(cal, c.TOPIC_COEFFICIENTS)
 
     # ---- station-id state ------------------------------------------------------------------
@@ -223,10 +252,12 @@ class CorrectionNode(Node):
             self._sample(*got)
         elif self.pairer.out_of_order != ooo:
             c.warn_out_of_order(self, c.TOPIC_IMU, s, self.pairer)
-        if self.publish_corrected and self.fast is not None:
-            la = msg.linear_acceleration
-            la.x, la.y, la.z = self.fast.specific_force(f)
-            self.pub_imu.publish(msg)
+        if self.publish_corrected and self.calibration is not None:
+            v = self._correct_stream("acc", gravity_from_specific_force(f), c.stamp_to_sec(s))
+            if v is not None:
+                la = msg.linear_acceleration
+                la.x, la.y, la.z = specific_force_from_gravity(v)
+                self.pub_imu.publish(msg)
 
     def _on_mag(self, msg):
         s = msg.header.stamp
@@ -239,11 +270,26 @@ class CorrectionNode(Node):
             self._sample(*got)
         elif self.pairer.out_of_order != ooo:
             c.warn_out_of_order(self, c.TOPIC_MAG, s, self.pairer)
-        if self.publish_corrected and self.fast is not None:
-            x, y, z = self.fast.field(m)
-            mf = msg.magnetic_field
-            mf.x, mf.y, mf.z = x * c.TESLA_PER_NT, y * c.TESLA_PER_NT, z * c.TESLA_PER_NT
-            self.pub_mag.publish(msg)
+        if self.publish_corrected and self.calibration is not None:
+            v = self._correct_stream("mag", m, c.stamp_to_sec(s))
+            if v is not None:
+                mf = msg.magnetic_field
+                mf.x, mf.y, mf.z = v[0] * c.TESLA_PER_NT, v[1] * c.TESLA_PER_NT, v[2] * c.TESLA_PER_NT
+                self.pub_mag.publish(msg)
+
+    def _correct_stream(self, sensor, h, t):
+        """One sample of one stream through the record's correction (:meth:`model.CorrectionPlan.correct_triad`:
+        the path the stations take), with the latest temperature and the time since the first
+        sample; None (and a warning) when the model needs a temperature there is none of."""
+        cal = self.calibration
+        t0 = self.detector.t_first
+        try:
+            v = cal.plan.correct_triad(sensor, h, self._temp if self._have_temp else None,
+                                       t - t0 if t0 == t0 else 0.0)
+        except ValueError as exc:
+            self.get_logger().warning(f"corrected {sensor} stream not published: {exc}", throttle_duration_sec=10.0)
+            return None
+        return (float(v[0]), float(v[1]), float(v[2]))
 
     def _on_temp(self, msg):
         self._temp = msg.temperature
@@ -283,15 +329,25 @@ class CorrectionNode(Node):
     def _publish_station(self, seg):
         ref = self.refs.at(0.5 * (seg.t_start + seg.t_end))
         has_ref = ref is not None   # a partial reference is used for what it gives
-        rec = self.processor.process(seg, ref=ref)
+        fields = self.processor.process(seg, ref=ref, have_temperature=self._have_temp)
         for w in seg.warnings:
-            self.get_logger().warning(f"station {rec.station_id}: {w}")
+            if w == NO_SITE:          # said once, not at every station before the first record
+                if self._no_site_said:
+                    continue
+                self._no_site_said = True
+            self.get_logger().warning(f"station {fields['station_id']}: {w}")
         msg = SurveyStation()
         c.set_stamp(msg.header.stamp, seg.t_end)
         msg.header.frame_id = self.frame_id
-        for name, value in station_fields(rec, ref if has_ref else None, self.azimuth_reference, self._have_temp,
-                                          self.processor.calibration is not None).items():
+        for name, value in fields.items():
             setattr(msg, name, value)
+        verdict = self.processor.monitor.last if self.processor.monitor is not None else None
+        if verdict is not None and verdict.misfit and (self._last_verdict is None or not self._last_verdict.misfit):
+            self.get_logger().warning(f"station {msg.station_id}: {verdict.text}")   # said when it starts
+        elif verdict is not None and not verdict.misfit and self._last_verdict is not None and \
+                self._last_verdict.misfit:
+            self.get_logger().info(f"station {msg.station_id}: the model explains the survey again")
+        self._last_verdict = verdict
         self._write_state()  # before publishing: a crash in between skips an id, never repeats one
         self.pub_station.publish(msg)
         self._last_diag = self._diagnostics(msg)
@@ -324,16 +380,38 @@ class CorrectionNode(Node):
                         KeyValue(key="station_id", value=str(st.station_id))]
             return s
 
-        site = self.site
+        site = self.processor.site
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [
-            check("total gravity", st.total_gravity_mps2, site.gravity_mps2, st.delta_g_mps2, tol.gravity_mps2,
-                  "m/s^2", DiagnosticStatus.ERROR),
-            check("total field", st.total_field_nt, site.total_field_nt, st.delta_b_nt, tol.field_nt, "nT",
-                  DiagnosticStatus.WARN),
-            check("dip", st.dip_deg, site.dip_deg, st.delta_dip_deg, tol.dip_deg, "deg", DiagnosticStatus.WARN),
-        ]
+        if site is None:
+            arr.status = [DiagnosticStatus(level=DiagnosticStatus.WARN, name="inclinometer_calib: site reference",
+                                           hardware_id=self.probe_id, message=NO_SITE)]
+        else:
+            arr.status = [
+                check("total gravity", st.total_gravity_mps2, site.gravity_mps2, st.delta_g_mps2, tol.gravity_mps2,
+                      "m/s^2", DiagnosticStatus.ERROR),
+                check("total field", st.total_field_nt, site.total_field_nt, st.delta_b_nt, tol.field_nt, "nT",
+                      DiagnosticStatus.WARN),
+                check("dip", st.dip_deg, site.dip_deg, st.delta_dip_deg, tol.dip_deg, "deg", DiagnosticStatus.WARN),
+            ]
+        monitor = self.processor.monitor
+        if monitor is not None and self.calibration is not None:
+            v = monitor.last
+            m = DiagnosticStatus(name="inclinometer_calib: model", hardware_id=self.probe_id)
+            m.level = DiagnosticStatus.WARN if v.misfit else DiagnosticStatus.OK
+            m.message = v.text if v.misfit else (
+                f"record {self.calibration.id} explains the last {v.stations} stations (no trend of the residuals "
+                "against temperature, time or orientation)" if v.stations >= monitor.min_stations else
+                f"{v.stations} of {monitor.min_stations} stations needed to test the model")
+            m.values = [KeyValue(key="coefficients_id", value=self.calibration.id),
+                        KeyValue(key="stations_tested", value=str(v.stations)),
+                        KeyValue(key="model", value=self.calibration.model.describe())]
+            for k, cand in enumerate(v.candidates[:3]):
+                m.values.append(KeyValue(key=f"candidate_{k + 1}", value=f"{cand['label']} (score {cand['score']:.2f})"))
+            for k, tr in enumerate(v.trends[:3]):
+                m.values.append(KeyValue(key=f"trend_{k + 1}", value=f"{tr['channel']} ~ {tr['regressor']} "
+                                                                       f"(R² {tr['r2']:.2f})"))
+            arr.status.append(m)
         summary = DiagnosticStatus(name="inclinometer_calib: station", hardware_id=self.probe_id)
         summary.level = max(s.level for s in arr.status)
         summary.message = (f"station {st.station_id}: {_LEVEL_NAMES[summary.level]}; coefficients "

@@ -2,6 +2,7 @@
 import numpy as np
 import pytest
 
+from inclinometer_calib.station import Station, Stations
 from inclinometer_calib import lab
 from inclinometer_calib.lab.spec import build_model
 
@@ -52,7 +53,7 @@ def test_free_stations_fit_through_the_site_invariants(sim_factory):
     free = data.subset(data.role == "val")
     free.kind[:] = "free"
     free.rotation[:] = np.nan
-    both = lab.LabData.concatenate([data.subset(data.role == "cal"), free])
+    both = Stations.concatenate([data.subset(data.role == "cal"), free])
     res = lab.fit(lab.LabModel.base(site), both)
     assert res.success and res.z_rms < 1.3
 
@@ -79,7 +80,7 @@ def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(
     data, truth, site = sim_factory(21)
     probe = sim.build_probe(21)
     rng = np.random.default_rng(5)
-    attitudes = [sim.Stationary(sim.orientation_matrix(*rng.uniform([0, 0, 0], [180, 360, 360])), 2.0)
+    attitudes = [Station.planned(sim.orientation_matrix(*rng.uniform([0, 0, 0], [180, 360, 360])), 2.0)
                  for _ in range(40)]
     log = sim.run_session(probe, site, attitudes, rng)
     log.pose[:] = 0
@@ -87,5 +88,5 @@ def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(
     both = lab.load_logs(free_paths=[tmp_path / "free.csv"])
     assert 35 <= len(both) <= 40 and set(both.kind) == {"free"}
     # the free log alone fixes the triads up to a common rotation; with the poses it fits to the noise
-    res = lab.fit(lab.LabModel.base(site), lab.LabData.concatenate([data.subset(data.role == "cal"), both]))
+    res = lab.fit(lab.LabModel.base(site), Stations.concatenate([data.subset(data.role == "cal"), both]))
     assert res.success and res.z_rms < 1.3

@@ -24,6 +24,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 from sensor_msgs.msg import Imu, MagneticField, Temperature  # noqa: E402
 
+from inclinometer_calib.station import Station
 from inclinometer_calib import bag  # noqa: E402
 from inclinometer_calib import simulate as sim  # noqa: E402
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
@@ -56,7 +57,7 @@ def coeffs_file(tmp_path_factory):
 
 
 def _grid_log(refs, seed=SEED, duration_s=2.0, move_s=0.5, rate_hz=100.0):
-    stations = [sim.Stationary(sim.orientation_matrix(*r), duration_s, ref=r) for r in refs]
+    stations = [Station.planned(sim.orientation_matrix(*r), duration_s, ref=r) for r in refs]
     return sim.run_session(sim.build_probe(seed), SITE, stations, np.random.default_rng(1), rate_hz=rate_hz,
                            move_s=move_s, survey=True)
 
@@ -234,7 +235,7 @@ def _cal_log(pieces, rate_hz=100.0):
     stations = []
     for what, dur, _ in pieces:
         rot = sim.pose_matrix(what) if isinstance(what, int) else sim.orientation_matrix(*what)
-        stations.append(sim.Stationary(rot, dur, pose=what if isinstance(what, int) else 0))
+        stations.append(Station.planned(rot, dur, pose=what if isinstance(what, int) else 0))
     log = sim.run_session(probe, SITE, stations, np.random.default_rng(2), rate_hz=rate_hz, move_s=1.0)
     # wobble: the probe moved during a capture (slow sway, within the detector's band)
     starts = np.flatnonzero(np.diff(np.r_[0, (log.pose > 0).astype(int)]) == 1)

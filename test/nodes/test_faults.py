@@ -25,6 +25,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
+from inclinometer_calib.station import Station
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
 
 
@@ -131,7 +132,7 @@ def _survey_log(n_stations, seed=3):
     from inclinometer_calib.frames import Site
 
     refs = [(20.0 + 10.0 * k, 40.0 * k, 0.0) for k in range(n_stations)]
-    stations = [sim.Stationary(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs]
+    stations = [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs]
     return sim.run_session(sim.build_probe(seed), Site(), stations, np.random.default_rng(1), rate_hz=100.0,
                            move_s=0.5, survey=True)
 

@@ -14,6 +14,7 @@ from rclpy.exceptions import InvalidParameterValueException  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
+from inclinometer_calib.station import Station
 from inclinometer_calib import simulate as sim  # noqa: E402
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.frames import Site  # noqa: E402
@@ -167,10 +168,10 @@ def test_coefficient_message_conventions():
     names = list(msg.accel_parameter_names)
     assert msg.accel_parameter_values[names.index("bias_x")] == -cal.acc.bias[0]  # REP-145 sign
     assert msg.accel_parameter_units[names.index("bias_x")] == "m/s^2"
-    # the fast per-sample correction agrees with the core
-    fast = c.FastCorrection.from_calibration(cal)
-    assert np.allclose(fast.specific_force(tuple(-g_raw)), -g_c, atol=1e-12)
-    assert np.allclose(fast.field(tuple(b_raw)), b_c, atol=1e-6)
+    # the node's per-stream correction is the same path, to the bit
+    assert np.array_equal(cal.plan.correct_triad("acc", g_raw), g_c)
+    assert np.array_equal(cal.plan.correct_triad("mag", b_raw), b_c)
+    assert msg.site_source == cal.site_source and msg.site_dip_deg == cal.site.dip_deg
 
 
 def test_stream_pairer_pairs_by_stamp_in_order():
@@ -287,7 +288,7 @@ def _noisy_log(noise_acc, noise_mag, seed=2):
     """A simulated four-station stand log with the given white noise (m/s^2, nT per sample)."""
     probe = sim.build_probe(seed, noise_acc=noise_acc, noise_mag=noise_mag)
     refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 0.0), (50.0, 200.0, 120.0), (20.0, 300.0, 240.0)]
-    stations = [sim.Stationary(sim.orientation_matrix(*r), 3.0, ref=r) for r in refs]
+    stations = [Station.planned(sim.orientation_matrix(*r), 3.0, ref=r) for r in refs]
     return sim.run_session(probe, Site(), stations, np.random.default_rng(seed), rate_hz=100.0, move_s=1.0,
                            survey=True)
 

@@ -1,0 +1,57 @@
+"""The one regression test of the lab's diagnosis and of the field monitor.
+
+Does a set of regressors explain a residual channel beyond chance?  An F-test of nested linear
+models: ``y = a + ε`` against ``y = a + X·c + ε`` (least squares, an intercept in both), with the
+residual variance estimated from the data — so "significant" means beyond the scatter the
+channel shows, whatever its unit.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+
+@dataclass
+class Trend:
+    """The outcome of :func:`regress`: the F statistic and its p-value, the share of the
+    channel's variance the regressors explain (R²), the coefficients (per regressor), the RMS of
+    the explained part and the scatter left (in the channel's unit), the number of points."""
+
+    f: float
+    p: float
+    r2: float
+    coef: np.ndarray
+    explained_rms: float
+    residual_rms: float
+    n: int
+
+
+def regress(y, x) -> Trend | None:
+    """F-test of the regressors ``x`` ((N,) or (N, k)) on the channel ``y`` (N,), NaNs left out.
+
+    None when it cannot be tested (too few points, no regressor that varies, a perfect fit)."""
+    y = np.asarray(y, dtype=float)
+    x = np.asarray(x, dtype=float)
+    x = x[:, None] if x.ndim == 1 else x
+    ok = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
+    y, x = y[ok], x[ok]
+    n = len(y)
+    xc = x - x.mean(axis=0)
+    yc = y - y.mean()
+    # regressors that do not vary (or repeat another) carry no information: the test's degrees of
+    # freedom are the rank of what varies (lstsq gives them the minimum-norm coefficients)
+    k = int(np.linalg.matrix_rank(xc)) if n else 0
+    if k == 0 or n < k + 3:
+        return None
+    coef, *_ = np.linalg.lstsq(xc, yc, rcond=None)
+    fitted = xc @ coef
+    ss_reg = float(fitted @ fitted)
+    ss_res = float(np.sum((yc - fitted) ** 2))
+    dof = n - k - 1
+    if ss_res <= 0 or dof <= 0:
+        return None
+    f = (ss_reg / k) / (ss_res / dof)
+    return Trend(f=float(f), p=float(stats.f.sf(f, k, dof)), r2=ss_reg / (ss_reg + ss_res), coef=coef,
+                 explained_rms=float(np.sqrt(ss_reg / n)), residual_rms=float(np.sqrt(ss_res / dof)), n=int(n))

@@ -1,0 +1,215 @@
+"""The survey pipeline, ROS-free: what happens to a closed station on every path.
+
+The correction node, ``reprocess``, ``correct``, the launcher's run summary and the lab all go
+through here, so that a station means the same numbers wherever it is computed:
+
+1. the station (:class:`station.Station`, closed by :class:`streaming.StaticDetector` from a
+   stream, a bag or a log) is gated (:func:`gates.apply_gates`);
+2. it is corrected by the calibration record's model (:meth:`coeffs.Calibration.correct`, the one
+   correction path: the paper's base model plus any lab effects, with the station's temperature
+   and its time since the data's first sample);
+3. it is evaluated against the **site reference, which the record owns**
+   (:func:`survey.evaluate`: angles, |G|, |B|, dip and their QC); a site given by the user
+   overrides the record's, and says so at every record it overrides (:func:`site_override_note`);
+   without a record and without a site there is no reference: the station's QC fields are NaN and
+   it says why — never a default site;
+4. the field monitor (:class:`lab.field.FieldMonitor`), when there is one, tests the latest
+   stations' residuals against the site for the trend a missing effect leaves, and says in words
+   when the model stops explaining the data.
+
+The result is the plain field dict of a ``SurveyStation`` message (:func:`station_fields`): the
+node sets it on an rclpy message, ``reprocess`` serializes it with rosbags, the CLI prints it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .axial import evaluate_with_axial
+from .gates import apply_gates
+from .station import Station
+from .survey import Tolerances, evaluate
+
+NAN = float("nan")
+NO_SITE = ("no site reference: no calibration record yet and no site given — |G|, |B| and dip are not "
+           "checked, azimuths are magnetic")
+
+
+def site_override_note(cal, site) -> str:
+    """What a user's site changes against the record's (said loudly wherever it happens), or ""."""
+    if cal is None or site is None:
+        return ""
+    own = cal.site
+    diffs = [f"{name} {getattr(site, attr):g} instead of {getattr(own, attr):g}"
+             for name, attr in (("total field", "total_field_nt"), ("dip", "dip_deg"),
+                                ("declination", "declination_deg"), ("gravity", "gravity_mps2"))
+             if getattr(site, attr) != getattr(own, attr)]
+    if not diffs:
+        return ""
+    return (f"the site reference given overrides the one of record {cal.id} ({cal.site_source}): "
+            + ", ".join(diffs) + " — QC and azimuths use the given one")
+
+
+def correct_stations(stations, cal, strict: bool = False):
+    """Corrected gravity vectors (m/s²) and fields (nT) of stations, (N, 3) each, with each
+    station's temperature and time (``cal`` None: the raw vectors).  A station without the
+    temperature the model needs comes out NaN (:func:`context_warnings` says why); ``strict``:
+    raise :class:`model.ModelContextError` instead when no station has one (a log without a
+    temperature column)."""
+    g = np.array([s.g for s in stations], dtype=float).reshape(-1, 3)
+    b = np.array([s.b for s in stations], dtype=float).reshape(-1, 3)
+    if cal is None:
+        return g, b
+    temps = np.array([s.temp_c for s in stations], dtype=float)
+    times = np.array([s.time_s for s in stations], dtype=float)
+    if strict and "temperature" in cal.needs and len(temps) and not np.isfinite(temps).any():
+        return cal.correct(g, b, None, times)   # raises: the model needs a temperature, the data give none
+    return cal.correct(g, b, temps, times)
+
+
+def evaluate_stations(g, b, site, tol: Tolerances = Tolerances(), ref=None, axial: bool = False) -> dict:
+    """:func:`survey.evaluate` (or the short-collar :func:`axial.evaluate_with_axial`) of corrected
+    vectors; ``site`` None: no reference — angles only (azimuths magnetic), the QC fields NaN and
+    not flagged, status at least warn."""
+    if site is None:
+        from .frames import Site
+        res = evaluate(g, b, Site(declination_deg=0.0), tol)   # angles only: its QC is voided below
+        n = len(res["status"])
+        for k in ("delta_g", "delta_b", "delta_dip"):
+            res[k] = np.full(n, NAN)
+        res["interference_suspected"] = np.zeros(n, bool)
+        res["gravity_out_of_tolerance"] = np.zeros(n, bool)
+        res["status"] = np.maximum(res["status"], 1)
+        if ref is not None:
+            from .survey import reference_errors
+            res.update(reference_errors(res, ref, Site(declination_deg=0.0), tol))
+        return res
+    if axial:
+        return evaluate_with_axial(g, b, site, tol, ref=ref)
+    return evaluate(g, b, site, tol, ref=ref)
+
+
+def context_warnings(st: Station, cal) -> list:
+    """What the model needs of a station and does not get (said in the station's warnings)."""
+    if cal is not None and "temperature" in cal.needs and not math.isfinite(st.temp_c):
+        return [f"no temperature at this station: the model's temperature effect(s) cannot be applied "
+                f"(record {cal.id}); its corrected values are NaN"]
+    return []
+
+
+class SurveyProcessor:
+    """Gates, corrects and evaluates closed stations (the steps of the module docstring).
+
+    ``calibration``: the record to apply (:meth:`set_calibration` replaces it); ``site``: a user's
+    site reference overriding the record's (None: the record's); ``axial``: azimuths from the
+    short-collar correction of axial drill-string interference (:func:`axial.evaluate_with_axial`;
+    QC stays on the measured field); ``monitor``: a :class:`lab.field.FieldMonitor` or None.
+    """
+
+    def __init__(self, tolerances: Tolerances = Tolerances(), calibration=None, *, site=None,
+                 axial: bool = False, monitor=None):
+        self.tolerances = tolerances
+        self.site_given = site
+        self.axial = axial
+        self.monitor = monitor
+        self.calibration = None
+        self._next_id = 0
+        self.notes: list = []
+        if calibration is not None:
+            self.set_calibration(calibration)
+
+    @property
+    def site(self):
+        """The site reference in force: the user's, else the record's, else None."""
+        if self.site_given is not None:
+            return self.site_given
+        return self.calibration.site if self.calibration is not None else None
+
+    def set_calibration(self, calibration) -> list:
+        """Apply a record from now on; returns what must be said about it (a site override)."""
+        self.calibration = calibration
+        note = site_override_note(calibration, self.site_given)
+        self.notes = [note] if note else []
+        if self.monitor is not None:
+            self.monitor.reset(calibration)
+        return list(self.notes)
+
+    def process(self, st: Station, ref=None, have_temperature: bool = True) -> dict:
+        """The ``SurveyStation`` fields of one closed station (:func:`station_fields`).
+
+        A station in which the probe moved is still evaluated, and flagged.  ``ref``: the
+        reference attitude (drift, azimuth, toolface deg; NaN where not given), or None;
+        ``have_temperature``: the stream has a temperature at all (else ``temperature_c`` is NaN)."""
+        apply_gates(st)
+        cal = self.calibration
+        st.warnings.extend(w for w in context_warnings(st, cal) if w not in st.warnings)
+        if ref is not None and not any(math.isfinite(x) for x in ref):
+            ref = None
+        g, b = correct_stations([st], cal)
+        site = self.site
+        if site is None and NO_SITE not in st.warnings:
+            st.warnings.append(NO_SITE)
+        res = evaluate_stations(g, b, site, self.tolerances, None if ref is None else [ref], self.axial)
+        values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
+        azimuth_reference = "true" if site is not None and site.declination_deg else "magnetic"
+        fields = station_fields(self._next_id, st, values, cal.id if cal is not None else "", ref, azimuth_reference,
+                                have_temperature)
+        self._next_id += 1
+        if self.monitor is not None and cal is not None:
+            verdict = self.monitor.add(st, fields, g[0], b[0])
+            fields["model_misfit"] = verdict.misfit
+            fields["model_diagnosis"] = verdict.text
+        return fields
+
+
+def _finite_or_nan(x) -> float:
+    x = float(x)
+    return x if math.isfinite(x) else NAN
+
+
+def station_fields(station_id: int, seg: Station, v: dict, coefficients_id: str, ref, azimuth_reference: str,
+                   have_temperature: bool) -> dict:
+    """The fields of a ``SurveyStation`` message (all but the header) for an evaluated station.
+
+    Plain Python values, shared by the correction node (rclpy message) and offline reprocessing
+    (rosbags type store), so both publish the same thing.  Undefined values are NaN, never 0."""
+    ref = (NAN, NAN, NAN) if ref is None else tuple(float(x) for x in ref)  # NaN: not given (partial is fine)
+    axial = "azimuth_method" in v
+    return dict(
+        station_id=int(station_id),
+        drift_deg=_finite_or_nan(v["drift_deg"]),
+        azimuth_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["azimuth_deg"]),
+        azimuth_reference=azimuth_reference,
+        azimuth_method=str(v["azimuth_method"]) if axial else "standard",
+        axial_field_nt=_finite_or_nan(v["axial_field_nt"]) if axial else NAN,
+        azimuth_sigma_deg=_finite_or_nan(v["azimuth_sigma_deg"]) if axial else NAN,
+        axial_degenerate=bool(v["axial_degenerate"]) if axial else False,
+        toolface_deg=_finite_or_nan(v["toolface_deg"]),
+        toolface_type="gravity" if v["toolface_is_gravity"] else "magnetic",
+        # defined down to the azimuth threshold; it is *reported* (toolface_deg) above the switch-over
+        gravity_toolface_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v["gravity_toolface_deg"]),
+        magnetic_toolface_deg=_finite_or_nan(v["magnetic_toolface_deg"]),
+        total_gravity_mps2=_finite_or_nan(v["total_gravity"]),
+        total_field_nt=_finite_or_nan(v["total_field"]),
+        dip_deg=_finite_or_nan(v["dip_deg"]),
+        delta_g_mps2=_finite_or_nan(v["delta_g"]),
+        delta_b_nt=_finite_or_nan(v["delta_b"]),
+        delta_dip_deg=_finite_or_nan(v["delta_dip"]),
+        status=2 if seg.moved else int(v["status"]),
+        is_static=not seg.short,
+        interference_suspected=bool(v["interference_suspected"]),
+        azimuth_undefined=bool(v["azimuth_undefined"]),
+        gravity_out_of_tolerance=bool(v["gravity_out_of_tolerance"]),
+        moved_during_capture=bool(seg.moved),
+        warnings=[str(w) for w in seg.warnings],
+        model_misfit=False,
+        model_diagnosis="",
+        samples_averaged=int(seg.n),
+        duration_s=float(seg.duration_s),
+        temperature_c=float(seg.temp_c) if have_temperature else NAN,
+        coefficients_id=coefficients_id,
+        reference_drift_deg=ref[0],
+        reference_azimuth_deg=ref[1],
+        reference_toolface_deg=ref[2],
+    )

@@ -1,0 +1,90 @@
+"""The survey pipeline: gates, the record's correction, QC against the site the record owns."""
+import numpy as np
+import pytest
+
+from inclinometer_calib import simulate as sim
+from inclinometer_calib.coeffs import Calibration
+from inclinometer_calib.frames import Site
+from inclinometer_calib.pipeline import NO_SITE, SurveyProcessor, site_override_note
+from inclinometer_calib.streaming import StaticDetector
+
+
+def _stations(log):
+    det = StaticDetector()
+    out = []
+    for i in range(len(log)):
+        out.extend(det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]))
+    return out + list(det.flush())
+
+
+def _one(probe, site, drift, azimuth, toolface, survey=False):
+    log = sim.run_session(probe, site, sim.stand_grid_session(drifts=(drift,), azimuths=(azimuth,),
+                                                               toolfaces=(toolface,), duration_s=3.0),
+                          np.random.default_rng(0), survey=survey)
+    return _stations(log)[0]
+
+
+def test_a_station_is_corrected_by_the_record_and_checked_against_the_records_site():
+    probe = sim.build_probe(2)
+    site = Site()
+    proc = SurveyProcessor(calibration=Calibration(probe.model, site=site))
+    f = proc.process(_one(probe, site, 45, 120, 30), ref=(45.0, 120.0, 30.0))
+    assert f["drift_deg"] == pytest.approx(45.0, abs=0.01)
+    assert abs(f["azimuth_deg"] - 120.0) < 0.05
+    assert f["status"] == 0 and abs(f["delta_b_nt"]) < 30
+    assert f["coefficients_id"] == proc.calibration.id
+
+
+def test_a_given_site_overrides_the_records_and_says_so():
+    probe = sim.build_probe(2)
+    cal = Calibration(probe.model, site=Site())
+    other = Site(total_field_nt=48000.0, dip_deg=60.0)
+    proc = SurveyProcessor(site=other)
+    notes = proc.set_calibration(cal)
+    assert len(notes) == 1 and "overrides" in notes[0] and "48000" in notes[0] and cal.id in notes[0]
+    f = proc.process(_one(probe, Site(), 45, 120, 30))
+    assert f["delta_b_nt"] == pytest.approx(50000 - 48000, abs=40)   # checked against the given site
+    assert site_override_note(cal, Site()) == ""                      # the same site: nothing to say
+
+
+def test_without_a_record_and_without_a_site_there_is_no_qc_and_the_station_says_why():
+    probe = sim.build_probe(2)
+    f = SurveyProcessor().process(_one(probe, Site(), 45, 120, 30))
+    assert np.isnan(f["delta_b_nt"]) and np.isnan(f["delta_dip_deg"]) and np.isnan(f["delta_g_mps2"])
+    assert not f["interference_suspected"] and f["status"] >= 1
+    assert NO_SITE in f["warnings"] and f["azimuth_reference"] == "magnetic" and f["coefficients_id"] == ""
+
+
+def test_station_fields_carry_a_partial_reference_and_the_gates_outcome():
+    probe = sim.build_probe(2)
+    site = Site()
+    ref = (0.0, float("nan"), 40.0)                 # a vertical stand pose: no azimuth
+    f = SurveyProcessor(calibration=Calibration(probe.model, site=site)).process(_one(probe, site, 0, 0, 40), ref=ref)
+    assert f["reference_drift_deg"] == 0.0 and np.isnan(f["reference_azimuth_deg"])
+    assert f["reference_toolface_deg"] == 40.0
+    assert f["azimuth_undefined"] and f["moved_during_capture"] is False and f["warnings"] == []
+
+
+def test_station_fields_carry_the_short_collar_azimuth_when_enabled():
+    probe = sim.build_probe(2, ["axial_interference=400"])
+    site = Site()
+    cal = Calibration(acc=probe.acc, mag=probe.mag, site=site)   # the base model: the interference stays
+    st = _one(probe, site, 60, 30, 0, survey=True)
+    ref = (60.0, 30.0, 0.0)
+    plain = SurveyProcessor(calibration=cal).process(st, ref=ref)
+    fixed = SurveyProcessor(calibration=cal, axial=True).process(st, ref=ref)
+    assert plain["azimuth_method"] == "standard" and np.isnan(plain["axial_field_nt"])
+    assert plain["interference_suspected"] and fixed["interference_suspected"]  # QC on the measured field
+    assert fixed["azimuth_method"] == "short_collar"
+    assert fixed["axial_field_nt"] == pytest.approx(400.0, abs=15.0)
+    assert abs(fixed["azimuth_deg"] - 30.0) < 0.05 < abs(plain["azimuth_deg"] - 30.0)
+
+
+def test_a_temperature_model_without_a_temperature_is_said_not_defaulted():
+    probe = sim.build_probe(3, ["temperature_bias:mag=3"])
+    site = Site()
+    st = _one(probe, site, 45, 120, 30)
+    st.temp_c = float("nan")
+    f = SurveyProcessor(calibration=Calibration(probe.model, site=site)).process(st)
+    assert any("no temperature" in w for w in f["warnings"])
+    assert np.isnan(f["azimuth_deg"]) and f["status"] == 2
