@@ -515,39 +515,39 @@ class BiasDrift(Effect):
 # Whole-probe effects (the simulator applies them; no triad signal chain)
 # ---------------------------------------------------------------------------------------------
 @dataclass
-class StandPoseError(Effect):
-    """Random orientation error of each static station of the stand (1σ per axis, deg)."""
+class WholeProbeEffect(Effect):
+    """An effect on the whole probe's orientation or sampling (the simulator applies it), with
+    one value, not one per axis; no triad's signal chain holds it."""
 
-    name: ClassVar[str] = "stand_pose_error"
     stage: ClassVar[str] = PROBE_STAGE
     sensors: ClassVar[tuple] = ("probe",)
     default_axes: ClassVar[str] = ""
     needs: ClassVar[tuple] = ()
+
+    def _apply(self, v, ctx):
+        raise TypeError(f"{self.name} acts on the whole probe (the simulator), not on a triad's signal")
+
+
+@dataclass
+class StandPoseError(WholeProbeEffect):
+    """Random orientation error of each static station of the stand (1σ per axis, deg)."""
+
+    name: ClassVar[str] = "stand_pose_error"
     not_from_static: ClassVar[str] = ("random per-station orientation errors are not a fittable signature: they show "
                                       "as unstructured excess scatter, reported with its size as an equivalent stand "
                                       "pose error")
     specs: ClassVar[tuple] = (ParamSpec("sigma", {"probe": "deg"}, {"probe": 0.05}, "1σ per axis"),)
 
-    def _apply(self, v, ctx):
-        raise TypeError("stand_pose_error acts on the probe's orientation (the simulator), not on a signal")
-
 
 @dataclass
-class TimeSkew(Effect):
+class TimeSkew(WholeProbeEffect):
     """The magnetometer samples this much later than the accelerometer (s)."""
 
     name: ClassVar[str] = "time_skew"
-    stage: ClassVar[str] = PROBE_STAGE
-    sensors: ClassVar[tuple] = ("probe",)
-    default_axes: ClassVar[str] = ""
-    needs: ClassVar[tuple] = ()
     not_from_static: ClassVar[str] = ("a sampling offset between the triads is invisible in static stations: it needs "
                                       "data recorded while the probe rotates")
     specs: ClassVar[tuple] = (ParamSpec("skew", {"probe": "s"}, {"probe": 0.005}, "magnetometer minus accelerometer "
                                         "sampling time"),)
-
-    def _apply(self, v, ctx):
-        raise TypeError("time_skew acts on the probe's sampling (the simulator), not on a signal")
 
 
 #: Effects by name (plug-ins are added by :func:`register`).

@@ -427,7 +427,9 @@ def read_bag(path):
                     "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
                     "delta_dip_deg", "status", "azimuth_undefined", "interference_suspected",
                     "coefficients_id", "reference_drift_deg", "reference_azimuth_deg",
-                    "reference_toolface_deg", "samples_averaged", "duration_s")}
+                    "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
+                    "moved_during_capture", "model_misfit", "model_diagnosis")}
+                d["warnings"] = list(msg.warnings)
                 d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
                 stations.append({k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()})
             elif conn.topic == "/calibration/status":
@@ -538,8 +540,9 @@ def readable_parts(out, print_fn=print) -> list:
     return parts
 
 
-def summarize_run(out, print_fn=print) -> dict:
-    """Build (and print) the run summary from the files in ``out``; writes summary.json and report.md.
+def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
+    """Build (and print) the run summary from the files in ``out``; writes summary.json and report.md,
+    and with ``loop`` the model loop (:func:`model_loop`): lab_model.yaml, compare/ and report.html.
 
     Stations and coefficient messages come from all bag parts (:func:`readable_parts`), in the
     order the parts were written, which is time order; a coefficient record that a restarted
@@ -609,8 +612,8 @@ def summarize_run(out, print_fn=print) -> dict:
     summary["model_misfit_stations"] = len(misfit)
     if misfit:
         summary["model_diagnosis"] = misfit[-1]["model_diagnosis"]
-    loop = None
-    if stations and cal is not None and readable:
+    want_loop, loop = loop, None
+    if want_loop and stations and cal is not None and readable:
         loop = model_loop(out, readable, cal, print_fn)
         if loop is not None:
             summary["model_loop"] = loop_summary(loop)
@@ -818,6 +821,8 @@ def parse_args(argv=None):
                                    "the calibration and correction nodes (and the simulated probe)")
     ap.add_argument("--no-calibration", action="store_true", help="no calibration node and no twelve-pose session")
     ap.add_argument("--no-recorder", action="store_true", help="do not record (no summary from the bag)")
+    ap.add_argument("--no-loop", action="store_true", help="no model loop in the summary (the lab's finding on the "
+                    "recorded data and the field effect ladder)")
     ap.add_argument("--reliable", action="store_true", help="reliable QoS for the raw streams (lossless replay)")
     ap.add_argument("--param", action="append", default=[], metavar="NODE:NAME:=VALUE",
                     help="extra node parameter, e.g. correction:publish_corrected:=true")
@@ -937,7 +942,7 @@ def main(argv=None) -> int:
         summary = None
         if not args.no_recorder:
             try:
-                summary = summarize_run(out)
+                summary = summarize_run(out, loop=not args.no_loop)
             except (OSError, ValueError, KeyError, MissingDependency) as exc:
                 print(f"[summary] failed: {type(exc).__name__}: {exc}", flush=True)
                 problems.append(f"the summary failed ({type(exc).__name__}: {exc})")

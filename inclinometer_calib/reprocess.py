@@ -279,7 +279,6 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
         DEFAULT_QOS_PROFILE, depth=1, durability="transient_local")]) if calibrate else None
     out_cid: Dict[str, Optional[int]] = {}     # input topic -> output channel, None = skipped
     pairer = StreamPairer()  # the same pairing as the live nodes
-    temp = NAN
     have_temp = False
     prior = {}
     refs = ReferenceTrack()
@@ -398,7 +397,8 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
                         continue
                     t, f, mm = got
                 elif topic == TOPIC_TEMPERATURE:
-                    _, temp = decode_temperature(m.data)
+                    key, temp = decode_temperature(m.data)
+                    det.add_temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
                     have_temp = True
                     continue
                 else:  # reference
@@ -426,7 +426,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
             if t_first_pair is None:
                 t_first_pair = t
             t_last_pair = t
-            for st in det.update(t, f, mm, temp):
+            for st in det.update(t, f, mm):
                 emit(st, log_time)
         for st in det.flush():
             emit(st, last_log or 0)

@@ -84,6 +84,7 @@ class StaticDetector:
         self.samples_missing = 0
         self._t_prev = math.inf
         self.t_first = math.nan      # time of the first sample: the origin of time-dependent effects
+        self.temps = TemperatureTrack()
         self._dt = math.inf          # the typical sample interval (running mean of the non-gap ones)
         self.events: list = []
         self._warming = not (noise_acc > 0 and noise_mag > 0)
@@ -109,8 +110,6 @@ class StaticDetector:
         self._s2 = [0.0] * 6
         self._st = [0.0] * 6
         self._tt = self._tt2 = 0.0
-        self._sum_t = 0.0
-        self._n_t = 0
 
     def set_prior(self, noise_acc: float | None = None, noise_mag: float | None = None) -> None:
         """The per-sample σ stated by the messages (covariance): used until the data give one."""
@@ -150,19 +149,28 @@ class StaticDetector:
         return out
 
     # ---- samples ---------------------------------------------------------------------------
+    def add_temperature(self, t: float, temp_c: float) -> None:
+        """A temperature (°C) stamped ``t``: a station's temperature is the mean of those stamped
+        within it (:class:`TemperatureTrack`), however they arrive — with the sample (a log), or
+        on a topic of their own (a node, a bag)."""
+        self.temps.add(t, temp_c)
+
     def update(self, t: float, f, m, temp_c: float = math.nan):
-        """Feed one sample (specific force m/s², field nT, temperature °C or NaN).
+        """Feed one sample (specific force m/s², field nT, and its temperature °C, or NaN when the
+        temperature comes separately by :meth:`add_temperature` or not at all).
 
         Returns the stations closed by it (a tuple, usually empty)."""
         x = gravity_from_specific_force((float(f[0]), float(f[1]), float(f[2]))) + (float(m[0]), float(m[1]),
                                                                                      float(m[2]))
         t = float(t)
+        if temp_c == temp_c:
+            self.temps.add(t, temp_c)
         if self.t_first != self.t_first:
             self.t_first = t
         if not math.isfinite(x[0] + x[1] + x[2] + x[3] + x[4] + x[5] + t):
             self.noise.gap()
             if self._warming:
-                self._buf.append((t, None, temp_c))
+                self._buf.append((t, None))
                 return _NO_STATIONS
             return self._close("gap")
         out = _NO_STATIONS
@@ -174,7 +182,7 @@ class StaticDetector:
             self._note_gap(t, dt)
             self.noise.gap()
             if self._warming:
-                self._buf.append((t, None, temp_c))
+                self._buf.append((t, None))
             else:
                 out = self._close("gap")
         elif dt > 0:
@@ -183,11 +191,11 @@ class StaticDetector:
             self._refresh()
         if self._warming:
             buf = self._buf
-            buf.append((t, x, temp_c))
+            buf.append((t, x))
             if self.noise.ready or (t - buf[0][0] >= self.warmup_max_s - TIME_EPS and self._can_estimate()):
                 return out + self._end_warmup()
             return out
-        return out + self._step(t, x, temp_c)
+        return out + self._step(t, x)
 
     def _note_gap(self, t, dt):
         self.gaps += 1
@@ -212,12 +220,12 @@ class StaticDetector:
             self._refresh()
             lvl = self.noise.level
         out = []
-        for t, x, temp in self._buf:
-            out.extend(self._close("gap") if x is None else self._step(t, x, temp))
+        for t, x in self._buf:
+            out.extend(self._close("gap") if x is None else self._step(t, x))
         self._buf = []
         return tuple(out)
 
-    def _step(self, t, x, temp_c):
+    def _step(self, t, x):
         if t < self._settle_until - TIME_EPS:
             return _NO_STATIONS
         n = self._n
@@ -243,12 +251,12 @@ class StaticDetector:
             self._out = 0
             if t - self._t0 >= self.max_duration_s - TIME_EPS:
                 out = self._close("max_duration")
-                self._add(t, x, temp_c)
+                self._add(t, x)
                 return out
-        self._add(t, x, temp_c)
+        self._add(t, x)
         return _NO_STATIONS
 
-    def _add(self, t, x, temp_c):
+    def _add(self, t, x):
         if self._n == 0:
             self._t0 = t
             self._x0 = list(x)
@@ -263,9 +271,6 @@ class StaticDetector:
             s1[k] += d
             s2[k] += d * d
             st[k] += tau * d
-        if temp_c == temp_c:  # the mean is over the samples that had a temperature (NaN: unknown)
-            self._sum_t += temp_c
-            self._n_t += 1
 
     def _close(self, reason):
         st = None
@@ -278,6 +283,8 @@ class StaticDetector:
         self.reset()
         if st is None:
             return _NO_STATIONS
+        if not self._warming:
+            self.temps.forget_before(st.t_start)   # stations close in time order: later ones start later
         self._pieces(st)
         return (st,)
 
@@ -294,7 +301,7 @@ class StaticDetector:
         std = np.sqrt(var)
         sig = np.array(self.noise.measured)   # the gates judge against the data's noise, not an override
         return Station(t_start=self._t0, t_end=self._t_last, n=n, g=mean[:3], b=mean[3:], g_std=std[:3],
-                       b_std=std[3:], temp_c=self._sum_t / self._n_t if self._n_t else math.nan,
+                       b_std=std[3:], temp_c=self.temps.mean(self._t0, self._t_last),
                        g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)),
                        g_noise=sig[:3], b_noise=sig[3:], outliers=self._outliers,
                        short=(self._t_last - self._t0) < self.min_duration_s - TIME_EPS, ended_by=reason,
@@ -391,6 +398,45 @@ class StreamPairer:
 
     def add_mag(self, key, m):
         return self._add(key, m, self._mag, self._imu, False)
+
+
+class TemperatureTrack:
+    """Temperatures (°C) by stamp; a station's temperature is the mean of those stamped within it.
+
+    Deterministic whatever the order in which a temperature topic and the sensor topics arrive
+    (a node), the same as a log's per-row temperatures (a CSV) and a bag's messages (reprocess)."""
+
+    def __init__(self):
+        self._t: list = []
+        self._v: list = []
+
+    def add(self, t: float, temp_c: float) -> None:
+        if not math.isfinite(temp_c):
+            return
+        if self._t and t < self._t[-1]:
+            k = bisect.bisect_right(self._t, t)
+            self._t.insert(k, t)
+            self._v.insert(k, temp_c)
+        else:
+            self._t.append(t)
+            self._v.append(temp_c)
+
+    @property
+    def latest(self) -> float:
+        return self._t[-1] if self._t else -math.inf
+
+    def mean(self, t0: float, t1: float) -> float:
+        """Mean of the temperatures stamped in [t0, t1] (NaN: none)."""
+        i = bisect.bisect_left(self._t, t0 - TIME_EPS)
+        j = bisect.bisect_right(self._t, t1 + TIME_EPS)
+        return math.fsum(self._v[i:j]) / (j - i) if j > i else math.nan
+
+    def forget_before(self, t: float) -> None:
+        """Drop what is stamped before ``t`` (no station will ask for it again)."""
+        k = bisect.bisect_left(self._t, t - TIME_EPS)
+        if k > 512:     # in bulk: deleting the head of a list is a copy
+            del self._t[:k]
+            del self._v[:k]
 
 
 class ReferenceTrack:

@@ -96,7 +96,6 @@ class CalibrationNode(Node):
                                       limits=GateLimits(max_creep_deg=max_creep, max_scatter_ratio=max_ratio))
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
-        self._temp = c.NAN
         self._last = None            # latest paired sample (t, f, m)
         self._last_wall = None       # monotonic time of the latest sample
         self._live_pose = -1
@@ -151,7 +150,7 @@ class CalibrationNode(Node):
             c.warn_out_of_order(self, c.TOPIC_MAG, s, self.pairer)
 
     def _on_temp(self, msg):
-        self._temp = msg.temperature
+        self.detector.add_temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
 
     def _sample(self, t, f, m):
         self._last = (t, f, m)

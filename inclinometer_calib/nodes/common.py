@@ -379,7 +379,7 @@ def feed_sample(node, t: float, f, m, on_station) -> None:
     if sample_is_finite(f, m) and implausible(f, m) is not None:
         note_implausible(node, t, f, m)
         return
-    closed = node.detector.update(t, f, m, node._temp)
+    closed = node.detector.update(t, f, m)   # temperatures come by stamp (detector.add_temperature)
     for st in closed:
         on_station(st)
     if closed:

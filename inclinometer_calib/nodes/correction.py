@@ -52,7 +52,7 @@ from ..frames import gravity_from_specific_force, specific_force_from_gravity
 from ..lab.field import FieldMonitor
 from ..pipeline import NO_SITE, SurveyProcessor
 from ..probelog import atomic_write_text
-from ..streaming import ReferenceTrack, StaticDetector
+from ..streaming import TIME_EPS, ReferenceTrack, StaticDetector
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
 
@@ -292,8 +292,15 @@ class CorrectionNode(Node):
         return (float(v[0]), float(v[1]), float(v[2]))
 
     def _on_temp(self, msg):
-        self._temp = msg.temperature
+        self._temp = msg.temperature   # the latest: for the corrected streams
         self._have_temp = True
+        self.detector.add_temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
+        if self._pending:
+            self._release(force=False)
+
+    def _current_at(self, t: float) -> bool:
+        """The reference and the temperatures are in up to ``t``: a station ending then can go."""
+        return self.refs.current_at(t) and (not self._have_temp or self.detector.temps.latest >= t - TIME_EPS)
 
     def _on_reference(self, msg):
         self.refs.add(c.stamp_to_sec(msg.header.stamp), (msg.vector.x, msg.vector.y, msg.vector.z))
@@ -303,7 +310,7 @@ class CorrectionNode(Node):
         """Publish the waiting stations whose reference is known (all of them with ``force``: the
         wait ran out, or the stream ended — ``end``: then what was received is all there is), in order."""
         pending = self._pending
-        while pending and (force or self.refs.current_at(pending[0][0].t_end)):
+        while pending and (force or self._current_at(pending[0][0].t_end)):
             st, since = pending.popleft()
             if not end and not self.refs.current_at(st.t_end):
                 self.get_logger().warning(
@@ -321,7 +328,7 @@ class CorrectionNode(Node):
         its end (:class:`streaming.ReferenceTrack`; at most ``reference_wait_s`` later)."""
         if seg.short and not self.publish_short:
             return
-        if self._pending or not self.refs.current_at(seg.t_end):
+        if self._pending or not self._current_at(seg.t_end):
             self._pending.append((seg, time.monotonic()))
             return
         self._publish_station(seg)
@@ -329,6 +336,8 @@ class CorrectionNode(Node):
     def _publish_station(self, seg):
         ref = self.refs.at(0.5 * (seg.t_start + seg.t_end))
         has_ref = ref is not None   # a partial reference is used for what it gives
+        if self._have_temp:   # the temperatures stamped within it, now that they are in (they may come late)
+            seg.temp_c = self.detector.temps.mean(seg.t_start, seg.t_end)
         fields = self.processor.process(seg, ref=ref, have_temperature=self._have_temp)
         for w in seg.warnings:
             if w == NO_SITE:          # said once, not at every station before the first record

@@ -3,9 +3,11 @@ discovery on localhost only), started by the launcher; results checked from the 
 with an independent reader (``mcap_ros2``; the launcher's summary uses ``rosbags``, the recorder
 writes with ``inclinometer_calib.bag``).
 
-1. a simulated twelve-pose calibration + well-path survey at 4x speed: coefficients against the
-   simulator truth, survey angles against the reference attitudes; every temperature message
-   recorded; one time base (the probe's /clock) for all header stamps;
+1. the demo's scenario: a simulated twelve-pose calibration + well-path survey at 4x speed, the
+   probe's magnetometer bias drifting with temperature: coefficients against the simulator truth,
+   survey angles against the reference attitudes; every temperature message recorded; one time
+   base (the probe's /clock) for all header stamps; the model loop of the summary finds the
+   temperature effect and its record brings the errors down to the true model's;
 2. regression: replaying the recorded bag through probe(source:=mcap) -> correction (coefficients
    from the recorded coeffs.yaml) reproduces the recorded SurveyStation values.
 
@@ -27,6 +29,7 @@ from inclinometer_calib.frames import wrap180  # noqa: E402
 
 N_STATIONS = 12
 SPEED = 4.0
+EFFECT = "temperature_bias:mag=2.5"    # the demo's (scripts/demo.sh)
 
 # Recovery tolerances of the twelve-position fit at the simulator's default noise (0.002 m/s^2,
 # 20 nT per sample; ~180 samples per pose): about 10x the errors seen (acc bias ~1e-4 m/s^2,
@@ -69,7 +72,7 @@ def sim_run(domain_env, tmp_path_factory):
     # --reliable: lossless raw streams, so that what the correction node saw live is exactly what
     # the recorder stored, and the replay regression below is deterministic on a loaded machine
     proc, seconds = launch(["--out", str(out), "--speed", str(SPEED), "--stations", str(N_STATIONS),
-                            "--seed", "11", "--reliable", "--timeout", "150"], env, timeout=200)
+                            "--seed", "11", "--reliable", "--timeout", "150", "--effect", EFFECT], env, timeout=200)
     print(f"simulated calibration + survey through the launcher: {seconds:.1f} s")
     if proc.returncode != 0:
         pytest.fail(f"launcher exit status {proc.returncode}\n--- output ---\n{proc.stdout[-6000:]}\n"
@@ -90,6 +93,21 @@ def test_launcher_leaves_the_run_files(sim_run):
     assert "(from ROS_DOMAIN_ID, reserved by the parent process)" in proc.stdout
     assert proc.stdout.strip().splitlines()[-1] == "[launch] exit status 0: clean run"
     assert json.loads((out / "correction_state.json").read_text())["next_station_id"] == 12 + N_STATIONS
+
+
+def test_the_summarys_model_loop_finds_the_effect_and_its_record_meets_the_truth(sim_run):
+    out, proc, _ = sim_run
+    loop = json.loads((out / "summary.json").read_text())["model_loop"]
+    assert loop["lab_finding"] == "temperature_bias:mag:xyz", loop.get("lab_verdict")
+    ladder = {r["model"]: r for r in loop["ladder"]}
+    assert list(ladder) == ["uncorrected", "live_record", "lab_model", "simulator_truth"]
+    live, lab, truth = (ladder[k]["azimuth_rms_deg"] for k in ("live_record", "lab_model", "simulator_truth"))
+    assert lab <= 1.2 * truth < live, (live, lab, truth)
+    assert Calibration.load(out / "lab_model.yaml").id == loop["lab_record"]
+    page = (out / "report.html").read_text()
+    assert page.count("<img src='data:image/png;base64,") >= 2 and "lab_model" in page
+    report = (out / "report.md").read_text()
+    assert "## The model loop" in report and "temperature_bias:mag:xyz" in report
 
 
 def test_the_recorder_has_every_temperature_message_from_the_first_on(sim_run):
