@@ -281,12 +281,14 @@ class CaptureSession:
         cal = self.calibration
         if cal is None:
             return True
-        g, b = cal.correct(np.asarray(st.g, float), np.asarray(st.b, float))
+        from .pipeline import correct_stations   # the one correction path, with the station's temperature
+
+        g, b = (v[0] for v in correct_stations([st], cal))
         if not angle_between_deg(g, pose_reference(pose, [0.0, 0.0, 1.0])) <= ROUND_GRAVITY_TOL_DEG:
             return False
         first = next((c for c in self.captures if c.pose == pose and "mag" not in c.unusable), None)
         if first is not None:
-            _, b0 = cal.correct(np.asarray(first.g, float), np.asarray(first.b, float))
+            b0 = correct_stations([first], cal)[1][0]
             if not angle_between_deg(b, b0) <= ROUND_FIELD_TOL_DEG:
                 return False
         return True

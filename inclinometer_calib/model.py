@@ -124,13 +124,14 @@ class ProbeModel:
 
     def triad(self, sensor: str) -> TriadModel:
         """The base model of one triad as a :class:`TriadModel` (K, B, the six e-terms)."""
-        ch = {t.effect.name: t.effect for t in self.terms if t.effect.sensor == sensor and t.effect.base}
+        ch = {type(t.effect): t.effect for t in self.terms if t.effect.sensor == sensor and t.effect.base}
+        no = ch[fx.NonOrthogonality]
         e = {}
         for j, a in enumerate("xyz"):
             n1, n2 = fx.NonOrthogonality.term_names(a)
-            e[n1] = ch["nonorthogonality"].values["e1"][j]
-            e[n2] = ch["nonorthogonality"].values["e2"][j]
-        return TriadModel(scale=1.0 + ch["scale"].values["k"], bias=ch["bias"].values["b"], e=e)
+            e[n1] = no.values["e1"][j]
+            e[n2] = no.values["e2"][j]
+        return TriadModel(scale=1.0 + ch[fx.Scale].values["k"], bias=ch[fx.Bias].values["b"], e=e)
 
     @property
     def acc(self) -> TriadModel:

@@ -35,7 +35,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .frames import STANDARD_GRAVITY
-from .station import Station
 
 HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
           "ref_drift_deg", "ref_azimuth_deg", "ref_toolface_deg"]

@@ -54,19 +54,19 @@ class SimulatedProbe:
         """The effects beyond the base model (triad ones, then whole-probe ones)."""
         return [t.effect for t in self.model.extra_terms] + list(self.whole_probe)
 
-    def _whole(self, name: str) -> float:
+    def _whole(self, cls) -> float:
         for e in self.whole_probe:
-            if e.name == name:
+            if isinstance(e, cls):
                 return float(e.get_vector()[0])
         return 0.0
 
     @property
     def stand_pose_error_deg(self) -> float:
-        return self._whole("stand_pose_error")
+        return self._whole(fx.StandPoseError)
 
     @property
     def time_skew_s(self) -> float:
-        return self._whole("time_skew")
+        return self._whole(fx.TimeSkew)
 
     def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool):
         """Raw outputs for true tool-frame gravity (m/s², down) and field (nT), (N, 3) each, on the
@@ -97,8 +97,8 @@ class SimulatedProbe:
             ecls = fx.effect_class(e["name"])
             eff = ecls(sensor=e["sensor"], axes=e["axes"], values={k: np.asarray(v) for k, v in e["values"].items()})
             model = model.with_effect(eff, e.get("scope"))
-        whole = [fx.make_effect(name, "probe", **{fx.CATALOGUE[name].specs[0].name: d[key]})
-                 for name, key in (("stand_pose_error", "stand_pose_error_deg"), ("time_skew", "time_skew_s"))
+        whole = [cls(sensor="probe", values={cls.specs[0].name: d[key]})
+                 for cls, key in ((fx.StandPoseError, "stand_pose_error_deg"), (fx.TimeSkew, "time_skew_s"))
                  if d.get(key)]
         return cls(model, d.get("noise_acc_mps2", 0.002), d.get("noise_mag_nt", 20.0), whole)
 

@@ -65,3 +65,116 @@ def test_save_never_leaves_a_half_file(tmp_path, cal, monkeypatch):
         cal.save(path)
     assert path.read_text() == good
     assert [p.name for p in tmp_path.iterdir()] == ["c.yaml"]
+
+
+DATA = __import__("pathlib").Path(__file__).resolve().parent / "data" / "records"
+
+
+def test_a_version_1_record_written_by_the_earlier_release_still_loads_and_corrects_as_it_did(tmp_path, capsys):
+    """test/data/records/v1_twelve_position.yaml was written by the release before format 2
+    (``simulate --seed 8``, ``twelve-position --site``); that release's ``correct`` of the
+    simulation's val.csv gave drift RMS 0.0012960682 and azimuth RMS 0.0138948685 deg."""
+    import json
+
+    from inclinometer_calib.cli import main
+
+    v1 = Calibration.load(DATA / "v1_twelve_position.yaml")
+    assert v1.model.extra_terms == [] and v1.probe_id == "legacy-8"
+    assert yaml.safe_load((DATA / "v1_twelve_position.yaml").read_text())["id"] == "f9a991e4132e"
+    assert main(["simulate", "--out", str(tmp_path / "sim"), "--seed", "8"]) == 0
+    capsys.readouterr()
+    assert main(["correct", str(tmp_path / "sim" / "val.csv"), "--coeffs", str(DATA / "v1_twelve_position.yaml"),
+                 "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["drift_rms_deg"] == pytest.approx(0.0012960682050696165, abs=1e-12)
+    assert out["azimuth_rms_deg"] == pytest.approx(0.013894868484056654, abs=1e-12)
+    # saved again, it is a version 2 record (its id now covers the site too) that loads the same
+    v1.save(tmp_path / "again.yaml")
+    v2 = Calibration.load(tmp_path / "again.yaml")
+    assert yaml.safe_load((tmp_path / "again.yaml").read_text())["format_version"] == 2
+    assert v2.id == v1.id != "f9a991e4132e"
+    np.testing.assert_array_equal(v2.mag.correction_matrix, v1.mag.correction_matrix)
+
+
+def test_a_version_1_record_cannot_claim_effects_beyond_the_base_model():
+    rec = yaml.safe_load((DATA / "v1_twelve_position.yaml").read_text())
+    rec["model"]["effects"].append("temperature_bias")
+    with pytest.raises(CoefficientError, match="version 1 record cannot carry effects"):
+        Calibration.from_record(rec)
+
+
+def test_a_record_carries_any_lab_model_and_applies_it_with_each_samples_temperature_and_time(tmp_path):
+    probe = sim.build_probe(9, ["temperature_bias:mag=2", "nonlinearity:acc:z=1e-3", "bias_drift:mag:x=30",
+                                "axial_interference=250"])
+    cal = Calibration(probe.model, probe_id="P-9", site=sim.Site(dip_deg=60.0))
+    cal.save(tmp_path / "m.yaml")
+    rec = yaml.safe_load((tmp_path / "m.yaml").read_text())
+    assert [e["name"] for e in rec["model"]["effects"]] == ["temperature_bias", "nonlinearity", "bias_drift",
+                                                             "axial_interference"]
+    assert rec["model"]["effects"][0]["units"] == {"c": "nT/degC"} and rec["model"]["effects"][3]["scope"] == "val"
+    back = Calibration.load(tmp_path / "m.yaml")
+    assert back.id == cal.id and back.model.labels() == cal.model.labels()
+    assert back.needs == ("temperature", "time")
+    rng = np.random.default_rng(1)
+    g, b = rng.normal(0, 5, (50, 3)), rng.normal(0, 3e4, (50, 3))
+    temp, t = rng.uniform(0, 80, 50), rng.uniform(0, 7200, 50)
+    a = cal.correct(g, b, temp, t)
+    z = back.correct(g, b, temp, t)
+    np.testing.assert_array_equal(a[0], z[0])
+    np.testing.assert_array_equal(a[1], z[1])
+    # it inverts the model: forward then correct gives the true vectors back
+    g_true, b_true = rng.normal(0, 5, (50, 3)), rng.normal(0, 3e4, (50, 3))
+    h_g, h_b = probe.model.forward(g_true, b_true, temp, t)
+    np.testing.assert_allclose(cal.correct(h_g, h_b, temp, t)[0], g_true, atol=1e-9)
+    np.testing.assert_allclose(cal.correct(h_g, h_b, temp, t)[1], b_true, atol=1e-6)
+    # a different site is a different record
+    other = Calibration(probe.model, probe_id="P-9", site=sim.Site(dip_deg=61.0))
+    assert other.id != cal.id
+
+
+PLUGIN = """from inclinometer_calib.effects import T_REF_C, Effect, ParamSpec
+
+
+class CubeTemperatureBias(Effect):
+    \"\"\"Bias growing with the cube of the temperature offset (a test plug-in).\"\"\"
+
+    name = "temperature_bias_cube_{tag}"
+    stage = "output"
+    specs = (ParamSpec("c3", {{"acc": "m/s^2/degC^3", "mag": "nT/degC^3"}}, {{"acc": 1e-6, "mag": 0.01}}),)
+
+    def _apply(self, v, ctx):
+        v[:, self._idx()] += self.values["c3"] * ((ctx.temperature_c - T_REF_C) ** 3)[:, None]
+"""
+
+
+def test_a_plugin_effect_travels_with_its_file_and_hash_and_a_missing_or_changed_one_is_refused(tmp_path):
+    from inclinometer_calib import effects as fx
+    from inclinometer_calib.plugins import load_plugin
+
+    plug = tmp_path / "plug" / "cube.py"
+    plug.parent.mkdir()
+    plug.write_text(PLUGIN.format(tag="a"))
+    (name,) = load_plugin(plug)
+    model = sim.ProbeModel.base().with_effect(fx.make_effect(name, "mag", c3=[0.01, 0.02, 0.03]))
+    cal = Calibration(model, probe_id="P")
+    cal.save(tmp_path / "rec.yaml")
+    item = yaml.safe_load((tmp_path / "rec.yaml").read_text())["model"]["effects"][0]
+    assert item["plugin"]["file"] == str(plug) and len(item["plugin"]["sha256"]) == 64
+    assert Calibration.load(tmp_path / "rec.yaml").id == cal.id     # registered, same source: fine
+    # another process, so to speak: the effect is not registered, the record loads its plug-in
+    del fx.CATALOGUE[name]
+    back = Calibration.load(tmp_path / "rec.yaml")
+    assert back.model.labels() == [f"{name}:mag:xyz"] and name in fx.CATALOGUE
+    # changed since: refused, naming the plug-in and both hashes
+    del fx.CATALOGUE[name]
+    import sys
+    sys.modules.pop(next(m for m in sys.modules if m.startswith("inclinometer_calib_plugin_")
+                         and getattr(sys.modules[m], "__file__", "") == str(plug)), None)
+    plug.write_text(PLUGIN.format(tag="a") + "\n# edited\n")
+    with pytest.raises(CoefficientError, match="changed since the record was written"):
+        Calibration.load(tmp_path / "rec.yaml")
+    # missing: refused, saying how to fix it
+    del fx.CATALOGUE[name]
+    plug.unlink()
+    with pytest.raises(CoefficientError, match="does not exist here"):
+        Calibration.load(tmp_path / "rec.yaml")

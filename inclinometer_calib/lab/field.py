@@ -146,42 +146,47 @@ class FieldMonitor:
         return out
 
     def _candidates(self, rows) -> list:
-        """(effect, {channel: (N, k) signature}) for each candidate the window can test."""
+        """(effect, {channel: (N, k) signature}) for each candidate the window can test.
+
+        The signature of parameter j: what adding the effect at its typical size does to the
+        corrected |G|, |B| and dip, per unit of the parameter — to first order, the change of the
+        model's output at the corrected vectors, taken back through the base correction matrix
+        (a Newton step of :meth:`model.ProbeModel.correct`, which is what the full correction
+        would add up to for an effect this small)."""
         from .diagnose import candidate_effects
         from .model import LabModel
 
         cal = self.calibration
         if cal is None:
             return []
-        g_raw = np.array([r["g_raw"] for r in rows])
-        b_raw = np.array([r["b_raw"] for r in rows])
+        x = {"acc": np.array([r["g"] for r in rows]), "mag": np.array([r["b"] for r in rows])}
         temp = np.array([r["temp"] for r in rows])
         time = np.array([r["time"] for r in rows])
-        if not np.all(np.isfinite(temp)):
-            temp = None
-        t_span = float(np.ptp(temp)) if temp is not None else 0.0
-        base_inv = _invariants(*cal.model.correct(g_raw, b_raw, temp, time))
+        known_t = bool(np.all(np.isfinite(temp)))
+        ctx = fx.Context(temperature_c=temp if known_t else np.full(len(rows), fx.T_REF_C), time_s=time)
+        t_span = float(np.ptp(temp)) if known_t else 0.0
+        base_inv = _invariants(x["acc"], x["mag"])
+        base_out = {s: fx.apply_chain(x[s], cal.model.chain(s, "val"), ctx) for s in ("acc", "mag")}
         out = []
         seen = set()
-        lab_model = LabModel(site=cal.site, probe=cal.model)
-        for eff, scope in candidate_effects(lab_model):
+        for eff, _ in candidate_effects(LabModel(site=cal.site, probe=cal.model)):
             if eff.key in seen or eff.identifiability(t_span, float(np.ptp(time)), frozenset({"free"})):
                 continue
             seen.add(eff.key)
-            trial = cal.model.with_effect(eff, "all")
-            term = trial.terms[-1].effect
+            term = eff                     # a fresh effect of the lab's list, its parameters zero
+            sensor = term.sensor
+            chain = cal.model.chain(sensor, "val") + [term]   # apply_chain orders by stage
+            mt = cal.plan.matrix_t[sensor]
             typ = np.where(term.param_typical() > 0, term.param_typical(), 1.0)
             cols = {c[0]: np.empty((len(rows), term.n_params)) for c in CHANNELS}
-            try:
-                for j in range(term.n_params):
-                    v = np.zeros(term.n_params)
-                    v[j] = typ[j]
-                    term.set_vector(v)
-                    inv = _invariants(*trial.correct(g_raw, b_raw, temp, time))
-                    for k, c in enumerate(CHANNELS):
-                        cols[c[0]][:, j] = (inv[k] - base_inv[k]) / typ[j]
-            except ValueError:   # the candidate needs what the data do not give (a temperature)
-                continue
+            for j in range(term.n_params):
+                v = np.zeros(term.n_params)
+                v[j] = typ[j]
+                term.set_vector(v)
+                dx = -fx.rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
+                inv = _invariants(x["acc"] + dx, x["mag"]) if sensor == "acc" else _invariants(x["acc"], x["mag"] + dx)
+                for k, c in enumerate(CHANNELS):
+                    cols[c[0]][:, j] = (inv[k] - base_inv[k]) / typ[j]
             term.set_vector(np.zeros(term.n_params))
             out.append((term, cols))
         return out

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy.special import fdtrc
 
 
 @dataclass
@@ -42,10 +42,13 @@ def regress(y, x) -> Trend | None:
     yc = y - y.mean()
     # regressors that do not vary (or repeat another) carry no information: the test's degrees of
     # freedom are the rank of what varies (lstsq gives them the minimum-norm coefficients)
-    k = int(np.linalg.matrix_rank(xc)) if n else 0
+    if n == 0:
+        return None
+    u, sv, vt = np.linalg.svd(xc, full_matrices=False)      # one SVD: the rank and the solution
+    k = int(np.sum(sv > sv[0] * max(xc.shape) * np.finfo(float).eps)) if sv.size and sv[0] > 0 else 0
     if k == 0 or n < k + 3:
         return None
-    coef, *_ = np.linalg.lstsq(xc, yc, rcond=None)
+    coef = vt[:k].T @ ((u[:, :k].T @ yc) / sv[:k])
     fitted = xc @ coef
     ss_reg = float(fitted @ fitted)
     ss_res = float(np.sum((yc - fitted) ** 2))
@@ -53,5 +56,5 @@ def regress(y, x) -> Trend | None:
     if ss_res <= 0 or dof <= 0:
         return None
     f = (ss_reg / k) / (ss_res / dof)
-    return Trend(f=float(f), p=float(stats.f.sf(f, k, dof)), r2=ss_reg / (ss_reg + ss_res), coef=coef,
+    return Trend(f=float(f), p=float(fdtrc(k, dof, f)), r2=ss_reg / (ss_reg + ss_res), coef=coef,
                  explained_rms=float(np.sqrt(ss_reg / n)), residual_rms=float(np.sqrt(ss_res / dof)), n=int(n))

@@ -390,3 +390,58 @@ def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_
     err = capfd.readouterr().err
     assert "[WARN]" in err and "the messages state a noise of 0.002 m/s^2" in err and "using the data" in err
     assert "magnetometer: the messages state a noise of 20 nT" in err
+
+
+def test_the_calibration_node_fits_the_model_it_is_told_and_says_what_the_captures_cannot_identify(spinning):
+    """``model.effects``: the twelve poses at 25 and 45 °C fit a magnetometer temperature bias
+    (published latched, in the record); the accelerometer's, asked too, is named as not
+    identifiable only if the captures cannot tell it (here they can: both rounds differ by 20 °C),
+    and without a site the record's site is the stand's measured one, said at WARNING."""
+    from inclinometer_calib.msg import CalibrationCoefficients
+
+    node = spinning(CalibrationNode(parameter_overrides=[Parameter("model.effects", value="temperature_bias:mag")]))
+    probe = sim.build_probe(6, ["temperature_bias:mag=3"])
+    log = sim.run_session(probe, Site(), sim.twelve_pose_session(rounds_temp_c=(25.0, 45.0), duration_s=2.0),
+                          np.random.default_rng(2), rate_hz=50.0)
+    got = []
+    listener = spinning(rclpy.create_node("test_listener"))
+    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
+        node.detector.add_temperature(float(t), float(tc))
+        node._sample(float(t), tuple(f), tuple(m))
+    for st in node.detector.flush():       # the end of the data, as the idle timer does it
+        node._offer(st)
+    node._report(node._finish)
+    cal = node.session.calibration
+    assert cal is not None and cal.model.labels() == ["temperature_bias:mag:xyz"]
+    est = cal.model.extra_terms[0].effect.values["c"]
+    np.testing.assert_allclose(est, 3.0, atol=0.1)
+    assert cal.site_source == "measured" and cal.not_identifiable == []
+    # latched: a late subscriber gets the record, with the model named in the message
+    listener.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, got.append, c.latched_qos())
+    end = time.monotonic() + 5
+    while time.monotonic() < end and not got:
+        time.sleep(0.05)
+    assert got and got[-1].id == cal.id and "temperature_bias:mag:xyz" in list(got[-1].mag_model_effects)
+    assert got[-1].site_source == "measured"
+
+
+def test_a_model_the_captures_cannot_identify_is_said(spinning):
+    node = spinning(CalibrationNode(parameter_overrides=[Parameter("model.effects", value="temperature_bias:mag")]))
+    probe = sim.build_probe(6)
+    log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0), np.random.default_rng(2),
+                          rate_hz=50.0)
+    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
+        node.detector.add_temperature(float(t), float(tc))
+        node._sample(float(t), tuple(f), tuple(m))
+    for st in node.detector.flush():       # the end of the data, as the idle timer does it
+        node._offer(st)
+    node._report(node._finish)
+    cal = node.session.calibration
+    assert [x["parameter"] for x in cal.not_identifiable] == ["temperature_bias:mag:xyz"]
+    assert "temperature span 0.0 °C is too small" in cal.not_identifiable[0]["reason"]
+    assert any("not identifiable from these captures" in w for w in node.session.warnings)
+
+
+def test_a_bad_model_is_refused_at_start_up(ros):
+    with pytest.raises(InvalidParameterValueException, match="unknown effect"):
+        CalibrationNode(parameter_overrides=[Parameter("model.effects", value="no_such_effect")])

@@ -1,0 +1,106 @@
+"""One place for each idea: the copies the pipeline replaced are gone, and every path uses the one left.
+
+Read from the source (``ast``), so that a copy coming back fails here whatever it is called by:
+one station type (:mod:`station`), one correction path (:meth:`model.ProbeModel.correct` through
+:meth:`coeffs.Calibration.correct` and :func:`pipeline.correct_stations`), the specific-force
+sign flip in :mod:`frames` only, effect metadata on the effect classes, one effect grammar.
+"""
+import ast
+import pathlib
+
+import pytest
+
+PKG = pathlib.Path(__file__).resolve().parent.parent / "inclinometer_calib"
+MODULES = {p.relative_to(PKG).as_posix(): ast.parse(p.read_text()) for p in PKG.rglob("*.py")
+           if "__pycache__" not in p.parts}
+
+
+def _classes(tree):
+    return {n.name for n in ast.walk(tree) if isinstance(n, ast.ClassDef)}
+
+
+def _functions(tree):
+    return {n.name for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+
+
+def _imports(tree):
+    """(module, name) of every ``from X import name`` (relative modules without their dots)."""
+    out = set()
+    for n in ast.walk(tree):
+        if isinstance(n, ast.ImportFrom):
+            for a in n.names:
+                out.add(((n.module or "").lstrip("."), a.name))
+    return out
+
+
+def _calls(tree, attr):
+    return [n for n in ast.walk(tree) if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute)
+            and n.func.attr == attr]
+
+
+@pytest.mark.parametrize("name", ["StaticSegment", "Capture", "LabData", "StationRecord", "Stationary",
+                                  "FastCorrection", "ProbeModel", "Station", "Stations"])
+def test_each_station_and_model_type_is_defined_once(name):
+    where = [m for m, t in MODULES.items() if name in _classes(t)]
+    home = {"Station": ["station.py"], "Stations": ["station.py"], "ProbeModel": ["model.py"]}.get(name, [])
+    assert where == home, f"class {name} defined in {where}"
+
+
+def test_the_paths_import_the_one_station_type_and_the_one_correction_path():
+    uses = {
+        "cli.py": {("pipeline", "correct_stations"), ("pipeline", "evaluate_stations")},
+        "reprocess.py": {("pipeline", "SurveyProcessor")},
+        "nodes/correction.py": {("pipeline", "SurveyProcessor")},
+        "lab/model.py": {("model", "ProbeModel")},
+        "lab/data.py": {("station", "Stations")},
+        "capture.py": {("station", "Station")},
+        "pipeline.py": {("station", "Station")},
+        "lab/loop.py": {("compare", "*")},
+    }
+    for module, need in uses.items():
+        have = _imports(MODULES[module])
+        if ("compare", "*") in need:
+            assert ("", "compare") in have, module
+            continue
+        assert need <= have, f"{module} imports {sorted(have)}"
+
+
+def test_only_the_model_inverts_a_triad_and_only_the_pipeline_feeds_it_stations():
+    # TriadModel.inverse: the model's correction (model.py) and the twelve-position solver's own triad
+    callers = sorted(m for m, t in MODULES.items() if _calls(t, "inverse"))
+    assert callers == ["model.py", "twelve_position.py"], callers
+    # .correct(...): Calibration -> ProbeModel (coeffs, model), of stations (pipeline.correct_stations), of
+    # samples (the batch path, survey.py), the lab's model and fit (LabModel.correct -> ProbeModel.correct)
+    callers = sorted(m for m, t in MODULES.items() if _calls(t, "correct") and m != "axial.py")
+    assert callers == ["coeffs.py", "lab/fit.py", "lab/model.py", "model.py", "pipeline.py", "survey.py"], callers
+
+
+def test_the_specific_force_sign_flip_lives_in_frames_only():
+    defs = [m for m, t in MODULES.items() if {"gravity_from_specific_force", "specific_force_from_gravity"}
+            & _functions(t)]
+    assert defs == ["frames.py"]
+    for module in ("streaming.py", "survey.py", "nodes/correction.py", "nodes/calibration.py", "simulate.py",
+                   "coeffs.py"):
+        names = {n for _, n in _imports(MODULES[module])}
+        assert names & {"gravity_from_specific_force", "specific_force_from_gravity"}, module
+
+
+def test_effect_metadata_is_asked_of_the_classes_not_keyed_by_name_elsewhere():
+    from inclinometer_calib import effects as fx
+
+    # the base model's names are also the record's parameter fields (bias_x, scale_x ...): the others
+    names = set(fx.CATALOGUE) - set(fx.BASE)
+    for module, tree in MODULES.items():
+        if module == "effects.py":
+            continue
+        docstrings = {id(n.body[0].value) for n in ast.walk(tree)
+                      if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef)) and n.body
+                      and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        literals = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)
+                    and id(n) not in docstrings}
+        assert not literals & names, f"{module} names effects {sorted(literals & names)} in its code"
+
+
+def test_one_grammar_parses_effect_specifications():
+    parsers = [(m, f) for m, t in MODULES.items() for f in _functions(t) if f.startswith("parse_effect")]
+    assert parsers == [("effects.py", "parse_effects")], parsers
