@@ -50,7 +50,8 @@ def generate_launch_description():
     calibration = Node(
         package="inclinometer_calib", executable="calibration", name="calibration", output="screen",
         parameters=[os.path.join(config, "calibration.yaml"),
-                    {"output": PathJoinSubstitution([out, "coeffs.yaml"]), "use_sim_time": True}],
+                    {"output": PathJoinSubstitution([out, "coeffs.yaml"]), "use_sim_time": True,
+                     "model.effects": LaunchConfiguration("model_effects")}],
     )
     correction = Node(
         package="inclinometer_calib", executable="correction", name="correction", output="screen",
@@ -73,6 +74,9 @@ def generate_launch_description():
         DeclareLaunchArgument("survey", default_value="well_path", description="stand_grid | well_path | none"),
         DeclareLaunchArgument("seed", default_value="7", description="simulator seed"),
         DeclareLaunchArgument("record", default_value="true", description="record survey.mcap"),
+        DeclareLaunchArgument("model_effects", default_value="",
+                              description="effects the calibration node fits beyond the paper's model, "
+                                          "e.g. temperature_bias:mag"),
         calibration, correction, recorder, probe,
         # the probe ends the run (on_end:=stop); give the others time to close the last station
         RegisterEventHandler(OnProcessExit(
