@@ -135,10 +135,11 @@ def test_standard_definitions_parse_to_the_jazzy_types(type_name):
 @pytest.mark.parametrize("name", ["SurveyStation", "CalibrationCoefficients", "CalibrationStatus"])
 def test_own_definitions_parse_to_the_msg_files(name):
     full = f"inclinometer_calib/msg/{name}"
-    text = bag.message_definition(full)
+    defs = bag.MessageDefinitions()
+    text = defs.definition(full)
     _own, nested = _split_definition(text)
     assert sorted(nested) == ["builtin_interfaces/Time", "std_msgs/Header"]
-    expected = get_types_from_msg((REPO / "msg" / f"{name}.msg").read_text(), full)[full]
+    expected = get_types_from_msg(defs.text(full), full)[full]  # the .msg it was made from
     assert get_types_from_msg(text, full)[full] == expected  # fields and constants kept
     if name == "SurveyStation":
         consts, fields = expected
