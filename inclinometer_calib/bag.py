@@ -2,10 +2,16 @@
 
 ROS-free on purpose: this module imports neither rclpy nor any generated message module, so
 bags can be written from CDR bytes and read back on machines without ROS (tests, analysis).
-It needs ``mcap`` (and its ``zstandard`` / ``lz4`` dependencies) and PyYAML; ``rosbags`` only as
-the fallback for computing type hashes that no installed ``.json`` type description holds. All of
-them come with the extra ``bag`` (``pip install 'inclinometer_calib[bag]'``); without them the
-functions that need them raise :class:`deps.MissingDependency`, which says so in one line.
+The libraries do the format work: ``rosbags.typesys`` the message definitions and RIHS01 type
+hashes (:class:`MessageDefinitions`: its ROS 2 Jazzy type store, plus our ``msg/*.msg`` and any
+other interface package's ``.msg`` files registered on demand), ``mcap`` the writing
+(``mcap.writer.Writer``) and the parsing of every record, decompression and CRC checks included
+(``mcap.records``, ``mcap.stream_reader.get_chunk_data_stream``, the seeking reader for the
+summary). What is ours is what they lack: crash safety when writing (below), and reading a
+damaged or unfinalized file up to the damage and past a bad chunk, naming the file and byte
+offset (:class:`BagReader`). All of them, and PyYAML, come with the extra ``bag``
+(``pip install 'inclinometer_calib[bag]'``); without them the functions that need them raise
+:class:`deps.MissingDependency`, which says so in one line.
 
 What makes the file a rosbag2 bag (what ``ros2 bag record`` with the mcap storage writes, and
 what ``rosbags`` and ``mcap_ros2`` need to decode it):
@@ -37,13 +43,27 @@ with ``O_EXCL`` and :class:`BagWriter` raises :class:`FileExistsError` if the pa
 good earlier recording can never be replaced by a half-written one. Choose a new name (the
 recorder's default name carries a UTC timestamp).
 
+Reading damaged files (:class:`BagReader`)
+-----------------------------------------
+mcap's readers stop at the first damage and do not say where. ``make_reader`` looks for the
+footer a crash never wrote and reads nothing of an unfinalized file; the sequential
+``StreamReader`` parses each record body straight from the stream, so a truncated last chunk (a
+killed recorder) ends it with a bare ``EndOfFile``, and a damaged field inside a chunk (a string
+length) desynchronizes it for the rest of the file. So :class:`BagReader` walks the records by
+opcode and length alone (:func:`_frames`, the one hand-written piece of the format), hands each
+body, cut to its declared length, to the library's record parser, skips a chunk that fails
+parsing, decompression or its CRC, and records every problem as a :class:`BagError` with the
+byte offset of the record. Inside a decompressed chunk, message records are unpacked with one
+``struct`` call each: ``mcap.records.Message.read`` makes reading about 2.6 times slower
+(``benchmarks/bench_reprocess.py``, which times the library's ``StreamReader`` beside ours).
+
 Layouts: a path ending in ``.mcap`` is a bare MCAP file; any other path is a ``ros2 bag record``
 style directory ``<dir>/<dir-name>_0.mcap`` plus ``<dir>/metadata.yaml`` (written at close, or by
 :func:`recover`), which ``rosbags`` needs to open a directory and uses to check type hashes.
 """
 from __future__ import annotations
 
-import json
+import io
 import mmap
 import os
 import re
@@ -51,7 +71,6 @@ import struct
 import sys
 import time
 import warnings
-import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional, Sequence, Union
@@ -69,28 +88,8 @@ __all__ = [
 
 PathLike = Union[str, "os.PathLike[str]"]
 
-SEPARATOR = "=" * 80
-# ROS 2 .msg primitive types (rosidl); "string<=N" / "wstring<=N" are bounded strings.
-PRIMITIVE_TYPES = frozenset({
-    "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16", "int32",
-    "uint32", "int64", "uint64", "string", "wstring",
-})
-# Legacy (ROS 1 style) builtin names, used only if no package-local type of that name exists.
-BUILTIN_ALIASES = {
-    "Header": "std_msgs/Header",
-    "time": "builtin_interfaces/Time",
-    "duration": "builtin_interfaces/Duration",
-}
 _REPO_MSG_DIR = Path(__file__).resolve().parent.parent / "msg"
 _OWN_PACKAGE = "inclinometer_calib"
-
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_OP_NAMES = {
-    0x01: "HEADER", 0x02: "FOOTER", 0x03: "SCHEMA", 0x04: "CHANNEL", 0x05: "MESSAGE",
-    0x06: "CHUNK", 0x07: "MESSAGE_INDEX", 0x08: "CHUNK_INDEX", 0x09: "ATTACHMENT",
-    0x0A: "ATTACHMENT_INDEX", 0x0B: "STATISTICS", 0x0C: "METADATA", 0x0D: "METADATA_INDEX",
-    0x0E: "SUMMARY_OFFSET", 0x0F: "DATA_END",
-}
 _ROSBAG2_VERSION = 9  # metadata.yaml / serialized_metadata version of Jazzy's rosbag2
 
 
@@ -109,11 +108,11 @@ class BagError(Exception):
 
 
 class UnknownTypeError(LookupError):
-    """No ``.msg`` definition found for a message type."""
+    """No usable ``.msg`` definition found for a message type."""
 
 
 # ---------------------------------------------------------------------------------------------
-# message definitions and type hashes
+# message definitions and type hashes (rosbags' type store)
 
 
 def normalize_type(type_name: str) -> str:
@@ -126,38 +125,17 @@ def normalize_type(type_name: str) -> str:
     raise ValueError(f"not a ROS message type name: {type_name!r} (expected pkg/msg/Type)")
 
 
-def _short(type_name: str) -> str:
-    pkg, _, name = normalize_type(type_name).split("/")
-    return f"{pkg}/{name}"
-
-
-_FIELD_TYPE_RE = re.compile(r"\s*([A-Za-z][A-Za-z0-9_/]*)")
-
-
-def _dependencies(text: str, package: str) -> List[str]:
-    """Nested (non-primitive) types referenced by a .msg text, as written (``pkg/Type``),
-    sorted like rosbag2 does (std::set)."""
-    deps = set()
-    for line in text.splitlines():
-        stripped = line.strip()
-        if not stripped or stripped.startswith("#"):
-            continue
-        m = _FIELD_TYPE_RE.match(stripped)
-        if not m:
-            continue
-        base = m.group(1)
-        if base in PRIMITIVE_TYPES:
-            continue
-        deps.add(base if "/" in base else f"{package}/{base}")
-    return sorted(deps)
+_STRING_CONSTANT = re.compile(r"^(string(?:<=\d+)?\s+\w+)=(.*)$", re.M)  # fields have no "="
 
 
 class MessageDefinitions:
-    """Finds ``.msg`` texts and type hashes of installed interfaces.
+    """Message definitions and type hashes from a ``rosbags`` type store.
 
-    Search order for ``share/<pkg>/msg/<Type>.msg`` (and ``.json``): every prefix of
-    ``AMENT_PREFIX_PATH`` (or ``prefixes``), then ``sys.prefix`` (the venv, which holds the
-    ROS message wheels), then this repository's ``msg/`` directory for our own package.
+    The store is rosbags' ROS 2 Jazzy store (:attr:`typestore`); a type it does not hold (ours,
+    or any other interface package) is registered from its ``.msg`` file, with the types that
+    file references. ``.msg`` files are searched as ``share/<pkg>/msg/<Type>.msg`` under every
+    prefix of ``AMENT_PREFIX_PATH`` (or ``prefixes``), then ``sys.prefix`` (the venv, which holds
+    the ROS message wheels), then this repository's ``msg/`` directory for our own package.
     """
 
     def __init__(self, prefixes: Optional[Sequence[PathLike]] = None,
@@ -171,20 +149,27 @@ class MessageDefinitions:
         self.extra_msg_dirs: Dict[str, Path] = {_OWN_PACKAGE: _REPO_MSG_DIR}
         for pkg, d in (extra_msg_dirs or {}).items():
             self.extra_msg_dirs[pkg] = Path(d)
-        self._text_cache: Dict[str, str] = {}
-        self._def_cache: Dict[str, str] = {}
-        self._hash_cache: Dict[str, str] = {}
-        self.hash_sources: Dict[str, str] = {}  # type -> "json:<path>" / "computed" / "missing: .."
+        self._store = None
+        self.hash_errors: Dict[str, str] = {}  # type -> why type_hash() gave ""
 
-    def find(self, type_name: str, ext: str = ".msg") -> Optional[Path]:
+    @property
+    def typestore(self):
+        """The ``rosbags`` type store (ROS 2 Jazzy plus the types registered so far)."""
+        if self._store is None:
+            typesys = require("rosbags.typesys", "bag", "message definitions for a bag")
+            self._store = typesys.get_typestore(typesys.Stores.ROS2_JAZZY)
+        return self._store
+
+    def find(self, type_name: str) -> Optional[Path]:
+        """The ``.msg`` file of a type, or None."""
         pkg, sub, name = normalize_type(type_name).split("/")
         for prefix in self.prefixes:
-            p = prefix / "share" / pkg / sub / f"{name}{ext}"
+            p = prefix / "share" / pkg / sub / f"{name}.msg"
             if p.is_file():
                 return p
         extra = self.extra_msg_dirs.get(pkg)
         if extra is not None and sub == "msg":
-            p = extra / f"{name}{ext}"
+            p = extra / f"{name}.msg"
             if p.is_file():
                 return p
         return None
@@ -192,102 +177,65 @@ class MessageDefinitions:
     def text(self, type_name: str) -> str:
         """The verbatim ``.msg`` text of one type (no nested types)."""
         full = normalize_type(type_name)
-        cached = self._text_cache.get(full)
-        if cached is not None:
-            return cached
         path = self.find(full)
         if path is None:
             raise UnknownTypeError(
                 f"no .msg file for {full}: looked for share/{full.split('/')[0]}/msg/"
                 f"{full.split('/')[2]}.msg under {[str(p) for p in self.prefixes]}")
-        text = path.read_text(encoding="utf-8")
-        self._text_cache[full] = text
-        return text
+        return path.read_text(encoding="utf-8")
 
-    def _resolve_dep(self, dep: str) -> str:
-        """``pkg/Type`` as written in a .msg -> an existing ``pkg/Type`` (builtin aliases)."""
-        pkg, _, name = dep.rpartition("/")
-        pkg = pkg.split("/")[0]
-        if self.find(f"{pkg}/msg/{name}") is not None:
-            return f"{pkg}/{name}"
-        alias = BUILTIN_ALIASES.get(name)
-        if alias is not None and self.find(alias) is not None:
-            return alias
-        return f"{pkg}/{name}"  # text() raises the clear error
+    def register(self, type_name: str) -> str:
+        """Make sure the type store holds ``type_name`` and every type it references (registered
+        from ``.msg`` files where missing); returns the normalized name."""
+        from rosbags.typesys import TypesysError, get_types_from_msg
+        from rosbags.typesys.base import Nodetype
+
+        full = normalize_type(type_name)
+        store = self.typestore
+        pending = [full]
+        while pending:
+            name = pending.pop()
+            if name in store.fielddefs:
+                continue
+            try:
+                types = get_types_from_msg(self.text(name), name)
+                store.register(types)
+            except (UnknownTypeError, TypesysError) as exc:
+                needed = "" if name == full else f" (referenced by {full})"
+                raise UnknownTypeError(f"{exc}{needed}") from None
+            for _field, (kind, rest) in types[name][1]:
+                if kind in (Nodetype.ARRAY, Nodetype.SEQUENCE):
+                    kind, rest = rest[0]
+                if kind == Nodetype.NAME:
+                    pending.append(rest)
+        return full
 
     def definition(self, type_name: str) -> str:
-        """The complete ``ros2msg`` definition, as rosbag2 writes it: the type's .msg text, then
-        for each nested type (depth first, each once) ``\\n`` + 80 ``=`` + ``\\nMSG: pkg/Type\\n``
-        + its text."""
-        full = normalize_type(type_name)
-        cached = self._def_cache.get(full)
-        if cached is not None:
-            return cached
-        seen = set()
+        """The complete ``ros2msg`` definition as rosbag2 stores it in a schema: the type's fields,
+        then each nested type once after a line of 80 ``=`` and ``MSG: pkg/Type``
+        (``generate_msgdef`` of the type store).
 
-        def append(tname: str, depth: int) -> str:
-            if depth <= 0:
-                raise UnknownTypeError(f"recursion too deep resolving {full}")
-            text = self.text(tname)
-            out = [text]
-            pkg = normalize_type(tname).split("/")[0]
-            for dep in _dependencies(text, pkg):
-                dep = self._resolve_dep(dep)
-                if dep in seen:
-                    continue
-                seen.add(dep)
-                out.append(f"\n{SEPARATOR}\nMSG: {dep}\n")
-                out.append(append(dep, depth - 1))
-            return "".join(out)
-
-        result = append(full, 50)
-        self._def_cache[full] = result
-        return result
+        String constants are quoted again: ``generate_msgdef`` writes them bare, and a bare
+        ``true`` or ``1`` then reads back as a bool or a number (rosbags 0.11)."""
+        full = self.register(type_name)
+        text = self.typestore.generate_msgdef(full, ros_version=2)[0]
+        return _STRING_CONSTANT.sub(
+            lambda m: f'{m[1]}="{m[2]}"' if '"' not in m[2] else m[0], text)
 
     def type_hash(self, type_name: str) -> str:
-        """The REP-2011 type hash ``RIHS01_<sha256 hex>`` of a message type, or ``""``.
+        """The REP-2011 type hash ``RIHS01_<sha256 hex>`` (``hash_rihs01`` of the type store), or
+        ``""`` if the type is unknown or rosbags cannot hash it (``hash_errors[type]`` says why).
 
-        Read from ``share/<pkg>/msg/<Type>.json`` (Jazzy installs these type-description files
-        with the hashes next to the ``.msg``); if there is none (e.g. our ``msg/`` fallback
-        without a build), computed from the message definition with ``rosbags`` (its
-        ``hash_rihs01`` implements REP-2011). ``""`` if neither is possible;
-        ``hash_sources[type]`` says why.
+        Equal to the hash rosidl installs in ``share/<pkg>/msg/<Type>.json`` (and rclpy reports)
+        for every type this package records; rosbags 0.11 differs for types with ``char``
+        fields (it hashes ``char`` as char, rosidl as uint8).
         """
         full = normalize_type(type_name)
-        cached = self._hash_cache.get(full)
-        if cached is not None:
-            return cached
-        value = ""
-        path = self.find(full, ".json")
-        if path is not None:
-            try:
-                data = json.loads(path.read_text(encoding="utf-8"))
-                for entry in data.get("type_hashes", []):
-                    if entry.get("type_name") == full:
-                        value = entry.get("hash_string", "")
-                        break
-            except (OSError, ValueError) as exc:
-                self.hash_sources[full] = f"unreadable {path}: {exc}"
-            if value:
-                self.hash_sources[full] = f"json:{path}"
-        if not value:
-            try:
-                value = _compute_rihs01(full, self.definition(full))
-                self.hash_sources[full] = "computed (rosbags hash_rihs01)"
-            except Exception as exc:  # noqa: BLE001 - any failure means "no hash", said why
-                self.hash_sources[full] = f"missing: {type(exc).__name__}: {exc}"
-                value = ""
-        self._hash_cache[full] = value
-        return value
-
-
-def _compute_rihs01(type_name: str, definition: str) -> str:
-    require("rosbags.typesys", "bag", "computing a message type hash")
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.EMPTY)
-    store.register(get_types_from_msg(definition, type_name))
-    return store.hash_rihs01(type_name)
+        try:
+            return self.typestore.hash_rihs01(self.register(full))
+        except (UnknownTypeError, KeyError, ValueError) as exc:
+            self.hash_errors[full] = f"{type(exc).__name__}: {exc}"
+            return ""
 
 
 _default_definitions: Optional[MessageDefinitions] = None
@@ -545,8 +493,8 @@ class BagWriter:
                   extra_metadata: Optional[Mapping[str, str]] = None) -> int:
         """Register a topic; returns the channel id for :meth:`write`.
 
-        The definition and hash are looked up from the installed interfaces unless given. A type
-        without a findable ``.msg`` is still recorded (schema with empty encoding) with a
+        The definition and hash come from :class:`MessageDefinitions` unless given. A type
+        without a usable definition is still recorded (schema with empty encoding) with a
         warning: the CDR bytes are kept, readers then need the type from elsewhere.
         """
         if self.closed:
@@ -729,79 +677,63 @@ class TopicInfo:
     count: int = 0   # messages seen by the last complete scan
 
 
-_u16 = struct.Struct("<H").unpack_from
-_u32 = struct.Struct("<I").unpack_from
-_u64 = struct.Struct("<Q").unpack_from
-_REC_HDR = struct.Struct("<BQ").unpack_from
-_MSG_HDR = struct.Struct("<HIQQ").unpack_from
+_REC_HDR = struct.Struct("<BQ").unpack_from   # opcode, body length: the framing of every record
+_MSG_HDR = struct.Struct("<HIQQ").unpack_from  # channel id, sequence, log time, publish time
+_COMPRESSIONS = {"": None, "zstd": "zstandard", "lz4": "lz4"}  # chunk compression -> module
 
 
-class _Bad(Exception):
+class _Truncated(Exception):
     def __init__(self, offset: int, reason: str):
         super().__init__(reason)
         self.offset = offset
-        self.reason = reason
 
 
-def _string(buf, pos: int):
-    (n,) = _u32(buf, pos)
-    end = pos + 4 + n
-    if end > len(buf):
-        raise struct.error("string runs past the end of its record")
-    return str(buf[pos + 4:end], "utf-8"), end
+def _op_name(op: int) -> str:
+    from mcap.opcode import Opcode
+
+    try:
+        return Opcode(op).name
+    except ValueError:
+        return f"opcode 0x{op:02x}"
 
 
-def _string_map(buf, pos: int):
-    (n,) = _u32(buf, pos)
-    end = pos + 4 + n
-    if end > len(buf):
-        raise struct.error("map runs past the end of its record")
-    pos += 4
-    out = {}
-    while pos < end:
-        k, pos = _string(buf, pos)
-        v, pos = _string(buf, pos)
-        out[k] = v
-    return out, end
-
-
-def _records(buf, start: int, end: int):
-    """(offset, opcode, body memoryview) for each complete record in buf[start:end]; raises _Bad
-    at the first incomplete one."""
+def _frames(buf, start: int, end: int):
+    """``(offset, opcode, body)`` of each record in ``buf[start:end]``, by opcode and length only;
+    raises :class:`_Truncated` at a record that runs past ``end``. (Why: the module docstring.)"""
     pos = start
     while pos < end:
         if end - pos < 9:
-            raise _Bad(pos, f"truncated record header ({end - pos} of 9 bytes)")
+            raise _Truncated(pos, f"truncated record header ({end - pos} of 9 bytes)")
         op, length = _REC_HDR(buf, pos)
         body_end = pos + 9 + length
         if body_end > end:
-            raise _Bad(pos, f"truncated {_OP_NAMES.get(op, f'opcode 0x{op:02x}')} record "
-                            f"(declares {length} bytes, {end - pos - 9} present)")
+            raise _Truncated(pos, f"truncated {_op_name(op)} record "
+                                  f"(declares {length} bytes, {end - pos - 9} present)")
         yield pos, op, buf[pos + 9:body_end]
         pos = body_end
 
 
-def _decompress(compression: str, data, size: int) -> bytes:
-    if compression == "":
-        return bytes(data)
-    if compression == "zstd":
-        zstandard = require("zstandard", "bag", "reading a zstd-compressed bag")
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
-    if compression == "lz4":
-        lz4_frame = require("lz4.frame", "bag", "reading an lz4-compressed bag")
-        return lz4_frame.decompress(data)
-    raise ValueError(f"unsupported chunk compression {compression!r}")
+def _parse(record_class, body):
+    """One record body parsed by the ``mcap`` library's record class."""
+    from mcap.data_stream import ReadDataStream
+
+    return record_class.read(ReadDataStream(io.BytesIO(body)))
 
 
 class BagReader:
     """Sequential reader of a (possibly damaged) rosbag2 MCAP file or bag directory.
 
-    Messages come in file order (the recorder writes in receive order). The file is read
-    record by record, so everything before a damage is delivered; a chunk that fails its CRC
-    or decompression is skipped and reading continues after it if the framing allows.
+    Messages come in file order (the recorder writes in receive order). Everything before a
+    damage is delivered; a chunk that fails parsing, decompression or its CRC is skipped and
+    reading continues after it if the framing allows (see the module docstring).
     """
 
     def __init__(self, path: PathLike):
+        require("mcap.records", "bag", "reading a bag")
+        from mcap.records import Header
+        from mcap.stream_reader import MAGIC_SIZE, StreamReader
+        from mcap.writer import MCAP0_MAGIC
+
         self.path = Path(path)
         self.mcap_path = _find_mcap(self.path)
         self.profile = ""
@@ -810,21 +742,21 @@ class BagReader:
         self.errors: List[BagError] = []
         self.metadata: Dict[str, Dict[str, str]] = {}
         self._topics: Dict[int, TopicInfo] = {}
-        self._schemas: Dict[int, tuple] = {}
+        self._schemas: Dict[int, object] = {}
         self._scanned = False
         self.chunks_read = 0
         with open(self.mcap_path, "rb") as f:
-            head = f.read(8 + 9 + 4096)
-        if len(head) < 8 or head[:8] != MCAP_MAGIC:
+            head = f.read(MAGIC_SIZE + 9 + 4096)
+        if head[:MAGIC_SIZE] != MCAP0_MAGIC:
             raise BagError(self.mcap_path, 0, "not an MCAP file (bad or missing magic bytes)")
         try:
-            pos, op, body = next(_records(memoryview(head), 8, len(head)))
-            if op != 0x01:
-                raise _Bad(8, "first record is not an MCAP header")
-            self.profile, p = _string(body, 0)
-            self.library, _ = _string(body, p)
-        except (StopIteration, _Bad, struct.error) as exc:
-            raise BagError(self.mcap_path, 8, f"unreadable MCAP header record: {exc}") from None
+            header = next(StreamReader(io.BytesIO(head)).records)
+            if not isinstance(header, Header):
+                raise ValueError("first record is not an MCAP header")
+        except Exception as exc:  # noqa: BLE001 - whatever the library raises: unreadable
+            raise BagError(self.mcap_path, MAGIC_SIZE,
+                           f"unreadable MCAP header record: {exc!r}") from None
+        self.profile, self.library = header.profile, header.library
 
     # -- topics ----------------------------------------------------------------------------
     @property
@@ -859,8 +791,7 @@ class BagReader:
             size = os.fstat(f.fileno()).st_size
             mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
             try:
-                buf = memoryview(mm) if size else memoryview(b"")
-                yield from self._scan(buf, size, wanted, counts)
+                yield from self._scan(f, memoryview(mm), size, wanted, counts)
             finally:
                 if size:
                     try:
@@ -877,111 +808,114 @@ class BagReader:
     def _err(self, offset: int, reason: str) -> None:
         self.errors.append(BagError(self.mcap_path, offset, reason))
 
-    def _scan(self, buf, size, wanted, counts):
+    def _scan(self, f, buf, size, wanted, counts):
+        from mcap.exceptions import McapError
+        from mcap.opcode import Opcode
+        from mcap.records import Metadata
+        from mcap.stream_reader import MAGIC_SIZE
+
+        message_op, definition_ops = Opcode.MESSAGE, (Opcode.SCHEMA, Opcode.CHANNEL)
         topics = self._topics
         self.finalized = False
-        pos = 8
-        it = _records(buf, 8, size)
-        data_end = None
-        while True:
-            try:
-                rec = next(it)
-            except StopIteration:
-                break
-            except _Bad as bad:
-                self._err(bad.offset, bad.reason + "; the file is truncated or corrupt "
-                          "(e.g. the recorder was killed); data before this point is intact")
-                return
-            pos, op, body = rec
-            try:
-                if op == 0x06:  # chunk
-                    records = self._chunk_records(body, pos)
-                    if records is None:
+        try:
+            for pos, op, body in _frames(buf, MAGIC_SIZE, size):
+                try:
+                    if op == Opcode.CHUNK:
+                        records = self._chunk_records(body, pos)
+                        if records is None:
+                            continue
+                        self.chunks_read += 1
+                    elif op == message_op or op in definition_ops:
+                        records = ((pos, op, body),)
+                    elif op == Opcode.METADATA:
+                        meta = _parse(Metadata, body)
+                        self.metadata[meta.name] = meta.metadata
                         continue
-                    self.chunks_read += 1
-                    for ipos, iop, ibody in records:
-                        if iop == 0x05:
+                    elif op == Opcode.DATA_END:
+                        self._check_summary(f, size)
+                        return
+                    else:
+                        continue
+                    for _ipos, iop, ibody in records:
+                        if iop == message_op:
                             cid, _seq, log_time, pub_time = _MSG_HDR(ibody, 0)
                             t = topics.get(cid)
                             if t is None:
-                                self._err(pos, f"message for unknown channel {cid} in chunk")
+                                self._err(pos, f"message for unknown channel {cid}")
                                 continue
                             counts[cid] = counts.get(cid, 0) + 1
                             if wanted is None or t.topic in wanted:
                                 yield BagMessage(t.topic, t.type, bytes(ibody[22:]), log_time,
                                                  pub_time)
-                        else:
+                        elif iop in definition_ops:
                             self._definition_record(iop, ibody)
-                elif op == 0x05:
-                    cid, _seq, log_time, pub_time = _MSG_HDR(body, 0)
-                    t = topics.get(cid)
-                    if t is None:
-                        self._err(pos, f"message for unknown channel {cid}")
-                        continue
-                    counts[cid] = counts.get(cid, 0) + 1
-                    if wanted is None or t.topic in wanted:
-                        yield BagMessage(t.topic, t.type, bytes(body[22:]), log_time, pub_time)
-                elif op in (0x03, 0x04):
-                    self._definition_record(op, body)
-                elif op == 0x0C:
-                    name, p = _string(body, 0)
-                    self.metadata[name], _ = _string_map(body, p)
-                elif op == 0x0F:
-                    data_end = pos
-                    break
-            except (struct.error, UnicodeDecodeError, ValueError) as exc:
-                self._err(pos, f"malformed {_OP_NAMES.get(op, hex(op))} record: {exc}")
-        if data_end is None:
-            self._err(size, "file ends without a data-end record: the recording was not "
-                      "finalized (recorder crashed or was killed); all complete chunks were read")
+                except (struct.error, ValueError, McapError) as exc:
+                    self._err(pos, f"malformed {_op_name(op)} record: {exc!r}")
+        except _Truncated as bad:
+            self._err(bad.offset, f"{bad}; the file is truncated or corrupt (e.g. the recorder "
+                      "was killed); data before this point is intact")
             return
-        # footer + closing magic present?
-        self.finalized = (size >= 8 + 9 + 20 and bytes(buf[size - 8:size]) == MCAP_MAGIC
-                          and buf[size - 8 - 29] == 0x02)
-        if not self.finalized:
+        self._err(size, "file ends without a data-end record: the recording was not "
+                  "finalized (recorder crashed or was killed); all complete chunks were read")
+
+    def _check_summary(self, f, size) -> None:
+        """After a complete data section: footer, closing magic and the summary they point to
+        must be readable by mcap's seeking reader."""
+        from mcap.reader import SeekingReader
+        from mcap.stream_reader import MAGIC_SIZE
+        from mcap.writer import MCAP0_MAGIC
+
+        try:
+            f.seek(size - MAGIC_SIZE)
+            if f.read(MAGIC_SIZE) != MCAP0_MAGIC:
+                raise ValueError("no closing magic bytes")
+            f.seek(0)
+            SeekingReader(f).get_summary()
+            self.finalized = True
+        except Exception:  # noqa: BLE001 - whatever the library raises: not finalized
             self._err(size, "summary section or footer is missing or damaged "
                       "(data section is complete)")
 
     def _chunk_records(self, body, pos):
+        """The records of one chunk (``mcap`` parses, decompresses and checks its CRC), or None
+        (said in :attr:`errors`) if it is damaged."""
+        from mcap.exceptions import UnsupportedCompressionError
+        from mcap.records import Chunk
+        from mcap.stream_reader import get_chunk_data_stream
+
         try:
-            _start, _end, usize = struct.unpack_from("<QQQ", body, 0)
-            (crc,) = _u32(body, 24)
-            compression, p = _string(body, 28)
-            (clen,) = _u64(body, p)
-            data = body[p + 8:p + 8 + clen]
-            if len(data) != clen:
-                raise ValueError("compressed data runs past the end of the chunk record")
-            raw = _decompress(compression, data, usize)
-            if len(raw) != usize:
-                raise ValueError(f"decompressed to {len(raw)} bytes, expected {usize}")
-            if crc and zlib.crc32(raw) != crc:
-                raise ValueError("CRC mismatch")
-            return list(_records(memoryview(raw), 0, len(raw)))
+            chunk = _parse(Chunk, body)
+            if chunk.compression not in _COMPRESSIONS:  # the library would take it as raw
+                raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
+            try:
+                stream, usize = get_chunk_data_stream(chunk, validate_crc=True)
+            except UnsupportedCompressionError:  # not damage: this environment lacks the codec
+                raise MissingDependency(_COMPRESSIONS[chunk.compression], "bag",
+                                        f"reading a {chunk.compression}-compressed bag") from None
+            return list(_frames(memoryview(stream.read(usize)), 0, usize))
         except MissingDependency:
-            raise  # not damage: the chunk is fine, this environment cannot decompress it
-        except (_Bad, struct.error, ValueError, Exception) as exc:  # noqa: BLE001
-            reason = exc.reason if isinstance(exc, _Bad) else str(exc)
-            self._err(pos, f"damaged chunk skipped ({type(exc).__name__}: {reason})")
+            raise
+        except Exception as exc:  # noqa: BLE001 - any failure of this chunk: skip it, say why
+            self._err(pos, f"damaged chunk skipped ({type(exc).__name__}: {exc})")
             return None
 
     def _definition_record(self, op, body):
-        if op == 0x03:  # schema
-            (sid,) = _u16(body, 0)
-            name, p = _string(body, 2)
-            enc, p = _string(body, p)
-            (n,) = _u32(body, p)
-            self._schemas[sid] = (name, enc, str(body[p + 4:p + 4 + n], "utf-8"))
-        elif op == 0x04:  # channel
-            cid, sid = struct.unpack_from("<HH", body, 0)
-            topic, p = _string(body, 4)
-            menc, p = _string(body, p)
-            meta, _ = _string_map(body, p)
-            sname, senc, sdata = self._schemas.get(sid, ("", "", ""))
-            self._topics[cid] = TopicInfo(
-                topic=topic, type=sname, channel_id=cid, message_encoding=menc,
-                schema_encoding=senc, definition=sdata,
-                qos_yaml=meta.get("offered_qos_profiles", ""),
-                type_hash=meta.get("topic_type_hash", ""), metadata=meta)
+        from mcap.opcode import Opcode
+        from mcap.records import Channel, Schema
+
+        if op == Opcode.SCHEMA:
+            schema = _parse(Schema, body)
+            self._schemas[schema.id] = schema
+            return
+        ch = _parse(Channel, body)
+        schema = self._schemas.get(ch.schema_id)
+        self._topics[ch.id] = TopicInfo(
+            topic=ch.topic, type=schema.name if schema else "", channel_id=ch.id,
+            message_encoding=ch.message_encoding,
+            schema_encoding=schema.encoding if schema else "",
+            definition=str(schema.data, "utf-8") if schema else "",
+            qos_yaml=ch.metadata.get("offered_qos_profiles", ""),
+            type_hash=ch.metadata.get("topic_type_hash", ""), metadata=ch.metadata)
 
 
 def _find_mcap(path: Path) -> Path:
