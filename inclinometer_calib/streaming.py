@@ -85,6 +85,10 @@ class StaticDetector:
         self._t_prev = math.inf
         self.t_first = math.nan      # time of the first sample: the origin of time-dependent effects
         self.temps = TemperatureTrack()
+        #: Keep every temperature until the consumer forgets it (:meth:`TemperatureTrack.forget_before`):
+        #: for a consumer that holds closed stations back (a node waiting for their reference) and
+        #: takes their temperature later; otherwise they are forgotten as stations close.
+        self.retain_temperatures = False
         self._dt = math.inf          # the typical sample interval (running mean of the non-gap ones)
         self.events: list = []
         self._warming = not (noise_acc > 0 and noise_mag > 0)
@@ -283,7 +287,7 @@ class StaticDetector:
         self.reset()
         if st is None:
             return _NO_STATIONS
-        if not self._warming:
+        if not self._warming and not self.retain_temperatures:
             self.temps.forget_before(st.t_start)   # stations close in time order: later ones start later
         self._pieces(st)
         return (st,)

@@ -132,3 +132,21 @@ def test_a_creep_during_the_hold_is_measured_as_a_trend():
     s = max(segs, key=lambda x: x.n)
     assert s.g_rate[0] == pytest.approx(-0.02 / 4.0, rel=0.15)     # gravity vector = -f
     assert abs(s.g_rate[1]) < 0.002
+
+
+def test_a_consumer_that_holds_stations_back_still_finds_their_temperatures():
+    """The correction node publishes a station only when its reference is in: the temperatures
+    stamped within a held-back station must outlive the closing of later stations (a loaded
+    machine once lost them, and the stations' temperature-dependent corrections with them)."""
+    log = _twelve(duration_s=3.0)
+    for retain, expect_all in ((True, True), (False, False)):
+        det = StaticDetector()
+        det.retain_temperatures = retain
+        held = []
+        for i in range(len(log)):
+            det.add_temperature(log.t_s[i], 20.0 + 0.01 * i)       # on a topic of its own
+            held.extend(det.update(log.t_s[i], log.acc[i], log.mag[i]))
+        held.extend(det.flush())
+        temps = [det.temps.mean(s.t_start, s.t_end) for s in held if not s.short]
+        assert len(temps) == 12
+        assert all(np.isfinite(temps)) == expect_all

@@ -108,6 +108,7 @@ class CorrectionNode(Node):
         self.add_post_set_parameters_callback(self._after_set)
 
         self.detector = StaticDetector(**det)
+        self.detector.retain_temperatures = True   # stations wait for their reference: forgotten once published
         self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
         self.implausible_samples = 0
         monitor = FieldMonitor(window=window, materiality=materiality, tolerances=self.tol) if window else None
@@ -338,6 +339,7 @@ class CorrectionNode(Node):
         has_ref = ref is not None   # a partial reference is used for what it gives
         if self._have_temp:   # the temperatures stamped within it, now that they are in (they may come late)
             seg.temp_c = self.detector.temps.mean(seg.t_start, seg.t_end)
+            self.detector.temps.forget_before(seg.t_start)   # published in time order: no earlier one will ask
         fields = self.processor.process(seg, ref=ref, have_temperature=self._have_temp)
         for w in seg.warnings:
             if w == NO_SITE:          # said once, not at every station before the first record

@@ -405,12 +405,7 @@ def test_the_calibration_node_fits_the_model_it_is_told_and_says_what_the_captur
                           np.random.default_rng(2), rate_hz=50.0)
     got = []
     listener = spinning(rclpy.create_node("test_listener"))
-    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
-        node.detector.add_temperature(float(t), float(tc))
-        node._sample(float(t), tuple(f), tuple(m))
-    for st in node.detector.flush():       # the end of the data, as the idle timer does it
-        node._offer(st)
-    node._report(node._finish)
+    _feed_to_the_end(node, log)
     cal = node.session.calibration
     assert cal is not None and cal.model.labels() == ["temperature_bias:mag:xyz"]
     est = cal.model.extra_terms[0].effect.values["c"]
@@ -425,17 +420,23 @@ def test_the_calibration_node_fits_the_model_it_is_told_and_says_what_the_captur
     assert got[-1].site_source == "measured"
 
 
+def _feed_to_the_end(node, log):
+    """A log's samples and temperatures into the calibration node, then the end of the data (as
+    the idle timer does it)."""
+    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
+        node.detector.add_temperature(float(t), float(tc))
+        node._sample(float(t), tuple(f), tuple(m))
+    for st in node.detector.flush():
+        node._offer(st)
+    node._report(node._finish)
+
+
 def test_a_model_the_captures_cannot_identify_is_said(spinning):
     node = spinning(CalibrationNode(parameter_overrides=[Parameter("model.effects", value="temperature_bias:mag")]))
     probe = sim.build_probe(6)
     log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0), np.random.default_rng(2),
                           rate_hz=50.0)
-    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
-        node.detector.add_temperature(float(t), float(tc))
-        node._sample(float(t), tuple(f), tuple(m))
-    for st in node.detector.flush():       # the end of the data, as the idle timer does it
-        node._offer(st)
-    node._report(node._finish)
+    _feed_to_the_end(node, log)
     cal = node.session.calibration
     assert [x["parameter"] for x in cal.not_identifiable] == ["temperature_bias:mag:xyz"]
     assert "temperature span 0.0 °C is too small" in cal.not_identifiable[0]["reason"]
