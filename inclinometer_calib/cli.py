@@ -592,7 +592,7 @@ def _lab_setup(args):
                 raise UserError(f"{args.bag}: no --site given and the run's captures do not solve: give --site")
             args.site_source = "given" if args.site else cal.site_source
         else:
-            site = load_site(args.site) if args.site else _site_from_calibration(args.cal)
+            site = load_site(args.site) if args.site else _site_from_calibration(args.cal[0])
             args.site_source = "given" if args.site else "measured"
             data = lab.load_logs(args.cal, args.val, warn=_warn, free_paths=args.free or ())
         model = build_model(site, args.effects, fit_heading=args.fit_heading)
@@ -623,33 +623,47 @@ def _progress(args):
 
 
 def cmd_lab_fit(args):
+    from .lab.diagnose import blocked_folds, field_fit, losses_text, validation
+
     lab, site, data, model = _lab_setup(args)
-    train = data if args.fit_on == "all" else data.subset(data.role == "cal")
-    result = lab.fit(model, train, progress=_progress(args))
+    figures = []          # (label, metrics): the headline first
+    if args.fit_on in ("field", "cal"):     # never the validation references
+        inv = args.fit_on == "field"
+        result = field_fit(model, data, progress=_progress(args), survey_invariants=inv)
+        v = validation(model, data, survey_invariants=inv)
+        if v.get("stations"):
+            figures.append(v)
+        fitted_on = "cal logs" + (" and the survey's |g|, |B|, dip" if inv and (data.role == "val").any() else "")
+    else:
+        result = lab.fit(model, data, progress=_progress(args))
+        folds = blocked_folds(data, args.folds)
+        cv = lab.cross_validate(model, data, folds) if folds else {}
+        if cv:
+            figures.append(cv)
+        v = validation(model, data)
+        if v.get("stations"):
+            v["kind"] = "in-sample"
+            v["label"] = "in-sample: errors on stations the model was fitted on (they understate the field error)"
+            figures.append(v)
+        fitted_on = "cal + val logs"
+    headline = figures[0] if figures else {}
     val = data.subset(data.role == "val")
-    in_sample = lab.val_metrics(model, val) if len(val) else {}
-    held_out = {}
-    if args.fit_on == "all" and len(val):
-        from .lab.diagnose import _folds
-        folds = _folds(data, args.folds)
-        held_out = lab.cross_validate(model, data, folds) if folds else {}
-    validation = held_out or in_sample
     if args.output:   # the fitted model as the record that correct, reprocess and the nodes apply
         rec = model.record(probe_id=args.probe_id, site_source=args.site_source,
                            not_identifiable=result.not_identifiable,
                            fit_stats={"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms,
-                                      "stations": len(train), "data": data.describe(),
-                                      "validation": {k: v for k, v in validation.items() if k != "stations"}},
-                           method=f"lab fit ({'cal + val' if args.fit_on == 'all' else 'cal'} logs) of "
-                                  f"{model.describe()}")
+                                      "stations": len(data), "data": data.describe(),
+                                      "validation": {k: v for k, v in headline.items() if k != "stations"}},
+                           method=f"lab fit ({fitted_on}) of {model.describe()}")
         rec.save(args.output)
-    out = {"model": model.describe(), "effects": model.labels(), "data": data.describe(),
+    out = {"model": model.describe(), "effects": model.labels(), "data": data.describe(), "fitted_on": fitted_on,
            "fit": {"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms, "success": result.success,
                    "seconds": result.seconds},
            "parameters": result.parameter_table(),
            "not_identifiable": [{"parameter": n.parameter, "reason": n.reason} for n in result.not_identifiable],
            "strong_correlations": [{"a": a, "b": b, "r": r} for a, b, r in result.strong_correlations(0.98)],
-           "val": dict(validation, held_out=bool(held_out), in_sample=in_sample),
+           "validation": figures, "val": headline,
+           "losses": [x.to_json() for x in data.losses],
            "uncorrected": lab.uncorrected_metrics(val, site) if len(val) else {}}
     if args.output:
         out["record"] = {"path": args.output, "id": rec.id}
@@ -658,8 +672,11 @@ def cmd_lab_fit(args):
         return 0
     print(f"model: {out['model']}")
     print(f"data:  {out['data']}")
-    print(f"fit:   χ²/dof {result.reduced_chi2:.2f}, noise-normalised residual RMS {result.z_rms:.2f} "
-          f"({result.seconds:.2f} s)")
+    lost = losses_text(data.losses)
+    if lost:
+        print(lost)
+    print(f"fit:   on the {fitted_on}: χ²/dof {result.reduced_chi2:.2f}, noise-normalised residual RMS "
+          f"{result.z_rms:.2f} ({result.seconds:.2f} s)")
     print(f"{'parameter':<44}{'value':>14}{'±1σ':>12}  unit")
     for r in result.parameter_table():
         print(f"{r['name']:<44}{r['value']:>14.6g}{r['std']:>12.2g}  {r['unit']}")
@@ -667,10 +684,9 @@ def cmd_lab_fit(args):
         print(f"not identifiable: {n.parameter}: {n.reason}")
     for a, b, r in result.strong_correlations(0.98):
         print(f"strongly correlated: {a} ~ {b} (r = {r:+.3f})")
-    if validation:
-        kind = "held-out (cross-validated)" if held_out else "validation"
-        print(f"{kind}: drift RMS {validation['drift_rms_deg']:.4f} deg, azimuth RMS "
-              f"{validation['azimuth_rms_deg']:.4f} deg over {validation['stations']} stations")
+    for f in figures:
+        print(f"{f['label']}: drift RMS {f['drift_rms_deg']:.4f} deg, azimuth RMS "
+              f"{f['azimuth_rms_deg']:.4f} deg over {f['stations']} stations")
     if args.output:
         print(f"wrote {args.output} (id {rec.id}): the calibration record of this model, for correct, reprocess "
               "and the correction node")
@@ -679,19 +695,20 @@ def cmd_lab_fit(args):
 
 def cmd_lab_diagnose(args):
     lab, site, data, model = _lab_setup(args)
-    dg = lab.diagnose(data, model, k_folds=args.folds, progress=_progress(args))
+    dg = lab.diagnose(data, model, progress=_progress(args))
     if args.json:
         print(json.dumps(dg.to_json(), indent=2, default=float))
         return 0
     print(dg.verdict)
     print()
-    print(f"{'candidate':<40}{'drift RMS':>10}{'az RMS':>10}{'pointing':>10}{'gain':>7}{'ΔBIC':>10}")
+    print(f"errors: {dg.base_val.get('label', 'no station with a reference')}")
+    print(f"{'candidate':<40}{'drift RMS':>10}{'az RMS':>10}{'pointing':>10}{'Wald p':>10}{'ΔBIC':>9}  note")
     b = dg.base_val
     print(f"{'(current model)':<40}{b.get('drift_rms_deg', float('nan')):>10.4f}"
           f"{b.get('azimuth_rms_deg', float('nan')):>10.4f}{dg.base_score:>10.4f}")
     for c in dg.ranked:
         print(f"{c.label:<40}{c.val.get('drift_rms_deg', float('nan')):>10.4f}{c.val.get('azimuth_rms_deg', float('nan')):>10.4f}"
-              f"{c.score:>10.4f}{round(100 * c.gain) + 0:>6d}%{c.delta_bic:>10.0f}{'  *' if c.significant else ''}")
+              f"{c.score:>10.4f}{c.p:>10.1e}{c.delta_bic:>9.0f}  {'* ' if c.significant else ''}{c.note}")
     for u in dg.untestable:
         print(f"not testable here: {u['effect']}: {u['reason']}")
     return 0
@@ -703,8 +720,10 @@ def cmd_lab_report(args):
                              progress=_progress(args))
     for k, s in enumerate(steps):
         v = s.base_val
-        print(f"rung {k}: {s.model.describe()}: held-out drift RMS {v.get('drift_rms_deg', float('nan')):.4f} deg, "
-              f"azimuth RMS {v.get('azimuth_rms_deg', float('nan')):.4f} deg")
+        print(f"rung {k}: {s.model.describe()}: drift RMS {v.get('drift_rms_deg', float('nan')):.4f} deg, "
+              f"azimuth RMS {v.get('azimuth_rms_deg', float('nan')):.4f} deg ({v.get('kind', '')})")
+        for n in s.notes:
+            print(f"  {n}")
     print(f"wrote {args.output}")
     return 0
 
@@ -714,7 +733,8 @@ def _lab_parser(sub):
     lsub = lab.add_subparsers(dest="lab_command", required=True)
 
     def common(p, effects_help):
-        p.add_argument("--cal", help="calibration log CSV (twelve poses and/or stand stations)")
+        p.add_argument("--cal", action="append", help="calibration log CSV (twelve poses and/or stand stations); "
+                       "repeat for several runs (e.g. two heating rates)")
         p.add_argument("--bag", help="instead of logs: a recorded run (its captures are the calibration data, its "
                                      "stations with a reference the validation data)")
         p.add_argument("--val", help="validation / survey log CSV (reference angles)")
@@ -723,20 +743,24 @@ def _lab_parser(sub):
         p.add_argument("--effects", help=effects_help)
         p.add_argument("--plugin", action="append", help="Python file defining extra effects (repeatable)")
         p.add_argument("--site", help="site reference YAML")
-        p.add_argument("--folds", type=int, default=4, help="cross-validation folds over validation stations")
         p.add_argument("--fit-heading", action="store_true", help="also fit the stand's heading offset")
         p.add_argument("--json", action="store_true")
         p.add_argument("--quiet", action="store_true", help="no progress lines")
 
     f = lsub.add_parser("fit", help="fit a model; parameters ± 1σ, identifiability, validation errors")
     common(f, "effects beyond the paper's base model: NAME[:sensor[:axes]][@scope],...")
-    f.add_argument("--fit-on", choices=("all", "cal"), default="all",
-                   help="fit on cal + val (validation figures cross-validated) or on cal only")
+    f.add_argument("--fit-on", choices=("field", "cal", "all"), default="field",
+                   help="field (default): what a rig has — the calibration logs and the survey's |g|, |B|, dip, "
+                        "never its reference angles; errors on the whole validation log. cal: the calibration "
+                        "logs only. all: the validation references too (figures then cross-validated in blocks "
+                        "of consecutive stations, and in-sample)")
     f.add_argument("-o", "--output", help="write the fitted model as a calibration record (YAML, format 2) that "
                    "correct, reprocess and the correction node apply")
     f.add_argument("--probe-id", default="probe", help="the probe's id in the record")
+    f.add_argument("--folds", type=int, default=4, help="with --fit-on all: cross-validation folds (blocks of "
+                   "consecutive validation stations)")
     f.set_defaults(func=cmd_lab_fit)
-    d = lsub.add_parser("diagnose", help="rank candidate effects by held-out error; recommend the next")
+    d = lsub.add_parser("diagnose", help="rank candidate effects by significance against the noise and the field error; recommend the next")
     common(d, "effects already in the model (start of the diagnosis)")
     d.set_defaults(func=cmd_lab_diagnose)
     r = lsub.add_parser("report", help="effect ladder + plots + tables as one self-contained HTML file")

@@ -58,6 +58,12 @@ MIN_SPAN = {
     "temperature": (3.0, "°C", "calibrate at two or more temperatures at least 10 °C apart"),
     "time": (300.0, "s", "a drift needs stations spread over at least several minutes (repeat poses at the end)"),
 }
+#: The experiments that tell a temperature effect from a drift in time (they fit a steady warm-up alike).
+SEPARATE_TEMPERATURE = ("a temperature cycle that goes up and down, or two runs heated at different rates (a "
+                        "temperature effect follows the temperature back down and is the same per degree in both "
+                        "runs; a drift in time does neither)")
+SEPARATE_TIME = ("a hold at constant temperature (a drift in time goes on, a temperature effect stops), or a "
+                 "temperature cycle that goes up and down")
 
 
 @dataclass(frozen=True)
@@ -124,6 +130,9 @@ class Effect(abc.ABC):
     #: What a survey's residuals against the site (|G|, |B|, dip) follow when the effect is missing
     #: from the model applied in the field: ``"temperature"``, ``"time"``, ``"orientation"``.
     field_regressors: ClassVar[tuple] = ()
+    #: The experiment that tells this effect apart from one that fits the same data alike (the lab
+    #: says it when two effects are confounded).
+    separated_by: ClassVar[str] = ""
     #: Set on plug-in classes by :func:`plugins.load_plugin`: ``{"file" or "module": ..., "sha256": ...}``.
     plugin: ClassVar[dict | None] = None
 
@@ -400,6 +409,7 @@ class TemperatureScale(Effect):
     stage: ClassVar[str] = "gain"
     needs: ClassVar[tuple] = ("temperature",)
     signature: ClassVar[str] = "residuals following temperature in proportion to the input"
+    separated_by: ClassVar[str] = SEPARATE_TEMPERATURE
     field_regressors: ClassVar[tuple] = ("temperature",)
     specs: ClassVar[tuple] = (_spec("c", "1/degC", "1/degC", 5e-5, 1e-4, "scale temperature coefficient"),)
 
@@ -489,6 +499,7 @@ class TemperatureBias(Effect):
     stage: ClassVar[str] = "output"
     needs: ClassVar[tuple] = ("temperature",)
     signature: ClassVar[str] = "residuals following temperature"
+    separated_by: ClassVar[str] = SEPARATE_TEMPERATURE
     field_regressors: ClassVar[tuple] = ("temperature",)
     specs: ClassVar[tuple] = (_spec("c", "m/s^2/degC", "nT/degC", 2e-4, 3.0, "bias temperature coefficient"),)
 
@@ -504,6 +515,7 @@ class BiasDrift(Effect):
     stage: ClassVar[str] = "output"
     needs: ClassVar[tuple] = ("time",)
     signature: ClassVar[str] = "residuals following time"
+    separated_by: ClassVar[str] = SEPARATE_TIME
     field_regressors: ClassVar[tuple] = ("time",)
     specs: ClassVar[tuple] = (_spec("rate", "m/s^2/h", "nT/h", 0.002, 30.0, "bias drift per hour"),)
 

@@ -177,6 +177,23 @@ def merge_stations(a: Station, b: Station) -> Station:
 # ---------------------------------------------------------------------------------------------
 #: Floors of the per-station noise estimate of a mean (std/√n): m/s², nT.
 SIGMA_FLOOR = {"acc": 2e-6, "mag": 0.05}
+@dataclass(frozen=True)
+class Loss:
+    """Data left out (or changed) on the way into a fit: where (a file, a log), what (``rows``,
+    ``stations``, ``poses``, ``log``, ``temperatures``), how many, and why."""
+
+    source: str
+    what: str
+    count: int
+    reason: str
+
+    def __str__(self):
+        return f"{self.source}: {self.count} {self.what} — {self.reason}"
+
+    def to_json(self):
+        return {"source": self.source, "what": self.what, "count": self.count, "reason": self.reason}
+
+
 #: What constrains a station's model residuals: a twelve-position pose (orientation from Table 1),
 #: a reference attitude (stand grid, survey with a reference), or nothing (site invariants only).
 KINDS = ("pose", "ref", "free")
@@ -210,18 +227,27 @@ class Stations:
     ref: np.ndarray
     n: np.ndarray
     source: np.ndarray
+    #: What reading left out or changed, with the reason (:class:`Loss`): the lab's verdict, JSON
+    #: and report count it.  Not per station: a subset keeps the whole ledger.
+    losses: list = field(default_factory=list)
 
     def __len__(self):
         return len(self.g)
 
+    def _arrays(self):
+        return [k for k in self.__dataclass_fields__ if k != "losses"]
+
     def subset(self, mask) -> "Stations":
         mask = np.asarray(mask)
-        return Stations(**{k: getattr(self, k)[mask] for k in self.__dataclass_fields__})
+        return Stations(**{k: getattr(self, k)[mask] for k in self._arrays()}, losses=list(self.losses))
 
     @classmethod
-    def concatenate(cls, parts) -> "Stations":
-        parts = [p for p in parts if len(p)]
-        return cls(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in cls.__dataclass_fields__})
+    def concatenate(cls, parts, losses=()) -> "Stations":
+        every = [p for p in parts]
+        parts = [p for p in every if len(p)]
+        ledger = [x for p in every for x in p.losses] + list(losses)
+        return cls(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in parts[0]._arrays()},
+                   losses=ledger)
 
     @property
     def oriented(self) -> np.ndarray:
@@ -275,9 +301,14 @@ class Stations:
                 kind[i] = "free"
         cnt = np.array([max(st.n, 1) for st in stations], dtype=float)
         temps = np.array([st.temp_c for st in stations], dtype=float)
+        losses = []
         if not np.all(np.isfinite(temps)):
             known = temps[np.isfinite(temps)]
-            temps = np.where(np.isfinite(temps), temps, known.mean() if len(known) else T_REF_C)
+            fill = known.mean() if len(known) else T_REF_C
+            losses.append(Loss(source or role, "temperatures", int(np.sum(~np.isfinite(temps))),
+                               f"station temperature unknown: set to {fill:.1f} °C (the " +
+                               ("log's mean" if len(known) else "effects' reference") + ")"))
+            temps = np.where(np.isfinite(temps), temps, fill)
         g_sc = np.array([st.g_std for st in stations]).reshape(n, 3)
         b_sc = np.array([st.b_std for st in stations]).reshape(n, 3)
         times = np.array([st.t_mid - (st.t_origin if t_origin is None else t_origin) for st in stations], dtype=float)
@@ -288,4 +319,4 @@ class Stations:
             g_scatter=g_sc, b_scatter=b_sc, temp_c=temps, time_s=times,
             rotation=rot, kind=kind.astype(str), role=np.full(n, role), pose=np.array([st.pose for st in stations]),
             ref=np.array([st.ref for st in stations], dtype=float).reshape(n, 3), n=cnt.astype(int),
-            source=np.full(n, source))
+            source=np.full(n, source), losses=losses)

@@ -16,11 +16,12 @@ Python API (the CLI ``inclinometer-calib lab ...`` is a thin layer over it)::
 """
 from ..plugins import PluginError, load_plugin
 from .data import load_bag, load_logs
-from .diagnose import Diagnosis, cross_validate, diagnose, ladder, val_metrics
+from .diagnose import Diagnosis, cross_validate, diagnose, field_fit, ladder, val_metrics, validation
 from .fit import FitResult, fit
 from .model import LabModel
 from .spec import build_model, effect, model_from_truth, uncorrected_metrics, write_report
 
-__all__ = ["load_logs", "load_bag", "Diagnosis", "cross_validate", "diagnose", "ladder", "val_metrics", "FitResult", "fit",
+__all__ = ["load_logs", "load_bag", "Diagnosis", "cross_validate", "diagnose", "field_fit", "ladder",
+           "val_metrics", "validation", "FitResult", "fit",
            "LabModel", "PluginError", "load_plugin", "effect", "build_model", "uncorrected_metrics", "write_report",
            "model_from_truth"]

@@ -16,50 +16,81 @@ type is the package's one (:mod:`station`); this module only reads logs into it.
 """
 from __future__ import annotations
 
+import re
+
 from ..gates import apply_gates
 from ..probelog import read_csv, report, segment_stations
-from ..station import Stations
+from ..station import Loss, Stations
 
 
 def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Stations:
-    """Read CAL and VAL probe logs (CSV) into one :class:`station.Stations`; rejections go to
-    ``warn`` (callable).
+    """Read CAL and VAL probe logs (CSV) into one :class:`station.Stations`; what is left out goes
+    to ``warn`` (callable) and into the data's ledger (:attr:`Stations.losses`).
 
     Stations are found by the live nodes' detector (:func:`probelog.segment_stations`) and
-    checked by the gates (:mod:`gates`); a station in which the probe moved is left out, with
-    the reason.  ``free_paths``: logs without labels (the probe turned by hand through many
-    attitudes); their stations enter as ``free`` (role ``cal``), constrained by the site
-    invariants only.  Time-dependent effects count from the earliest first sample of the logs
-    (read together, they are one probe's data since power-on).
+    checked by the gates (:mod:`gates`).  Left out, each counted with its reason: rejected rows;
+    labelled holds in which no station was found; stations in which the probe moved; stations in
+    which a gate refused a sensor's data (saturated, flat); a log with no usable station (the
+    other logs are still read; no usable station at all is an error).  ``cal_path`` may be a list
+    of logs (e.g. two temperature runs).  ``free_paths``: logs without labels (the probe turned by
+    hand through many attitudes); their stations enter as ``free`` (role ``cal``), constrained by
+    the site invariants only.  Time-dependent effects count from the earliest first sample of the
+    logs (read together, they are one probe's data since power-on).
     """
-    parts = []
+    cal_paths = [] if cal_path is None else ([cal_path] if isinstance(cal_path, (str, bytes)) or
+                                             not hasattr(cal_path, "__iter__") else list(cal_path))
+    say = warn or (lambda msg: None)
+    parts, losses = [], []
     t_origin = None
     for path, role, labels in ([(p, "cal", False) for p in (free_paths or ())]
-                               + [(cal_path, "cal", True), (val_path, "val", True)]):
+                               + [(p, "cal", True) for p in cal_paths] + [(val_path, "val", True)]):
         if path is None:
             continue
         log, rejections = read_csv(path)
         if len(log):
             t_origin = float(log.t_s[0]) if t_origin is None else min(t_origin, float(log.t_s[0]))
         stations, problems = segment_stations(log, use_labels=labels)
-        if warn:
-            report(path, rejections, problems, warn)
+        report(path, rejections, problems, say)
+        losses += _row_losses(str(path), rejections)
+        losses += [Loss(str(path), "poses" if p.startswith("pose") else "holds", 1, p.split(": no static station "
+                                                                                         "found: ")[-1])
+                   for p in problems if ": no static station found: " in p]
+        kept = []
         for st in stations:
-            for f in apply_gates(st):
-                if warn:
-                    warn(f"{path}: {f.message}")
-        moved = [s for s in stations if s.moved]
-        stations = [s for s in stations if not s.moved]  # a capture taken while moving is not used
-        if moved and warn:
-            warn(f"{path}: {len(moved)} station(s) left out: the probe moved during the capture")
-        if not stations:
-            raise ValueError(f"{path}: no usable static stations" + ("" if labels else
-                             " (need ≥ 0.5 s still at each attitude)"))
-        parts.append((stations, role, str(path), labels))
+            findings = apply_gates(st)
+            for f in findings:
+                say(f"{path}: {f.message}")
+            if st.moved:
+                losses.append(Loss(str(path), "stations", 1, f"{st.label} at {st.where}: the probe moved during "
+                                                             "the hold"))
+            elif st.unusable:
+                losses.append(Loss(str(path), "stations", 1, f"{st.label} at {st.where}: a gate refused the "
+                                   f"{' and '.join(st.unusable)} data (" + "; ".join(f.message for f in findings) + ")"))
+            else:
+                kept.append(st)
+        if len(kept) < len(stations):
+            say(f"{path}: {len(stations) - len(kept)} station(s) left out (the probe moved, or a sensor's data "
+                "refused by a gate)")
+        if not kept:
+            why = "no usable static stations" + ("" if labels else " (need ≥ 0.5 s still at each attitude)")
+            losses.append(Loss(str(path), "log", 1, why))
+            say(f"{path}: {why}: the whole log is left out")
+            continue
+        parts.append((kept, role, str(path), labels))
     if not parts:
-        raise ValueError("no logs given")
+        raise ValueError("no usable static stations in any log" if losses else "no logs given")
     return Stations.concatenate([Stations.from_list(st, role, source=src, use_ref=labels, t_origin=t_origin)
-                                 for st, role, src, labels in parts])
+                                 for st, role, src, labels in parts], losses=losses)
+
+
+def _row_losses(source: str, rejections) -> list:
+    """Rejected rows, one ledger entry per kind of reason (the first reason of each kind quoted)."""
+    kinds = {}
+    for r in rejections:
+        kind = re.sub(r"[-+]?\d[\d.eE+-]*|'[^']*'", "#", r.reason)
+        n, first = kinds.get(kind, (0, r))
+        kinds[kind] = (n + 1, first)
+    return [Loss(source, "rows", n, f"{first.reason} (first at row {first.row})") for n, first in kinds.values()]
 
 
 def load_bag(path, warn=None):
@@ -89,7 +120,10 @@ def load_bag(path, warn=None):
            and not any(c.t_start <= s.t_start and s.t_end <= c.t_end for c in rep.captures)]
     if not cal and not val:
         raise ValueError(f"{path}: no usable static stations")
+    losses = [Loss(str(path), "records", 1, str(e)) for e in rep.bag_errors]
+    moved = [s for s in list(rep.captures) + list(rep.raw_stations) if s.moved and not s.short]
+    losses += [Loss(str(path), "stations", 1, f"{s.label} at {s.where}: the probe moved during the hold") for s in moved]
     parts = [Stations.from_list(cal, "cal", source=f"{path} (captures)")] if cal else []
     if val:
         parts.append(Stations.from_list(val, "val", source=str(path)))
-    return Stations.concatenate(parts), (rep.calibrations[-1] if rep.calibrations else None)
+    return Stations.concatenate(parts, losses=losses), (rep.calibrations[-1] if rep.calibrations else None)

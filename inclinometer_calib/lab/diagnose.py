@@ -1,19 +1,31 @@
 """Diagnosis: where does the model fail, which physical effect is missing, how much does it help?
 
-1. **Residual structure.**  The fitted model's noise-normalised residuals (per sensor axis, and the
-   validation drift/azimuth errors) are tested against candidate regressors — temperature, time,
-   sign of the input, input², |input|, sin/cos of drift, azimuth and toolface and their products —
-   with an F-test per (channel, regressor), Bonferroni-corrected.  The noise level is the scatter
-   inside the static segments, so "significant" means "beyond the sensor noise".
-2. **Candidates.**  Every catalogue (and plug-in) effect not yet in the model, for each sensor it
-   acts on, is added in turn and scored by **held-out error**: K-fold cross-validation over the
-   validation stations (fit on the calibration log plus the other folds, evaluate the angle errors
-   of the held-out fold).  The score is the RMS pointing error of the tool axis,
-   ``sqrt(Δdrift² + (sin(drift)·Δazimuth)²)``; the Bayesian information criterion of the fit on
-   all data is reported beside it.
-3. **Verdict.**  The best candidate is recommended when it lowers the held-out error by at least
-   ``min_gain`` and its BIC by at least 10.  When the model still misfits the data beyond the noise
-   and no candidate helps, the verdict says so and shows the structure that is left.
+1. **The field situation.**  Every model is fitted on what a rig has (:func:`field_fit`): the
+   calibration log(s), and the survey's own QC invariants (|g|, |B|, dip against the site, as in
+   multi-station analysis — how an effect acting on the survey alone, such as axial drill-string
+   interference, can be fitted at all), never the validation log's reference angles.  The
+   headline figures are the errors on the whole validation log (:func:`validation`); with no
+   validation log they are in-sample figures on the calibration log, and say so.
+2. **Residual structure.**  The model's noise-normalised residuals (per sensor axis, and the
+   angle errors) are tested against candidate regressors (temperature, time, input sign and
+   powers, orientation) with F-tests, Bonferroni-corrected.
+3. **Candidates.**  Every catalogue (and plug-in) effect not yet in the model, per sensor, is
+   added and fitted.  Its significance is a test against the measured noise, not a fixed gain: the
+   Wald test of its parameters (``θᵀC⁻¹θ``, C the fit's covariance, scaled by the reduced χ² when
+   the model misfits), Bonferroni-corrected over the candidates, and per axis the same test on
+   that axis's parameters — the effect is named with the axes that carry it
+   (``temperature_bias:mag:z``) and refitted on those.  Significant candidates rank by their field
+   validation error (each judged out of sample alike), or by the Bayesian information criterion of
+   the fit when there is no validation log.
+4. **Confounding.**  Two significant effects that act on the same sensor axes, or change the
+   model's predictions alike (their residual changes nearly parallel), are told apart by how well each fits: when one fits clearly
+   better, it is ranked first and the other is named as explained by it; when neither does, the
+   verdict says they are confounded and which experiment separates them (the classes say it,
+   :attr:`effects.Effect.separated_by`).
+5. **Verdict.**  Names the data left out (:attr:`station.Stations.losses`), refuses to rank when
+   the data cannot identify the base model, recommends the best significant candidate that does
+   not raise the field error, and never calls a strong, structured misfit unexplained when a
+   candidate is significant.
 """
 from __future__ import annotations
 
@@ -21,13 +33,24 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import ttest_1samp
 
 from .. import effects as fx
-from .fit import fit, physical_hints
+from ..station import Stations
+from .fit import fit, physical_hints, residual_vector
 from .model import LabModel
 from .stats import regress
 
+#: Family-wise false-alarm rate of a diagnosis (Bonferroni over the candidates tested).
+ALPHA = 1e-3
 Z_RMS_LIMIT = 1.3
+#: Residual structure that explains less of a channel's variance than this is not called structure.
+MATERIAL_R2 = 0.3
+#: Residual changes of two effects this parallel (cosine) make the effects alternatives.
+PARALLEL = 0.9
+#: χ² (in units of the reduced χ²) by which one of two alternatives must fit better to be preferred:
+#: a likelihood ratio of e^5 ≈ 150.
+PREFER_CHI2 = 10.0
 #: Pseudo-effect: a heading offset between the stand's north and the site reference's north.
 HEADING = "heading_offset"
 HEADING_SIGNATURE = ("a constant azimuth error: the stand's north (or the declination) differs from the site "
@@ -43,9 +66,18 @@ class Candidate:
     val: dict
     score: float
     gain: float
+    delta_chi2: float
     delta_bic: float
+    wald_chi2: float
+    p: float                  # Bonferroni-adjusted p of the Wald test
     significant: bool
+    axis_tests: list = field(default_factory=list)
+    params: list = field(default_factory=list)
+    transfers: bool = True
+    p_field: float = float("nan")   # adjusted p that the field errors fell (signed-rank), NaN: no reference
+    note: str = ""
     fit_all: object = None
+    residual: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def label(self):
@@ -55,8 +87,11 @@ class Candidate:
 
     def to_json(self):
         return {"effect": self.effect, "sensor": self.sensor, "axes": self.axes, "scope": self.scope,
-                "val": self.val, "score": self.score, "gain": self.gain, "delta_bic": self.delta_bic,
-                "significant": self.significant}
+                "label": self.label, "val": self.val, "score": self.score, "gain": self.gain,
+                "delta_chi2": self.delta_chi2, "delta_bic": self.delta_bic, "wald_chi2": self.wald_chi2,
+                "p": self.p, "significant": self.significant, "transfers": self.transfers,
+                "p_field": self.p_field,
+                "axis_tests": self.axis_tests, "parameters": self.params, "note": self.note}
 
 
 @dataclass
@@ -70,76 +105,162 @@ class Diagnosis:
     untestable: list
     significant_structure_left: bool
     verdict: str
-    folds: int
+    losses: list = field(default_factory=list)
+    confounded: list = field(default_factory=list)
+    refused: str = ""
     notes: list = field(default_factory=list)
 
     @property
     def recommended(self):
-        return self.ranked[0] if self.ranked and self.ranked[0].significant else None
+        for c in self.ranked:
+            if c.significant and c.transfers and not c.note.startswith("explained by"):
+                return c
+        return None
+
+    @property
+    def validation_kind(self) -> str:
+        return self.base_val.get("kind", "")
 
     def to_json(self):
-        return {"model": self.model.describe(), "base": {"val": self.base_val, "score": self.base_score,
-                                                          "z_rms": self.base_fit.z_rms},
+        return {"model": self.model.describe(),
+                "base": {"val": self.base_val, "score": self.base_score, "z_rms": self.base_fit.z_rms,
+                         "chi2": self.base_fit.chi2, "dof": self.base_fit.dof},
+                "validation_kind": self.validation_kind,
                 "ranked": [c.to_json() for c in self.ranked],
                 "recommended": self.recommended.label if self.recommended else None,
                 "significant_structure_left": bool(self.significant_structure_left),
+                "confounded": self.confounded, "refused": self.refused,
                 "structure": self.structure, "untestable": self.untestable, "verdict": self.verdict,
-                "folds": self.folds}
+                "losses": [x.to_json() for x in self.losses], "notes": self.notes}
 
 
 # ------------------------------------------------------------------------------------------------
+# The field situation: fit on the calibration logs, validate on the whole survey log
+# ------------------------------------------------------------------------------------------------
+def fit_data(data: Stations) -> Stations:
+    """What a fit may use: the calibration stations as they are, the validation (survey) stations
+    as ``free`` ones — only their site invariants, never their reference angles."""
+    d = data.subset(np.ones(len(data), bool))
+    val = d.role == "val"
+    d.kind = np.where(val, "free", d.kind)
+    d.rotation = np.where(val[:, None, None], np.nan, d.rotation)
+    return d
+
+
+def field_fit(model: LabModel, data: Stations, uncertainty: bool = True, progress=None, max_nfev: int = 200,
+              survey_invariants: bool = True):
+    """Fit ``model`` (in place) as for a survey; returns the :class:`fit.FitResult`.
+
+    The fit sees what a rig has: the calibration stations, and (``survey_invariants``) the survey
+    stations' |g|, |B| and dip against the site — never their reference angles
+    (:func:`fit_data`).  With ``survey_invariants=False`` it sees the calibration logs only (an
+    effect acting on the survey alone then stays at its prior, zero)."""
+    fd = fit_data(data)
+    use = fd if survey_invariants or not (fd.role == "cal").any() else fd.subset(fd.role == "cal")
+    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty)
+
+
+def validation(model: LabModel, data: Stations, survey_invariants: bool = True) -> dict:
+    """The headline errors of a field-fitted model (:func:`field_fit`): drift, azimuth and pointing
+    RMS on every validation station with a reference (a vertical one counts for drift; its azimuth
+    is undefined), labelled ``kind``: ``field`` (the validation references were not fitted) or
+    ``in-sample`` (no validation log: the calibration stations the model was fitted on)."""
+    val = data.role == "val"
+    has_val = val & np.isfinite(data.ref[:, 0])
+    if has_val.any():
+        out = val_metrics(model, data.subset(has_val))
+        out["kind"] = "field"
+        cal = "calibration log" + ("s" if _n_sources(data, "cal") > 1 else "")
+        out["label"] = (f"field: fitted on the {cal}" + (" and the survey's |g|, |B|, dip" if survey_invariants else
+                        " only") + f", errors on the whole validation log ({int(has_val.sum())} stations, its "
+                        "reference angles never fitted)")
+        return out
+    has = np.isfinite(data.ref[:, 0])
+    out = val_metrics(model, data.subset(has)) if has.any() else {"stations": 0}
+    out["kind"] = "in-sample"
+    out["label"] = ("in-sample: no validation log — errors on the calibration stations the model was fitted on "
+                    "(they understate the field error)")
+    return out
+
+
+def _n_sources(data, role):
+    return len(set(data.source[data.role == role]))
+
+
+def pointing_errors(model: LabModel, data) -> np.ndarray:
+    """Per validation station with a reference drift: the pointing error (deg) of ``model``."""
+    d = data.subset((data.role == "val") & np.isfinite(data.ref[:, 0]))
+    if not len(d):
+        return np.zeros(0)
+    r = model.angle_errors(d)
+    ae = np.asarray(r["azimuth_err"], dtype=float)
+    ok = np.isfinite(ae) & np.isfinite(d.ref[:, 1])
+    return np.sqrt(r["drift_err"] ** 2 + np.where(ok, np.sin(np.radians(d.ref[:, 0])) * np.nan_to_num(ae), 0.0) ** 2)
+
+
 def val_metrics(model: LabModel, data) -> dict:
-    """Angle errors of the stations with a reference: drift, azimuth and pointing RMS/max (deg)."""
-    has = np.all(np.isfinite(data.ref), axis=1)
+    """Angle errors of the stations with a reference drift: drift RMS over all of them, azimuth
+    and pointing (``sqrt(Δdrift² + (sin(drift)·Δazimuth)²)``) over those with a reference azimuth
+    (deg); the counts of each."""
+    has = np.isfinite(data.ref[:, 0])
     if not has.any():
         return {"stations": 0}
-    r = model.angle_errors(data.subset(has))
+    d = data.subset(has)
+    r = model.angle_errors(d)
     de = r["drift_err"]
-    ae = r["azimuth_err"]
-    ok = np.isfinite(ae)
-    sin_i = np.sin(np.radians(data.ref[has, 0]))
+    ae = np.asarray(r["azimuth_err"], dtype=float)
+    ok = np.isfinite(ae) & np.isfinite(d.ref[:, 1])
+    sin_i = np.sin(np.radians(d.ref[:, 0]))
     pe = np.sqrt(de ** 2 + np.where(ok, sin_i * np.nan_to_num(ae), 0.0) ** 2)
 
     def rms(x):
         return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
 
-    return {"stations": int(has.sum()), "drift_rms_deg": rms(de), "drift_max_abs_deg": float(np.max(np.abs(de))),
-            "azimuth_rms_deg": rms(ae[ok]), "azimuth_max_abs_deg": float(np.max(np.abs(ae[ok]))) if ok.any() else float("nan"),
-            "pointing_rms_deg": rms(pe)}
+    return {"stations": int(has.sum()), "azimuth_stations": int(ok.sum()),
+            "drift_rms_deg": rms(de), "drift_max_abs_deg": float(np.max(np.abs(de))),
+            "azimuth_rms_deg": rms(ae[ok]), "azimuth_max_abs_deg": float(np.max(np.abs(ae[ok]))) if ok.any()
+            else float("nan"), "pointing_rms_deg": rms(pe)}
 
 
-def _folds(data, k, seed=0):
-    idx = np.flatnonzero((data.role == "val") & np.all(np.isfinite(data.ref), axis=1))
+def blocked_folds(data, k):
+    """K cross-validation folds of the validation stations with a reference, each a block of
+    consecutive stations in time (a history-dependent effect keeps its neighbours)."""
+    idx = np.flatnonzero((data.role == "val") & np.isfinite(data.ref[:, 0]))
     if len(idx) < 2 * k:
         return []
-    rng = np.random.default_rng(seed)
-    perm = rng.permutation(idx)
-    return [perm[i::k] for i in range(k)]
+    idx = idx[np.argsort(data.time_s[idx], kind="stable")]
+    return [b for b in np.array_split(idx, k) if len(b)]
 
 
 def cross_validate(model: LabModel, data, folds) -> dict:
-    """Held-out angle errors: each fold predicted by a fit on everything else (warm-started)."""
+    """Cross-validated angle errors: each block of ``folds`` predicted by a fit on everything else
+    (validation stations included with their references; warm-started).  Labelled as such."""
     if not folds:
         return {}
     n = len(data)
-    errs = {"drift": [], "azimuth": [], "pointing": []}
+    parts = []
     for hold in folds:
         train = np.ones(n, bool)
         train[hold] = False
         m = copy.deepcopy(model)
         fit(m, data.subset(train), max_nfev=50, uncertainty=False)
-        r = m.angle_errors(data.subset(hold))
-        de, ae = r["drift_err"], r["azimuth_err"]
-        sin_i = np.sin(np.radians(data.ref[hold, 0]))
-        ok = np.isfinite(ae)
-        errs["drift"].append(de)
-        errs["azimuth"].append(ae[ok])
-        errs["pointing"].append(np.sqrt(de ** 2 + np.where(ok, sin_i * np.nan_to_num(ae), 0.0) ** 2))
-    cat = {k: np.concatenate(v) for k, v in errs.items()}
-    return {"stations": int(len(cat["drift"])),
-            "drift_rms_deg": float(np.sqrt(np.mean(cat["drift"] ** 2))),
-            "azimuth_rms_deg": float(np.sqrt(np.mean(cat["azimuth"] ** 2))) if len(cat["azimuth"]) else float("nan"),
-            "pointing_rms_deg": float(np.sqrt(np.mean(cat["pointing"] ** 2)))}
+        parts.append((m, hold))
+    de, ae, pe = [], [], []
+    for m, hold in parts:
+        d = data.subset(hold)
+        r = m.angle_errors(d)
+        a = np.asarray(r["azimuth_err"], dtype=float)
+        ok = np.isfinite(a) & np.isfinite(d.ref[:, 1])
+        de.append(r["drift_err"])
+        ae.append(a[ok])
+        pe.append(np.sqrt(r["drift_err"] ** 2 + np.where(ok, np.sin(np.radians(d.ref[:, 0])) * np.nan_to_num(a), 0) ** 2))
+    de, ae, pe = (np.concatenate(x) for x in (de, ae, pe))
+    return {"stations": int(len(de)), "kind": "cross-validated",
+            "label": f"cross-validated: {len(folds)} folds of consecutive validation stations, each predicted by a "
+                     "fit on all other data",
+            "drift_rms_deg": float(np.sqrt(np.mean(de ** 2))),
+            "azimuth_rms_deg": float(np.sqrt(np.mean(ae ** 2))) if len(ae) else float("nan"),
+            "pointing_rms_deg": float(np.sqrt(np.mean(pe ** 2)))}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -155,7 +276,7 @@ def candidate_effects(model: LabModel, names=None):
             continue
         for sensor in cls.sensors:
             eff = cls(sensor=sensor, axes=cls.default_axes)
-            if eff.key in have:
+            if any(k.split(":")[:2] == [name, sensor] for k in have):
                 continue
             for scope in (("val", "all") if cls.survey_only else ("all",)):
                 out.append((eff, scope))
@@ -213,7 +334,7 @@ def residual_structure(model: LabModel, data, alpha: float = 1e-3, top: int = 8)
             if tr is None or tr.n < 8:
                 continue
             if tr.p * n_tests < alpha:
-                found.append({"channel": cname, "regressor": rname, "r2": tr.r2, "p": tr.p * n_tests,
+                found.append({"channel": cname, "regressor": rname, "r2": tr.r2, "p": min(tr.p * n_tests, 1.0),
                               "slope": float(tr.coef[0])})
     found.sort(key=lambda e: -e["r2"])
     # keep the strongest regressor per channel first, then the rest
@@ -225,58 +346,166 @@ def residual_structure(model: LabModel, data, alpha: float = 1e-3, top: int = 8)
 
 
 # ------------------------------------------------------------------------------------------------
-def diagnose(data, model: LabModel | None = None, site=None, k_folds: int = 4, min_gain: float = 0.1,
-             candidates=None, progress=None) -> Diagnosis:
-    """Fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
+def _base_unidentified(base_fit) -> list:
+    base = {f"{n}:" for n in fx.BASE}
+    return [n for n in base_fit.not_identifiable if any(n.parameter.startswith(b) for b in base)]
+
+
+def _param_rows(fit_result, idx) -> list:
+    return [{"name": fit_result.names[i], "value": float(fit_result.values[i]), "std": float(fit_result.std[i]),
+             "ci95": [float(fit_result.values[i] - 1.96 * fit_result.std[i]),
+                      float(fit_result.values[i] + 1.96 * fit_result.std[i])], "unit": fit_result.units[i]}
+            for i in idx]
+
+
+def _test_term(trial: LabModel, label: str, data, n_tests: int):
+    """Field-fit ``trial`` and test the term ``label``: (fit, Wald χ², adjusted p, per-axis tests)."""
+    f = field_fit(trial, data)
+    idx = trial.param_index(label)
+    chi2, _, p = f.wald(idx)
+    axis_tests = []
+    if label != HEADING:
+        eff = next(t.effect for t in trial.probe.terms if t.label == label)
+        if eff.stage != fx.PROBE_STAGE and len(eff.axes) > 1:
+            n_ax = len(eff.axes)
+            for j, a in enumerate(eff.axes):
+                sub = idx[[k * n_ax + j for k in range(len(eff.specs))]]
+                c, _, pa = f.wald(sub)
+                axis_tests.append({"axis": a, "wald_chi2": c, "p": min(pa * n_tests * n_ax, 1.0),
+                                   "significant": bool(pa * n_tests * n_ax < ALPHA)})
+    return f, chi2, min(p * n_tests, 1.0), axis_tests
+
+
+def diagnose(data, model: LabModel | None = None, site=None, candidates=None, progress=None,
+             alpha: float | None = None, **_ignored) -> Diagnosis:
+    """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
+    a_level = ALPHA if alpha is None else alpha
     say = progress or (lambda m: None)
     if model is None:
         model = LabModel.base(site)
     model = copy.deepcopy(model)
     say(f"fitting {model.describe()}")
-    base_fit = fit(model, data)
-    folds = _folds(data, k_folds)
-    base_cv = cross_validate(model, data, folds) if folds else val_metrics(model, data)
-    base_score = base_cv.get("pointing_rms_deg", float("nan"))
+    base_fit = field_fit(model, data)
+    base_val = validation(model, data)
+    base_score = base_val.get("pointing_rms_deg", float("nan"))
+    fd = fit_data(data)
+    r_base = residual_vector(model, fd, prior=False)
+    losses = list(data.losses)
+    missing = _base_unidentified(base_fit)
+    if missing:
+        why = "; ".join(f"{n.parameter}: {n.reason}" for n in missing[:4])
+        refused = (f"the data left cannot identify the base model ({len(missing)} parameter(s): {why}), so no effect "
+                   "can be ranked — add poses (all twelve, both rounds) or stations with references")
+        verdict = _verdict(model, base_fit, base_val, [], None, [], False, losses=losses, refused=refused)
+        return Diagnosis(model, base_fit, base_val, base_score, [], [], untestable_effects(), False, verdict,
+                         losses=losses, refused=refused)
     structure = residual_structure(model, data)
     pairs = candidate_effects(model, candidates)
     untestable = untestable_effects()
-    ranked = []
-    def score(trial, name, sensor, axes, scope):
-        f_all = fit(trial, data, uncertainty=False)
-        cv = cross_validate(trial, data, folds) if folds else val_metrics(trial, data)
-        sc = cv.get("pointing_rms_deg", float("nan"))
-        gain = 1.0 - sc / base_score if base_score > 0 else 0.0
-        dbic = f_all.bic() - base_fit.bic()
-        ranked.append(Candidate(name, sensor, axes, scope, cv, sc, gain, dbic,
-                                significant=bool(gain >= min_gain and dbic < -10.0), fit_all=f_all))
-
-    for i, (eff, scope) in enumerate(pairs):
+    heading = not model.fit_heading and np.any(data.kind == "ref") and (candidates is None or HEADING in candidates)
+    trials = []
+    for eff, scope in pairs:
         trial = model.with_effect(eff, scope)
         hints = [h for h in physical_hints(trial, data) if h.parameter == eff.key]
         if hints:
             untestable.append({"effect": f"{eff.key}" + ("" if scope == "all" else f"@{scope}"),
                                "reason": hints[0].reason})
             continue
-        say(f"candidate {i + 1}/{len(pairs)}: {eff.key}" + ("" if scope == "all" else f"@{scope}"))
-        score(trial, eff.name, eff.sensor, eff.axes, scope)
+        trials.append((trial, eff, scope))
+    n_tests = max(len(trials) + int(bool(heading)), 1)
+    ranked = []
+    by_field = base_val.get("kind") == "field"
+    pe_base = pointing_errors(model, data) if by_field else None
+
+    def score(trial, label, name, sensor, axes, scope):
+        f, wchi2, p, axis_tests = _test_term(trial, label, data, n_tests)
+        if axis_tests and p < a_level:
+            sig_axes = "".join(t["axis"] for t in axis_tests if t["significant"])
+            if sig_axes and sig_axes != axes:     # name and refit the axes that carry the effect
+                eff2 = fx.CATALOGUE[name](sensor=sensor, axes=sig_axes)
+                trial = model.with_effect(eff2, scope)
+                label = trial.probe.terms[-1].label
+                f, wchi2, p, _ = _test_term(trial, label, data, n_tests)
+                axes = sig_axes
+        val = validation(trial, data)
+        sc = val.get("pointing_rms_deg", float("nan"))
+        gain = 1.0 - sc / base_score if base_score > 0 and np.isfinite(sc) else 0.0
+        transfers, p_field = True, float("nan")
+        if by_field:
+            # the field errors must fall beyond their own scatter: a one-sided signed-rank test of the
+            # stations' squared pointing errors, base minus candidate (Bonferroni over the candidates)
+            diff = pe_base ** 2 - pointing_errors(trial, data) ** 2
+            p_field = float(ttest_1samp(diff, 0.0, alternative="greater").pvalue) if np.any(diff != 0) else 1.0
+            transfers = p_field * n_tests < a_level
+        significant = bool(p < a_level)
+        r = residual_vector(trial, fd, prior=False)
+        ranked.append(Candidate(name, sensor, axes, scope, val, sc, gain, base_fit.chi2 - f.chi2,
+                                f.bic() - base_fit.bic(), wchi2, p, significant, axis_tests,
+                                _param_rows(f, trial.param_index(label)), transfers=transfers,
+                                p_field=p_field, fit_all=f, residual=r))
+
+    for i, (trial, eff, scope) in enumerate(trials):
+        say(f"candidate {i + 1}/{len(trials)}: {eff.key}" + ("" if scope == "all" else f"@{scope}"))
+        score(trial, trial.probe.terms[-1].label, eff.name, eff.sensor, eff.axes, scope)
     # Not a sensor effect but a frequent cause of a constant azimuth error: the stand's north (or
     # the declination used) differs from the site reference's.
-    has_ref = np.any((data.kind == "ref"))
-    if not model.fit_heading and has_ref and (candidates is None or HEADING in candidates):
+    if heading:
         say("candidate: heading offset of the stand / declination")
         trial = copy.deepcopy(model)
         trial.fit_heading = True
-        score(trial, HEADING, "site", "", "all")
-    ranked.sort(key=lambda c: (not np.isfinite(c.score), c.score, c.delta_bic))
+        score(trial, HEADING, HEADING, "site", "", "all")
+    # Significant candidates rank by the headline error when the data have a validation reference
+    # (every candidate is then judged out of sample alike); else by the information criterion.
+
+    def order(c):
+        merit = (c.score if by_field and np.isfinite(c.score) else c.delta_bic) if c.significant else c.p
+        return (not c.significant, not c.transfers, c.note.startswith("explained by"), merit)
+
+    ranked.sort(key=order)
+    confounded = _confounding(ranked, r_base)
+    ranked.sort(key=order)
     misfit = base_fit.z_rms > Z_RMS_LIMIT
-    best = ranked[0] if ranked and ranked[0].significant else None
-    # Structure = something a regressor or a candidate explains.  Excess scatter that nothing
-    # explains is reported (with its size as an equivalent stand pose error), not called structure.
-    left = bool(best is not None or structure)
+    dg = Diagnosis(model, base_fit, base_val, base_score, structure, ranked, untestable, False, "",
+                   losses=losses, confounded=confounded)
+    best = dg.recommended
+    dg.significant_structure_left = bool(best is not None or structure)
     scatter = orientation_scatter_deg(model, data) if misfit else None
-    verdict = _verdict(model, base_fit, base_cv, structure, best, ranked, misfit, scatter)
-    return Diagnosis(model, base_fit, base_cv, base_score, structure, ranked, untestable, left, verdict,
-                     len(folds))
+    dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
+                          confounded=confounded)
+    return dg
+
+
+def _confounding(ranked, r_base) -> list:
+    """Pairs of significant candidates on the same sensor axes, or whose residual changes are nearly
+    parallel: the one that fits clearly better explains the other; otherwise they are confounded.
+    Marks the explained ones."""
+    sig = [c for c in ranked if c.significant and c.residual is not None]
+    out = []
+    for i, top in enumerate(sig):
+        if top.note:
+            continue
+        dt = r_base - top.residual
+        for other in sig[i + 1:]:
+            if other.note or (other.effect, other.sensor) == (top.effect, top.sensor):
+                continue
+            do = r_base - other.residual
+            cos = float(dt @ do / (np.linalg.norm(dt) * np.linalg.norm(do) + 1e-300))
+            same_channels = top.sensor == other.sensor and bool(set(top.axes) & set(other.axes))
+            if cos < PARALLEL and not same_channels:
+                continue
+            red = max(top.fit_all.reduced_chi2, 1.0)
+            margin = (other.fit_all.chi2 - top.fit_all.chi2) / red
+            sep = (fx.CATALOGUE[top.effect].separated_by if top.effect in fx.CATALOGUE else "") or \
+                  (fx.CATALOGUE[other.effect].separated_by if other.effect in fx.CATALOGUE else "")
+            entry = {"first": top.label, "second": other.label, "cosine": cos, "delta_chi2": margin,
+                     "separated": bool(margin >= PREFER_CHI2), "experiment": sep}
+            out.append(entry)
+            if margin >= PREFER_CHI2:
+                other.note = f"explained by {top.label}: it fits the same residuals worse (Δχ² {margin:.0f})"
+            else:
+                other.note = f"confounded with {top.label} (Δχ² {margin:.1f}: the data fit both alike)"
+                top.note = top.note or f"confounded with {other.label}"
+    return out
 
 
 def orientation_scatter_deg(model: LabModel, data) -> dict:
@@ -306,57 +535,106 @@ def signature(candidate) -> str:
     return (cls.signature if cls is not None else "") or "the residual structure above"
 
 
-def _verdict(model, base_fit, base_cv, structure, best, ranked, misfit, scatter=None) -> str:
+def losses_text(losses) -> str:
+    """One line per kind of loss: what was left out, how many, why."""
+    if not losses:
+        return ""
+    by = {}
+    for x in losses:
+        by.setdefault(x.what, []).append(x)
+    parts = []
+    for what, xs in by.items():
+        n = sum(x.count for x in xs)
+        parts.append(f"{n} {what} ({'; '.join(str(x) for x in xs[:3])}{' …' if len(xs) > 3 else ''})")
+    return "Left out of the data: " + "; ".join(parts) + "."
+
+
+def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter=None, losses=(), confounded=(),
+             refused="") -> str:
     lines = [f"Model: {model.describe()}.",
              f"Fit: noise-normalised residual RMS {base_fit.z_rms:.2f} (1.0 = explained to the sensor noise)."]
-    if base_cv:
-        lines.append(f"Held-out validation error: drift RMS {base_cv.get('drift_rms_deg', float('nan')):.4f}°, "
-                     f"azimuth RMS {base_cv.get('azimuth_rms_deg', float('nan')):.4f}°, pointing RMS "
-                     f"{base_cv.get('pointing_rms_deg', float('nan')):.4f}°.")
+    lost = losses_text(losses)
+    if lost:
+        lines.append(lost)
+    if base_val.get("stations"):
+        lines.append(f"Validation ({base_val.get('label', '')}): drift RMS {base_val.get('drift_rms_deg', float('nan')):.4f}°, "
+                     f"azimuth RMS {base_val.get('azimuth_rms_deg', float('nan')):.4f}°, pointing RMS "
+                     f"{base_val.get('pointing_rms_deg', float('nan')):.4f}°.")
+    if refused:
+        lines.append(f"No effect ranked: {refused}.")
+        return "\n".join(lines)
     if structure:
         s = structure[0]
         lines.append(f"Strongest residual structure: {s['channel']} follows {s['regressor']} "
                      f"(R² {s['r2']:.2f}, p {s['p']:.1e}).")
+    word = "field" if base_val.get("kind") == "field" else "in-sample"
     if best is not None:
         sig = signature(best)
         changes = []
-        for key, name, digits in (("azimuth_rms_deg", "azimuth", 3), ("drift_rms_deg", "drift", 4)):
-            before, after = base_cv.get(key, float("nan")), best.val.get(key, float("nan"))
+        for key, name, digits in (("azimuth_rms_deg", "azimuth", 4), ("drift_rms_deg", "drift", 4)):
+            before, after = base_val.get(key, float("nan")), best.val.get(key, float("nan"))
             if np.isfinite(before) and np.isfinite(after) and abs(after - before) > 0.05 * before:
-                changes.append(f"the held-out {name} RMS from {before:.{digits}f}° to {after:.{digits}f}°")
-        lowers = " and ".join(changes) if changes else "the held-out pointing error"
-        lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; adding it lowers {lowers} "
-                     f"(pointing error −{100 * best.gain:.0f} %, ΔBIC {best.delta_bic:.0f}).")
-        if len(ranked) > 1:
-            runner = ranked[1]
-            lines.append(f"Runner-up: {runner.label} (pointing error −{100 * runner.gain:.0f} %).")
-    elif structure:
-        lines.append("Significant structure is left that no catalogue effect explains (no candidate lowers the "
-                     "held-out error): " + "; ".join(f"{s['channel']} ~ {s['regressor']} (R² {s['r2']:.2f})"
-                                                    for s in structure[:3])
-                     + ". Consider a plug-in effect with that signature.")
-    elif misfit:
-        sc = scatter or {}
-        lines.append("The model misfits the data beyond the sensor noise, but no regressor and no catalogue effect "
-                     "explains it: the excess scatter is unstructured — consistent with random calibration-stand "
-                     f"pose errors (stand_pose_error) of about {sc.get('acc', float('nan')):.3f}° (from the "
-                     f"accelerometer) / {sc.get('mag', float('nan')):.3f}° (from the magnetometer) rms, or with "
-                     "sensor noise larger than the scatter inside the static segments shows.")
+                changes.append(f"the {word} {name} RMS from {before:.{digits}f}° to {after:.{digits}f}°")
+        effect_size = "; ".join(f"{p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}"
+                                for p in best.params[:6])
+        lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; significant against the noise "
+                     f"(Wald χ² {best.wald_chi2:.0f}, p {best.p:.1e}, ΔBIC {best.delta_bic:.0f}): {effect_size}"
+                     + (f"; adding it changes {' and '.join(changes)}" if changes else "") + ".")
+        for c in confounded:
+            if c["first"] != best.label:
+                continue
+            if c["separated"]:
+                lines.append(f"{c['second']} fits the same residuals alike in shape but clearly worse (Δχ² "
+                             f"{c['delta_chi2']:.0f}): the data separate them, and {best.label} is the physical cause.")
+            else:
+                lines.append(f"Confounded: {best.label} and {c['second']} fit these data alike (Δχ² "
+                             f"{c['delta_chi2']:.1f}); the data cannot tell them apart. The experiment that separates "
+                             f"them: {c['experiment']}.")
+        others = [c for c in ranked if c is not best and c.significant and not c.note]
+        if others:
+            lines.append("Also significant: " + ", ".join(f"{c.label} (ΔBIC {c.delta_bic:.0f})" for c in others[:3])
+                         + ".")
     else:
-        lines.append("No significant structure left: the model explains the data to the noise level.")
+        strong = [c for c in ranked if c.significant]
+        if strong:
+            c = strong[0]
+            lines.append(f"{c.label} is significant in the fitted data (Wald χ² {c.wald_chi2:.0f}, ΔBIC "
+                         f"{c.delta_bic:.0f}) but does not lower the {word} errors beyond their scatter (pointing RMS "
+                         f"{base_val.get('pointing_rms_deg', float('nan')):.4f}° → {c.score:.4f}°, p {c.p_field:.2g}): "
+                         "it absorbs a misfit rather than explaining it (e.g. a base model biased by the stand) — "
+                         "not recommended.")
+        material = [e for e in structure if e["r2"] >= MATERIAL_R2]
+        if material and not strong:
+            lines.append("Significant structure is left that no catalogue effect explains (no candidate is significant "
+                         "against the noise): " + "; ".join(f"{s['channel']} ~ {s['regressor']} (R² {s['r2']:.2f})"
+                                                          for s in material[:3])
+                         + ". Consider a plug-in effect with that signature.")
+        elif misfit:
+            sc = scatter or {}
+            lines.append(("Otherwise the" if strong else "The") + " model misfits the data beyond the sensor noise, but no "
+                         "regressor and no catalogue effect explains it: the excess scatter is unstructured — consistent "
+                         f"with random calibration-stand pose errors (stand_pose_error, different at every station) of about {sc.get('acc', float('nan')):.3f}° (from the accelerometer) / "
+                         f"{sc.get('mag', float('nan')):.3f}° (from the magnetometer) rms, or with sensor noise "
+                         "larger than the scatter inside the static segments shows.")
+        elif not strong:
+            lines.append("No significant structure left: the model explains the data to the noise level.")
     return "\n".join(lines)
 
 
-def ladder(data, site, max_steps: int = 4, k_folds: int = 4, progress=None, candidates=None, start=None):
+def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start=None, **_ignored):
     """Add the recommended effect repeatedly: the 'effect ladder' of falling validation error.
 
     Starts from ``start`` (default: the paper's base model); stops when no candidate is
-    significant or after ``max_steps`` additions.
+    significant or after ``max_steps`` additions.  After each addition, an earlier effect that the
+    new one makes redundant (its Wald test no longer significant in the larger model) is removed,
+    and the next rung's diagnosis says so in its notes.
     """
     model = start if start is not None else LabModel.base(site)
     steps = []
+    notes = []
     for _ in range(max_steps + 1):
-        dg = diagnose(data, model, k_folds=k_folds, progress=progress, candidates=candidates)
+        dg = diagnose(data, model, progress=progress, candidates=candidates)
+        dg.notes = notes + dg.notes
         steps.append(dg)
         rec = dg.recommended
         if rec is None:
@@ -364,7 +642,19 @@ def ladder(data, site, max_steps: int = 4, k_folds: int = 4, progress=None, cand
         if rec.effect == HEADING:
             model = copy.deepcopy(dg.model)
             model.fit_heading = True
-            continue
-        eff = fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)
-        model = copy.deepcopy(dg.model).with_effect(eff, rec.scope)
+            new_label = HEADING
+        else:
+            eff = fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)
+            model = copy.deepcopy(dg.model).with_effect(eff, rec.scope)
+            new_label = model.probe.terms[-1].label
+        notes = []
+        earlier = [t.label for t in model.extra_terms if t.label != new_label]
+        if earlier:
+            f = field_fit(copy.deepcopy(model), data)
+            for label in earlier:
+                _, _, p = f.wald(model.param_index(label))
+                if p * len(earlier) > ALPHA:
+                    model = model.without(label)
+                    notes.append(f"removed {label}: made redundant by {new_label} (its parameters are no longer "
+                                 f"significant with {new_label} in the model, p {min(p * len(earlier), 1):.2f})")
     return steps

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.special import chdtrc
 
 from .. import effects as fx
 from .model import LabModel
@@ -59,6 +60,20 @@ def residual_vector(model: LabModel, data, theta=None, prior=True) -> np.ndarray
     return np.concatenate(parts)
 
 
+def residual_groups(data) -> np.ndarray:
+    """The group of each data residual of :func:`residual_vector` (same order): one group per
+    role and channel (``cal acc``, ``cal mag``, ``val |B|`` …), whose noise is measured apart."""
+    ori = data.oriented
+    out = []
+    if ori.any():
+        role = data.role[ori]
+        out += [np.repeat(np.char.add(role.astype(str), f" {s}"), 3) for s in ("acc", "mag")]
+    if (~ori).any():
+        role = data.role[~ori].astype(str)
+        out += [np.char.add(role, f" {c}") for c in (" |g|", " |B|", " dip")]
+    return np.concatenate(out) if out else np.zeros(0, dtype=str)
+
+
 def _prior_residual(model: LabModel) -> np.ndarray:
     mask = model.prior_mask()
     return model.get_vector()[mask] / (PRIOR_FACTOR * model.param_scale()[mask])
@@ -86,6 +101,8 @@ class FitResult:
     seconds: float
     nfev: int
     not_identifiable: list = field(default_factory=list)
+    covariance: np.ndarray | None = None
+    n_free: int = -1
 
     @property
     def z_rms(self) -> float:
@@ -96,11 +113,28 @@ class FitResult:
     def reduced_chi2(self) -> float:
         return self.chi2 / max(self.dof, 1)
 
+    @property
+    def n_params(self) -> int:
+        return len(self.values) if self.n_free < 0 else self.n_free
+
     def aic(self) -> float:
-        return self.chi2 + 2 * len(self.values)
+        return self.chi2 + 2 * self.n_params
 
     def bic(self) -> float:
-        return self.chi2 + len(self.values) * np.log(max(self.n_data, 2))
+        return self.chi2 + self.n_params * np.log(max(self.n_data, 2))
+
+    def wald(self, index) -> tuple:
+        """Wald test that the parameters ``index`` are all zero: ``(χ², k, p)`` with
+        ``χ² = θᵀ·C⁻¹·θ`` from the fit's covariance (each data group's noise inflated to the
+        scatter it shows when the model misfits it: the test is against the measured noise)."""
+        idx = np.atleast_1d(np.asarray(index))
+        theta = self.values[idx]
+        c = self.covariance[np.ix_(idx, idx)]
+        try:
+            chi2 = float(theta @ np.linalg.solve(c, theta))
+        except np.linalg.LinAlgError:
+            chi2 = float(theta @ np.linalg.pinv(c) @ theta)
+        return chi2, len(idx), float(chdtrc(len(idx), chi2))
 
     def parameter_table(self, extras_only: bool = False) -> list:
         rows = []
@@ -120,49 +154,89 @@ class FitResult:
         return out
 
 
-def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: bool = True) -> FitResult:
+def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: bool = True,
+        fixed=None) -> FitResult:
     """Fit ``model`` (in place, starting from its current parameters) to ``data``.
 
     Levenberg–Marquardt (MINPACK, QR-based: faster than the SVD-based trust region for these
-    tall, narrow problems), parameters scaled by their typical magnitudes.  ``uncertainty=False``
-    skips the covariance and identifiability analysis (cross-validation folds).
+    tall, narrow problems), parameters scaled by their typical magnitudes.  ``fixed``: a boolean
+    mask over :meth:`LabModel.param_names` of parameters held at their current values (their
+    σ is 0).  ``uncertainty=False`` skips the covariance and identifiability analysis.
     """
     t0 = time.perf_counter()
-    x0 = model.get_vector()
-    scale = model.param_scale()
-    n_data = len(residual_vector(model, data, x0, prior=False))
+    x_all = model.get_vector()
+    free = np.ones(len(x_all), bool) if fixed is None else ~np.asarray(fixed, bool)
+    scale_all = model.param_scale()
+    x0, scale = x_all[free], scale_all[free]
+    n_data = len(residual_vector(model, data, x_all, prior=False))
     calls = [0]
+
+    def full(x):
+        v = x_all.copy()
+        v[free] = x
+        return v
 
     def fun(x):
         calls[0] += 1
         if progress and calls[0] % 500 == 0:
             progress(f"fit: {calls[0]} evaluations")
-        return residual_vector(model, data, x)
+        return residual_vector(model, data, full(x))
 
-    res = least_squares(fun, x0, x_scale=scale, method="lm", jac="2-point",
-                        max_nfev=max_nfev * (len(x0) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
-    model.set_vector(res.x)
+    if len(x0):
+        res = least_squares(fun, x0, x_scale=scale, method="lm", jac="2-point",
+                            max_nfev=max_nfev * (len(x0) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        x, jac, ok, msg, nfev = res.x, res.jac, bool(res.success), str(res.message), int(res.nfev)
+    else:
+        x, jac, ok, msg, nfev = x0, np.zeros((0, 0)), True, "nothing to fit", 0
+    model.set_vector(full(x))
     r_data = residual_vector(model, data, prior=False)
     chi2 = float(r_data @ r_data)
-    p = len(res.x)
+    p = int(free.sum())
     dof = max(n_data - p, 1)
-    if uncertainty:
-        std, corr, notid = _uncertainty(model, res.jac, scale, chi2 / dof, data)
-    else:
-        std, corr, notid = np.full(p, np.nan), np.full((p, p), np.nan), []
-    return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=res.x.copy(),
-                     std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=bool(res.success),
-                     message=str(res.message), seconds=time.perf_counter() - t0, nfev=int(res.nfev),
-                     not_identifiable=notid)
+    n = len(x_all)
+    std, corr, notid = np.zeros(n), np.full((n, n), np.nan), []
+    cov = np.zeros((n, n))
+    if uncertainty and p:
+        s_f, c_f, notid, cov_f = _uncertainty(model, jac, scale, _group_inflation(r_data, data, p), data, free)
+        std[free] = s_f
+        cov[np.ix_(free, free)] = cov_f
+        corr[np.ix_(free, free)] = c_f
+    elif not uncertainty:
+        std[:] = np.nan
+        cov[:] = np.nan
+    return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=model.get_vector(),
+                     std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=ok,
+                     message=msg, seconds=time.perf_counter() - t0, nfev=nfev, not_identifiable=notid,
+                     covariance=cov, n_free=p)
 
 
-def _uncertainty(model, jac, scale, red_chi2, data):
+def _group_inflation(r_data, data, n_params) -> np.ndarray:
+    """Per data residual: the variance factor of its group (:func:`residual_groups`) — the group's
+    reduced χ² when above 1, else 1.  The noise is then the scatter each group shows: a misfit in
+    the 72 numbers of twelve stand poses is not diluted by hundreds of survey invariants that fit."""
+    groups = residual_groups(data)
+    out = np.ones(len(r_data))
+    n = len(r_data)
+    for gname in np.unique(groups):
+        m = groups == gname
+        dof = max(m.sum() - n_params * m.sum() / max(n, 1), 1.0)
+        out[m] = max(float(np.sum(r_data[m] ** 2)) / dof, 1.0)
+    return out
+
+
+def _uncertainty(model, jac, scale, inflation, data, free):
+    """σ, correlation and covariance of the free parameters, and what the data cannot determine.
+
+    The covariance comes from the SVD of the (scaled) Jacobian itself, ``C = V·S⁻²·Vᵀ``, not from
+    inverting ``JᵀJ``: that squares the condition number, and its rounding gave correlations
+    beyond ±1 on ill-conditioned fits.  Each data row is weighted by its group's measured noise
+    (``inflation``, :func:`_group_inflation`)."""
     js = np.asarray(jac) * scale  # dimensionless columns
     # drop the prior rows: identifiability is a property of the data
-    n_prior = int(model.prior_mask().sum())
+    n_prior = int(model.prior_mask()[free].sum())
     jd = js[:len(js) - n_prior] if n_prior else js
     u, s, vt = np.linalg.svd(jd, full_matrices=False)
-    names = model.param_names()
+    names = [n for n, f in zip(model.param_names(), free) if f]
     # physical hints first: they say what data would make the parameter identifiable
     notid = physical_hints(model, data)
     hinted = {n.parameter for n in notid}
@@ -172,23 +246,22 @@ def _uncertainty(model, jac, scale, red_chi2, data):
             if names[i].split(".")[0] not in hinted:
                 notid.append(Identifiability(names[i], "no information in the data (lies in the Jacobian's "
                                                        "null space)"))
-    # covariance from the full Jacobian (prior included keeps it finite)
-    jtj = js.T @ js
-    try:
-        cov_s = np.linalg.pinv(jtj, rcond=1e-12) * max(red_chi2, 1.0)
-    except np.linalg.LinAlgError:
-        cov_s = np.full(jtj.shape, np.nan)
+    # covariance from the full Jacobian (the prior rows keep it finite where the data say nothing)
+    w = np.concatenate([1.0 / np.sqrt(inflation), np.ones(len(js) - len(inflation))])
+    _, sf, vtf = np.linalg.svd(js * w[:, None], full_matrices=False)
+    keep = sf > (sf[0] * 1e-12 if len(sf) else 0)
+    cov_s = (vtf[keep].T / sf[keep] ** 2) @ vtf[keep]
     cov = cov_s * np.outer(scale, scale)
     std = np.sqrt(np.maximum(np.diag(cov), 0))
     with np.errstate(invalid="ignore", divide="ignore"):
-        corr = cov / np.outer(std, std)
+        corr = np.clip(cov / np.outer(std, std), -1.0, 1.0)
     # dedupe
     seen, uniq = set(), []
     for n in notid:
         if n.parameter not in seen:
             seen.add(n.parameter)
             uniq.append(n)
-    return std, corr, uniq
+    return std, corr, uniq, cov
 
 
 def physical_hints(model: LabModel, data) -> list:

@@ -6,9 +6,9 @@ After a run (the launcher's summary, or anyone with a bag and the record the gra
    (:func:`data.load_bag`): the twelve-position captures (``cal``) and the survey stations with
    a reference attitude (``val``);
 2. **the lab's finding**: :func:`diagnose.diagnose` from the live record's model — the missing
-   effect it recommends, with the held-out error it gains;
-3. **the lab's record**: the recommended effect added and the model fitted to the captured data
-   (:func:`fit.fit`), written as a calibration record (``lab_model.yaml``);
+   effect it recommends, with the field error it gains;
+3. **the lab's record**: the recommended effect added and the model fitted as for a survey
+   (:func:`diagnose.field_fit`: the captures; a survey-only effect on the survey's invariants), written as a calibration record (``lab_model.yaml``);
 4. **the field effect ladder**: the bag replayed through each record — uncorrected, the live
    record, the lab's record and, for a simulated probe, the simulator's truth — by
    :func:`compare.compare`: the same stations, only the model differs.
@@ -36,13 +36,12 @@ class LoopResult:
     skipped: str = ""
 
 
-def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None, k_folds: int = 4) -> LoopResult:
+def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None) -> LoopResult:
     """The loop of the module docstring on ``bag`` with the live record ``live``; writes
     ``out_dir/lab_model.yaml`` and ``out_dir/compare/``.  ``truth``: the simulator's true record."""
     from .. import compare
     from .data import load_bag
-    from .diagnose import HEADING, diagnose
-    from .fit import fit
+    from .diagnose import HEADING, diagnose, field_fit
     from .model import LabModel
 
     res = LoopResult()
@@ -54,7 +53,7 @@ def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None, k_fold
                        f"has {n_val} (and {n_cal} captures)")
     else:
         start = LabModel.from_calibration(live)
-        dg = diagnose(data, start, k_folds=k_folds, progress=progress)
+        dg = diagnose(data, start, progress=progress)
         res.diagnosis = dg
         rec = dg.recommended
         res.lines.append(f"lab, on the run's {n_cal} captures and {n_val} stations with a reference (start: the live "
@@ -62,13 +61,13 @@ def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None, k_fold
         res.lines += ["  " + ln for ln in dg.verdict.splitlines()]
         if rec is not None and rec.effect != HEADING:
             model = copy.deepcopy(dg.model).with_effect(fx.make_effect(rec.effect, rec.sensor, rec.axes), rec.scope)
-            result = fit(model, data)
+            result = field_fit(model, data)
             res.record = model.record(probe_id=live.probe_id, site_source=live.site_source,
                                       not_identifiable=result.not_identifiable,
                                       fit_stats={"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms,
                                                  "stations": len(data), "data": data.describe()},
-                                      method=f"lab fit of {model.probe.describe()} to the run's captures and "
-                                             f"reference stations, from the live record {live.id}")
+                                      method=f"lab fit of {model.probe.describe()} to the run's captures, from the "
+                                             f"live record {live.id}")
             path = os.path.join(out_dir, "lab_model.yaml")
             res.record.save(path)
             res.lines.append(f"lab record {res.record.id} ({res.record.model.describe()}) written to {path}")

@@ -63,6 +63,32 @@ class LabModel:
     def labels(self) -> list:
         return self.probe.labels() + (["heading_offset"] if self.fit_heading else [])
 
+    def param_index(self, label: str) -> np.ndarray:
+        """Indices in the parameter vector of one term (its :attr:`model.Term.label`), or of the
+        stand's heading offset (``heading_offset``)."""
+        if label == "heading_offset":
+            return np.array([len(self.param_names()) - 1]) if self.fit_heading else np.zeros(0, int)
+        i = 0
+        for t in self.probe.terms:
+            if t.label == label:
+                return np.arange(i, i + t.effect.n_params)
+            i += t.effect.n_params
+        raise KeyError(f"no term {label!r} in {self.describe()}")
+
+    def scope_mask(self, scope: str) -> np.ndarray:
+        """True for the parameters of terms of ``scope`` (the site's dip and heading count as ``all``)."""
+        m = [t.scope == scope for t in self.probe.terms for _ in range(t.effect.n_params)]
+        return np.array(m + [scope == "all"] * (int(self.fit_dip) + int(self.fit_heading)), dtype=bool)
+
+    def without(self, label: str) -> "LabModel":
+        """A copy without one extra term (or without the fitted heading offset)."""
+        new = copy.deepcopy(self)
+        if label == "heading_offset":
+            new.fit_heading, new.heading_deg = False, 0.0
+            return new
+        new.probe.terms = [t for t in new.probe.terms if t.label != label or t.effect.base]
+        return new
+
     # ---- parameter vector --------------------------------------------------------------------
     def param_names(self) -> list:
         return self.probe.param_names() + (["site.dip_deg"] if self.fit_dip else []) + \

@@ -1,7 +1,7 @@
 """One self-contained HTML report of a model-lab run (plots embedded as PNG data URIs).
 
-Sections: the diagnosis text; the effect ladder (held-out validation error after each added
-effect); residuals of the base and final models against orientation, temperature and time; the
+Sections: the diagnosis text (with the data left out); the effect ladder (the field validation
+error after each added effect, as each rung's diagnosis labels it); residuals of the base and final models against orientation, temperature and time; the
 paper-style before/after tables (Tables 4 and 5 layout); the fitted parameters with uncertainties.
 """
 from __future__ import annotations
@@ -46,7 +46,7 @@ def ladder_figure(steps, uncorrected: dict) -> str:
         a.set_yscale("log")
         a.set_xticks(x)
         a.set_xticklabels(labels[:len(x)], rotation=25, ha="right", fontsize=8)
-        a.set_title(f"held-out validation {t}")
+        a.set_title(f"{steps[0].base_val.get('kind', 'validation')} {t}")
         a.grid(True, which="both", alpha=0.3)
         for xi, yi in zip(x, y):
             a.annotate(f"{yi:.3g}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
@@ -137,10 +137,13 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
     for k, s in enumerate(steps):
         parts.append(f"<h3>Round {k + 1}</h3><pre>{html.escape(s.verdict)}</pre>")
         rows = [[html.escape(c.label), _fmt(c.val.get('drift_rms_deg'), 4), _fmt(c.val.get('azimuth_rms_deg'), 4),
-                 _fmt(c.score, 4), f"{100 * c.gain:.0f} %", f"{c.delta_bic:.0f}", "yes" if c.significant else ""]
-                for c in s.ranked[:8]]
-        parts.append(table_html("Candidates (held-out errors)", ["effect", "drift RMS", "azimuth RMS", "pointing RMS",
-                                                                  "gain", "ΔBIC", "significant"], rows))
+                 _fmt(c.score, 4), f"{c.p:.1e}", f"{c.delta_bic:.0f}", "yes" if c.significant else "",
+                 html.escape(c.note)] for c in s.ranked[:8]]
+        parts.append(table_html(f"Candidates — errors {s.base_val.get('label', '')}",
+                                ["effect", "drift RMS", "azimuth RMS", "pointing RMS", "Wald p", "ΔBIC", "significant",
+                                 "note"], rows))
+        for n in s.notes:
+            parts.append(f"<p>{html.escape(n)}</p>")
         if s.structure:
             rows = [[html.escape(e["channel"]), html.escape(e["regressor"]), f"{e['r2']:.2f}", f"{e['p']:.1e}"]
                     for e in s.structure]
@@ -158,7 +161,7 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
     if has.any():
         d = data.subset(has)
         parts.append("<h2>Before / after (paper layout)</h2><p>before: uncorrected sensors; after: the final model "
-                     "(fitted on all stations; the held-out figures are in the ladder).</p>")
+                     "(fitted as in the ladder: the calibration logs and the survey's invariants).</p>")
         from ..survey import evaluate
         before = evaluate(d.g, d.b, final.model.site, ref=d.ref)
         parts.append(paper_tables_html(before, final.model.angle_errors(d), d.ref))

@@ -1,0 +1,193 @@
+"""A probe generator for the lab's tests that shares no code with the package.
+
+Its own physics, written out here with numpy and scipy only: orientations from scipy's
+``Rotation`` (intrinsic Z-Y-Z: azimuth, drift, toolface; tool Z down-hole, NED), each triad's
+output ``y = A·x + b + c·(T - 20 °C) + r·t + w(t) + noise`` with a full 3×3 gain matrix ``A``
+(scale and non-orthogonality together), a temperature coefficient ``c``, a drift rate ``r`` and a
+random-walk bias ``w``; a stand whose twelve poses may sit off by fixed small rotations (the
+same in every round, both triads alike); moves between holds by spherical interpolation.  Logs
+are written the way other tools write them: specific force (a resting probe reads -gravity),
+temperature per row, pose labels and reference angles on static rows only, a vertical pose with
+no azimuth, times continuing from one log to the next (one power-on).
+
+The true model's level on the lab's own stations comes from :func:`true_vectors`: each
+station's mean output corrected with the true parameters (what a perfect model would give).
+"""
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+#: The stand's twelve poses as (drift, azimuth, toolface) degrees; None: no azimuth (vertical).
+POSES = {1: (90, 0, 180), 2: (90, 180, 180), 3: (90, 0, 0), 4: (90, 180, 0), 5: (90, 0, 90), 6: (90, 180, 90),
+         7: (90, 180, 270), 8: (90, 0, 270), 9: (0, None, 0), 10: (0, None, 180), 11: (180, None, 0),
+         12: (180, None, 180)}
+T0_C = 20.0
+
+
+def attitude(drift, azimuth, toolface) -> Rotation:
+    """Tool→NED rotation Rz(azimuth)·Ry(drift)·Rz(toolface) (azimuth None: 0, about the vertical)."""
+    return Rotation.from_euler("ZYZ", [azimuth or 0.0, drift, toolface], degrees=True)
+
+
+@dataclass
+class Triad:
+    gain: np.ndarray                      # (3, 3) output per input
+    bias: np.ndarray                      # (3,)
+    noise: float
+    temp_coef: np.ndarray = field(default_factory=lambda: np.zeros(3))   # per °C
+    drift_rate: np.ndarray = field(default_factory=lambda: np.zeros(3))  # per hour
+    walk: float = 0.0                     # random-walk density, unit/√s
+
+
+@dataclass
+class Site:
+    gravity: float = 9.8101
+    field_nt: float = 48700.0
+    dip_deg: float = 61.3
+    declination_deg: float = 0.0
+
+    def vectors(self):
+        d, a = np.radians(self.dip_deg), np.radians(self.declination_deg)
+        h = self.field_nt * np.cos(d)
+        return np.array([0.0, 0.0, self.gravity]), np.array([h * np.cos(a), h * np.sin(a), self.field_nt * np.sin(d)])
+
+    def as_yaml_dict(self):
+        return {"total_field_nt": self.field_nt, "dip_deg": self.dip_deg, "declination_deg": self.declination_deg,
+                "gravity_mps2": self.gravity}
+
+
+def random_probe(seed, noise_acc=0.004, noise_mag=25.0):
+    """A probe with errors of the size real ones have (bias ~0.03 m/s² / 300 nT, scale ~1e-3,
+    axes off by ~0.2°)."""
+    rng = np.random.default_rng(seed)
+
+    def gain(scale_sd, axis_sd):
+        return np.eye(3) + np.diag(rng.normal(0, scale_sd, 3)) + (1 - np.eye(3)) * rng.normal(0, axis_sd, (3, 3))
+
+    acc = Triad(gain(1e-3, 3e-3), rng.normal(0, 0.03, 3), noise_acc)
+    mag = Triad(gain(2e-3, 3e-3), rng.normal(0, 300.0, 3), noise_mag)
+    return {"acc": acc, "mag": mag}
+
+
+@dataclass
+class Hold:
+    rot: Rotation
+    seconds: float
+    pose: int = 0
+    ref: tuple = (None, None, None)       # written on the static rows
+
+
+def twelve_pose_rounds(rounds=2, hold_s=3.0, offsets=None):
+    """The stand's poses in order, ``rounds`` times; ``offsets`` {pose: (rx, ry, rz) deg}: where the
+    stand really holds a pose (a tool-frame rotation after the set attitude), the same every round."""
+    out = []
+    for _ in range(rounds):
+        for p, (i, a, t) in POSES.items():
+            r = attitude(i, a, t)
+            if offsets and p in offsets:
+                r = r * Rotation.from_rotvec(np.radians(offsets[p]))
+            out.append(Hold(r, hold_s, pose=p, ref=(i, a, t)))
+    return out
+
+
+def grid(drifts=(5, 30, 60, 90, 120), azimuths=(20, 140, 260), toolfaces=(0, 135, 250), hold_s=3.0, vertical=True):
+    out = [Hold(attitude(i, a, t), hold_s, ref=(i, a, t)) for i in drifts for a in azimuths for t in toolfaces]
+    if vertical:
+        out += [Hold(attitude(0, None, t), hold_s, ref=(0, None, t)) for t in (0, 120, 240)]
+    return out
+
+
+def _stream(holds, rate_hz, move_s, t0):
+    """Sample times, tool→NED rotations, and per-sample hold index (-1 while moving)."""
+    ts, rots, idx = [], [], []
+    t = t0
+    prev = None
+    for k, h in enumerate(holds):
+        if prev is not None:
+            n = max(int(round(move_s * rate_hz)), 2)
+            s = Slerp([0, 1], Rotation.concatenate([prev.rot, h.rot]))(np.linspace(0, 1, n + 2)[1:-1])
+            ts.append(t + np.arange(n) / rate_hz)
+            rots.append(s)
+            idx.append(np.full(n, -1))
+            t += n / rate_hz
+        n = int(round(h.seconds * rate_hz))
+        ts.append(t + np.arange(n) / rate_hz)
+        rots.append(Rotation.concatenate([h.rot] * n))
+        idx.append(np.full(n, k))
+        t += n / rate_hz
+        prev = h
+    return np.concatenate(ts), Rotation.concatenate(rots), np.concatenate(idx)
+
+
+class Generator:
+    """One probe on one site; logs written one after another from one power-on."""
+
+    def __init__(self, probe, site=None, seed=0, rate_hz=50.0, move_s=1.0):
+        self.probe, self.site = probe, site or Site()
+        self.rng = np.random.default_rng(seed + 1000)
+        self.rate_hz, self.move_s = rate_hz, move_s
+        self.t = 0.0
+        self.walk_state = {"acc": np.zeros(3), "mag": np.zeros(3)}
+        self.walk_track = {"acc": [], "mag": []}   # (t, value) per sample, for the true model
+
+    def outputs(self, t, rot, temp):
+        g_ned, b_ned = self.site.vectors()
+        out = {}
+        for name, v_ned in (("acc", g_ned), ("mag", b_ned)):
+            tr = self.probe[name]
+            x = rot.inv().apply(v_ned)                       # true tool-frame vector
+            y = x @ tr.gain.T + tr.bias + np.outer(temp - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
+            if tr.walk:
+                dt = np.diff(t, prepend=t[0] - 1.0 / self.rate_hz)
+                steps = self.rng.normal(0, 1, (len(t), 3)) * tr.walk * np.sqrt(dt)[:, None]
+                w = self.walk_state[name] + np.cumsum(steps, axis=0)
+                self.walk_state[name] = w[-1]
+                self.walk_track[name].append((t, w))
+                y = y + w
+            out[name] = y + self.rng.normal(0, tr.noise, y.shape)
+        return out["acc"], out["mag"]
+
+    def write(self, path, holds, temperature=lambda t: np.full_like(t, 25.0), labels=True):
+        """Write one log; ``temperature(t)`` °C of the session time (s).  Returns the hold intervals."""
+        t, rot, idx = _stream(holds, self.rate_hz, self.move_s, self.t)
+        self.t = float(t[-1] + 1.0 / self.rate_hz)
+        temp = temperature(t)
+        acc, mag = self.outputs(t, rot, temp)
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose", "ref_drift_deg",
+                        "ref_azimuth_deg", "ref_toolface_deg"])
+            for k in range(len(t)):
+                h = holds[idx[k]] if idx[k] >= 0 else None
+                lab = ["", "", "", ""]
+                if h is not None and labels:
+                    lab = [str(h.pose) if h.pose else ""] + ["" if v is None else f"{v:.1f}" for v in h.ref]
+                f = -acc[k]                                  # specific force: a resting probe reads -gravity
+                w.writerow([f"{t[k]:.3f}", f"{f[0]:.6f}", f"{f[1]:.6f}", f"{f[2]:.6f}", f"{mag[k, 0]:.2f}",
+                            f"{mag[k, 1]:.2f}", f"{mag[k, 2]:.2f}", f"{temp[k]:.3f}"] + lab)
+        return t
+
+    def walk_at(self, sensor, times):
+        if not self.walk_track[sensor]:
+            return np.zeros((len(times), 3))
+        t = np.concatenate([a for a, _ in self.walk_track[sensor]])
+        w = np.concatenate([b for _, b in self.walk_track[sensor]])
+        return np.stack([np.interp(times, t, w[:, j]) for j in range(3)], axis=1)
+
+
+def true_vectors(gen: Generator, data):
+    """The lab's stations corrected with the true parameters: gravity vector (m/s²) and field (nT).
+
+    ``data``: the lab's :class:`Stations` (times from the first log's first sample, which is this
+    generator's t = 0)."""
+    out = []
+    for name, meas in (("acc", data.g), ("mag", data.b)):
+        tr = gen.probe[name]
+        y = meas - tr.bias - np.outer(data.temp_c - T0_C, tr.temp_coef) - np.outer(data.time_s / 3600.0, tr.drift_rate)
+        y = y - gen.walk_at(name, data.time_s)
+        out.append(np.linalg.solve(tr.gain, y.T).T)
+    return out[0], out[1]
