@@ -6,9 +6,11 @@ After a run (the launcher's summary, or anyone with a bag and the record the gra
    (:func:`data.load_bag`): the twelve-position captures (``cal``) and the survey stations with
    a reference attitude (``val``);
 2. **the lab's finding**: :func:`diagnose.diagnose` from the live record's model — the missing
-   effect it recommends, with the field error it gains;
-3. **the lab's record**: the recommended effect added and the model fitted as for a survey
-   (:func:`diagnose.field_fit`: the captures; a survey-only effect on the survey's invariants), written as a calibration record (``lab_model.yaml``);
+   effect it recommends (fitted as for a survey: the references never fitted), with the field
+   error it gains;
+3. **the lab's record**: the recommended effect added and the model fitted to everything the run
+   has, its reference stations too (:func:`fit.fit`) — the best record for the next run; its
+   figures in the ladder below are therefore in-sample, and the ladder says so — written as a calibration record (``lab_model.yaml``);
 4. **the field effect ladder**: the bag replayed through each record — uncorrected, the live
    record, the lab's record and, for a simulated probe, the simulator's truth — by
    :func:`compare.compare`: the same stations, only the model differs.
@@ -41,7 +43,8 @@ def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None) -> Loo
     ``out_dir/lab_model.yaml`` and ``out_dir/compare/``.  ``truth``: the simulator's true record."""
     from .. import compare
     from .data import load_bag
-    from .diagnose import HEADING, diagnose, field_fit
+    from .diagnose import HEADING, diagnose
+    from .fit import fit
     from .model import LabModel
 
     res = LoopResult()
@@ -61,13 +64,13 @@ def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None) -> Loo
         res.lines += ["  " + ln for ln in dg.verdict.splitlines()]
         if rec is not None and rec.effect != HEADING:
             model = copy.deepcopy(dg.model).with_effect(fx.make_effect(rec.effect, rec.sensor, rec.axes), rec.scope)
-            result = field_fit(model, data)
+            result = fit(model, data)    # the best record: every station of the run, references too
             res.record = model.record(probe_id=live.probe_id, site_source=live.site_source,
                                       not_identifiable=result.not_identifiable,
                                       fit_stats={"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms,
                                                  "stations": len(data), "data": data.describe()},
-                                      method=f"lab fit of {model.probe.describe()} to the run's captures, from the "
-                                             f"live record {live.id}")
+                                      method=f"lab fit of {model.probe.describe()} to the run's captures and "
+                                             f"reference stations, from the live record {live.id}")
             path = os.path.join(out_dir, "lab_model.yaml")
             res.record.save(path)
             res.lines.append(f"lab record {res.record.id} ({res.record.model.describe()}) written to {path}")
@@ -84,4 +87,7 @@ def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None) -> Loo
     res.runs = compare.compare(bag, [(name.replace(" ", "_"), cal) for name, cal in models],
                                os.path.join(out_dir, "compare"), site=live.site, warn=warn)
     res.lines += compare.describe(res.runs, os.path.basename(str(bag)))
+    if res.record is not None:
+        res.lines.append("  (the lab model was fitted on this run's stations, references included: its figures above are "
+                         "in-sample; the lab's field figure is in its verdict)")
     return res
