@@ -542,12 +542,22 @@ class WholeProbeEffect(Effect):
 
 @dataclass
 class StandPoseError(WholeProbeEffect):
-    """Random orientation error of each static station of the stand (1σ per axis, deg)."""
+    """Orientation errors of the calibration stand's poses (deg).
+
+    Two kinds, both a rotation of the whole probe (both triads alike) after the set attitude:
+
+    * **random**, different at every station (``sigma``, 1σ per axis; the simulator applies it):
+      no fittable signature — it shows as unstructured excess scatter, which the lab reports with
+      its size as an equivalent pose error;
+    * **systematic**, a worn or badly set stand holding some pose a few tenths of a degree off the
+      same way in every round: a fittable signature.  The lab fits it per pose (three small
+      rotations in the tool frame, :attr:`lab.model.LabModel.fit_poses`; their mean over the poses
+      is the base model's own rotation freedom and is held at zero) and says which poses are off.
+    """
 
     name: ClassVar[str] = "stand_pose_error"
-    not_from_static: ClassVar[str] = ("random per-station orientation errors are not a fittable signature: they show "
-                                      "as unstructured excess scatter, reported with its size as an equivalent stand "
-                                      "pose error")
+    signature: ClassVar[str] = ("the same poses off in every round: both triads' residuals at a pose rotated alike "
+                                "(residual ≈ measured vector × rotation), repeated across rounds")
     specs: ClassVar[tuple] = (ParamSpec("sigma", {"probe": "deg"}, {"probe": 0.05}, "1σ per axis"),)
 
 

@@ -38,7 +38,7 @@ from scipy.stats import ttest_1samp
 from .. import effects as fx
 from ..station import Stations
 from .fit import fit, physical_hints, residual_groups, residual_vector
-from .model import LabModel
+from .model import N_POSES, POSES_LABEL, LabModel
 from .stats import regress
 
 #: Family-wise false-alarm rate of a diagnosis (Bonferroni over the candidates tested).
@@ -86,7 +86,7 @@ class Candidate:
 
     @property
     def label(self):
-        if self.sensor == "site":
+        if self.sensor in ("site", "probe"):
             return self.effect
         return f"{self.effect}:{self.sensor}:{self.axes}" + ("" if self.scope == "all" else f"@{self.scope}")
 
@@ -367,9 +367,16 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
     """Field-fit ``trial`` and test the term ``label``: (fit, Wald χ², adjusted p, per-axis tests)."""
     f = field_fit(trial, data)
     idx = trial.param_index(label)
-    chi2, _, p = f.wald(idx)
     axis_tests = []
-    if label != HEADING:
+    if label == POSES_LABEL:      # per pose the data have: its three angles
+        have = sorted(set(int(q) for q in data.pose[(data.kind == "pose") & (data.pose >= 1)]))
+        idx = np.concatenate([idx[3 * (q - 1):3 * q] for q in have])
+        for q in have:
+            c, _, pq = f.wald(trial.param_index(label)[3 * (q - 1):3 * q])
+            axis_tests.append({"axis": f"pose {q}", "wald_chi2": c, "p": min(pq * n_tests * len(have), 1.0),
+                               "significant": bool(pq * n_tests * len(have) < ALPHA)})
+    chi2, _, p = f.wald(idx)
+    if label not in (HEADING, POSES_LABEL):
         eff = next(t.effect for t in trial.probe.terms if t.label == label)
         if eff.stage != fx.PROBE_STAGE and len(eff.axes) > 1:
             n_ax = len(eff.axes)
@@ -427,7 +434,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
 
     def score(trial, label, name, sensor, axes, scope):
         f, wchi2, p, axis_tests = _test_term(trial, label, data, n_tests)
-        if axis_tests and p < a_level:
+        if axis_tests and p < a_level and label not in (HEADING, POSES_LABEL):
             sig_axes = "".join(t["axis"] for t in axis_tests if t["significant"])
             if sig_axes and sig_axes != axes:     # name and refit the axes that carry the effect
                 eff2 = fx.CATALOGUE[name](sensor=sensor, axes=sig_axes)
@@ -457,9 +464,13 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
                 transfers = False
                 why = why or f"it makes the field errors worse (p {p_field:.2g})"
         significant = bool(p < a_level)
+        idx = trial.param_index(label)
+        if label == POSES_LABEL:     # the poses that are off, each with its three angles
+            off = [int(t["axis"].split()[1]) for t in axis_tests if t["significant"]]
+            idx = np.concatenate([idx[3 * (q - 1):3 * q] for q in off]) if off else idx[:0]
         ranked.append(Candidate(name, sensor, axes, scope, val, sc, gain, base_fit.chi2 - f.chi2,
                                 f.bic() - base_fit.bic(), wchi2, p, significant, axis_tests,
-                                _param_rows(f, trial.param_index(label)), transfers=transfers,
+                                _param_rows(f, idx), transfers=transfers,
                                 p_field=p_field, fit_all=f, residual=r,
                                 note="" if transfers else f"not recommended: {why}"))
 
@@ -480,6 +491,13 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         merit = (c.score if by_field and np.isfinite(c.score) else c.delta_bic) if c.significant else c.p
         return (not c.significant, not c.transfers, c.note.startswith("explained by"), merit)
 
+    # The stand's systematic pose errors: the same pose off the same way in every round.
+    repeated = np.bincount(data.pose[(data.kind == "pose") & (data.pose >= 1)], minlength=N_POSES + 1)
+    if not model.fit_poses and repeated.max() >= 2 and (candidates is None or POSES_LABEL in candidates):
+        say("candidate: the stand's pose errors")
+        trial = copy.deepcopy(model)
+        trial.fit_poses = True
+        score(trial, POSES_LABEL, POSES_LABEL, "probe", "", "cal")
     ranked.sort(key=order)
     confounded = _confounding(ranked, r_base)
     ranked.sort(key=order)
@@ -595,7 +613,18 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
             if np.isfinite(before) and np.isfinite(after) and abs(after - before) > 0.05 * before:
                 changes.append(f"the {word} {name} RMS from {before:.{digits}f}° to {after:.{digits}f}°")
         effect_size = "; ".join(f"{p['name']} = {p['value']:.4g} ± {p['std']:.2g} {p['unit']}"
-                                for p in best.params[:6])
+                                for p in best.params[:6]) or "see above"
+        if best.effect == POSES_LABEL:
+            off = [t["axis"] for t in best.axis_tests if t["significant"]]
+            rows = {r["name"]: r for r in best.params}
+            desc = []
+            for t in off:
+                q = int(t.split()[1])
+                v = [rows[f"{POSES_LABEL}.r{a}_p{q}"] for a in "xyz"]
+                desc.append(f"{t} by (" + ", ".join(f"{r['value']:+.3f}±{r['std']:.3f}" for r in v) + ")°")
+            lines.append("The stand holds some poses off the same way in every round: " + "; ".join(desc)
+                         + " (rotations about the tool x, y, z axes, against the poses that are right, which define "
+                         "the tool frame). Check or re-seat the stand at those poses.")
         lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; significant against the noise "
                      f"(Wald χ² {best.wald_chi2:.0f}, p {best.p:.1e}, ΔBIC {best.delta_bic:.0f}): {effect_size}"
                      + (f"; adding it changes {' and '.join(changes)}" if changes else "") + ".")
@@ -661,6 +690,10 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
             model = copy.deepcopy(dg.model)
             model.fit_heading = True
             new_label = HEADING
+        elif rec.effect == POSES_LABEL:
+            model = copy.deepcopy(dg.model)
+            model.fit_poses = True
+            new_label = POSES_LABEL
         else:
             eff = fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)
             model = copy.deepcopy(dg.model).with_effect(eff, rec.scope)

@@ -75,8 +75,11 @@ def residual_groups(data) -> np.ndarray:
 
 
 def _prior_residual(model: LabModel) -> np.ndarray:
+    """The weak prior rows (extra parameters over 100× their typical size), then the gauge rows
+    (:meth:`LabModel.gauge_residual`)."""
     mask = model.prior_mask()
-    return model.get_vector()[mask] / (PRIOR_FACTOR * model.param_scale()[mask])
+    return np.concatenate([model.get_vector()[mask] / (PRIOR_FACTOR * model.param_scale()[mask]),
+                           model.gauge_residual()])
 
 
 @dataclass
@@ -183,8 +186,14 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
         return residual_vector(model, data, full(x))
 
     if len(x0):
-        res = least_squares(fun, x0, x_scale=scale, method="lm", jac="2-point",
-                            max_nfev=max_nfev * (len(x0) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        # with the stand's pose errors, the poses found off leave the gauge and the fit is repeated
+        for _ in range(3 if getattr(model, "fit_poses", False) else 1):
+            res = least_squares(fun, x0, x_scale=scale, method="lm", jac="2-point",
+                                max_nfev=max_nfev * (len(x0) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            model.set_vector(full(res.x))
+            if not getattr(model, "fit_poses", False) or not model.regauge(data):
+                break
+            x0 = res.x
         x, jac, ok, msg, nfev = res.x, res.jac, bool(res.success), str(res.message), int(res.nfev)
     else:
         x, jac, ok, msg, nfev = x0, np.zeros((0, 0)), True, "nothing to fit", 0
@@ -233,7 +242,7 @@ def _uncertainty(model, jac, scale, inflation, data, free):
     (``inflation``, :func:`_group_inflation`)."""
     js = np.asarray(jac) * scale  # dimensionless columns
     # drop the prior rows: identifiability is a property of the data
-    n_prior = int(model.prior_mask()[free].sum())
+    n_prior = int(model.prior_mask().sum()) + len(model.gauge_residual())   # rows, fixed parameters' too
     jd = js[:len(js) - n_prior] if n_prior else js
     u, s, vt = np.linalg.svd(jd, full_matrices=False)
     names = [n for n, f in zip(model.param_names(), free) if f]

@@ -13,6 +13,7 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from .. import effects as fx
 from ..errormodel import TriadModel
@@ -21,6 +22,9 @@ from ..model import ProbeModel
 from ..survey import evaluate
 
 SENSORS = ("acc", "mag")
+#: The pseudo-term of the stand's systematic pose errors (:class:`effects.StandPoseError`).
+POSES_LABEL = "stand_pose_error"
+N_POSES = 12
 
 
 @dataclass
@@ -31,10 +35,18 @@ class LabModel:
     fit_heading: bool = False
     dip_deg: float = float("nan")
     heading_deg: float = 0.0
+    #: Fit the stand's systematic pose errors: per pose of Table 1, a small rotation (rx, ry, rz,
+    #: deg, tool frame) after the set attitude, applied to both triads' true vectors.
+    fit_poses: bool = False
+    pose_offsets_deg: np.ndarray = field(default_factory=lambda: np.zeros((N_POSES, 3)))
+    #: The poses whose mean rotation is held at zero (the gauge): the poses that are right define
+    #: the tool frame (:meth:`regauge`).
+    gauge_poses: np.ndarray = field(default_factory=lambda: np.ones(N_POSES, bool))
 
     def __post_init__(self):
         if not np.isfinite(self.dip_deg):
             self.dip_deg = self.site.dip_deg
+        self.pose_offsets_deg = np.asarray(self.pose_offsets_deg, dtype=float).reshape(N_POSES, 3)
 
     # ---- construction ------------------------------------------------------------------------
     @classmethod
@@ -61,13 +73,21 @@ class LabModel:
         return self.probe.extra_terms
 
     def labels(self) -> list:
-        return self.probe.labels() + (["heading_offset"] if self.fit_heading else [])
+        return self.probe.labels() + (["heading_offset"] if self.fit_heading else []) + \
+            ([POSES_LABEL] if self.fit_poses else [])
+
+    def _n_site(self) -> int:
+        return int(self.fit_dip) + int(self.fit_heading)
 
     def param_index(self, label: str) -> np.ndarray:
         """Indices in the parameter vector of one term (its :attr:`model.Term.label`), or of the
         stand's heading offset (``heading_offset``)."""
+        n_probe = len(self.probe.param_names())
         if label == "heading_offset":
-            return np.array([len(self.param_names()) - 1]) if self.fit_heading else np.zeros(0, int)
+            return np.array([n_probe + self._n_site() - 1]) if self.fit_heading else np.zeros(0, int)
+        if label == POSES_LABEL:
+            return np.arange(n_probe + self._n_site(), n_probe + self._n_site() + 3 * N_POSES) if self.fit_poses \
+                else np.zeros(0, int)
         i = 0
         for t in self.probe.terms:
             if t.label == label:
@@ -78,7 +98,8 @@ class LabModel:
     def scope_mask(self, scope: str) -> np.ndarray:
         """True for the parameters of terms of ``scope`` (the site's dip and heading count as ``all``)."""
         m = [t.scope == scope for t in self.probe.terms for _ in range(t.effect.n_params)]
-        return np.array(m + [scope == "all"] * (int(self.fit_dip) + int(self.fit_heading)), dtype=bool)
+        return np.array(m + [scope == "all"] * self._n_site() + [scope == "cal"] * (3 * N_POSES * self.fit_poses),
+                        dtype=bool)
 
     def without(self, label: str) -> "LabModel":
         """A copy without one extra term (or without the fitted heading offset)."""
@@ -86,24 +107,61 @@ class LabModel:
         if label == "heading_offset":
             new.fit_heading, new.heading_deg = False, 0.0
             return new
+        if label == POSES_LABEL:
+            new.fit_poses, new.pose_offsets_deg = False, np.zeros((N_POSES, 3))
+            new.gauge_poses = np.ones(N_POSES, bool)
+            return new
         new.probe.terms = [t for t in new.probe.terms if t.label != label or t.effect.base]
         return new
 
     # ---- parameter vector --------------------------------------------------------------------
+    def _pose_names(self) -> list:
+        return [f"{POSES_LABEL}.r{a}_p{k}" for k in range(1, N_POSES + 1) for a in "xyz"] if self.fit_poses else []
+
     def param_names(self) -> list:
         return self.probe.param_names() + (["site.dip_deg"] if self.fit_dip else []) + \
-            (["site.heading_deg"] if self.fit_heading else [])
+            (["site.heading_deg"] if self.fit_heading else []) + self._pose_names()
 
     def param_units(self) -> list:
-        return self.probe.param_units() + ["deg"] * (int(self.fit_dip) + int(self.fit_heading))
+        return self.probe.param_units() + ["deg"] * (self._n_site() + len(self._pose_names()))
 
     def param_scale(self) -> np.ndarray:
         """Typical magnitude of each parameter (for conditioning and priors)."""
-        return np.concatenate([self.probe.param_scale(), np.full(int(self.fit_dip) + int(self.fit_heading), 0.1)])
+        return np.concatenate([self.probe.param_scale(), np.full(self._n_site(), 0.1),
+                               np.full(len(self._pose_names()), 0.05)])
 
     def prior_mask(self) -> np.ndarray:
-        """Parameters held by a weak prior: those of the effects beyond the base model."""
-        return np.concatenate([self.probe.extra_mask(), np.zeros(int(self.fit_dip) + int(self.fit_heading), bool)])
+        """Parameters held by a weak prior: those of the effects beyond the base model, and the
+        stand's pose errors (a pose the data do not have stays at zero)."""
+        return np.concatenate([self.probe.extra_mask(), np.zeros(self._n_site(), bool),
+                               np.ones(len(self._pose_names()), bool)])
+
+    def gauge_residual(self) -> np.ndarray:
+        """The mean pose rotation of the gauge poses, per axis, over 0.001°: a rotation of every pose
+        alike is the base model's own rotation freedom (inside K·E of both triads), so it is held at
+        zero with these stiff prior rows — over the poses that are right (:meth:`regauge`), which
+        then define the tool frame."""
+        if not self.fit_poses or not self.gauge_poses.any():
+            return np.zeros(0)
+        return self.pose_offsets_deg[self.gauge_poses].mean(axis=0) / 1e-3
+
+    def regauge(self, data) -> bool:
+        """Choose the gauge poses: those the data have whose fitted rotation lies near the median
+        of all (within 3 robust σ, at least 0.01°) — the poses that are off leave the gauge.
+        Returns True when the set changed (the fit is then repeated)."""
+        have = np.zeros(N_POSES, bool)
+        have[np.unique(data.pose[(data.kind == "pose") & (data.pose >= 1)]) - 1] = True
+        if have.sum() < 3:
+            new = have
+        else:
+            off = self.pose_offsets_deg[have]
+            d = np.linalg.norm(off - np.median(off, axis=0), axis=1)
+            cut = max(3.0 * 1.4826 * float(np.median(d)), 0.01)
+            new = have.copy()
+            new[np.flatnonzero(have)[d > cut]] = False
+        changed = not np.array_equal(new, self.gauge_poses)
+        self.gauge_poses = new
+        return changed
 
     def get_vector(self) -> np.ndarray:
         v = [self.probe.get_vector()]
@@ -111,6 +169,8 @@ class LabModel:
             v.append(np.array([self.dip_deg]))
         if self.fit_heading:
             v.append(np.array([self.heading_deg]))
+        if self.fit_poses:
+            v.append(self.pose_offsets_deg.ravel())
         return np.concatenate(v)
 
     def set_vector(self, vec) -> None:
@@ -123,6 +183,26 @@ class LabModel:
             i += 1
         if self.fit_heading:
             self.heading_deg = float(vec[i])
+            i += 1
+        if self.fit_poses:
+            self.pose_offsets_deg = vec[i:i + 3 * N_POSES].reshape(N_POSES, 3).copy()
+
+    def suspect_poses(self, fit_result, data, alpha: float = 1e-3) -> list:
+        """The poses whose fitted offset is significant (Wald test, Bonferroni over the poses the
+        data have): ``[{"pose", "offset_deg" (3,), "std_deg" (3,), "angle_deg", "p"}]``."""
+        if not self.fit_poses:
+            return []
+        idx = self.param_index(POSES_LABEL)
+        out = []
+        have = sorted(int(p) - 1 for p in set(data.pose[(data.kind == "pose") & (data.pose >= 1)].tolist()))
+        for k in have:
+            sub = idx[3 * k:3 * k + 3]
+            chi2, _, p = fit_result.wald(sub)
+            if p * len(have) < alpha:
+                off = fit_result.values[sub]
+                out.append({"pose": k + 1, "offset_deg": off.tolist(), "std_deg": fit_result.std[sub].tolist(),
+                            "angle_deg": float(np.linalg.norm(off)), "p": min(p * len(have), 1.0)})
+        return out
 
     # ---- physics ------------------------------------------------------------------------------
     def field_ned(self) -> np.ndarray:
@@ -131,9 +211,19 @@ class LabModel:
         return s.field_ned()
 
     def true_vectors(self, data):
-        """True tool-frame gravity and field of oriented stations (NaN for free ones)."""
+        """True tool-frame gravity and field of oriented stations (NaN for free ones).
+
+        With the stand's pose errors (:attr:`fit_poses`), a pose station's real attitude is
+        ``R·Q`` (``Q`` the pose's small rotation, tool frame), so its true vectors are
+        ``Qᵀ·Rᵀ·v``."""
         rt = np.swapaxes(data.rotation, -1, -2)
-        return rt @ self.site.gravity_ned(), rt @ self.field_ned()
+        g, b = rt @ self.site.gravity_ned(), rt @ self.field_ned()
+        if self.fit_poses:
+            m = (data.kind == "pose") & (data.pose >= 1) & (data.pose <= N_POSES)
+            if m.any():
+                q = Rotation.from_rotvec(np.radians(self.pose_offsets_deg[data.pose[m] - 1]))
+                g[m], b[m] = q.inv().apply(g[m]), q.inv().apply(b[m])
+        return g, b
 
     def chain(self, sensor: str, role: str) -> list:
         return self.probe.chain(sensor, role)
@@ -185,6 +275,9 @@ class LabModel:
 
         diags = {"fit": dict(fit_stats or {})}
         diags["fit"].update({"fitted_dip_deg": float(self.dip_deg)})
+        if self.fit_poses:     # the stand's, not the probe's: kept as a finding, never applied
+            diags["fit"]["stand_pose_errors_deg"] = {int(k + 1): [float(x) for x in self.pose_offsets_deg[k]]
+                                                     for k in range(N_POSES) if np.any(self.pose_offsets_deg[k])}
         if self.fit_heading:
             diags["fit"]["stand_heading_offset_deg"] = float(self.heading_deg)
         return Calibration(copy.deepcopy(self.probe), probe_id=probe_id, method=method, site=self.site,

@@ -21,18 +21,20 @@ def _site(gen):
                 gravity_mps2=s.gravity)
 
 
-def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, **probe_kw):
-    """Two rounds of the twelve poses and a coarse stand grid (the calibration log), then a finer
-    grid (the validation log), holds 4 s, moves 1.5 s, one power-on."""
+def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, cal_hold_s=4.0, offsets=None, **probe_kw):
+    """Two rounds of the twelve poses (``offsets``: poses the stand holds off) and a coarse stand
+    grid (the calibration log), then a finer grid (the validation log), holds 4 s (``cal_hold_s``
+    in the calibration), moves 1.5 s, one power-on."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     probe = ind.random_probe(seed)
     for sensor, kw in probe_kw.items():
         for k, v in kw.items():
             setattr(probe[sensor], k, np.asarray(v, dtype=float))
     gen = ind.Generator(probe, seed=seed, move_s=1.5)
-    holds = ind.twelve_pose_rounds(2, hold_s=4.0)
+    holds = ind.twelve_pose_rounds(2, hold_s=cal_hold_s, offsets=offsets)
     if cal_grid:
-        holds += ind.grid(drifts=(20, 50, 110), azimuths=(45, 200), toolfaces=(30, 210), hold_s=4.0, vertical=False)
+        holds += ind.grid(drifts=(20, 50, 110), azimuths=(45, 200), toolfaces=(30, 210), hold_s=cal_hold_s,
+                          vertical=False)
     gen.write(tmp_path / "cal.csv", holds, cal_temp)
     gen.write(tmp_path / "val.csv", ind.grid(hold_s=4.0), val_temp)
     (tmp_path / "site.yaml").write_text(yaml.safe_dump(gen.site.as_yaml_dict()))
@@ -159,3 +161,42 @@ def test_the_lab_refuses_to_rank_when_the_data_cannot_identify_the_base_model(tm
     dg = lab.diagnose(data, site=_site(gen))
     assert dg.refused and not dg.ranked
     assert "cannot identify the base model" in dg.verdict
+
+
+OFF = {3: (0.25, -0.10, 0.20), 7: (0.0, 0.30, -0.15)}
+
+
+def test_a_worn_stand_is_named_with_the_poses_that_are_off_and_fitted_to_the_true_level(tmp_path):
+    const = lambda t: np.full_like(t, 25.0)   # noqa: E731
+    gen, data, site = _session(tmp_path, 21, const, const, cal_hold_s=10.0, offsets=OFF)
+    dg = lab.diagnose(data, site=site)
+    top = dg.recommended
+    assert top is not None and top.label == "stand_pose_error", dg.verdict
+    off = {int(t["axis"].split()[1]) for t in top.axis_tests if t["significant"]}
+    assert off == set(OFF), dg.verdict
+    rows = {r["name"]: r for r in top.params}
+    for pose, angles in OFF.items():
+        for a, true in zip("xyz", angles):
+            r = rows[f"stand_pose_error.r{a}_p{pose}"]
+            assert abs(r["value"] - true) < max(4 * r["std"], 0.01), (pose, a, r)
+    assert "pose 3 by" in dg.verdict and "pose 7 by" in dg.verdict
+    # fitted on the calibration log alone, the survey error falls to the true model's level
+    true = _true_level(gen, data, site)
+    model = lab.LabModel.base(site)
+    model.fit_poses = True
+    v = _cal_only(model, data)
+    assert v["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"]
+    assert v["drift_rms_deg"] <= 1.2 * true["drift_rms_deg"]
+    base = _cal_only(lab.LabModel.base(site), data)
+    assert base["azimuth_rms_deg"] > 2 * true["azimuth_rms_deg"]
+
+
+def test_twelve_position_says_which_pose_the_stand_holds_off(tmp_path, capsys):
+    gen = ind.Generator(ind.random_probe(22), seed=22, move_s=1.5)
+    gen.write(tmp_path / "cal.csv", ind.twelve_pose_rounds(2, hold_s=4.0, offsets={3: OFF[3]}))
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump(gen.site.as_yaml_dict()))
+    assert main(["twelve-position", str(tmp_path / "cal.csv"), "--site", str(tmp_path / "site.yaml"), "-o",
+                 str(tmp_path / "c.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert "pose 3 was left out of both triads alike" in err and "stand_pose_error" in err
+    assert "pose 5" not in err
