@@ -40,6 +40,7 @@ from ..station import Stations
 from .fit import fit, physical_hints, residual_groups, residual_vector
 from .model import N_POSES, POSES_LABEL, LabModel
 from .stats import regress
+from .uncertainty import noise_floor, normalised_errors
 
 #: Family-wise false-alarm rate of a diagnosis (Bonferroni over the candidates tested).
 ALPHA = 1e-3
@@ -114,6 +115,10 @@ class Diagnosis:
     confounded: list = field(default_factory=list)
     refused: str = ""
     notes: list = field(default_factory=list)
+    #: Normalised validation errors of the model (:func:`uncertainty.normalised_errors`), and the
+    #: noise floor of its figures (:func:`uncertainty.noise_floor`).
+    uncertainty: dict = field(default_factory=dict)
+    floor: dict = field(default_factory=dict)
 
     @property
     def recommended(self):
@@ -135,6 +140,7 @@ class Diagnosis:
                 "recommended": self.recommended.label if self.recommended else None,
                 "significant_structure_left": bool(self.significant_structure_left),
                 "confounded": self.confounded, "refused": self.refused,
+                "normalised_errors": self.uncertainty, "noise_floor": self.floor,
                 "structure": self.structure, "untestable": self.untestable, "verdict": self.verdict,
                 "losses": [x.to_json() for x in self.losses], "notes": self.notes}
 
@@ -504,11 +510,15 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     misfit = base_fit.z_rms > Z_RMS_LIMIT
     dg = Diagnosis(model, base_fit, base_val, base_score, structure, ranked, untestable, False, "",
                    losses=losses, confounded=confounded)
+    ref = np.isfinite(data.ref[:, 0]) & ((data.role == "val") if by_field else True)
+    if ref.any():
+        dg.uncertainty = normalised_errors(model, base_fit, data.subset(ref))
+        dg.floor = noise_floor(model, data.subset(ref))
     best = dg.recommended
     dg.significant_structure_left = bool(best is not None or structure)
     scatter = orientation_scatter_deg(model, data) if misfit else None
     dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
-                          confounded=confounded)
+                          confounded=confounded, uncertainty=dg.uncertainty)
     return dg
 
 
@@ -587,7 +597,7 @@ def losses_text(losses) -> str:
 
 
 def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter=None, losses=(), confounded=(),
-             refused="") -> str:
+             refused="", uncertainty=None) -> str:
     lines = [f"Model: {model.describe()}.",
              f"Fit: noise-normalised residual RMS {base_fit.z_rms:.2f} (1.0 = explained to the sensor noise)."]
     lost = losses_text(losses)
@@ -597,6 +607,12 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
         lines.append(f"Validation ({base_val.get('label', '')}): drift RMS {base_val.get('drift_rms_deg', float('nan')):.4f}°, "
                      f"azimuth RMS {base_val.get('azimuth_rms_deg', float('nan')):.4f}°, pointing RMS "
                      f"{base_val.get('pointing_rms_deg', float('nan')):.4f}°.")
+    if uncertainty:
+        parts = [f"{k} {v['rms']:.2f} ({100 * v['within_2']:.0f} % within 2σ)" for k, v in uncertainty.items()
+                 if v.get("stations")]
+        if parts:
+            lines.append("Errors over their predicted 1σ (noise and the fit's covariance; RMS 1 = the uncertainty "
+                         "holds): " + ", ".join(parts) + ".")
     if refused:
         lines.append(f"No effect ranked: {refused}.")
         return "\n".join(lines)

@@ -13,7 +13,6 @@ import io
 import numpy as np
 
 from ..deps import require
-from ..survey import table4, table5
 
 
 def figure_png(fig) -> str:
@@ -34,23 +33,57 @@ def pyplot():
 
 
 def ladder_figure(steps, uncorrected: dict) -> str:
-    """Validation error after each rung: uncorrected, the paper's base model, then each added effect."""
+    """Validation error after each rung, on a linear scale from the paper's base model down, with
+    the noise floor (what a perfect model would still show) drawn; the uncorrected error is
+    written in the title (on this scale it would flatten everything else)."""
     plt = pyplot()
-    labels = ["uncorrected", "base (paper)"] + ["+ " + s.recommended.label for s in steps if s.recommended]
-    drift = [uncorrected["drift_rms_deg"]] + [s.base_val.get("drift_rms_deg", np.nan) for s in steps]
-    az = [uncorrected["azimuth_rms_deg"]] + [s.base_val.get("azimuth_rms_deg", np.nan) for s in steps]
-    fig, ax = plt.subplots(1, 2, figsize=(11, 3.6))
-    x = np.arange(len(drift))
-    for a, y, t in ((ax[0], drift, "drift RMS (deg)"), (ax[1], az, "azimuth RMS (deg)")):
-        a.plot(x, y, "o-", color="#1f5fa8")
-        a.set_yscale("log")
+    labels = ["base (paper)"] + ["+ " + s.recommended.label for s in steps[:-1] if s.recommended]
+    labels = labels[:len(steps)]
+    fig, ax = plt.subplots(1, 2, figsize=(11, 3.8))
+    x = np.arange(len(steps))
+    for a, key, t in ((ax[0], "drift_rms_deg", "drift RMS (deg)"), (ax[1], "azimuth_rms_deg", "azimuth RMS (deg)")):
+        y = [s.base_val.get(key, np.nan) for s in steps]
+        a.plot(x, y, "o-", color="#1f5fa8", label="model")
+        floor = steps[-1].floor.get(key, np.nan) if steps[-1].floor else np.nan
+        if np.isfinite(floor):
+            a.axhline(floor, color="#b5452a", ls="--", lw=1, label=f"noise floor {floor:.3g}°")
+        a.set_ylim(0, max(np.nanmax(y) if np.isfinite(np.nanmax(y)) else 1, floor if np.isfinite(floor) else 0) * 1.15)
         a.set_xticks(x)
-        a.set_xticklabels(labels[:len(x)], rotation=25, ha="right", fontsize=8)
-        a.set_title(f"{steps[0].base_val.get('kind', 'validation')} {t}")
-        a.grid(True, which="both", alpha=0.3)
+        a.set_xticklabels(labels, rotation=25, ha="right", fontsize=8)
+        a.set_title(f"{t} — uncorrected {uncorrected.get(key, float('nan')):.3g}°", fontsize=10)
+        a.grid(True, alpha=0.3)
+        a.legend(fontsize=8)
         for xi, yi in zip(x, y):
             a.annotate(f"{yi:.3g}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
-    fig.suptitle("Effect ladder: validation error after each added effect")
+    fig.suptitle(f"Effect ladder — {steps[0].base_val.get('label', 'validation')}", fontsize=10)
+    fig.tight_layout()
+    return figure_png(fig)
+
+
+def sensor_drift_figure(steps, data) -> str:
+    """Each triad's residual (measured minus model, oriented stations) against temperature and
+    time, for the base and the final model: what a temperature or time effect leaves."""
+    plt = pyplot()
+    d = data.subset(data.oriented)
+    fig, axs = plt.subplots(2, 2, figsize=(12, 6.5))
+    for col, (model, name) in enumerate(((steps[0].model, "base"), (steps[-1].model, "final"))):
+        g_t, b_t = model.true_vectors(d)
+        h_g, h_b = model.forward(d, g_t, b_t)
+        for row, (x, xl) in enumerate(((d.temp_c, "temperature (°C)"), (d.time_s / 60.0, "time (min)"))):
+            a = axs[row, col]
+            for j, c in enumerate(("#1f5fa8", "#b5452a", "#3a7d44")):
+                a.scatter(x, (d.b - h_b)[:, j], s=8, color=c, label=f"mag {'xyz'[j]} (nT)")
+            a2 = a.twinx()
+            for j, c in enumerate(("#1f5fa8", "#b5452a", "#3a7d44")):
+                a2.scatter(x, 1e3 * (d.g - h_g)[:, j], s=8, marker="x", color=c, alpha=0.6)
+            a.set_xlabel(xl)
+            a.set_ylabel("magnetometer residual (nT, dots)")
+            a2.set_ylabel("accelerometer residual (mm/s², crosses)")
+            a.set_title(f"{name} model: residual vs {xl.split(' ')[0]}", fontsize=10)
+            a.grid(alpha=0.3)
+            if row == 0 and col == 0:
+                a.legend(fontsize=7)
+    fig.tight_layout()
     return figure_png(fig)
 
 
@@ -107,19 +140,76 @@ def _fmt(v, p=3):
     return "–" if v is None or not np.isfinite(v) else f"{v:.{p}f}"
 
 
-def paper_tables_html(before: dict, after: dict, ref) -> str:
-    t4b, t4a = table4(before, ref), table4(after, ref)
-    rows = [["before"] + [_fmt(v) for v in t4b["mean_err"]] + [_fmt(t4b["overall_rms"])],
-            ["after"] + [_fmt(v) for v in t4a["mean_err"]] + [_fmt(t4a["overall_rms"])]]
-    out = table_html("Table 4 layout — drift error (deg) by set drift", ["state"] + [f"{d:g}" for d in t4a["drifts"]] + ["RMS"], rows)
-    t5b, t5a = table5(before, ref), table5(after, ref)
-    rows = []
-    for i, dr in enumerate(t5a["drifts"]):
-        for name, t in (("before", t5b), ("after", t5a)):
-            rows.append([f"{dr:g}", name] + [_fmt(v, 2) for v in t["cells"][i]] + [_fmt(t["rms_err"][i], 2)])
-    out += table_html(f"Table 5 layout — azimuth error (deg) at toolface {t5a['toolface_deg']:g}",
-                       ["drift", "state"] + [f"{a:g}" for a in t5a["azimuths"]] + ["RMS"], rows)
+#: A validation set with more distinct set values than this is not a grid: its tables use bins.
+MAX_GRID_VALUES = 12
+DRIFT_BINS = (0.0, 5.0, 15.0, 35.0, 65.0, 95.0, 180.0)
+
+
+def _axis(values, bins=None):
+    """The rows (or columns) of a table: the distinct set values of a grid, or bins when the data
+    are not a grid.  Returns (labels, index per station, -1 where NaN)."""
+    v = np.asarray(values, dtype=float)
+    ok = np.isfinite(v)
+    uniq = np.unique(np.round(v[ok], 3))
+    if len(uniq) <= MAX_GRID_VALUES:
+        idx = np.where(ok, np.searchsorted(uniq, np.round(np.nan_to_num(v), 3)), -1)
+        return [f"{u:g}" for u in uniq], idx
+    edges = np.asarray(bins if bins is not None else np.linspace(0, 360, 9))
+    idx = np.where(ok, np.clip(np.digitize(np.nan_to_num(v), edges) - 1, 0, len(edges) - 2), -1)
+    return [f"{edges[k]:g}–{edges[k + 1]:g}" for k in range(len(edges) - 1)], idx
+
+
+def grid_tables_html(before: dict, after: dict, ref) -> str:
+    """Tables 4 and 5 of the paper, laid out on the grid the validation data actually have: drift
+    error RMS by set drift; azimuth error RMS by set drift × set azimuth over every toolface
+    (stations with an undefined azimuth counted apart).  A set of stations that is not a grid is
+    binned (drift in bands, azimuth in 45° sectors)."""
+    ref = np.asarray(ref, dtype=float)
+    rows, ri = _axis(ref[:, 0], DRIFT_BINS)
+    cols, ci = _axis(ref[:, 1])
+
+    def rms(x):
+        x = x[np.isfinite(x)]
+        return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
+
+    t4 = []
+    for k, lab in enumerate(rows):
+        m = ri == k
+        t4.append([lab, str(int(m.sum())), _fmt(rms(before["drift_err"][m]), 4), _fmt(rms(after["drift_err"][m]), 4)])
+    out = table_html("Drift error RMS (deg) by set drift (Table 4 layout)", ["set drift", "stations", "before",
+                                                                               "after"], t4)
+    ab, aa = np.asarray(before["azimuth_err"], float), np.asarray(after["azimuth_err"], float)
+    t5 = []
+    for k, lab in enumerate(rows):
+        cells = []
+        for j in range(len(cols)):
+            m = (ri == k) & (ci == j)
+            cells.append(_fmt(rms(aa[m]), 4) if m.any() else "")
+        m = ri == k
+        t5.append([lab] + cells + [_fmt(rms(ab[m]), 3), _fmt(rms(aa[m]), 4)])
+    out += table_html("Azimuth error RMS (deg) after, by set drift × set azimuth, all toolfaces (Table 5 layout)",
+                      ["set drift"] + cols + ["row RMS before", "row RMS after"], t5)
+    undefined = int(np.sum(~np.isfinite(ref[:, 1])))
+    if undefined:
+        out += f"<p>{undefined} station(s) without a set azimuth (vertical): drift and toolface only.</p>"
     return out
+
+
+def losses_html(losses) -> str:
+    if not losses:
+        return "<p>Nothing was left out.</p>"
+    rows = [[html.escape(x.source), html.escape(x.what), str(x.count), html.escape(x.reason)] for x in losses]
+    return table_html("Left out of the data", ["source", "what", "count", "why"], rows)
+
+
+def uncertainty_html(dg) -> str:
+    if not dg.uncertainty:
+        return ""
+    rows = [[k, str(v["stations"]), _fmt(v["rms"], 2), _fmt(100 * v["within_1"], 0) + " %",
+             _fmt(100 * v["within_2"], 0) + " %", _fmt(v["median_sigma_deg"], 4)] for k, v in dg.uncertainty.items()]
+    return table_html("Errors over their predicted 1σ (noise and the fit's covariance): RMS 1, 68 % within 1σ and "
+                      "95 % within 2σ when the uncertainty holds",
+                      ["angle", "stations", "RMS of error/σ", "within 1σ", "within 2σ", "median σ (deg)"], rows)
 
 
 CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;color:#222}
@@ -149,22 +239,28 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
                     for e in s.structure]
             parts.append(table_html("Residual structure (F-test vs regressors, Bonferroni)",
                                      ["residual", "regressor", "R²", "p"], rows))
+    parts.append("<h2>Data left out</h2>" + losses_html(data.losses))
     parts.append("<h2>Effect ladder</h2>")
     parts.append(f"<img src='{ladder_figure(steps, uncorrected)}'>")
+    for k, s in enumerate(steps):
+        for n in s.notes:
+            parts.append(f"<p>Rung {k}: {html.escape(n)}</p>")
+    parts.append("<h2>Predicted uncertainty</h2>" + uncertainty_html(final))
     parts.append("<h2>Residuals</h2>")
+    parts.append(f"<img src='{sensor_drift_figure(steps, data)}'>")
     parts.append(f"<img src='{residual_figure(base.model, data, 'Base model (the paper): validation angle errors')}'>")
     parts.append(f"<img src='{sensor_residual_figure(base.model, data, 'Base model: sensor residuals')}'>")
     if len(steps) > 1:
         parts.append(f"<img src='{residual_figure(final.model, data, 'Final model: ' + final.model.describe())}'>")
         parts.append(f"<img src='{sensor_residual_figure(final.model, data, 'Final model: sensor residuals')}'>")
-    has = np.all(np.isfinite(data.ref), axis=1)
+    has = np.isfinite(data.ref[:, 0]) & (data.role == "val") if (data.role == "val").any() else np.isfinite(data.ref[:, 0])
     if has.any():
         d = data.subset(has)
-        parts.append("<h2>Before / after (paper layout)</h2><p>before: uncorrected sensors; after: the final model "
-                     "(fitted as in the ladder: the calibration logs and the survey's invariants).</p>")
+        parts.append("<h2>Before / after on the validation grid</h2><p>before: uncorrected sensors; after: the final "
+                     f"model ({html.escape(final.base_val.get('label', ''))}).</p>")
         from ..survey import evaluate
         before = evaluate(d.g, d.b, final.model.site, ref=d.ref)
-        parts.append(paper_tables_html(before, final.model.angle_errors(d), d.ref))
+        parts.append(grid_tables_html(before, final.model.angle_errors(d), d.ref))
     if final_fit is not None:
         rows = [[html.escape(r["name"]), f"{r['value']:.6g}", f"{r['std']:.2g}", html.escape(r["unit"])]
                 for r in final_fit.parameter_table()]

@@ -39,14 +39,13 @@ def write_report(path, data, site, effects_text: str | None = None, max_steps: i
 
     Raises :class:`deps.MissingDependency` before any fitting if matplotlib is not installed."""
     from ..deps import require
-    from .diagnose import ladder
-    from .fit import fit
+    from .diagnose import field_fit, ladder
     from .report import render
 
     require("matplotlib", "report", "lab report")  # the plots; checked before the minutes of fitting
     steps = ladder(data, site, max_steps=max_steps, progress=progress, candidates=candidates,
                    start=build_model(site, effects_text))
-    final_fit = fit(steps[-1].model, data)
+    final_fit = field_fit(steps[-1].model, data)
     html = render(steps, data, uncorrected_metrics(data, site), final_fit)
     atomic_write_text(path, html)
     return steps

@@ -4,6 +4,7 @@ named by axis, confounded effects said as such, nothing lost without a word."""
 import json
 
 import numpy as np
+import pytest
 import yaml
 
 from inclinometer_calib import lab
@@ -200,3 +201,37 @@ def test_twelve_position_says_which_pose_the_stand_holds_off(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "pose 3 was left out of both triads alike" in err and "stand_pose_error" in err
     assert "pose 5" not in err
+
+
+def test_the_predicted_uncertainty_holds_when_the_model_is_right_and_says_when_it_is_not(tmp_path):
+    from inclinometer_calib.lab.uncertainty import normalised_errors
+
+    gen, data, site = _session(tmp_path, 31, _up_down(20, 45, 400.0), _up_down(22, 40, 300.0),
+                               mag={"temp_coef": [0.0, 0.0, 3.0]})
+    val = data.subset(data.role == "val")
+    right = lab.build_model(site, "temperature_bias:mag:z")
+    ne = normalised_errors(right, field_fit(right, data), val)
+    for angle in ("drift", "azimuth", "toolface"):
+        assert 0.7 <= ne[angle]["rms"] <= 1.4, ne
+        assert ne[angle]["within_2"] >= 0.85, ne
+    base = lab.LabModel.base(site)
+    ne = normalised_errors(base, field_fit(base, data), val)
+    assert ne["azimuth"]["rms"] > 1.8, ne
+    dg = lab.diagnose(data, right)
+    assert "over their predicted 1σ" in dg.verdict and dg.to_json()["normalised_errors"]["azimuth"]["stations"] == 45
+
+
+def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_the_uncertainty(tmp_path):
+    pytest.importorskip("matplotlib")
+    gen, data, site = _session(tmp_path, 3, _up_down(20, 45, 400.0), lambda t: 30 + 0.02 * (t - 400), cal_hold_s=6.0,
+                               offsets={5: (0.2, 0.0, 0.1)}, mag={"temp_coef": [0.0, 0.0, 3.0]})
+    steps = lab.write_report(tmp_path / "report.html", data, site)
+    found = [s.recommended.label for s in steps if s.recommended]
+    assert set(found) == {"stand_pose_error", "temperature_bias:mag:z"}, [s.verdict for s in steps]
+    true = _true_level(gen, data, site)
+    assert steps[-1].base_val["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"]
+    page = (tmp_path / "report.html").read_text()
+    for text in ("Data left out", "Nothing was left out", "Predicted uncertainty", "within 2σ",
+                 "Drift error RMS (deg) by set drift", "without a set azimuth (vertical)", "field: fitted on"):
+        assert text in page, text
+    assert page.count("<img src='data:image/png;base64,") >= 5
