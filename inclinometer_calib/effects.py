@@ -77,12 +77,31 @@ class ParamSpec:
 
 
 @dataclass
+class History:
+    """Where each station stands in its sequence, for effects that depend on it (a magnetometer
+    that keeps a little of the previous hold's field, a stand that settles): per station (N,)
+    ``source`` (its log), ``order`` (its place in the log, time order, from 0), ``previous_g`` and
+    ``previous_b`` (N, 3) the true tool-frame input of the previous hold in the same log (gravity
+    vector m/s², field nT; the measured means where that hold's attitude is unknown; NaN for a
+    log's first hold), and ``samples`` (N,) each station's samples as an (n, 7) array of time (s),
+    gravity vector (3, m/s²) and field (3, nT), or None where the data keep none (a bag)."""
+
+    source: np.ndarray
+    order: np.ndarray
+    previous_g: np.ndarray
+    previous_b: np.ndarray
+    samples: np.ndarray | None = None
+
+
+@dataclass
 class Context:
     """Per-sample conditions an effect may depend on: temperature (°C) and time (s since the
-    data's first sample), each (N,)."""
+    data's first sample), each (N,); and ``history`` (:class:`History`) where the data give it
+    (the lab's stations) — an effect that needs it declares ``needs = ("history",)``."""
 
     temperature_c: np.ndarray
     time_s: np.ndarray
+    history: History | None = None
 
 
 def rotate(m, v) -> np.ndarray:
@@ -230,7 +249,12 @@ class Effect(abc.ABC):
             v = np.array([[3.0, -4.0, 8.0]] * 2)
             for what, ctx in (("temperature", Context(np.array([T_REF_C, T_REF_C + 20.0]), np.zeros(2))),
                               ("time", Context(np.full(2, T_REF_C), np.array([0.0, 3600.0])))):
-                y = eff.apply(v, ctx)
+                try:
+                    y = eff.apply(v, ctx)
+                except (AttributeError, TypeError):   # it reads ctx.history, which this context lacks
+                    if "history" not in out:
+                        out.append("history")
+                    break
                 if what not in out and not np.array_equal(y[0], y[1]):
                     out.append(what)
         return tuple(out)

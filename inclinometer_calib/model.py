@@ -183,35 +183,38 @@ class ProbeModel:
             i += n
 
     # ---- physics ------------------------------------------------------------------------------
-    def context(self, n: int, temperature_c=None, time_s=None, role: str = "val", where: str = "") -> fx.Context:
-        """The per-sample context of ``n`` samples; a temperature or time the model's effects need
-        and that is not given raises :class:`ModelContextError` (never a silent default).  NaN
-        entries stay NaN: those samples come out NaN (the caller says why)."""
+    def context(self, n: int, temperature_c=None, time_s=None, role: str = "val", where: str = "",
+                history=None) -> fx.Context:
+        """The per-sample context of ``n`` samples; a temperature, time or history
+        (:class:`effects.History`) the model's effects need and that is not given raises
+        :class:`ModelContextError` (never a silent default).  NaN entries stay NaN: those samples
+        come out NaN (the caller says why)."""
         needs = self.needs(role)
         temp = _per_sample(temperature_c, n, fx.T_REF_C)
         tim = _per_sample(time_s, n, 0.0)
-        for what, given in (("temperature", temperature_c), ("time", time_s)):
+        for what, given in (("temperature", temperature_c), ("time", time_s), ("history", history)):
             if what in needs and given is None:
                 eff = [t.label for t in self.terms if t.acts_on(role) and what in type(t.effect).context_needs()]
                 raise ModelContextError(f"{where}the model's effect(s) {', '.join(eff)} depend on {what} and the data "
                                         f"give no {what}")
-        return fx.Context(temperature_c=temp, time_s=tim)
+        return fx.Context(temperature_c=temp, time_s=tim, history=history)
 
-    def forward(self, g_true, b_true, temperature_c=None, time_s=None, role: str = "val"):
+    def forward(self, g_true, b_true, temperature_c=None, time_s=None, role: str = "val", history=None):
         """Sensor outputs (gravity-vector m/s², nT) for true tool-frame vectors (N, 3) each."""
         g_true = np.atleast_2d(np.asarray(g_true, dtype=float))
         b_true = np.atleast_2d(np.asarray(b_true, dtype=float))
-        ctx = self.context(len(g_true), temperature_c, time_s, role)
+        ctx = self.context(len(g_true), temperature_c, time_s, role, history=history)
         return (fx.apply_chain(g_true, self.chain("acc", role), ctx),
                 fx.apply_chain(b_true, self.chain("mag", role), ctx))
 
-    def correct(self, g, b, temperature_c=None, time_s=None, role: str = "val"):
+    def correct(self, g, b, temperature_c=None, time_s=None, role: str = "val", history=None):
         """Corrected gravity vector (m/s², down positive) and field (nT) from raw outputs in the
         same conventions — the one correction path (see the module docstring).
 
         ``g``, ``b``: (N, 3) or (3,); ``temperature_c``, ``time_s``: scalars or (N,) (needed when
-        the model has effects that depend on them).  Returns arrays of the input shapes."""
-        return CorrectionPlan(self, role).correct(g, b, temperature_c, time_s)
+        the model has effects that depend on them); ``history`` for effects that depend on the
+        sequence of holds.  Returns arrays of the input shapes."""
+        return CorrectionPlan(self, role).correct(g, b, temperature_c, time_s, history=history)
 
     # ---- record ---------------------------------------------------------------------------------
     def terms_record(self) -> list:
@@ -289,18 +292,18 @@ class CorrectionPlan:
         self.extra = {s: len(self.chains[s]) > len(fx.BASE) for s in SENSORS}
         self.needs = model.needs(role)
 
-    def correct(self, g, b, temperature_c=None, time_s=None):
+    def correct(self, g, b, temperature_c=None, time_s=None, history=None):
         """Both triads (see :meth:`ProbeModel.correct`)."""
-        return (self.correct_triad("acc", g, temperature_c, time_s),
-                self.correct_triad("mag", b, temperature_c, time_s))
+        return (self.correct_triad("acc", g, temperature_c, time_s, history),
+                self.correct_triad("mag", b, temperature_c, time_s, history))
 
-    def correct_triad(self, sensor: str, h, temperature_c=None, time_s=None):
+    def correct_triad(self, sensor: str, h, temperature_c=None, time_s=None, history=None):
         """One triad's corrected vectors (a node corrects each stream as its samples come)."""
         h = np.asarray(h, dtype=float)
         h2 = h.reshape(-1, 3)
         x = self.triads[sensor].inverse(h2)
         if self.extra[sensor]:
-            ctx = self.model.context(len(h2), temperature_c, time_s, self.role)
+            ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history)
             m = self.matrix_t[sensor]
             chain = self.chains[sensor]
             for _ in range(CORRECTION_ITERATIONS):

@@ -175,6 +175,14 @@ def merge_stations(a: Station, b: Station) -> Station:
 # ---------------------------------------------------------------------------------------------
 # Stations as a struct of arrays (the lab's fits)
 # ---------------------------------------------------------------------------------------------
+def _object_array(items, n) -> np.ndarray:
+    out = np.full(n, None, dtype=object)
+    if items is not None:
+        for i, x in enumerate(items):
+            out[i] = x
+    return out
+
+
 #: Floors of the per-station noise estimate of a mean (std/√n): m/s², nT.
 SIGMA_FLOOR = {"acc": 2e-6, "mag": 0.05}
 @dataclass(frozen=True)
@@ -227,9 +235,26 @@ class Stations:
     ref: np.ndarray
     n: np.ndarray
     source: np.ndarray
+    #: The sequence (:class:`effects.History`): place in its log, the previous hold's attitude
+    #: (NaN: unknown or none) and means, each station's samples (None: not kept).
+    order: np.ndarray = None
+    prev_rotation: np.ndarray = None
+    prev_g: np.ndarray = None
+    prev_b: np.ndarray = None
+    samples: np.ndarray = None
     #: What reading left out or changed, with the reason (:class:`Loss`): the lab's verdict, JSON
     #: and report count it.  Not per station: a subset keeps the whole ledger.
     losses: list = field(default_factory=list)
+
+    def __post_init__(self):
+        n = len(self.g)
+        if self.order is None:
+            self.order = np.arange(n)
+        for name, shape in (("prev_rotation", (n, 3, 3)), ("prev_g", (n, 3)), ("prev_b", (n, 3))):
+            if getattr(self, name) is None:
+                setattr(self, name, np.full(shape, np.nan))
+        if self.samples is None:
+            self.samples = np.full(n, None, dtype=object)
 
     def __len__(self):
         return len(self.g)
@@ -266,7 +291,7 @@ class Stations:
 
     @classmethod
     def from_list(cls, stations, role: str, source: str = "", use_ref: bool = True,
-                  t_origin: float | None = None) -> "Stations":
+                  t_origin: float | None = None, samples=None) -> "Stations":
         """Stations of one log or stream with a role (``cal``: the stand, ``val``: the survey).
 
         Orientation: a pose label gives Table 1's matrix, a reference attitude its matrix (a
@@ -275,6 +300,9 @@ class Stations:
         origin of time effects when several logs are read together (default: each station's).
         An unknown temperature becomes the log's mean (else the effects' reference): temperature
         effects then see no span and are reported as not identifiable, instead of poisoning the fit.
+        The stations are in time order: each knows its place and the previous hold (its attitude
+        and means); ``samples`` (optional, per station an (n, 7) array of time, gravity vector and
+        field) keeps the samples for effects that need them (:class:`effects.History`).
         """
         from .effects import T_REF_C
         from .frames import orientation_matrix
@@ -319,4 +347,8 @@ class Stations:
             g_scatter=g_sc, b_scatter=b_sc, temp_c=temps, time_s=times,
             rotation=rot, kind=kind.astype(str), role=np.full(n, role), pose=np.array([st.pose for st in stations]),
             ref=np.array([st.ref for st in stations], dtype=float).reshape(n, 3), n=cnt.astype(int),
-            source=np.full(n, source), losses=losses)
+            source=np.full(n, source), losses=losses, order=np.arange(n),
+            prev_rotation=np.concatenate([np.full((min(n, 1), 3, 3), np.nan), rot[:-1]]),
+            prev_g=np.concatenate([np.full((min(n, 1), 3), np.nan), np.array([st.g for st in stations]).reshape(n, 3)[:-1]]),
+            prev_b=np.concatenate([np.full((min(n, 1), 3), np.nan), np.array([st.b for st in stations]).reshape(n, 3)[:-1]]),
+            samples=_object_array(samples, n))

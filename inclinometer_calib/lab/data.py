@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
+
 from ..gates import apply_gates
 from ..probelog import read_csv, report, segment_stations
 from ..station import Loss, Stations
@@ -76,11 +78,20 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
             losses.append(Loss(str(path), "log", 1, why))
             say(f"{path}: {why}: the whole log is left out")
             continue
-        parts.append((kept, role, str(path), labels))
+        parts.append((kept, role, str(path), labels, [_samples(log, st) for st in kept]))
     if not parts:
         raise ValueError("no usable static stations in any log" if losses else "no logs given")
-    return Stations.concatenate([Stations.from_list(st, role, source=src, use_ref=labels, t_origin=t_origin)
-                                 for st, role, src, labels in parts], losses=losses)
+    return Stations.concatenate([Stations.from_list(st, role, source=src, use_ref=labels, t_origin=t_origin,
+                                                    samples=smp)
+                                 for st, role, src, labels, smp in parts], losses=losses)
+
+
+def _samples(log, st):
+    """A station's samples: (n, 7) time (s), gravity vector (m/s², the log's specific force negated)
+    and field (nT)."""
+    i0, i1 = np.searchsorted(log.t_s, [st.t_start, st.t_end], side="left")
+    i1 = min(i1 + 1, len(log))
+    return np.column_stack([log.t_s[i0:i1], -np.asarray(log.acc[i0:i1]), np.asarray(log.mag[i0:i1])])
 
 
 def _row_losses(source: str, rejections) -> list:

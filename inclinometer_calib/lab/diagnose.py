@@ -155,6 +155,7 @@ def fit_data(data: Stations) -> Stations:
     val = d.role == "val"
     d.kind = np.where(val, "free", d.kind)
     d.rotation = np.where(val[:, None, None], np.nan, d.rotation)
+    d.prev_rotation = np.where(val[:, None, None], np.nan, d.prev_rotation)   # a history from the means
     return d
 
 

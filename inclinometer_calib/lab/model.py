@@ -231,6 +231,21 @@ class LabModel:
     def base_triad(self, sensor: str) -> TriadModel:
         return self.probe.triad(sensor)
 
+    def history(self, data, mask=None):
+        """The stations' :class:`effects.History` (of those in ``mask``), or None when no effect
+        of the model needs it.  The previous hold's input is its true vectors where its attitude
+        is known (a pose or a reference), else its measured means."""
+        if "history" not in self.probe.needs("cal") + self.probe.needs("val"):
+            return None
+        m = np.ones(len(data), bool) if mask is None else mask
+        rt = np.swapaxes(data.prev_rotation[m], -1, -2)
+        g_prev, b_prev = rt @ self.site.gravity_ned(), rt @ self.field_ned()
+        known = np.all(np.isfinite(g_prev), axis=1)
+        g_prev = np.where(known[:, None], g_prev, data.prev_g[m])
+        b_prev = np.where(known[:, None], b_prev, data.prev_b[m])
+        return fx.History(source=data.source[m], order=data.order[m], previous_g=g_prev, previous_b=b_prev,
+                          samples=data.samples[m])
+
     def forward(self, data, g_true, b_true):
         """Predicted outputs (gravity-vector m/s², nT) for true vectors, station by station."""
         h_g = np.empty_like(g_true)
@@ -238,7 +253,8 @@ class LabModel:
         for role in ("cal", "val"):
             m = data.role == role
             if m.any():
-                h_g[m], h_b[m] = self.probe.forward(g_true[m], b_true[m], data.temp_c[m], data.time_s[m], role)
+                h_g[m], h_b[m] = self.probe.forward(g_true[m], b_true[m], data.temp_c[m], data.time_s[m], role,
+                                                    history=self.history(data, m))
         return h_g, h_b
 
     def correct(self, data):
@@ -248,7 +264,8 @@ class LabModel:
         for role in ("cal", "val"):
             m = data.role == role
             if m.any():
-                g[m], b[m] = self.probe.correct(data.g[m], data.b[m], data.temp_c[m], data.time_s[m], role)
+                g[m], b[m] = self.probe.correct(data.g[m], data.b[m], data.temp_c[m], data.time_s[m], role,
+                                                history=self.history(data, m))
         return g, b
 
     def angle_errors(self, data, tol=None):
