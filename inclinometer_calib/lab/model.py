@@ -23,7 +23,7 @@ from ..survey import evaluate
 
 SENSORS = ("acc", "mag")
 #: The pseudo-term of the stand's systematic pose errors (:class:`effects.StandPoseError`).
-POSES_LABEL = "stand_pose_error"
+POSES_LABEL = fx.StandPoseError.name
 N_POSES = 12
 
 

@@ -2,9 +2,9 @@
 
 Its own physics, written out here with numpy and scipy only: orientations from scipy's
 ``Rotation`` (intrinsic Z-Y-Z: azimuth, drift, toolface; tool Z down-hole, NED), each triad's
-output ``y = A·x + b + c·(T - 20 °C) + r·t + w(t) + noise`` with a full 3×3 gain matrix ``A``
+output ``y = A·x + b + c·(T - 20 °C) + r·t + w(t) + k·x_prev + noise`` with a full 3×3 gain matrix ``A``
 (scale and non-orthogonality together), a temperature coefficient ``c``, a drift rate ``r`` and a
-random-walk bias ``w``; a stand whose twelve poses may sit off by fixed small rotations (the
+random-walk bias ``w`` and a remanence ``k`` (a share of the previous hold's input); a stand whose twelve poses may sit off by fixed small rotations (the
 same in every round, both triads alike); moves between holds by spherical interpolation.  Logs
 are written the way other tools write them: specific force (a resting probe reads -gravity),
 temperature per row, pose labels and reference angles on static rows only, a vertical pose with
@@ -41,6 +41,7 @@ class Triad:
     temp_coef: np.ndarray = field(default_factory=lambda: np.zeros(3))   # per °C
     drift_rate: np.ndarray = field(default_factory=lambda: np.zeros(3))  # per hour
     walk: float = 0.0                     # random-walk density, unit/√s
+    remanence: float = 0.0                # share of the previous hold's true input kept (same log)
 
 
 @dataclass
@@ -134,13 +135,15 @@ class Generator:
         self.walk_state = {"acc": np.zeros(3), "mag": np.zeros(3)}
         self.walk_track = {"acc": [], "mag": []}   # (t, value) per sample, for the true model
 
-    def outputs(self, t, rot, temp):
+    def outputs(self, t, rot, temp, prev_rot=None, prev_ok=None):
         g_ned, b_ned = self.site.vectors()
         out = {}
         for name, v_ned in (("acc", g_ned), ("mag", b_ned)):
             tr = self.probe[name]
             x = rot.inv().apply(v_ned)                       # true tool-frame vector
             y = x @ tr.gain.T + tr.bias + np.outer(temp - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
+            if tr.remanence and prev_rot is not None:        # the previous hold's input, a little of it kept
+                y = y + tr.remanence * np.nan_to_num(prev_rot.inv().apply(v_ned) * prev_ok[:, None])
             if tr.walk:
                 dt = np.diff(t, prepend=t[0] - 1.0 / self.rate_hz)
                 steps = self.rng.normal(0, 1, (len(t), 3)) * tr.walk * np.sqrt(dt)[:, None]
@@ -156,7 +159,12 @@ class Generator:
         t, rot, idx = _stream(holds, self.rate_hz, self.move_s, self.t)
         self.t = float(t[-1] + 1.0 / self.rate_hz)
         temp = temperature(t)
-        acc, mag = self.outputs(t, rot, temp)
+        # the hold before each sample's (moves belong to the hold they leave); none for the first
+        held = np.maximum.accumulate(np.where(idx >= 0, idx, -1))
+        prev = np.where(idx >= 0, idx - 1, held)
+        prev_ok = (prev >= 0).astype(float)
+        prev_rot = Rotation.concatenate([holds[max(k, 0)].rot for k in prev])
+        acc, mag = self.outputs(t, rot, temp, prev_rot, prev_ok)
         with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose", "ref_drift_deg",
@@ -189,5 +197,9 @@ def true_vectors(gen: Generator, data):
         tr = gen.probe[name]
         y = meas - tr.bias - np.outer(data.temp_c - T0_C, tr.temp_coef) - np.outer(data.time_s / 3600.0, tr.drift_rate)
         y = y - gen.walk_at(name, data.time_s)
+        if tr.remanence:
+            v_ned = gen.site.vectors()[0 if name == "acc" else 1]
+            prev = np.swapaxes(data.prev_rotation, -1, -2) @ v_ned
+            y = y - tr.remanence * np.nan_to_num(prev)
         out.append(np.linalg.solve(tr.gain, y.T).T)
     return out[0], out[1]

@@ -235,3 +235,58 @@ def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_th
                  "Drift error RMS (deg) by set drift", "without a set azimuth (vertical)", "field: fitted on"):
         assert text in page, text
     assert page.count("<img src='data:image/png;base64,") >= 5
+
+
+REMANENCE = '''
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from inclinometer_calib import effects as fx
+
+
+@dataclass
+class Remanence(fx.Effect):
+    """The magnetometer keeps a share k of the previous hold's field (its history)."""
+
+    name: ClassVar[str] = "remanence"
+    stage: ClassVar[str] = "output"
+    sensors: ClassVar[tuple] = ("mag",)
+    needs: ClassVar[tuple] = ("history",)
+    signature: ClassVar[str] = "residuals following the previous hold's field"
+    specs: ClassVar[tuple] = (fx.ParamSpec("k", {"mag": "1"}, {"mag": 1e-3}, "share kept"),)
+
+    def _apply(self, v, ctx):
+        i = self._idx()
+        v[:, i] += self.values["k"] * np.nan_to_num(ctx.history.previous_b[:, i])
+'''
+
+
+def test_a_plugin_that_depends_on_the_previous_hold_is_found_and_fitted(tmp_path):
+    from inclinometer_calib.lab.diagnose import blocked_folds
+
+    plug = tmp_path / "remanence.py"
+    plug.write_text(REMANENCE)
+    assert lab.load_plugin(plug) == ["remanence"]
+    const = lambda t: np.full_like(t, 25.0)   # noqa: E731
+    gen, data, site = _session(tmp_path, 41, const, const, mag={"remanence": 3e-3})
+    assert data.samples[0].shape[1] == 7 and np.isnan(data.prev_b[0]).all()
+    dg = lab.diagnose(data, site=site, candidates=["remanence", "temperature_bias", "bias_drift", "nonlinearity"])
+    top = dg.recommended
+    assert top is not None and top.effect == "remanence", dg.verdict
+    k = [p for p in top.params if p["name"].endswith("_x")][0] if len(top.params) > 1 else top.params[0]
+    assert abs(k["value"] - 3e-3) < max(4 * k["std"], 3e-4), top.params
+    true = _true_level(gen, data, site)
+    model = lab.build_model(site, top.label)
+    v = _cal_only(model, data)
+    assert v["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"]
+    # a model that needs the history cannot be applied without one
+    from inclinometer_calib.model import ModelContextError
+    with pytest.raises(ModelContextError, match="history"):
+        model.probe.correct(data.g[:2], data.b[:2], data.temp_c[:2], data.time_s[:2])
+    # cross-validation folds are blocks of consecutive stations: a held-out station's neighbours go with it
+    for fold in blocked_folds(data, 4):
+        t = data.time_s[fold]
+        inside = (data.role == "val") & (data.time_s >= t.min()) & (data.time_s <= t.max())
+        assert inside.sum() == len(fold)
