@@ -268,6 +268,8 @@ class Effect(abc.ABC):
             return self.not_from_static
         spans = {"temperature": temperature_span_c, "time": time_span_s}
         for what in self.context_needs():
+            if what not in MIN_SPAN:      # the history: any sequence of holds has one
+                continue
             lo, unit, advice = MIN_SPAN[what]
             if spans[what] < lo:
                 return f"{what} span {spans[what]:.1f} {unit} is too small: {advice}"

@@ -264,11 +264,19 @@ class Remanence(fx.Effect):
 
 
 def test_a_plugin_that_depends_on_the_previous_hold_is_found_and_fitted(tmp_path):
-    from inclinometer_calib.lab.diagnose import blocked_folds
-
     plug = tmp_path / "remanence.py"
     plug.write_text(REMANENCE)
     assert lab.load_plugin(plug) == ["remanence"]
+    try:
+        _remanence_is_found(tmp_path)
+    finally:
+        from inclinometer_calib import effects as fx
+        fx.CATALOGUE.pop("remanence", None)    # the registry is global: leave the other tests the catalogue
+
+
+def _remanence_is_found(tmp_path):
+    from inclinometer_calib.lab.diagnose import blocked_folds
+
     const = lambda t: np.full_like(t, 25.0)   # noqa: E731
     gen, data, site = _session(tmp_path, 41, const, const, mag={"remanence": 3e-3})
     assert data.samples[0].shape[1] == 7 and np.isnan(data.prev_b[0]).all()
