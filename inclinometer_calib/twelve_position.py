@@ -620,11 +620,6 @@ def solve_captures(acc: CaptureSet, mag: CaptureSet, site, field_down: float | N
         notes.append(f"pose {p} was left out of both triads alike: the stand probably holds it off (a worn or badly "
                      "set stand; both sensors see one rotation of the probe) — check or re-seat the stand at that "
                      "pose; `inclinometer-calib lab diagnose` fits the stand's pose errors (stand_pose_error)")
-    for p, rot, share in suspect_poses(sols["acc"], sols["mag"]):
-        notes.append(f"pose {p} looks off: both triads' residuals there fit one rotation of the probe, "
-                     f"{np.linalg.norm(rot):.2f}° (about tool x, y, z: {rot[0]:+.2f}°, {rot[1]:+.2f}°, {rot[2]:+.2f}°; "
-                     f"{100 * share:.0f}% of the residual) — check or re-seat the stand at that pose; "
-                     "`inclinometer-calib lab diagnose` fits the stand's pose errors (stand_pose_error)")
     for key, name in (("acc", "accelerometer"), ("mag", "magnetometer")):
         sol = sols[key]
         notes.extend(sol.left_out)
@@ -633,41 +628,6 @@ def solve_captures(acc: CaptureSet, mag: CaptureSet, site, field_down: float | N
                          "poses are off (a worn or badly set stand) or the probe has an effect the twelve-position "
                          "model lacks (temperature, nonlinearity ...) — `inclinometer-calib lab diagnose` tells which")
     return TwelvePositionResult(acc=sols["acc"], mag=sols["mag"], notes=notes)
-
-
-def suspect_poses(acc: TriadSolution, mag: TriadSolution, factor: float = 3.0, share_min: float = 0.7) -> list:
-    """Poses the stand seems to hold off, from the residuals of a solve: ``[(pose, rotation_deg (3,),
-    share)]``.
-
-    A pose held off by a small rotation δ (tool frame) moves both triads' true vectors alike,
-    ``v → v − δ×v``; the model's fit absorbs part of it, and the rest stays in that pose's
-    residuals.  Per pose, δ is fitted to both triads' residuals (each in units of its reference's
-    magnitude, so both count as angles); a pose is suspect when the solve misfits beyond the noise
-    (:data:`NOISE_RATIO_WARN`), one rotation explains at least ``share_min`` of its residual, and
-    that rotation is ``factor`` times the median over the poses (the typical pose) or more."""
-    if not (max(acc.z_rms, mag.z_rms) > NOISE_RATIO_WARN):   # NaN (noise unknown) too: say nothing
-        return []
-    rows = []
-    for i, p in enumerate(POSES):
-        if not (np.all(np.isfinite(acc.residuals[i])) and np.all(np.isfinite(mag.residuals[i]))):
-            continue
-        blocks, rhs = [], []
-        for sol in (acc, mag):
-            ref = sol.reference_ned
-            v = pose_matrix(p).T @ ref / np.linalg.norm(ref)           # unit true vector, tool frame
-            # v - δ×v = v + v×δ: the residual is [v]×·δ
-            blocks.append(np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]))
-            rhs.append(sol.residuals[i] / np.linalg.norm(ref))
-        a, y = np.vstack(blocks), np.concatenate(rhs)
-        delta = np.linalg.lstsq(a, y, rcond=None)[0]
-        share = 1.0 - float(np.sum((y - a @ delta) ** 2)) / max(float(y @ y), 1e-300)
-        rows.append((p, np.degrees(delta), share))
-    if len(rows) < 4:
-        return []
-    size = np.array([np.linalg.norm(r[1]) for r in rows])
-    typical = float(np.median(size))
-    return [(p, rot, share) for (p, rot, share), n in zip(rows, size)
-            if n >= factor * typical and share >= share_min]
 
 
 def _diagnostics(sol: TriadSolution, unit: str) -> dict:

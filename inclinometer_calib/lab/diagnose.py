@@ -396,7 +396,7 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
 
 
 def diagnose(data, model: LabModel | None = None, site=None, candidates=None, progress=None,
-             alpha: float | None = None, **_ignored) -> Diagnosis:
+             alpha: float | None = None) -> Diagnosis:
     """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
     a_level = ALPHA if alpha is None else alpha
     say = progress or (lambda m: None)
@@ -685,7 +685,7 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
     return "\n".join(lines)
 
 
-def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start=None, **_ignored):
+def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start=None):
     """Add the recommended effect repeatedly: the 'effect ladder' of falling validation error.
 
     Starts from ``start`` (default: the paper's base model); stops when no candidate is

@@ -187,11 +187,11 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
 
     if len(x0):
         # with the stand's pose errors, the poses found off leave the gauge and the fit is repeated
-        for _ in range(3 if getattr(model, "fit_poses", False) else 1):
+        for _ in range(3 if model.fit_poses else 1):
             res = least_squares(fun, x0, x_scale=scale, method="lm", jac="2-point",
                                 max_nfev=max_nfev * (len(x0) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
             model.set_vector(full(res.x))
-            if not getattr(model, "fit_poses", False) or not model.regauge(data):
+            if not model.fit_poses or not model.regauge(data):
                 break
             x0 = res.x
         x, jac, ok, msg, nfev = res.x, res.jac, bool(res.success), str(res.message), int(res.nfev)

@@ -95,12 +95,6 @@ class LabModel:
             i += t.effect.n_params
         raise KeyError(f"no term {label!r} in {self.describe()}")
 
-    def scope_mask(self, scope: str) -> np.ndarray:
-        """True for the parameters of terms of ``scope`` (the site's dip and heading count as ``all``)."""
-        m = [t.scope == scope for t in self.probe.terms for _ in range(t.effect.n_params)]
-        return np.array(m + [scope == "all"] * self._n_site() + [scope == "cal"] * (3 * N_POSES * self.fit_poses),
-                        dtype=bool)
-
     def without(self, label: str) -> "LabModel":
         """A copy without one extra term (or without the fitted heading offset)."""
         new = copy.deepcopy(self)
@@ -186,23 +180,6 @@ class LabModel:
             i += 1
         if self.fit_poses:
             self.pose_offsets_deg = vec[i:i + 3 * N_POSES].reshape(N_POSES, 3).copy()
-
-    def suspect_poses(self, fit_result, data, alpha: float = 1e-3) -> list:
-        """The poses whose fitted offset is significant (Wald test, Bonferroni over the poses the
-        data have): ``[{"pose", "offset_deg" (3,), "std_deg" (3,), "angle_deg", "p"}]``."""
-        if not self.fit_poses:
-            return []
-        idx = self.param_index(POSES_LABEL)
-        out = []
-        have = sorted(int(p) - 1 for p in set(data.pose[(data.kind == "pose") & (data.pose >= 1)].tolist()))
-        for k in have:
-            sub = idx[3 * k:3 * k + 3]
-            chi2, _, p = fit_result.wald(sub)
-            if p * len(have) < alpha:
-                off = fit_result.values[sub]
-                out.append({"pose": k + 1, "offset_deg": off.tolist(), "std_deg": fit_result.std[sub].tolist(),
-                            "angle_deg": float(np.linalg.norm(off)), "p": min(p * len(have), 1.0)})
-        return out
 
     # ---- physics ------------------------------------------------------------------------------
     def field_ned(self) -> np.ndarray:
