@@ -1,0 +1,316 @@
+"""The sensors' noise model from static data: Allan deviation per axis and its IEEE figures — ROS-free.
+
+A static hold's samples of one axis are a constant (the input) plus the sensor's noise.  Their
+overlapping Allan variance at averaging time ``τ`` (computed by ``allantools.oadev``, the values
+treated as rate data) separates the noise processes by their slope (IEEE Std 952 / 1554)::
+
+    σ²(τ) = N²/τ  +  (2·ln2/π)·B²  +  K²·τ/3
+
+* ``N``  white noise density (``unit·√s`` = ``unit/√Hz``; for an accelerometer the *velocity
+  random walk*, m/s/√s); read as σ(τ = 1 s) on the ``τ^-1/2`` line; equals the per-sample σ over
+  √(sample rate);
+* ``B``  bias instability (flicker floor, ``unit``): the flat part, σ_min = 0.664·B;
+* ``K``  bias random walk density (``unit/√s``): the ``τ^+1/2`` line, read as σ(τ = 3 s); a bias
+  that wanders by ``K·√Δt`` over ``Δt``.
+
+The variance at each τ is pooled over all holds (weighted by its equivalent degrees of freedom,
+``allantools.edf_simple``), and the three terms are fitted by non-negative weighted least squares
+(the weights from those degrees of freedom, so a τ seen by few averages counts little).  A term is
+*resolved* when it exceeds three of its standard deviations; otherwise its one-sided 95 % upper
+bound is what the data say.
+
+Short holds (a few seconds) see the white noise well but rarely a random walk that matters over a
+survey: its ``τ^+1/2`` line crosses the white-noise line only at ``τ = √3·N/K`` (minutes for a
+magnetometer wandering by 10 nT over a quarter of an hour).  The walk is then measured across the
+holds (:func:`sequence_walk`): the difference of two consecutive stations' residuals (the model's
+misfit, the white noise of their means taken out) grows as ``K²·Δt`` — the same two-sample
+statistic at ``τ`` = the spacing of the stations.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import partial
+
+import allantools
+import numpy as np
+from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.optimize import brentq, minimize_scalar, nnls
+
+#: (2·ln2/π): the Allan variance of flicker noise of bias instability B is this times B².
+FLICKER = 2.0 * math.log(2.0) / math.pi
+#: A noise term is resolved when it exceeds this many of its standard deviations.
+RESOLVED_Z = 3.0
+#: One-sided 95 % quantile (for upper bounds of unresolved terms).
+Z95 = 1.645
+UNITS = {"acc": "m/s^2", "mag": "nT"}
+
+
+@dataclass
+class AllanCurve:
+    """Pooled overlapping Allan deviation of one sensor's three axes.
+
+    ``tau`` (s, ascending); ``adev`` (len(tau), 3) in the sensor's unit; ``edf`` (len(tau), 3)
+    equivalent degrees of freedom of each point (summed over the holds that reach that τ; per
+    hold the fewer of white and random-walk noise's, ``allantools.edf_simple``)."""
+
+    tau: np.ndarray
+    adev: np.ndarray
+    edf: np.ndarray
+    rate_hz: float
+    n_segments: int
+
+
+def allan_curve(segments, rate_hz: float | None = None) -> AllanCurve:
+    """Pooled overlapping Allan deviation per axis over static segments.
+
+    ``segments``: iterable of (n, 1 + 3) arrays of time (s) and one sensor's three axes (any unit),
+    each a static hold (no motion: its mean is the input).  ``rate_hz``: the sampling rate; by
+    default the median of the segments' sample intervals.  At each octave ``τ = 2^j / rate`` up to
+    a third of the longest segment, the Allan variance of every segment long enough
+    (``n ≥ 3·m``) is averaged, weighted by its degrees of freedom.
+    """
+    segs = [np.asarray(s, dtype=float) for s in segments if s is not None and len(s) >= 3]
+    if not segs:
+        return AllanCurve(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), float("nan"), 0)
+    if rate_hz is None:
+        dts = np.concatenate([np.diff(s[:, 0]) for s in segs])
+        dts = dts[dts > 0]
+        rate_hz = 1.0 / float(np.median(dts)) if len(dts) else 1.0
+    n_max = max(len(s) for s in segs)
+    ms = 2 ** np.arange(0, max(int(math.log2(max(n_max // 3, 1))) + 1, 1))
+    acc = np.zeros((len(ms), 3))
+    wsum = np.zeros((len(ms), 3))
+    for s in segs:
+        n = len(s)
+        ok = ms[3 * ms <= n]
+        if not len(ok):
+            continue
+        for j in range(3):
+            x = s[:, 1 + j]
+            if not np.all(np.isfinite(x)) or np.ptp(x) == 0:      # a flat or broken axis says nothing
+                continue
+            _, ad, _, _ = allantools.oadev(x, rate=rate_hz, data_type="freq", taus=ok / rate_hz)
+            for k, m in enumerate(ok):
+                if k >= len(ad) or not np.isfinite(ad[k]):
+                    continue
+                # the fewer of white and random-walk noise's (the process is not known yet)
+                e = min(float(allantools.edf_simple(n, int(m), 0)), float(allantools.edf_simple(n, int(m), -2)))
+                i = int(np.searchsorted(ms, m))
+                acc[i, j] += e * ad[k] ** 2
+                wsum[i, j] += e
+    keep = np.any(wsum > 0, axis=1)        # an axis without data at a τ (flat, broken) is NaN there
+    with np.errstate(invalid="ignore", divide="ignore"):
+        adev = np.where(wsum[keep] > 0, np.sqrt(acc[keep] / np.where(wsum[keep] > 0, wsum[keep], 1.0)), np.nan)
+    return AllanCurve(ms[keep] / rate_hz, adev, wsum[keep], float(rate_hz), len(segs))
+
+
+@dataclass
+class NoiseTerm:
+    """One noise figure of one axis: value, 1σ, and whether the data resolve it (else ``value``
+    is 0 and ``upper`` the one-sided 95 % bound)."""
+
+    value: float
+    std: float
+    resolved: bool
+    upper: float
+    source: str = "holds"
+
+    def to_json(self) -> dict:
+        return {"value": self.value, "std": self.std, "resolved": self.resolved, "upper95": self.upper,
+                "source": self.source}
+
+
+def fit_terms(curve: AllanCurve) -> list:
+    """Fit ``σ²(τ) = N²/τ + (2·ln2/π)·B² + K²·τ/3`` per axis; returns per axis a dict of
+    :class:`NoiseTerm` ``N``, ``B``, ``K`` (units: sensor unit·√s, unit, unit/√s).
+
+    Non-negative weighted least squares on the variances, each weighted by ``√(edf/2)/σ²`` (the
+    relative standard deviation of a variance with ``edf`` degrees of freedom is ``√(2/edf)``; σ²
+    the model's, iterated);
+    the standard deviations from the weighted normal matrix, scaled by the fit's reduced χ² when
+    it exceeds 1 (a process the three terms do not describe)."""
+    out = []
+    tau = curve.tau
+    a = np.column_stack([1.0 / tau, np.full(len(tau), FLICKER), tau / 3.0]) if len(tau) else np.zeros((0, 3))
+    for j in range(3):
+        ok = np.isfinite(curve.adev[:, j]) if len(tau) else np.zeros(0, bool)
+        if ok.sum() < 2:
+            out.append({k: NoiseTerm(float("nan"), float("nan"), False, float("nan")) for k in "NBK"})
+            continue
+        y = curve.adev[ok, j] ** 2
+        x = None
+        # weights from the model's variance, not the measured one (which would favour the points
+        # that came out low by chance); iterated from the measured
+        for _ in range(4):
+            pred = y if x is None else np.maximum(a[ok] @ x, 1e-300)
+            w = np.sqrt(curve.edf[ok, j] / 2.0) / pred
+            aw = a[ok] * w[:, None]
+            scale = np.linalg.norm(aw, axis=0)
+            scale[scale == 0] = 1.0
+            x_s, _ = nnls(aw / scale, y * w)
+            x = x_s / scale
+        r = aw @ x - y * w
+        dof = max(len(y) - int(np.sum(x > 0)), 1)
+        infl = max(float(r @ r) / dof, 1.0)
+        cov = np.linalg.pinv((aw / scale).T @ (aw / scale)) / np.outer(scale, scale) * infl
+        sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        terms = {}
+        for k, name in enumerate("NBK"):
+            v2, s2 = float(x[k]), float(sd[k])
+            resolved = v2 > RESOLVED_Z * s2 and v2 > 0
+            v = math.sqrt(v2) if resolved else 0.0
+            sv = s2 / (2.0 * v) if resolved else float("nan")
+            terms[name] = NoiseTerm(v, sv, bool(resolved), math.sqrt(max(v2, 0.0) + Z95 * s2))
+        out.append(terms)
+    return out
+
+
+def _pairs(t, r, s, g):
+    """Consecutive-station differences of one axis: (Δt, d, σ₁², σ₂², shares-a-station-with-next)."""
+    ok = (g[1:] == g[:-1]) & (np.diff(t) > 0) & np.isfinite(r[1:]) & np.isfinite(r[:-1])
+    idx = np.flatnonzero(ok)
+    dt = (t[1:] - t[:-1])[idx]
+    d = (r[1:] - r[:-1])[idx]
+    s1, s2 = s[:-1][idx] ** 2, s[1:][idx] ** 2
+    chained = np.zeros(len(idx), bool)
+    chained[:-1] = idx[1:] == idx[:-1] + 1     # pair i's second station is pair i+1's first
+    return dt, d, s1, s2, chained
+
+
+def _walk_nll(k2, dt, d, s1, s2, chained) -> float:
+    """Negative log-likelihood (up to a constant) of the differences ``d`` under a random walk of
+    density² ``k2`` plus white noise of the station means: ``Cov(d) = k2·diag(Δt) + T``, ``T``
+    tridiagonal (``σ₁² + σ₂²`` on the diagonal, ``−σ²`` of a shared station beside it); by the
+    banded Cholesky factor."""
+    diag = k2 * dt + s1 + s2
+    off = np.where(chained[:-1], -s2[:-1], 0.0)
+    ab = np.zeros((2, len(d)))
+    ab[0, 1:] = off
+    ab[1] = diag
+    try:
+        c = cholesky_banded(ab)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    z = cho_solve_banded((c, False), d)
+    return float(np.sum(np.log(c[1])) + 0.5 * d @ z)
+
+
+def sequence_walk(time_s, residual, sigma, group=None) -> list:
+    """The bias random walk density per axis from a sequence of stations (``unit/√s``).
+
+    ``time_s`` (N,), ``residual`` (N, 3) the model's misfit at each station (sensor unit; a
+    wandering bias is in it), ``sigma`` (N, 3) the white-noise σ of each station's mean; ``group``
+    (N,) optional: only consecutive stations of one group are paired.  The differences of
+    consecutive stations ``d = r₂ − r₁`` (the constant level drops out) are Gaussian with
+    ``Cov(d) = K²·diag(Δt) + T`` (``T`` the stations' white noise, tridiagonal): ``K²`` by maximum
+    likelihood; resolved when the likelihood ratio against ``K = 0`` exceeds 9 (≈ 3σ, one-sided),
+    its 1σ from the likelihood's curvature, the upper bound where the profile likelihood drops
+    by 1.35 (one-sided 95 %).  Returns per axis a :class:`NoiseTerm` (source ``stations``)."""
+    t = np.asarray(time_s, dtype=float)
+    r = np.asarray(residual, dtype=float)
+    s = np.asarray(sigma, dtype=float)
+    g = np.zeros(len(t)) if group is None else np.asarray(group)
+    order = np.argsort(t, kind="stable")
+    t, r, s, g = t[order], r[order], s[order], g[order]
+    out = []
+    for j in range(3):
+        dt, d, s1, s2, chained = _pairs(t, r[:, j], s[:, j], g)
+        if len(d) < 4:
+            out.append(NoiseTerm(float("nan"), float("nan"), False, float("nan"), "stations"))
+            continue
+        f = partial(_walk_nll, dt=dt, d=d, s1=s1, s2=s2, chained=chained)
+        # K² spans from far below to far above what the differences could show
+        unit = float(np.median((s1 + s2) / dt))
+        hi = max(float(np.mean(d ** 2 / dt)) * 10.0, unit)
+        lo = unit * 1e-6
+        res = minimize_scalar(lambda x: f(math.exp(x)), bounds=(math.log(lo), math.log(hi)), method="bounded",
+                              options={"xatol": 1e-4})
+        k2, nll_min = math.exp(res.x), float(res.fun)
+        nll0 = f(0.0)
+        if nll0 < nll_min:
+            k2, nll_min = 0.0, nll0
+        lr = 2.0 * (nll0 - nll_min)
+        resolved = lr > RESOLVED_Z ** 2
+        h = max(k2 * 1e-2, unit * 1e-4)
+        curv = (f(k2 + h) - 2.0 * f(k2) + f(max(k2 - h, 0.0))) / h ** 2 if k2 > h else (f(k2 + 2 * h) - 2 * f(k2 + h) + f(k2)) / h ** 2
+        sd = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")
+        try:
+            up = brentq(lambda x: 2.0 * (f(x) - nll_min) - Z95 ** 2, k2, hi * 10.0)
+        except ValueError:
+            up = hi * 10.0
+        v = math.sqrt(k2) if resolved else 0.0
+        out.append(NoiseTerm(v, sd / (2.0 * v) if resolved and v > 0 else float("nan"), bool(resolved),
+                             math.sqrt(up), "stations"))
+    return out
+
+
+@dataclass
+class SensorNoise:
+    """The noise model of one sensor: the pooled Allan curve and per axis the figures ``N``,
+    ``B``, ``K`` (:class:`NoiseTerm`); ``K`` is the holds' when they resolve it, else the station
+    sequence's (:func:`sequence_walk`) when given."""
+
+    sensor: str
+    curve: AllanCurve
+    terms: list = field(default_factory=list)
+
+    @property
+    def unit(self) -> str:
+        return UNITS.get(self.sensor, "")
+
+    def walk_density(self) -> np.ndarray:
+        """``K`` per axis (unit/√s) where resolved, else 0."""
+        return np.array([t["K"].value if t["K"].resolved else 0.0 for t in self.terms])
+
+    def table(self) -> list:
+        """Rows per axis with the IEEE-style figures and their units."""
+        u = self.unit
+        rows = []
+        for a, t in zip("xyz", self.terms):
+            rows.append({"axis": f"{self.sensor} {a}",
+                         "white_noise": t["N"].to_json() | {"unit": f"{u}/sqrt(Hz)"},
+                         "bias_instability": t["B"].to_json() | {"unit": u},
+                         "random_walk": t["K"].to_json() | {"unit": f"{u}/sqrt(s)"}})
+        return rows
+
+    def to_json(self) -> dict:
+        c = self.curve
+        return {"sensor": self.sensor, "rate_hz": c.rate_hz, "segments": c.n_segments,
+                "tau_s": [float(x) for x in c.tau], "adev": [[float(v) for v in row] for row in c.adev],
+                "figures": self.table()}
+
+
+def sensor_noise(sensor: str, segments, sequence=None, rate_hz=None) -> SensorNoise:
+    """The noise model of ``sensor`` from its static segments (see :func:`allan_curve`) and,
+    optionally, a station sequence ``(time_s, residual, sigma[, group])`` for the random walk
+    across holds (:func:`sequence_walk`)."""
+    curve = allan_curve(segments, rate_hz)
+    terms = fit_terms(curve)
+    if sequence is not None:
+        seq = sequence_walk(*sequence)
+        for t, k in zip(terms, seq):
+            held = t["K"]
+            # the holds' own figure when they resolve it and are the sharper; else the sequence's
+            if not (held.resolved and (not k.resolved or held.std <= k.std)) and np.isfinite(k.upper):
+                t["K"] = k
+    return SensorNoise(sensor, curve, terms)
+
+
+def format_noise(models) -> str:
+    """Plain-text table of the noise figures (one line per axis)."""
+    lines = [f"{'axis':<7} {'white noise N':>24} {'bias instability B':>22} {'random walk K':>26}"]
+
+    def cell(t, unit):
+        if not np.isfinite(t.upper):
+            return "n/a"
+        if t.resolved:
+            return f"{t.value:.3g} ± {t.std:.2g} {unit}" + (" (stations)" if t.source == "stations" else "")
+        return f"< {t.upper:.2g} {unit}" + (" (stations)" if t.source == "stations" else "")
+
+    for m in models:
+        u = m.unit
+        for a, t in zip("xyz", m.terms):
+            lines.append(f"{m.sensor + ' ' + a:<7} {cell(t['N'], u + '/√Hz'):>24} {cell(t['B'], u):>22} "
+                         f"{cell(t['K'], u + '/√s'):>26}")
+    return "\n".join(lines)
