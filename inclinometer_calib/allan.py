@@ -115,10 +115,13 @@ class NoiseTerm:
     resolved: bool
     upper: float
     source: str = "holds"
+    #: The test statistic against the term being zero: (value²/σ(value²))² from the holds, the
+    #: likelihood ratio from a station sequence.
+    chi2: float = float("nan")
 
     def to_json(self) -> dict:
         return {"value": self.value, "std": self.std, "resolved": self.resolved, "upper95": self.upper,
-                "source": self.source}
+                "source": self.source, "chi2": self.chi2}
 
 
 def fit_terms(curve: AllanCurve) -> list:
@@ -161,30 +164,36 @@ def fit_terms(curve: AllanCurve) -> list:
             resolved = v2 > RESOLVED_Z * s2 and v2 > 0
             v = math.sqrt(v2) if resolved else 0.0
             sv = s2 / (2.0 * v) if resolved else float("nan")
-            terms[name] = NoiseTerm(v, sv, bool(resolved), math.sqrt(max(v2, 0.0) + Z95 * s2))
+            terms[name] = NoiseTerm(v, sv, bool(resolved), math.sqrt(max(v2, 0.0) + Z95 * s2),
+                                    chi2=(v2 / s2) ** 2 if s2 > 0 else float("nan"))
         out.append(terms)
     return out
 
 
-def _pairs(t, r, s, g):
-    """Consecutive-station differences of one axis: (Δt, d, σ₁², σ₂², shares-a-station-with-next)."""
+def _pairs(t, r, s, g, dur):
+    """Consecutive-station differences of one axis: (walk variance per K² on the diagonal and
+    beside it, d, σ₁², σ₂², shares-a-station-with-next)."""
     ok = (g[1:] == g[:-1]) & (np.diff(t) > 0) & np.isfinite(r[1:]) & np.isfinite(r[:-1])
     idx = np.flatnonzero(ok)
-    dt = (t[1:] - t[:-1])[idx]
+    # two stations' means are averages of the walk over their holds: Var(m₂ − m₁) = K²·(Δc − (T₁+T₂)/6),
+    # and consecutive differences sharing a station covary by K²·T/6
+    walk = (t[1:] - t[:-1])[idx] - (dur[1:] + dur[:-1])[idx] / 6.0
+    shared = dur[1:][idx] / 6.0
     d = (r[1:] - r[:-1])[idx]
     s1, s2 = s[:-1][idx] ** 2, s[1:][idx] ** 2
     chained = np.zeros(len(idx), bool)
     chained[:-1] = idx[1:] == idx[:-1] + 1     # pair i's second station is pair i+1's first
-    return dt, d, s1, s2, chained
+    return walk, shared, d, s1, s2, chained
 
 
-def _walk_nll(k2, dt, d, s1, s2, chained) -> float:
+def _walk_nll(k2, dt, shared, d, s1, s2, chained) -> float:
     """Negative log-likelihood (up to a constant) of the differences ``d`` under a random walk of
-    density² ``k2`` plus white noise of the station means: ``Cov(d) = k2·diag(Δt) + T``, ``T``
-    tridiagonal (``σ₁² + σ₂²`` on the diagonal, ``−σ²`` of a shared station beside it); by the
-    banded Cholesky factor."""
+    density² ``k2`` plus white noise of the station means: ``Cov(d) = k2·W + T``, ``W`` the walk's
+    (``Δt − (T₁+T₂)/6`` on the diagonal, ``T/6`` of a shared station beside it), ``T`` the noise's
+    (``σ₁² + σ₂²`` on the diagonal, ``−σ²`` of a shared station beside it); by the banded Cholesky
+    factor."""
     diag = k2 * dt + s1 + s2
-    off = np.where(chained[:-1], -s2[:-1], 0.0)
+    off = np.where(chained[:-1], k2 * shared[:-1] - s2[:-1], 0.0)
     ab = np.zeros((2, len(d)))
     ab[0, 1:] = off
     ab[1] = diag
@@ -196,14 +205,17 @@ def _walk_nll(k2, dt, d, s1, s2, chained) -> float:
     return float(np.sum(np.log(c[1])) + 0.5 * d @ z)
 
 
-def sequence_walk(time_s, residual, sigma, group=None) -> list:
+def sequence_walk(time_s, residual, sigma, group=None, duration=None) -> list:
     """The bias random walk density per axis from a sequence of stations (``unit/√s``).
 
     ``time_s`` (N,), ``residual`` (N, 3) the model's misfit at each station (sensor unit; a
     wandering bias is in it), ``sigma`` (N, 3) the white-noise σ of each station's mean; ``group``
-    (N,) optional: only consecutive stations of one group are paired.  The differences of
-    consecutive stations ``d = r₂ − r₁`` (the constant level drops out) are Gaussian with
-    ``Cov(d) = K²·diag(Δt) + T`` (``T`` the stations' white noise, tridiagonal): ``K²`` by maximum
+    (N,) optional: only consecutive stations of one group are paired; ``duration`` (N,) optional:
+    each station's hold (s; ``time_s`` its centre) — a station's mean is the walk averaged over
+    it.  The differences of consecutive stations ``d = r₂ − r₁`` (the constant level drops out) are
+    Gaussian with ``Cov(d) = K²·W + T`` (``W`` the walk's, ``Δc − (T₁+T₂)/6`` for centres ``Δc``
+    apart: the Brownian covariance of two window means; ``T`` the stations' white noise; both
+    tridiagonal): ``K²`` by maximum
     likelihood; resolved when the likelihood ratio against ``K = 0`` exceeds 9 (≈ 3σ, one-sided),
     its 1σ from the likelihood's curvature, the upper bound where the profile likelihood drops
     by 1.35 (one-sided 95 %).  Returns per axis a :class:`NoiseTerm` (source ``stations``)."""
@@ -211,15 +223,16 @@ def sequence_walk(time_s, residual, sigma, group=None) -> list:
     r = np.asarray(residual, dtype=float)
     s = np.asarray(sigma, dtype=float)
     g = np.zeros(len(t)) if group is None else np.asarray(group)
+    dur = np.zeros(len(t)) if duration is None else np.nan_to_num(np.asarray(duration, dtype=float))
     order = np.argsort(t, kind="stable")
-    t, r, s, g = t[order], r[order], s[order], g[order]
+    t, r, s, g, dur = t[order], r[order], s[order], g[order], dur[order]
     out = []
     for j in range(3):
-        dt, d, s1, s2, chained = _pairs(t, r[:, j], s[:, j], g)
+        dt, shared, d, s1, s2, chained = _pairs(t, r[:, j], s[:, j], g, dur)
         if len(d) < 4:
             out.append(NoiseTerm(float("nan"), float("nan"), False, float("nan"), "stations"))
             continue
-        f = partial(_walk_nll, dt=dt, d=d, s1=s1, s2=s2, chained=chained)
+        f = partial(_walk_nll, dt=dt, shared=shared, d=d, s1=s1, s2=s2, chained=chained)
         # K² spans from far below to far above what the differences could show
         unit = float(np.median((s1 + s2) / dt))
         hi = max(float(np.mean(d ** 2 / dt)) * 10.0, unit)
@@ -241,7 +254,7 @@ def sequence_walk(time_s, residual, sigma, group=None) -> list:
             up = hi * 10.0
         v = math.sqrt(k2) if resolved else 0.0
         out.append(NoiseTerm(v, sd / (2.0 * v) if resolved and v > 0 else float("nan"), bool(resolved),
-                             math.sqrt(up), "stations"))
+                             math.sqrt(up), "stations", chi2=lr))
     return out
 
 
@@ -299,18 +312,17 @@ def sensor_noise(sensor: str, segments, sequence=None, rate_hz=None) -> SensorNo
 
 def format_noise(models) -> str:
     """Plain-text table of the noise figures (one line per axis)."""
-    lines = [f"{'axis':<7} {'white noise N':>24} {'bias instability B':>22} {'random walk K':>26}"]
 
     def cell(t, unit):
         if not np.isfinite(t.upper):
             return "n/a"
-        if t.resolved:
-            return f"{t.value:.3g} ± {t.std:.2g} {unit}" + (" (stations)" if t.source == "stations" else "")
-        return f"< {t.upper:.2g} {unit}" + (" (stations)" if t.source == "stations" else "")
+        src = " (stations)" if t.source == "stations" else ""
+        return (f"{t.value:.3g} ± {t.std:.2g} {unit}" if t.resolved else f"< {t.upper:.2g} {unit}") + src
 
+    rows = [("axis", "white noise N", "bias instability B", "random walk K")]
     for m in models:
         u = m.unit
         for a, t in zip("xyz", m.terms):
-            lines.append(f"{m.sensor + ' ' + a:<7} {cell(t['N'], u + '/√Hz'):>24} {cell(t['B'], u):>22} "
-                         f"{cell(t['K'], u + '/√s'):>26}")
-    return "\n".join(lines)
+            rows.append((f"{m.sensor} {a}", cell(t["N"], u + "/√Hz"), cell(t["B"], u), cell(t["K"], u + "/√s")))
+    w = [max(len(r[i]) for r in rows) for i in range(4)]
+    return "\n".join(f"{r[0]:<{w[0]}}  {r[1]:>{w[1]}}  {r[2]:>{w[2]}}  {r[3]:>{w[3]}}" for r in rows)

@@ -728,6 +728,33 @@ def cmd_lab_report(args):
     return 0
 
 
+def cmd_lab_noise(args):
+    """The noise model of static logs: Allan deviation per axis of every hold, IEEE figures."""
+    from . import lab
+    from .allan import format_noise, sensor_noise
+    from .lab.noise import COLUMNS, holds
+
+    try:
+        data = lab.load_logs(free_paths=args.logs, warn=_warn)
+    except OSError as exc:
+        raise UserError(f"{exc.filename}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    segs = holds(data)
+    noise = {s: sensor_noise(s, [x[:, COLUMNS[s]] for x in segs]) for s in ("acc", "mag")}
+    if args.json:
+        print(json.dumps({s: m.to_json() for s, m in noise.items()}, indent=2, default=float))
+        return 0
+    longest = max(float(np.ptp(x[:, 0])) for x in segs)
+    print(f"{len(segs)} holds (longest {longest:.0f} s), Allan deviation up to τ = "
+          f"{noise['mag'].curve.tau[-1] if len(noise['mag'].curve.tau) else float('nan'):.3g} s")
+    print(format_noise(noise.values()))
+    print("N: white noise density (σ at τ = 1 s); B: bias instability (flat part / 0.664); K: bias random walk "
+          "(σ at τ = 3 s). '<': not resolved, one-sided 95 % bound. A walk the holds are too short to see is "
+          "measured across the stations by 'lab diagnose'.")
+    return 0
+
+
 def _lab_parser(sub):
     lab = sub.add_parser("lab", help="model lab: fit any model, diagnose missing effects, report")
     lsub = lab.add_subparsers(dest="lab_command", required=True)
@@ -768,6 +795,11 @@ def _lab_parser(sub):
     r.add_argument("-o", "--output", required=True, help="HTML file to write")
     r.add_argument("--max-steps", type=int, default=4, help="most effects to add")
     r.set_defaults(func=cmd_lab_report)
+    n = lsub.add_parser("noise", help="the sensors' noise model from static logs: Allan deviation per axis, "
+                                      "white noise, bias instability and random walk (IEEE Std 952 figures)")
+    n.add_argument("logs", nargs="+", help="probe-log CSVs; every static hold counts (labels not needed)")
+    n.add_argument("--json", action="store_true")
+    n.set_defaults(func=cmd_lab_noise)
 
 
 # --------------------------------------------------------------------------------------------

@@ -154,6 +154,9 @@ class Effect(abc.ABC):
     separated_by: ClassVar[str] = ""
     #: Set on plug-in classes by :func:`plugins.load_plugin`: ``{"file" or "module": ..., "sha256": ...}``.
     plugin: ClassVar[dict | None] = None
+    #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
+    #: estimates from the data (:mod:`lab.wander`), not values a least-squares fit moves.
+    stochastic: ClassVar[bool] = False
 
     def __post_init__(self):
         if self.sensor not in self.sensors:
@@ -549,6 +552,87 @@ class BiasDrift(Effect):
         v[:, self._idx()] += self.values["rate"] * (ctx.time_s / 3600.0)[:, None]
 
 
+@dataclass
+class BiasWander(Effect):
+    """A bias that wanders: a random walk ``b(t) = w(t)``, ``E[(w(t+Δt) − w(t))²] = K²·Δt`` per axis.
+
+    Stochastic: its parameter is the walk's density ``K`` (unit/√s, the *rate random walk* of
+    IEEE Std 952), which the lab takes from the noise model (:mod:`allan`: the Allan deviation of
+    the holds, or the station sequence when the holds are too short to see it).  The path ``w`` is
+    estimated from the data by a smoother over the stations (:mod:`lab.wander`: the posterior mean
+    under that random-walk prior, piecewise linear between the stations' times ``knots_s``); its
+    mean over the data is held at zero (the constant bias carries it).  Outside the data the best
+    prediction of a random walk is its last value, so the path is held constant beyond its ends;
+    a calibration record carries the density only (a new run's path is its own), and applies no
+    correction for it.
+    """
+
+    name: ClassVar[str] = "bias_wander"
+    stage: ClassVar[str] = "output"
+    needs: ClassVar[tuple] = ("time",)
+    stochastic: ClassVar[bool] = True
+    iscwsa: ClassVar[dict] = {}
+    signature: ClassVar[str] = ("residuals that wander in time, alike at neighbouring stations whatever their attitude, "
+                                "following no regressor")
+    separated_by: ClassVar[str] = ("a pose repeated at intervals at constant temperature: a wander changes the repeats "
+                                   "irregularly, a drift in proportion to the time between them, a temperature effect "
+                                   "not at all")
+    field_regressors: ClassVar[tuple] = ("time",)
+    specs: ClassVar[tuple] = (_spec("density", "m/s^2/sqrt(s)", "nT/sqrt(s)", 1e-5, 0.3,
+                                    "random-walk density K (the roughness of the path)"),)
+    #: Times (s) of the path's knots (the stations'), ascending; empty: no path (no correction).
+    knots_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: The path at the knots, (n_knots, n_axes), in the sensor's unit; with its 1σ.
+    path: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    path_std: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: Effective degrees of freedom of the path per axis (the smoother's trace), from the last fit.
+    edf: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: The path's roughness penalty ``Σ (Δw)²/(K²·Δt)`` at the last fit (its prior's χ²).
+    penalty: float = 0.0
+
+    # the density is held (from the noise model), the path is not a least-squares parameter
+    def param_names(self) -> list:
+        return []
+
+    def param_units(self) -> list:
+        return []
+
+    def param_typical(self) -> np.ndarray:
+        return np.zeros(0)
+
+    def get_vector(self) -> np.ndarray:
+        return np.zeros(0)
+
+    def set_vector(self, vec) -> None:
+        pass
+
+    @property
+    def n_params(self) -> int:
+        return 0
+
+    def clear_path(self) -> None:
+        self.knots_s, self.path, self.path_std, self.edf = np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0)
+        self.penalty = 0.0
+
+    def _apply(self, v, ctx):
+        if not len(self.knots_s):
+            return
+        for j, i in enumerate(self._idx()):
+            v[:, i] += np.interp(ctx.time_s, self.knots_s, self.path[:, j])
+
+    def identifiability(self, temperature_span_c, time_span_s, kinds=frozenset()) -> str:
+        if not np.any(self.values["density"] > 0):
+            return ("the noise model shows no random walk on these axes (Allan deviation of the holds and the station "
+                    "sequence): nothing to smooth")
+        return super().identifiability(temperature_span_c, time_span_s, kinds)
+
+    def describe(self) -> str:
+        moved = (f", path RMS {np.array2string(np.sqrt(np.mean(self.path ** 2, axis=0)), precision=3)} "
+                 f"{self.specs[0].unit[self.sensor].split('/')[0]} over {len(self.knots_s)} stations") \
+            if len(self.knots_s) else ""
+        return super().describe() + moved
+
+
 # ---------------------------------------------------------------------------------------------
 # Whole-probe effects (the simulator applies them; no triad signal chain)
 # ---------------------------------------------------------------------------------------------
@@ -601,7 +685,7 @@ class TimeSkew(WholeProbeEffect):
 #: Effects by name (plug-ins are added by :func:`register`).
 CATALOGUE = {cls.name: cls for cls in (
     Bias, Scale, NonOrthogonality, Misalignment, TriadMisalignment, AxialInterference,
-    TemperatureScale, ScaleAsymmetry, Nonlinearity, CrossCoupling, TemperatureBias, BiasDrift,
+    TemperatureScale, ScaleAsymmetry, Nonlinearity, CrossCoupling, TemperatureBias, BiasDrift, BiasWander,
     StandPoseError, TimeSkew,
 )}
 #: The seed paper's base model of a triad, in signal-chain order (E, then K, then B).

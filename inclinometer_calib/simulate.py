@@ -40,6 +40,9 @@ class SimulatedProbe:
     noise_acc: float = 0.002   # m/s² per sample, 1σ
     noise_mag: float = 20.0    # nT per sample, 1σ
     whole_probe: list = field(default_factory=list)   # effects of stage "probe"
+    #: Where each stochastic effect's random walk stands: key -> (time s, value per axis); sessions
+    #: simulated one after the other continue one walk (one power-on).
+    walks: dict = field(default_factory=dict, repr=False)
 
     @property
     def acc(self) -> TriadModel:
@@ -74,10 +77,30 @@ class SimulatedProbe:
 
         Returns ``(specific_force_mps2, field_nt)``.
         """
-        a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role="val" if survey else "cal")
+        role = "val" if survey else "cal"
+        a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role=role)
+        walk = self._walk(np.asarray(t_s, dtype=float), rng, role)
+        a, m = a + walk["acc"], m + walk["mag"]
         a = a + rng.normal(0.0, self.noise_acc, a.shape)
         m = m + rng.normal(0.0, self.noise_mag, m.shape)
         return specific_force_from_gravity(a), m
+
+    def _walk(self, t_s, rng, role) -> dict:
+        """The stochastic effects' draws at times ``t_s`` (ascending), per sensor (N, 3): a random
+        walk ``w(t+Δt) = w(t) + K·√Δt·ε`` per axis (:class:`effects.BiasWander`, output stage: added
+        to the output), continuing from where the previous session left it."""
+        out = {"acc": np.zeros((len(t_s), 3)), "mag": np.zeros((len(t_s), 3))}
+        for term in self.model.terms:
+            e = term.effect
+            if not e.stochastic or not term.acts_on(role) or not len(t_s):
+                continue
+            k = np.asarray(e.values["density"], dtype=float)
+            t_last, w_last = self.walks.get(e.key, (float(t_s[0]), np.zeros(len(k))))
+            dt = np.maximum(np.diff(np.concatenate([[t_last], t_s])), 0.0)
+            w = w_last + np.cumsum(rng.normal(0.0, 1.0, (len(t_s), len(k))) * k * np.sqrt(dt)[:, None], axis=0)
+            self.walks[e.key] = (float(t_s[-1]), w[-1].copy())
+            out[e.sensor][:, [fx.AXIS_INDEX[a] for a in e.axes]] += w
+        return out
 
     def to_dict(self) -> dict:
         return {

@@ -70,11 +70,11 @@ def test_only_the_model_inverts_a_triad_and_only_the_pipeline_feeds_it_stations(
     callers = sorted(m for m, t in MODULES.items() if _calls(t, "inverse"))
     assert callers == ["model.py", "twelve_position.py"], callers
     # .correct(...): Calibration -> ProbeModel (coeffs, model), of stations (pipeline.correct_stations), of
-    # samples (the batch path, survey.py), the lab's model, fit and predicted uncertainty (LabModel.correct ->
-    # ProbeModel.correct)
+    # samples (the batch path, survey.py), the lab's model, fit, wander smoother and predicted uncertainty
+    # (LabModel.correct -> ProbeModel.correct)
     callers = sorted(m for m, t in MODULES.items() if _calls(t, "correct") and m != "axial.py")
-    assert callers == ["coeffs.py", "lab/fit.py", "lab/model.py", "lab/uncertainty.py", "model.py", "pipeline.py",
-                       "survey.py"], callers
+    assert callers == ["coeffs.py", "lab/fit.py", "lab/model.py", "lab/uncertainty.py", "lab/wander.py", "model.py",
+                       "pipeline.py", "survey.py"], callers
 
 
 def test_the_specific_force_sign_flip_lives_in_frames_only():

@@ -55,6 +55,23 @@ def test_temperature_bias_follows_temperature():
     assert np.all(d[:, 1:] == 0)
 
 
+def test_a_wandering_bias_is_a_random_walk_that_continues_from_session_to_session():
+    probe = sim.build_probe(2, ["bias_wander:mag:x=2.0"], noise_acc=0, noise_mag=0)
+    base = sim.build_probe(2, noise_acc=0, noise_mag=0)
+    grid = sim.stand_grid_session(drifts=(20,), azimuths=(0,), toolfaces=(0,), duration_s=20.0)
+    rng = np.random.default_rng(5)
+    site = Site()
+    a = sim.run_session(probe, site, grid, rng)
+    b = sim.run_session(probe, site, grid, rng, t0=float(a.t_s[-1]) + 0.01)
+    ref = sim.run_session(base, site, grid, np.random.default_rng(5))
+    wa, wb = a.mag[:, 0] - ref.mag[:, 0], b.mag[:, 0] - ref.mag[:, 0]
+    assert np.all(a.mag[:, 1:] == ref.mag[:, 1:])             # one axis only
+    steps = np.diff(wa)
+    # increments of K·√Δt: 2 nT/√s at 100 Hz gives 0.2 nT per sample
+    assert np.std(steps) == pytest.approx(2.0 * np.sqrt(0.01), rel=0.06)
+    assert abs(wb[0] - wa[-1]) < 1.0                            # the walk goes on where it stood
+
+
 def test_stand_pose_error_moves_the_real_orientation_but_not_the_labels():
     probe = sim.build_probe(4, ["stand_pose_error=0.2"], noise_acc=0, noise_mag=0)
     grid = sim.stand_grid_session(drifts=(30,), azimuths=(0,), toolfaces=(0, 120, 240))

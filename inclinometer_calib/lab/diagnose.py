@@ -33,12 +33,15 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.special import chdtrc
 from scipy.stats import ttest_1samp
 
 from .. import effects as fx
 from ..station import Stations
 from .fit import fit, physical_hints, residual_groups, residual_vector
 from .model import N_POSES, POSES_LABEL, LabModel
+from .noise import noise_json, noise_model, walk_axes
+from .wander import penalty_total
 from .stats import regress
 from .uncertainty import noise_floor, normalised_errors
 
@@ -84,6 +87,14 @@ class Candidate:
     note: str = ""
     fit_all: object = None
     residual: np.ndarray | None = field(default=None, repr=False)
+    #: The effect as fitted (a stochastic one carries its density from the noise model).
+    instance: object = field(default=None, repr=False)
+    #: A stochastic effect (:attr:`effects.Effect.stochastic`): tested by likelihood ratio on its
+    #: effective degrees of freedom, tried after the deterministic effects.
+    stochastic: bool = False
+    #: A significant stochastic effect that a deterministic one does not explain away, but which
+    #: ranks after it (the ladder adds the deterministic one first).
+    after: bool = False
 
     @property
     def label(self):
@@ -97,7 +108,8 @@ class Candidate:
                 "delta_chi2": self.delta_chi2, "delta_bic": self.delta_bic, "wald_chi2": self.wald_chi2,
                 "p": self.p, "significant": self.significant, "transfers": self.transfers,
                 "p_field": self.p_field,
-                "axis_tests": self.axis_tests, "parameters": self.params, "note": self.note}
+                "axis_tests": self.axis_tests, "parameters": self.params, "note": self.note,
+                "test": "likelihood ratio on the effective degrees of freedom" if self.stochastic else "Wald"}
 
 
 @dataclass
@@ -119,6 +131,9 @@ class Diagnosis:
     #: noise floor of its figures (:func:`uncertainty.noise_floor`).
     uncertainty: dict = field(default_factory=dict)
     floor: dict = field(default_factory=dict)
+    #: The noise model per sensor (:class:`allan.SensorNoise`): Allan deviation of the holds, the
+    #: random walk across the stations (:func:`lab.noise.noise_model`).
+    noise: dict = field(default_factory=dict)
 
     @property
     def recommended(self):
@@ -142,7 +157,8 @@ class Diagnosis:
                 "confounded": self.confounded, "refused": self.refused,
                 "normalised_errors": self.uncertainty, "noise_floor": self.floor,
                 "structure": self.structure, "untestable": self.untestable, "verdict": self.verdict,
-                "losses": [x.to_json() for x in self.losses], "notes": self.notes}
+                "losses": [x.to_json() for x in self.losses], "notes": self.notes,
+                "noise_model": noise_json(self.noise)}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -395,6 +411,64 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
     return f, chi2, min(p * n_tests, 1.0), axis_tests
 
 
+def _test_stochastic(trial: LabModel, label: str, data, n_tests: int, base_fit, noise):
+    """Field-fit ``trial`` and test its stochastic term ``label`` (a wandering bias) by likelihood
+    ratio: the fall of χ² from the model without it, over the larger reduced χ² of the two fits (the
+    test against the measured noise), against χ² on the path's effective degrees of freedom.  Its
+    axes are those on which the noise model resolves a random walk (3σ); per axis the noise
+    model's own test is reported."""
+    f = field_fit(trial, data)
+    eff = next(t.effect for t in trial.probe.terms if t.label == label)
+    red = max(f.reduced_chi2, base_fit.reduced_chi2, 1.0)
+    chi2 = max(base_fit.chi2 - f.chi2, 0.0) / red
+    p = float(chdtrc(max(float(np.sum(eff.edf)), 1e-9), chi2))
+    axis_tests = []
+    for a in eff.axes:
+        k = noise[eff.sensor].terms["xyz".index(a)]["K"]
+        pa = 0.5 * float(chdtrc(1, k.chi2)) if np.isfinite(k.chi2) else float("nan")   # one-sided: K ≥ 0
+        axis_tests.append({"axis": a, "wald_chi2": k.chi2, "p": pa, "significant": bool(k.resolved),
+                           "test": f"random walk resolved by the noise model ({k.source}, 3σ)"})
+    return f, chi2, min(p * n_tests, 1.0), axis_tests
+
+
+def _narrow(eff, axes: str):
+    """The effect on fewer ``axes``: a deterministic one afresh (its values fitted again), a
+    stochastic one with its densities of those axes."""
+    if not eff.stochastic:
+        return type(eff)(sensor=eff.sensor, axes=axes)
+    pick = [eff.axes.index(a) for a in axes]
+    return type(eff)(sensor=eff.sensor, axes=axes, values={s.name: eff.values[s.name][pick] for s in eff.specs})
+
+
+def _stochastic_rows(trial: LabModel, label: str, noise) -> list:
+    """The parameter rows of a stochastic term: its density per axis (from the noise model, with
+    its 1σ) and the RMS of the fitted path."""
+    eff = next(t.effect for t in trial.probe.terms if t.label == label)
+    unit = eff.specs[0].unit[eff.sensor]
+    rows = []
+    for j, a in enumerate(eff.axes):
+        k = noise[eff.sensor].terms["xyz".index(a)]["K"] if noise else None
+        v = float(eff.values["density"][j])
+        sd = float(k.std) if k is not None and k.resolved else float("nan")
+        rows.append({"name": f"{eff.key}.density_{a}", "value": v, "std": sd,
+                     "ci95": [v - 1.96 * sd, v + 1.96 * sd], "unit": unit,
+                     "source": k.source if k is not None else ""})
+        if len(eff.knots_s):
+            rows.append({"name": f"{eff.key}.path_rms_{a}", "value": float(np.sqrt(np.mean(eff.path[:, j] ** 2))),
+                         "std": float(np.sqrt(np.nanmean(eff.path_std[:, j] ** 2))), "ci95": [float("nan")] * 2,
+                         "unit": unit.split("/")[0]})
+    return rows
+
+
+def _walk_untestable(eff, noise) -> dict:
+    """Why a wander cannot be tried on ``eff.sensor``: the noise model resolves no random walk."""
+    sn = noise[eff.sensor]
+    ups = ", ".join(f"{a} < {t['K'].upper:.2g}" for a, t in zip("xyz", sn.terms) if np.isfinite(t["K"].upper))
+    return {"effect": eff.key, "reason": f"the noise model resolves no random walk on the {eff.sensor} axes "
+                                         f"(K {ups} {sn.unit}/√s, from the holds' Allan deviation and the station "
+                                         "sequence): nothing to smooth"}
+
+
 def diagnose(data, model: LabModel | None = None, site=None, candidates=None, progress=None,
              alpha: float | None = None) -> Diagnosis:
     """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
@@ -419,11 +493,18 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         return Diagnosis(model, base_fit, base_val, base_score, [], [], untestable_effects(), False, verdict,
                          losses=losses, refused=refused)
     structure = residual_structure(model, data)
+    noise = noise_model(model, data)
     pairs = candidate_effects(model, candidates)
     untestable = untestable_effects()
     heading = not model.fit_heading and np.any(data.kind == "ref") and (candidates is None or HEADING in candidates)
     trials = []
     for eff, scope in pairs:
+        if eff.stochastic:      # its density from the noise model: the axes whose walk it resolves
+            axes, k = walk_axes(noise[eff.sensor])
+            if not axes:
+                untestable.append(_walk_untestable(eff, noise))
+                continue
+            eff = _narrow(type(eff)(sensor=eff.sensor, values={"density": noise[eff.sensor].walk_density()}), axes)
         trial = model.with_effect(eff, scope)
         hints = [h for h in physical_hints(trial, data) if h.parameter == eff.key]
         if hints:
@@ -440,14 +521,20 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     cal_misfit = bool(cal_rows.any() and np.mean(r_base[cal_rows] ** 2) > Z_RMS_LIMIT ** 2)
 
     def score(trial, label, name, sensor, axes, scope):
-        f, wchi2, p, axis_tests = _test_term(trial, label, data, n_tests)
+        term = next((t for t in trial.probe.terms if t.label == label), None)
+        stochastic = term is not None and term.effect.stochastic
+
+        def test(tr, lb):
+            return _test_stochastic(tr, lb, data, n_tests, base_fit, noise) if stochastic else \
+                _test_term(tr, lb, data, n_tests)
+
+        f, wchi2, p, axis_tests = test(trial, label)
         if axis_tests and p < a_level and label not in (HEADING, POSES_LABEL):
             sig_axes = "".join(t["axis"] for t in axis_tests if t["significant"])
             if sig_axes and sig_axes != axes:     # name and refit the axes that carry the effect
-                eff2 = fx.CATALOGUE[name](sensor=sensor, axes=sig_axes)
-                trial = model.with_effect(eff2, scope)
+                trial = model.with_effect(_narrow(term.effect, sig_axes), scope)
                 label = trial.probe.terms[-1].label
-                f, wchi2, p, _ = _test_term(trial, label, data, n_tests)
+                f, wchi2, p, _ = test(trial, label)
                 axes = sig_axes
         val = validation(trial, data)
         sc = val.get("pointing_rms_deg", float("nan"))
@@ -475,11 +562,13 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         if label == POSES_LABEL:     # the poses that are off, each with its three angles
             off = [int(t["axis"].split()[1]) for t in axis_tests if t["significant"]]
             idx = np.concatenate([idx[3 * (q - 1):3 * q] for q in off]) if off else idx[:0]
+        instance = next((copy.deepcopy(t.effect) for t in trial.probe.terms if t.label == label), None)
         ranked.append(Candidate(name, sensor, axes, scope, val, sc, gain, base_fit.chi2 - f.chi2,
                                 f.bic() - base_fit.bic(), wchi2, p, significant, axis_tests,
-                                _param_rows(f, idx), transfers=transfers,
-                                p_field=p_field, fit_all=f, residual=r,
-                                note="" if transfers else f"not recommended: {why}"))
+                                _stochastic_rows(trial, label, noise) if stochastic else _param_rows(f, idx),
+                                transfers=transfers, p_field=p_field, fit_all=f, residual=r,
+                                note="" if transfers else f"not recommended: {why}", instance=instance,
+                                stochastic=stochastic))
 
     for i, (trial, eff, scope) in enumerate(trials):
         say(f"candidate {i + 1}/{len(trials)}: {eff.key}" + ("" if scope == "all" else f"@{scope}"))
@@ -496,7 +585,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
 
     def order(c):
         merit = (c.score if by_field and np.isfinite(c.score) else c.delta_bic) if c.significant else c.p
-        return (not c.significant, not c.transfers, c.note.startswith("explained by"), merit)
+        return (not c.significant, not c.transfers, c.note.startswith("explained by"), c.after, merit)
 
     # The stand's systematic pose errors: the same pose off the same way in every round.
     repeated = np.bincount(data.pose[(data.kind == "pose") & (data.pose >= 1)], minlength=N_POSES + 1)
@@ -507,10 +596,11 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         score(trial, POSES_LABEL, POSES_LABEL, "probe", "", "cal")
     ranked.sort(key=order)
     confounded = _confounding(ranked, r_base)
+    _settle_stochastic(ranked, model, data, n_tests, say)
     ranked.sort(key=order)
     misfit = base_fit.z_rms > Z_RMS_LIMIT
     dg = Diagnosis(model, base_fit, base_val, base_score, structure, ranked, untestable, False, "",
-                   losses=losses, confounded=confounded)
+                   losses=losses, confounded=confounded, noise=noise)
     ref = np.isfinite(data.ref[:, 0]) & ((data.role == "val") if by_field else True)
     if ref.any():
         dg.uncertainty = normalised_errors(model, base_fit, data.subset(ref))
@@ -519,7 +609,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     dg.significant_structure_left = bool(best is not None or structure)
     scatter = orientation_scatter_deg(model, data) if misfit else None
     dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
-                          confounded=confounded, uncertainty=dg.uncertainty)
+                          confounded=confounded, uncertainty=dg.uncertainty, noise=noise)
     return dg
 
 
@@ -527,7 +617,9 @@ def _confounding(ranked, r_base) -> list:
     """Pairs of significant candidates on the same sensor axes, or whose residual changes are nearly
     parallel: the one that fits clearly better explains the other; otherwise they are confounded.
     Marks the explained ones."""
-    sig = [c for c in ranked if c.significant and c.residual is not None]
+    # a stochastic effect fits any slow misfit: it is weighed against the deterministic ones apart
+    # (:func:`_settle_stochastic`), not named as explaining them by its flexibility
+    sig = [c for c in ranked if c.significant and c.residual is not None and not c.stochastic]
     out = []
     for i, top in enumerate(sig):
         if top.note:
@@ -554,6 +646,50 @@ def _confounding(ranked, r_base) -> list:
                 other.note = f"confounded with {top.label} (Δχ² {margin:.1f}: the data fit both alike)"
                 top.note = top.note or f"confounded with {other.label}"
     return out
+
+
+def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None:
+    """A significant wander against the best significant deterministic candidate ``D``.
+
+    A random walk fits any slow misfit, so it is not preferred for its flexibility: with ``D`` in
+    the model, the noise model is estimated again; if it resolves no walk, the wander is explained
+    by ``D``.  Otherwise the wander is fitted on top, and if ``D`` is no longer significant (Wald,
+    Bonferroni) ``D`` is explained by the wander; else both stay, the wander ranked after ``D``."""
+    det = [c for c in ranked if c.significant and c.transfers and not c.stochastic and not c.note.startswith("explained")]
+    for sc in [c for c in ranked if c.stochastic and c.significant and not c.note]:
+        if not det:
+            return
+        d = det[0]
+        if d.instance is None:           # the stand's heading or poses: fitted first, the wander after
+            sc.after = True
+            continue
+        say(f"weighing {sc.label} against {d.label}")
+        md = model.with_effect(copy.deepcopy(d.instance), d.scope)
+        d_label = md.probe.terms[-1].label
+        field_fit(md, data, uncertainty=False)
+        nz = noise_model(md, data)
+        k = nz[sc.sensor].walk_density()
+        axes = "".join(a for a in sc.axes if k["xyz".index(a)] > 0)
+        if not axes:
+            sc.note = (f"explained by {d.label}: with it in the model the noise model resolves no random walk on "
+                       f"{sc.sensor} {sc.axes}")
+            continue
+        wander = _narrow(type(sc.instance)(sensor=sc.sensor, values={"density": k}), axes)
+        mds = md.with_effect(wander, sc.scope)
+        f = field_fit(mds, data, uncertainty=False)
+        ms = model.with_effect(copy.deepcopy(wander), sc.scope)
+        fs = field_fit(ms, data, uncertainty=False)
+        # D tested by likelihood ratio between the penalised fits with and without it (a Wald test
+        # would take the covariance with the path held, and call D significant whatever the path
+        # could absorb)
+        red = max(f.reduced_chi2, 1.0)
+        lr = max((fs.chi2 + penalty_total(ms)) - (f.chi2 + penalty_total(mds)), 0.0) / red
+        p = float(chdtrc(len(mds.param_index(d_label)), lr))
+        if p * n_tests > ALPHA:
+            d.note = (f"explained by {sc.label}: no longer significant once the wander is fitted "
+                      f"(likelihood ratio χ² {lr:.1f}, p {min(p * n_tests, 1.0):.2g})")
+        else:
+            sc.after = True
 
 
 def orientation_scatter_deg(model: LabModel, data) -> dict:
@@ -597,8 +733,26 @@ def losses_text(losses) -> str:
     return "Left out of the data: " + "; ".join(parts) + "."
 
 
+def noise_line(noise) -> str:
+    """One line of the noise model: white noise per sensor, and the random walk where resolved."""
+    parts = []
+    for s, m in noise.items():
+        n = [t["N"].value for t in m.terms if t["N"].resolved]
+        if n:
+            parts.append(f"{s} white noise N {np.mean(n):.3g} {m.unit}/√Hz")
+        k = [(a, t["K"]) for a, t in zip("xyz", m.terms) if t["K"].resolved]
+        if k:
+            src = "station sequence" if all(t.source == "stations" for _, t in k) else "holds"
+            parts.append(f"{s} random walk K " + ", ".join(f"{a} {t.value:.3g}±{t.std:.2g}" for a, t in k)
+                         + f" {m.unit}/√s (from the {src})")
+    segs = max((m.curve.n_segments for m in noise.values()), default=0)
+    tau = max((float(m.curve.tau[-1]) for m in noise.values() if len(m.curve.tau)), default=float("nan"))
+    return (f"Noise model (Allan deviation of {segs} holds, τ up to {tau:.3g} s; IEEE figures in the JSON and report): "
+            + ("; ".join(parts) or "no holds with samples (a bag keeps the stations' means only)") + ".")
+
+
 def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter=None, losses=(), confounded=(),
-             refused="", uncertainty=None) -> str:
+             refused="", uncertainty=None, noise=None) -> str:
     lines = [f"Model: {model.describe()}.",
              f"Fit: noise-normalised residual RMS {base_fit.z_rms:.2f} (1.0 = explained to the sensor noise)."]
     lost = losses_text(losses)
@@ -614,6 +768,8 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
         if parts:
             lines.append("Errors over their predicted 1σ (noise and the fit's covariance; RMS 1 = the uncertainty "
                          "holds): " + ", ".join(parts) + ".")
+    if noise:
+        lines.append(noise_line(noise))
     if refused:
         lines.append(f"No effect ranked: {refused}.")
         return "\n".join(lines)
@@ -642,8 +798,10 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
             lines.append("The stand holds some poses off the same way in every round: " + "; ".join(desc)
                          + " (rotations about the tool x, y, z axes, against the poses that are right, which define "
                          "the tool frame). Check or re-seat the stand at those poses.")
+        test = (f"likelihood ratio χ² {best.wald_chi2:.0f} on {best.instance.edf.sum():.0f} effective degrees of "
+                "freedom" if best.stochastic else f"Wald χ² {best.wald_chi2:.0f}")
         lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; significant against the noise "
-                     f"(Wald χ² {best.wald_chi2:.0f}, p {best.p:.1e}, ΔBIC {best.delta_bic:.0f}): {effect_size}"
+                     f"({test}, p {best.p:.1e}, ΔBIC {best.delta_bic:.0f}): {effect_size}"
                      + (f"; adding it changes {' and '.join(changes)}" if changes else "") + ".")
         for c in confounded:
             if c["first"] != best.label:
@@ -712,11 +870,13 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
             model.fit_poses = True
             new_label = POSES_LABEL
         else:
-            eff = fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)
+            eff = copy.deepcopy(rec.instance) if rec.instance is not None else \
+                fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)
             model = copy.deepcopy(dg.model).with_effect(eff, rec.scope)
             new_label = model.probe.terms[-1].label
         notes = []
-        earlier = [t.label for t in model.extra_terms if t.label != new_label]
+        # (a wander has no parameters for a Wald test; it is tried after the deterministic effects)
+        earlier = [t.label for t in model.extra_terms if t.label != new_label and not t.effect.stochastic]
         if earlier:
             f = field_fit(copy.deepcopy(model), data)
             for label in earlier:

@@ -25,6 +25,7 @@ from scipy.special import chdtrc
 
 from .. import effects as fx
 from .model import LabModel
+from .wander import clear_paths, edf_total, smooth, stochastic_terms
 
 PRIOR_FACTOR = 100.0
 
@@ -105,7 +106,7 @@ class FitResult:
     nfev: int
     not_identifiable: list = field(default_factory=list)
     covariance: np.ndarray | None = None
-    n_free: int = -1
+    n_free: float = -1
 
     @property
     def z_rms(self) -> float:
@@ -185,23 +186,41 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
             progress(f"fit: {calls[0]} evaluations")
         return residual_vector(model, data, full(x))
 
-    if len(x0):
-        # with the stand's pose errors, the poses found off leave the gauge and the fit is repeated
+    def solve(x_start):
+        """Levenberg–Marquardt from ``x_start`` (with the stand's pose errors, the poses found off
+        leave the gauge and the fit is repeated)."""
         for _ in range(3 if model.fit_poses else 1):
-            res = least_squares(fun, x0, x_scale=scale, method="lm", jac="2-point",
-                                max_nfev=max_nfev * (len(x0) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            res = least_squares(fun, x_start, x_scale=scale, method="lm", jac="2-point",
+                                max_nfev=max_nfev * (len(x_start) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
             model.set_vector(full(res.x))
             if not model.fit_poses or not model.regauge(data):
                 break
-            x0 = res.x
+            x_start = res.x
+        return res
+
+    stochastic = bool(stochastic_terms(model))
+    if stochastic:
+        clear_paths(model)
+    if len(x0):
+        res = solve(x0)
+        # a wandering bias: its path (the smoother) and the other parameters, each holding the other
+        for _ in range(6 if stochastic else 0):
+            change = smooth(model, data)
+            res = solve(res.x)
+            if change < 0.01:
+                break
         x, jac, ok, msg, nfev = res.x, res.jac, bool(res.success), str(res.message), int(res.nfev)
     else:
+        if stochastic:
+            smooth(model, data)
         x, jac, ok, msg, nfev = x0, np.zeros((0, 0)), True, "nothing to fit", 0
     model.set_vector(full(x))
     r_data = residual_vector(model, data, prior=False)
     chi2 = float(r_data @ r_data)
+    # a stochastic effect's path counts with its effective degrees of freedom
     p = int(free.sum())
-    dof = max(n_data - p, 1)
+    p_eff = p + edf_total(model)
+    dof = max(n_data - p_eff, 1)
     n = len(x_all)
     std, corr, notid = np.zeros(n), np.full((n, n), np.nan), []
     cov = np.zeros((n, n))
@@ -216,7 +235,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=model.get_vector(),
                      std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=ok,
                      message=msg, seconds=time.perf_counter() - t0, nfev=nfev, not_identifiable=notid,
-                     covariance=cov, n_free=p)
+                     covariance=cov, n_free=p_eff)
 
 
 def _group_inflation(r_data, data, n_params) -> np.ndarray:

@@ -264,7 +264,9 @@ class LabModel:
         """The fitted model as a calibration record (:class:`coeffs.Calibration`) for ``correct``,
         ``reprocess`` and the nodes.  The site is the lab's (its total field and gravity set the
         triads' scale); a fitted dip and heading offset are kept as diagnostics, not applied: the
-        dip of the site reference stays the one given, the heading belongs to the stand."""
+        dip of the site reference stays the one given, the heading belongs to the stand.  A wandering
+        bias (:class:`effects.BiasWander`) keeps its density; its path, which belongs to these data,
+        is left behind (its RMS kept as a diagnostic)."""
         from ..coeffs import Calibration
 
         diags = {"fit": dict(fit_stats or {})}
@@ -274,6 +276,12 @@ class LabModel:
                                                      for k in range(N_POSES) if np.any(self.pose_offsets_deg[k])}
         if self.fit_heading:
             diags["fit"]["stand_heading_offset_deg"] = float(self.heading_deg)
-        return Calibration(copy.deepcopy(self.probe), probe_id=probe_id, method=method, site=self.site,
+        probe = copy.deepcopy(self.probe)
+        wander = [t for t in probe.terms if t.effect.stochastic]
+        for t in wander:       # the path belongs to these data; a record carries the density only
+            diags["fit"].setdefault("wander_path_rms", {})[t.label] = [
+                float(x) for x in np.sqrt(np.mean(t.effect.path ** 2, axis=0))] if len(t.effect.knots_s) else []
+            t.effect.clear_path()
+        return Calibration(probe, probe_id=probe_id, method=method, site=self.site,
                            site_source=site_source, diagnostics=diags,
                            not_identifiable=[{"parameter": n.parameter, "reason": n.reason} for n in not_identifiable])

@@ -1,7 +1,8 @@
 """One self-contained HTML report of a model-lab run (plots embedded as PNG data URIs).
 
 Sections: the diagnosis text (with the data left out); the effect ladder (the field validation
-error after each added effect, as each rung's diagnosis labels it); residuals of the base and final models against orientation, temperature and time; the
+error after each added effect, as each rung's diagnosis labels it); the noise model (Allan
+deviation per axis and its IEEE figures); residuals of the base and final models against orientation, temperature and time; the
 paper-style before/after tables (Tables 4 and 5 layout); the fitted parameters with uncertainties.
 """
 from __future__ import annotations
@@ -202,6 +203,52 @@ def losses_html(losses) -> str:
     return table_html("Left out of the data", ["source", "what", "count", "why"], rows)
 
 
+def noise_figure(noise: dict) -> str:
+    """The pooled Allan deviation per axis of each sensor (log–log), with the fitted IEEE model."""
+    from ..allan import FLICKER
+
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(noise), figsize=(5.5 * len(noise), 3.8))
+    for ax, (sensor, m) in zip(np.atleast_1d(axes), noise.items()):
+        c = m.curve
+        for j, a in enumerate("xyz"):
+            if not len(c.tau):
+                continue
+            line, = ax.loglog(c.tau, c.adev[:, j], "o", ms=3, label=f"{a}")
+            t = m.terms[j]
+            n2, b2, k2 = (t[k].value ** 2 if t[k].resolved else 0.0 for k in "NBK")
+            tau = np.geomspace(c.tau[0], c.tau[-1], 50)
+            ax.loglog(tau, np.sqrt(n2 / tau + FLICKER * b2 + k2 * tau / 3.0), "-", color=line.get_color(), lw=0.8)
+        ax.set_xlabel("τ (s)")
+        ax.set_ylabel(f"Allan deviation ({m.unit})")
+        ax.set_title(f"{sensor}: {c.n_segments} holds at {c.rate_hz:.0f} Hz")
+        ax.legend(fontsize=8)
+        ax.grid(True, which="both", alpha=0.3)
+    return figure_png(fig)
+
+
+def noise_html(noise: dict) -> str:
+    """The IEEE-style noise figures per axis (white noise, bias instability, random walk)."""
+    if not noise:
+        return ""
+
+    def cell(t):
+        if not np.isfinite(t["upper95"]):
+            return "n/a"
+        txt = f"{t['value']:.3g} ± {t['std']:.2g}" if t["resolved"] else f"&lt; {t['upper95']:.2g}"
+        return txt + (" (stations)" if t["source"] == "stations" else "")
+
+    rows = []
+    for m in noise.values():
+        for r in m.table():
+            rows.append([r["axis"], cell(r["white_noise"]) + " " + html.escape(r["white_noise"]["unit"]),
+                         cell(r["bias_instability"]) + " " + html.escape(r["bias_instability"]["unit"]),
+                         cell(r["random_walk"]) + " " + html.escape(r["random_walk"]["unit"])])
+    return table_html("Noise model (IEEE Std 952 figures from the Allan deviation of the holds; '&lt;': not resolved, "
+                      "one-sided 95 % bound; '(stations)': the random walk across the station sequence, which short "
+                      "holds cannot see)", ["axis", "white noise N", "bias instability B", "random walk K"], rows)
+
+
 def uncertainty_html(dg) -> str:
     if not dg.uncertainty:
         return ""
@@ -246,6 +293,8 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
         for n in s.notes:
             parts.append(f"<p>Rung {k}: {html.escape(n)}</p>")
     parts.append("<h2>Predicted uncertainty</h2>" + uncertainty_html(final))
+    if base.noise and any(len(m.curve.tau) for m in base.noise.values()):
+        parts.append("<h2>Noise model</h2>" + noise_html(base.noise) + f"<img src='{noise_figure(base.noise)}'>")
     parts.append("<h2>Residuals</h2>")
     parts.append(f"<img src='{sensor_drift_figure(steps, data)}'>")
     parts.append(f"<img src='{residual_figure(base.model, data, 'Base model (the paper): validation angle errors')}'>")

@@ -89,6 +89,51 @@ def test_a_small_real_effect_is_reported_and_clean_data_raise_no_alarm(tmp_path)
         dg = lab.diagnose(data, site=site)
         assert dg.recommended is None and not any(c.significant for c in dg.ranked), dg.verdict
         assert "No significant structure left" in dg.verdict
+        # the noise model resolves no random walk: no wander is tried, and the verdict says why
+        walk = [u for u in dg.untestable if u["effect"].startswith("bias_wander")]
+        assert {u["effect"] for u in walk} == {"bias_wander:acc:xyz", "bias_wander:mag:xyz"}
+        assert all("resolves no random walk" in u["reason"] for u in walk)
+
+
+def test_a_wandering_bias_is_measured_named_by_axis_and_smoothed_to_the_true_level(tmp_path):
+    # a magnetometer bias random walk of 0.5 nT/√s: 10 nT over the session, below the white noise
+    # of a 4 s hold's Allan deviation, 0.017° of azimuth
+    const = lambda t: np.full_like(t, 25.0)            # noqa: E731
+    gen, data, site = _session(tmp_path, 11, const, const, mag={"walk": 0.5})
+    dg = lab.diagnose(data, site=site)
+    mag = dg.noise["mag"]
+    for axis in mag.terms:
+        assert axis["N"].value == pytest.approx(gen.probe["mag"].noise / np.sqrt(50.0), rel=0.05)
+        k = axis["K"]
+        assert k.resolved and k.source == "stations" and abs(k.value - 0.5) < 3 * k.std, k
+    assert not any(a["K"].resolved for a in dg.noise["acc"].terms)
+    top = dg.recommended
+    assert top is not None and top.label == "bias_wander:mag:xyz" and top.stochastic, dg.verdict
+    assert "likelihood ratio" in dg.verdict and "random walk K" in dg.verdict
+    # a drift in time fits a stretch of the walk, and is said to be explained by it
+    assert all(c.note.startswith("explained by bias_wander") for c in dg.ranked if c.effect == "bias_drift"
+               and c.significant)
+    true = _true_level(gen, data, site)
+    model = lab.LabModel.base(site).with_effect(top.instance)
+    field_fit(model, data)
+    v = validation(model, data)
+    assert v["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"], (v, true)
+    assert v["drift_rms_deg"] <= 1.2 * true["drift_rms_deg"]
+    base = lab.LabModel.base(site)
+    field_fit(base, data)
+    assert validation(base, data)["azimuth_rms_deg"] > 1.5 * true["azimuth_rms_deg"]   # the wander mattered
+    # the path is the walk, to its stated 1σ
+    eff = model.probe.terms[-1].effect
+    walk = gen.walk_at("mag", eff.knots_s)
+    err = (eff.path - (walk - walk.mean(axis=0))) / eff.path_std
+    assert 0.6 < np.sqrt(np.mean(err ** 2)) < 1.6
+    # a record keeps the density, not the path (it belongs to these data)
+    rec = model.record()
+    text = rec.to_yaml()
+    again = type(rec).from_yaml(text)
+    (w,) = [t.effect for t in again.model.extra_terms]
+    assert w.name == "bias_wander" and np.allclose(w.values["density"], eff.values["density"]) and not len(w.knots_s)
+    assert rec.diagnostics["fit"]["wander_path_rms"]["bias_wander:mag:xyz"][0] > 1.0
 
 
 def test_temperature_and_time_are_told_apart_when_the_heating_rates_differ(tmp_path):
@@ -232,9 +277,10 @@ def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_th
     assert steps[-1].base_val["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"]
     page = (tmp_path / "report.html").read_text()
     for text in ("Data left out", "Nothing was left out", "Predicted uncertainty", "within 2σ",
-                 "Drift error RMS (deg) by set drift", "without a set azimuth (vertical)", "field: fitted on"):
+                 "Drift error RMS (deg) by set drift", "without a set azimuth (vertical)", "field: fitted on",
+                 "Noise model", "white noise N", "nT/sqrt(Hz)"):
         assert text in page, text
-    assert page.count("<img src='data:image/png;base64,") >= 5
+    assert page.count("<img src='data:image/png;base64,") >= 6
 
 
 REMANENCE = '''
