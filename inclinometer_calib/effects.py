@@ -614,6 +614,21 @@ class BiasWander(Effect):
         self.knots_s, self.path, self.path_std, self.edf = np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0)
         self.penalty = 0.0
 
+    def sigma_at(self, time_s) -> np.ndarray:
+        """(N, n_axes) 1σ of the path at ``time_s`` (s): the smoother's between the knots; beyond
+        them a random walk's prediction error grows, ``σ² = σ_end² + K²·|t − t_end|``; without a
+        path (a record applied to a new run) ``K·√t`` from the data's first sample."""
+        t = np.asarray(time_s, dtype=float)
+        k = np.asarray(self.values["density"], dtype=float)
+        if not len(self.knots_s):
+            return np.sqrt(np.maximum(t, 0.0))[:, None] * k
+        out = np.empty((len(t), len(k)))
+        t0, t1 = self.knots_s[0], self.knots_s[-1]
+        for j in range(len(k)):
+            sd = np.interp(t, self.knots_s, np.nan_to_num(self.path_std[:, j]))
+            out[:, j] = np.sqrt(sd ** 2 + k[j] ** 2 * (np.maximum(t0 - t, 0.0) + np.maximum(t - t1, 0.0)))
+        return out
+
     def _apply(self, v, ctx):
         if not len(self.knots_s):
             return

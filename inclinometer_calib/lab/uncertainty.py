@@ -7,7 +7,9 @@ Two parts, propagated to first order through the model's own correction and angl
   scatter / √n, :class:`station.Stations`), independent per axis:
   ``σ²_noise = Σ_k (∂angle/∂m_k · σ_k)²`` over the six measured components;
 * the **model's uncertainty** — the fit's covariance ``C`` of its free parameters:
-  ``σ²_model = J_θ · C · J_θᵀ`` with ``J_θ = ∂angle/∂θ``.
+  ``σ²_model = J_θ · C · J_θᵀ`` with ``J_θ = ∂angle/∂θ``;
+* a **wandering bias's path** (:class:`effects.BiasWander`): its posterior σ at the station's
+  time, per axis, propagated like the noise.
 
 ``σ = √(σ²_noise + σ²_model)``, in degrees.  On a validation log the normalised errors
 ``(angle − reference) / σ`` should scatter with an RMS near 1 when the model and its uncertainty
@@ -54,6 +56,27 @@ def noise_variance(model, data, base=None) -> np.ndarray:
     return var
 
 
+def wander_variance(model, data, base=None) -> np.ndarray:
+    """(N, 3) variance (deg²) of drift, azimuth, toolface from the uncertainty of a wandering
+    bias's path (:meth:`effects.BiasWander.sigma_at`, per axis, taken independent): an error of
+    the path is an error of the output it is taken from."""
+    base = _angles(model, data) if base is None else base
+    var = np.zeros_like(base)
+    for t in model.terms:
+        e = t.effect
+        if not e.stochastic:
+            continue
+        sig = e.sigma_at(data.time_s)
+        arr = "g" if e.sensor == "acc" else "b"
+        for j, a in enumerate(e.axes):
+            d = data.subset(np.ones(len(data), bool))
+            v = getattr(d, arr).copy()
+            v[:, "xyz".index(a)] += sig[:, j]
+            setattr(d, arr, v)
+            var += _diff(_angles(model, d), base) ** 2
+    return var
+
+
 def noise_floor(model, data) -> dict:
     """What a perfect model would still show on the stations with a reference: the RMS of the
     noise-only σ of drift, azimuth (where defined) and pointing (deg) — the floor of a ladder."""
@@ -73,7 +96,7 @@ def station_sigmas(model, fit_result, data) -> np.ndarray:
     """(N, 3) predicted 1σ (deg) of drift, azimuth and toolface of each station of ``data`` for a
     fitted ``model`` (its :class:`fit.FitResult` gives the covariance)."""
     base = _angles(model, data)
-    var = noise_variance(model, data, base)
+    var = noise_variance(model, data, base) + wander_variance(model, data, base)
     # the model's parameters
     cov = fit_result.covariance
     theta = model.get_vector()

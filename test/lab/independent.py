@@ -2,9 +2,11 @@
 
 Its own physics, written out here with numpy and scipy only: orientations from scipy's
 ``Rotation`` (intrinsic Z-Y-Z: azimuth, drift, toolface; tool Z down-hole, NED), each triad's
-output ``y = A·x + b + c·(T - 20 °C) + r·t + w(t) + k·x_prev + noise`` with a full 3×3 gain matrix ``A``
-(scale and non-orthogonality together), a temperature coefficient ``c``, a drift rate ``r`` and a
-random-walk bias ``w`` and a remanence ``k`` (a share of the previous hold's input); a stand whose twelve poses may sit off by fixed small rotations (the
+output ``y = A·x + q·x²/s + b + c·(T - 20 °C) + r·t + w(t) + k·x_prev + noise`` with a full 3×3 gain
+matrix ``A`` (scale and non-orthogonality together), a square-law term ``q`` per axis (``s`` 9.81 m/s²
+or 50 000 nT), a temperature coefficient ``c``, a drift rate ``r`` and a
+random-walk bias ``w`` and a remanence ``k`` (a share of the previous hold's input); in a survey log
+the input ``x`` carries the drill string's field, fixed in the tool frame; a stand whose twelve poses may sit off by fixed small rotations (the
 same in every round, both triads alike); moves between holds by spherical interpolation.  Logs
 are written the way other tools write them: specific force (a resting probe reads -gravity),
 temperature per row, pose labels and reference angles on static rows only, a vertical pose with
@@ -42,6 +44,8 @@ class Triad:
     drift_rate: np.ndarray = field(default_factory=lambda: np.zeros(3))  # per hour
     walk: float = 0.0                     # random-walk density, unit/√s
     remanence: float = 0.0                # share of the previous hold's true input kept (same log)
+    survey_field: np.ndarray = field(default_factory=lambda: np.zeros(3))   # tool-frame field of the drill string
+    square: np.ndarray = field(default_factory=lambda: np.zeros(3))   # y_i += square_i·x_i²/scale (scale: 1 g, 50 µT)
 
 
 @dataclass
@@ -135,13 +139,16 @@ class Generator:
         self.walk_state = {"acc": np.zeros(3), "mag": np.zeros(3)}
         self.walk_track = {"acc": [], "mag": []}   # (t, value) per sample, for the true model
 
-    def outputs(self, t, rot, temp, prev_rot=None, prev_ok=None):
+    def outputs(self, t, rot, temp, prev_rot=None, prev_ok=None, survey=False):
         g_ned, b_ned = self.site.vectors()
         out = {}
         for name, v_ned in (("acc", g_ned), ("mag", b_ned)):
             tr = self.probe[name]
             x = rot.inv().apply(v_ned)                       # true tool-frame vector
-            y = x @ tr.gain.T + tr.bias + np.outer(temp - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
+            if survey:                                       # the drill string's field moves with the tool
+                x = x + tr.survey_field
+            y = x @ tr.gain.T + tr.square * x ** 2 / (9.81 if name == "acc" else 5e4)
+            y = y + tr.bias + np.outer(temp - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
             if tr.remanence and prev_rot is not None:        # the previous hold's input, a little of it kept
                 y = y + tr.remanence * np.nan_to_num(prev_rot.inv().apply(v_ned) * prev_ok[:, None])
             if tr.walk:
@@ -154,7 +161,7 @@ class Generator:
             out[name] = y + self.rng.normal(0, tr.noise, y.shape)
         return out["acc"], out["mag"]
 
-    def write(self, path, holds, temperature=lambda t: np.full_like(t, 25.0), labels=True):
+    def write(self, path, holds, temperature=lambda t: np.full_like(t, 25.0), labels=True, survey=False):
         """Write one log; ``temperature(t)`` °C of the session time (s).  Returns the hold intervals."""
         t, rot, idx = _stream(holds, self.rate_hz, self.move_s, self.t)
         self.t = float(t[-1] + 1.0 / self.rate_hz)
@@ -164,7 +171,7 @@ class Generator:
         prev = np.where(idx >= 0, idx - 1, held)
         prev_ok = (prev >= 0).astype(float)
         prev_rot = Rotation.concatenate([holds[max(k, 0)].rot for k in prev])
-        acc, mag = self.outputs(t, rot, temp, prev_rot, prev_ok)
+        acc, mag = self.outputs(t, rot, temp, prev_rot, prev_ok, survey)
         with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose", "ref_drift_deg",
@@ -191,7 +198,7 @@ def true_vectors(gen: Generator, data):
     """The lab's stations corrected with the true parameters: gravity vector (m/s²) and field (nT).
 
     ``data``: the lab's :class:`Stations` (times from the first log's first sample, which is this
-    generator's t = 0)."""
+    generator's t = 0; the validation log written with ``survey=True`` when a drill-string field is set)."""
     out = []
     for name, meas in (("acc", data.g), ("mag", data.b)):
         tr = gen.probe[name]
@@ -201,5 +208,10 @@ def true_vectors(gen: Generator, data):
             v_ned = gen.site.vectors()[0 if name == "acc" else 1]
             prev = np.swapaxes(data.prev_rotation, -1, -2) @ v_ned
             y = y - tr.remanence * np.nan_to_num(prev)
-        out.append(np.linalg.solve(tr.gain, y.T).T)
+        x = np.linalg.solve(tr.gain, y.T).T
+        for _ in range(20):                                  # y = A·x + q·x²/s, by fixed point
+            x = np.linalg.solve(tr.gain, (y - tr.square * x ** 2 / (9.81 if name == "acc" else 5e4)).T).T
+        if np.any(tr.survey_field):                          # the survey log's inputs carried the drill string's field
+            x = x - np.outer(data.role == "val", tr.survey_field)
+        out.append(x)
     return out[0], out[1]

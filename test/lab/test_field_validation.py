@@ -11,6 +11,7 @@ from inclinometer_calib import lab
 from inclinometer_calib.cli import main
 from inclinometer_calib.frames import Site
 from inclinometer_calib.lab.diagnose import field_fit, validation
+from inclinometer_calib.lab.uncertainty import normalised_errors
 from inclinometer_calib.survey import evaluate, summarize
 
 import independent as ind
@@ -22,7 +23,8 @@ def _site(gen):
                 gravity_mps2=s.gravity)
 
 
-def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, cal_hold_s=4.0, offsets=None, **probe_kw):
+def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, cal_hold_s=4.0, offsets=None, survey=False,
+             **probe_kw):
     """Two rounds of the twelve poses (``offsets``: poses the stand holds off) and a coarse stand
     grid (the calibration log), then a finer grid (the validation log), holds 4 s (``cal_hold_s``
     in the calibration), moves 1.5 s, one power-on."""
@@ -37,7 +39,7 @@ def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, cal_hold_s=4.0, 
         holds += ind.grid(drifts=(20, 50, 110), azimuths=(45, 200), toolfaces=(30, 210), hold_s=cal_hold_s,
                           vertical=False)
     gen.write(tmp_path / "cal.csv", holds, cal_temp)
-    gen.write(tmp_path / "val.csv", ind.grid(hold_s=4.0), val_temp)
+    gen.write(tmp_path / "val.csv", ind.grid(hold_s=4.0), val_temp, survey=survey)
     (tmp_path / "site.yaml").write_text(yaml.safe_dump(gen.site.as_yaml_dict()))
     data = lab.load_logs(tmp_path / "cal.csv", tmp_path / "val.csv")
     return gen, data, _site(gen)
@@ -122,6 +124,12 @@ def test_a_wandering_bias_is_measured_named_by_axis_and_smoothed_to_the_true_lev
     base = lab.LabModel.base(site)
     field_fit(base, data)
     assert validation(base, data)["azimuth_rms_deg"] > 1.5 * true["azimuth_rms_deg"]   # the wander mattered
+    # the predicted uncertainty holds with the path's own σ in it (the base model's azimuth does not)
+    f = field_fit(model, data)
+    ref = data.subset((data.role == "val") & np.isfinite(data.ref[:, 0]))
+    z = normalised_errors(model, f, ref)
+    assert all(0.6 < z[a]["rms"] < 1.4 for a in ("drift", "azimuth", "toolface")), z
+    assert dg.uncertainty["azimuth"]["rms"] > 1.5
     # the path is the walk, to its stated 1σ
     eff = model.probe.terms[-1].effect
     walk = gen.walk_at("mag", eff.knots_s)
@@ -134,6 +142,30 @@ def test_a_wandering_bias_is_measured_named_by_axis_and_smoothed_to_the_true_lev
     (w,) = [t.effect for t in again.model.extra_terms]
     assert w.name == "bias_wander" and np.allclose(w.values["density"], eff.values["density"]) and not len(w.knots_s)
     assert rec.diagnostics["fit"]["wander_path_rms"]["bias_wander:mag:xyz"][0] > 1.0
+
+
+@pytest.mark.parametrize("probe_kw, survey, label, param, truth", [
+    # a drill string's field along the tool axis in the survey log only (ISCWSA AMIL)
+    ({"mag": {"survey_field": [0.0, 0.0, 300.0]}}, True, "axial_interference:mag:z@val",
+     "axial_interference:mag:z.field_z", 300.0),
+    # a square-law accelerometer axis: 0.2 % of 1 g at 1 g (the generator's own formula, on the input)
+    ({"acc": {"square": [0.0, 0.0, 0.002]}}, False, "nonlinearity:acc:z", "nonlinearity:acc:z.q_z", 0.002),
+])
+def test_a_hidden_survey_or_gain_effect_is_named_by_axis_and_fitted_to_the_true_level(tmp_path, probe_kw, survey,
+                                                                                       label, param, truth):
+    gen, data, site = _session(tmp_path, 31, _up_down(20, 45, 400.0), _up_down(22, 40, 300.0), survey=survey,
+                               **probe_kw)
+    dg = lab.diagnose(data, site=site)
+    top = dg.recommended
+    assert top is not None and top.label == label, dg.verdict
+    (p,) = [r for r in top.params if r["name"] == param]
+    assert abs(p["value"] - truth) < max(4 * p["std"], 0.02 * truth), p
+    true = _true_level(gen, data, site)
+    assert top.val["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"], (top.val, true)
+    assert top.val["drift_rms_deg"] <= 1.2 * true["drift_rms_deg"]
+    assert dg.base_val["azimuth_rms_deg"] > 2 * true["azimuth_rms_deg"]
+    # the wander the misfit resembles across the stations is not preferred for its flexibility
+    assert all(c.note.startswith("explained by") for c in dg.ranked if c.stochastic and c.significant)
 
 
 def test_temperature_and_time_are_told_apart_when_the_heating_rates_differ(tmp_path):
