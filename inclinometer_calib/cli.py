@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 
@@ -17,6 +18,7 @@ import yaml
 from . import simulate as sim
 from .coeffs import Calibration, CoefficientError
 from .deps import MissingDependency
+from .errormodel import TriadModel
 from .frames import Site
 from .capture import CaptureSession
 from .gates import apply_gates
@@ -135,14 +137,114 @@ def cmd_simulate(args):
              "cal": {"stations": len(cal_session), "rows": len(cal), "temperatures_c": temps},
              "val": {"stations": len(val_session), "rows": len(val), "temperature_profile_c": val_temps,
                      "survey_effects": not args.no_survey_effects}}
+    written = ["cal.csv", "val.csv"]
+    if args.turntable:
+        if args.turntable < 3:
+            raise UserError("--turntable: give the number of table steps per mount (e.g. 12)")
+        plan = sim.turntable_session(args.turntable, args.pose_seconds, tilt_deg=args.table_tilt,
+                                     temp_c=temps[0])
+        tt = sim.run_turntable(probe, site, plan, rng, rate_hz=args.rate, move_s=max(args.move_seconds, 0.5),
+                               t0=val.t_s[-1] + 10.0)
+        if args.no_table_angles:
+            tt.table_deg[:] = np.nan
+        write_csv(os.path.join(args.out, "turntable.csv"), tt, mag_unit=args.mag_unit)
+        truth["turntable"] = {"steps_per_mount": args.turntable, "rows": len(tt), "tilt_deg": args.table_tilt,
+                              "table_angles_written": not args.no_table_angles}
+        written.append("turntable.csv")
     atomic_write_text(os.path.join(args.out, "truth.json"), json.dumps(truth, indent=2) + "\n")
     atomic_write_text(os.path.join(args.out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
     true_cal = Calibration(probe.model, probe_id=f"sim-{args.seed}", method="simulator truth", site=site)
     true_cal.save(os.path.join(args.out, "truth_coeffs.yaml"))
     print(f"wrote {args.out}/cal.csv ({len(cal)} rows, {len(cal_session)} stations), "
-          f"val.csv ({len(val)} rows, {len(val_session)} stations), truth.json, truth_coeffs.yaml, site.yaml")
+          f"val.csv ({len(val)} rows, {len(val_session)} stations), "
+          + (f"turntable.csv ({truth['turntable']['rows']} rows, 3 mounts × {args.turntable} steps), "
+             if args.turntable else "") + "truth.json, truth_coeffs.yaml, site.yaml")
     for e in probe.effects:
         print(f"  hidden effect: {e.describe()}")
+    return 0
+
+
+def cmd_turntable(args):
+    """The patent's turntable calibration of the magnetometer (:mod:`turntable`)."""
+    from . import turntable as tt
+    from .model import ProbeModel
+
+    site = load_site(args.site) if args.site else None
+    acc_rec = None
+    if args.acc:
+        try:
+            acc_rec = Calibration.load(args.acc)
+        except (OSError, ValueError) as exc:
+            raise UserError(f"--acc {args.acc}: {exc}") from None
+    try:
+        log, rejections = read_csv(args.log, mag_unit=args.mag_unit)
+        report(args.log, rejections, [], _warn)
+        steps, messages = tt.steps_from_log(log, args.log, detector_from_args(args))
+        for m in messages:
+            _warn(m)
+        field = site.total_field_nt if site else (acc_rec.site.total_field_nt if acc_rec and
+                                                  acc_rec.site_source == "given" else None)
+        res = tt.solve(steps, field)
+        res.step_offsets = tt.check_angles(steps, field)
+    except OSError as exc:
+        raise UserError(f"{exc.filename}: {exc.strerror}") from None
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    mag = TriadModel.from_matrix(res.matrix, res.bias)
+    not_id = []
+    if acc_rec is not None:
+        model = ProbeModel.base(acc_rec.acc, mag)
+        for t in acc_rec.model.extra_terms:
+            if t.effect.sensor == "acc":
+                model = model.with_effect(t.effect, t.scope)
+    else:
+        model = ProbeModel.base(None, mag)
+        not_id.append({"parameter": "acc", "reason": "the turntable procedure calibrates the magnetometer only: the "
+                                                     "accelerometer is identity here — combine with --acc RECORD"})
+    if site is not None:
+        rec_site, source = site, "given"
+    elif acc_rec is not None:
+        rec_site, source = acc_rec.site, acc_rec.site_source
+        _warn(f"no --site given: the record takes the site reference of {args.acc} ({acc_rec.site_source})")
+    else:
+        level = [n for n in res.nuisance.values()]
+        dip = float(np.degrees(np.mean([math.atan2(abs(n.b_w), abs(n.b_rot)) for n in level])))
+        rec_site, source = Site(res.field_nt, dip, 0.0), "measured"
+        _warn(f"{args.log}: no --site given: the record's site is what the turntable measures — total field "
+              f"{res.field_nt:.1f} (the probe's unit: k is relative), dip {dip:.3f}° if the table was level, "
+              "declination unknown (0): give --site for surveys")
+    doc = res.to_json()
+    cal = Calibration(model, probe_id=args.probe_id, method="turntable" + (" + " + (acc_rec.method or "acc")
+                                                                           if acc_rec else ""),
+                      site=rec_site, site_source=source, diagnostics={"turntable": doc}, not_identifiable=not_id)
+    cal.save(args.output)
+    if args.json:
+        print(json.dumps(doc, indent=2, default=float))
+        return 0
+    p = res.parameters()
+    print(f"Turntable calibration of the magnetometer: {len(steps)} steps in 3 mounts, residual RMS "
+          f"{res.residual_rms_nt:.2f} nT ({doc['scale']})")
+    print(f"{'axis':<5}{'k':>12}{'±':>10}{'bias nT':>11}{'±':>7}{'alpha deg':>11}{'±':>8}{'beta deg':>10}{'±':>8}")
+    for i, a in enumerate("xyz"):
+        beta = (f"{p['beta_deg'][i]:>10.3f}{p['beta_std'][i]:>8.3f}" if p["beta_defined"][i]
+                else f"{'undefined':>18}")
+        print(f"{a:<5}{p['k'][i]:>12.6f}{p['k_std'][i]:>10.2g}{p['bias_nT'][i]:>11.2f}{p['bias_std'][i]:>7.2f}"
+              f"{p['alpha_deg'][i]:>11.4f}{p['alpha_std'][i]:>8.4f}{beta}")
+    if not all(p["beta_defined"]):
+        print("beta undefined: alpha is within 3σ of 0 there, so the direction of the tilt means nothing")
+    print("Real axes against the marked ones (U − I, rad; row = real axis, column = marked axis):")
+    for i, a in enumerate("xyz"):
+        print(f"  {a}_m " + " ".join(f"{v:+.6f}±{sd:.1g}" for v, sd in zip(p['misalignment_rad'][i],
+                                                                          p['misalignment_std'][i])))
+    print("Sinusoids o = A·sin(θ + b) + C:")
+    for sn in res.sinusoids:
+        print(f"  {sn.mount} {sn.axis}: A {sn.A:10.2f}  b {sn.b_deg:8.3f}°  C {sn.C:10.2f}  rms {sn.rms:.2f} nT")
+    for where, d, sd in res.step_offsets:
+        _warn(f"{where}: the data put this step {d:+.3f}° ± {sd:.3f}° off its set angle (the table was not where "
+              "the log says)")
+    for m in res.messages:
+        print(f"note: {m}")
+    print(f"wrote {args.output}")
     return 0
 
 
@@ -854,6 +956,12 @@ def build_parser():
                    help="write the calibration log without pose labels or references")
     s.add_argument("--mag-unit", choices=list(MAG_UNITS), default="nT",
                    help="unit of the written magnetometer columns (reading them then needs --mag-unit)")
+    s.add_argument("--turntable", type=int, default=0, metavar="STEPS",
+                   help="also write turntable.csv: the patent's procedure, three mounts (xy, xz, yz) turned through "
+                        "a full turn in STEPS equal steps, each held --pose-seconds")
+    s.add_argument("--table-tilt", type=float, default=0.0, help="with --turntable: the table not level, deg")
+    s.add_argument("--no-table-angles", action="store_true",
+                   help="with --turntable: leave table_deg empty (the angles are then estimated)")
     s.set_defaults(func=cmd_simulate)
 
     t = sub.add_parser("twelve-position", help="fit both triads from a twelve-pose calibration log")
@@ -868,6 +976,18 @@ def build_parser():
     t.add_argument("--plugin", action="append", help="Python file (or module) defining extra effects (repeatable)")
     _detector_options(t)
     t.set_defaults(func=cmd_twelve_position)
+
+    tt = sub.add_parser("turntable", help="calibrate the magnetometer from a turntable log (the patent's method: "
+                                          "three mounts, equal steps through a full turn)")
+    tt.add_argument("log", help="turntable log CSV: the probe-log columns plus mount (xy, xz, yz) and table_deg")
+    tt.add_argument("-o", "--output", required=True, help="calibration record YAML to write")
+    tt.add_argument("--site", help="site reference YAML (its total field makes k absolute)")
+    tt.add_argument("--acc", help="a record (e.g. the twelve positions') whose accelerometer calibration joins "
+                                  "this one in the record written")
+    tt.add_argument("--probe-id", default="probe")
+    tt.add_argument("--json", action="store_true")
+    _detector_options(tt)
+    tt.set_defaults(func=cmd_turntable)
 
     c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")
     c.add_argument("log", help="probe log CSV")

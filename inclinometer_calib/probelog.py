@@ -11,6 +11,9 @@ CSV format (the header line is literal)::
   (``mag_unit``: nT, uT, mT, T, G, mG), converted to nT when read.
 * ``temp_c``: probe temperature, °C; empty (or ``nan``) when the probe has no sensor.
 * ``pose``: 1..12 while the probe sits in that pose of the paper's Table 1, empty otherwise.
+* a turntable log (the patent's procedure, :mod:`turntable`) has two more columns, ``mount``
+  (``xy``, ``xz`` or ``yz``: the two marked axes in the table plane) and ``table_deg`` (the table
+  angle the operator set, empty when not recorded), on the static rows.
 * ``ref_*``: the stand's set orientation where known, empty otherwise.  Rows recorded while the
   probe moves have all four of ``pose`` and ``ref_*`` empty.  A reference is used for what it
   defines: a vertical pose gives drift and toolface but no azimuth (the azimuth of a vertical
@@ -40,6 +43,9 @@ HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
           "ref_drift_deg", "ref_azimuth_deg", "ref_toolface_deg"]
 #: Magnetometer units a log may be written in, as nT per unit.
 MAG_UNITS = {"nT": 1.0, "uT": 1e3, "mT": 1e6, "T": 1e9, "G": 1e5, "mG": 1e2}
+#: The turntable log's two extra columns (after :data:`HEADER`).
+TURNTABLE_COLUMNS = ["mount", "table_deg"]
+MOUNT_NAMES = ("xy", "xz", "yz")
 UNIT_NAMES = {"nT": "nanotesla", "uT": "microtesla", "mT": "millitesla", "T": "tesla", "G": "gauss",
               "mG": "milligauss"}
 
@@ -51,7 +57,9 @@ class ProbeLog:
     Attributes: ``t_s`` (N,) s; ``acc`` (N, 3) REP-145 specific force, m/s²; ``mag`` (N, 3) nT;
     ``temp_c`` (N,) °C; ``pose`` (N,) int, 0 = none; ``ref`` (N, 3) deg (drift, azimuth,
     toolface), NaN where unknown; ``row`` (N,) int, the data row of the file each sample came from
-    (1-based; rows rejected by the reader are missing), for messages that point into the file.
+    (1-based; rows rejected by the reader are missing), for messages that point into the file;
+    a turntable log's ``mount`` (N,) str ('' where none) and ``table_deg`` (N,) deg (NaN where
+    none); ``station`` (N,) the planned station a simulated row belongs to (-1: moving; not written).
     """
 
     t_s: np.ndarray
@@ -61,10 +69,24 @@ class ProbeLog:
     pose: np.ndarray
     ref: np.ndarray
     row: np.ndarray = None
+    mount: np.ndarray = None
+    table_deg: np.ndarray = None
+    station: np.ndarray = None
 
     def __post_init__(self):
+        n = len(self.t_s)
         if self.row is None:
-            self.row = np.arange(1, len(self.t_s) + 1)
+            self.row = np.arange(1, n + 1)
+        if self.mount is None:
+            self.mount = np.full(n, "", dtype=object)
+        if self.table_deg is None:
+            self.table_deg = np.full(n, np.nan)
+        if self.station is None:
+            self.station = np.full(n, -1)
+
+    @property
+    def is_turntable(self) -> bool:
+        return bool(np.any(self.mount != "") or np.any(np.isfinite(self.table_deg)))
 
     def __len__(self):
         return len(self.t_s)
@@ -78,8 +100,11 @@ class ProbeLog:
     def concatenate(cls, logs):
         """One log after the other (rows numbered on through the whole)."""
         logs = list(logs)
-        return cls(*(np.concatenate([getattr(lg, f) for lg in logs]) for f in
-                     ("t_s", "acc", "mag", "temp_c", "pose", "ref")))
+        out = cls(*(np.concatenate([getattr(lg, f) for lg in logs]) for f in
+                    ("t_s", "acc", "mag", "temp_c", "pose", "ref")))
+        out.mount = np.concatenate([lg.mount for lg in logs]) if logs else out.mount
+        out.table_deg = np.concatenate([lg.table_deg for lg in logs]) if logs else out.table_deg
+        return out
 
 
 @dataclass(frozen=True)
@@ -161,17 +186,20 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
     if not lines:
         raise ValueError(f"{source}: empty file (expected header {','.join(HEADER)})")
     header = [h.strip() for h in lines[0].lstrip("\ufeff").split(",")]
-    if header != HEADER:
-        raise ValueError(f"{source}: line 1: header must be exactly {','.join(HEADER)!r}, got {lines[0]!r}")
-    rows, rejections = [], []
+    turntable = header == HEADER + TURNTABLE_COLUMNS
+    if header != HEADER and not turntable:
+        raise ValueError(f"{source}: line 1: header must be exactly {','.join(HEADER)!r} (a turntable log: followed by "
+                         f"{','.join(TURNTABLE_COLUMNS)!r}), got {lines[0]!r}")
+    n_fields = len(header)
+    rows, rejections, mounts, tables = [], [], [], []
     last_t = -math.inf
     reader = csv.reader(io.StringIO("\n".join(lines[1:])))
     for k, fields in enumerate(reader, start=1):
         line = k + 1
         if not fields or all(not f.strip() for f in fields):
             continue
-        if len(fields) != len(HEADER):
-            rejections.append(Rejection(k, line, f"{len(fields)} fields, expected {len(HEADER)}"))
+        if len(fields) != n_fields:
+            rejections.append(Rejection(k, line, f"{len(fields)} fields, expected {n_fields}"))
             continue
         try:
             # an empty temp_c is an unknown temperature (a probe without a sensor), not a bad row
@@ -190,18 +218,41 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
         if reason is None and t <= last_t:
             reason = f"time t_s={t:g} does not increase (previous {last_t:g}): non-monotonic timestamp"
         if reason is None:
-            pose, ref, reason = _parse_labels(fields[8:])
+            pose, ref, reason = _parse_labels(fields[8:12])
+        mount, table = "", math.nan
+        if reason is None and turntable:
+            mount, table, reason = _parse_turntable(fields[12:14])
         if reason is not None:
             rejections.append(Rejection(k, line, reason))
             continue
         last_t = t
         rows.append((t, *acc, *mag, temp, pose, *ref, k))
+        mounts.append(mount)
+        tables.append(table)
     if not rows:
         detail = f"; first rejection: {rejections[0]}" if rejections else ""
         raise ValueError(f"{source}: no usable rows{detail}")
     a = np.array(rows, dtype=float)
-    log = ProbeLog(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8].astype(int), a[:, 9:12], a[:, 12].astype(int))
+    log = ProbeLog(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8].astype(int), a[:, 9:12], a[:, 12].astype(int),
+                   mount=np.array(mounts, dtype=object), table_deg=np.array(tables, dtype=float))
     return log, rejections
+
+
+def _parse_turntable(fields):
+    """``(mount, table_deg, reason)`` of a turntable row's two extra fields."""
+    mount = fields[0].strip()
+    if mount and mount not in MOUNT_NAMES:
+        return "", math.nan, f"mount={mount!r} is not one of {', '.join(MOUNT_NAMES)}"
+    f = fields[1].strip()
+    if not f:
+        return mount, math.nan, None
+    try:
+        v = float(f)
+    except ValueError:
+        return "", math.nan, f"table_deg={f!r} is not a number"
+    if not math.isfinite(v):
+        return "", math.nan, "table_deg not finite"
+    return mount, v, None
 
 
 def _is_float(s):
@@ -267,7 +318,8 @@ def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
     scale = 1.0 / MAG_UNITS[mag_unit]
     mfmt = ".3f" if mag_unit == "nT" else ".6g"
     out = io.StringIO()
-    out.write(",".join(HEADER) + "\n")
+    turntable = log.is_turntable
+    out.write(",".join(HEADER + (TURNTABLE_COLUMNS if turntable else [])) + "\n")
     for i in range(len(log)):
         fields = [f"{log.t_s[i]:.4f}",
                   *(f"{v:.6f}" for v in log.acc[i]),
@@ -275,6 +327,8 @@ def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
                   _fmt(log.temp_c[i], ".3f"),
                   str(int(log.pose[i])) if log.pose[i] else "",
                   *(_fmt(v, ".4f") for v in log.ref[i])]
+        if turntable:
+            fields += [str(log.mount[i] or ""), _fmt(log.table_deg[i], ".4f")]
         out.write(",".join(fields) + "\n")
     return out.getvalue()
 

@@ -252,7 +252,35 @@ def run_session(probe: SimulatedProbe, site: Site, stations, rng: np.random.Gene
     g_tool = np.einsum("nji,j->ni", r_acc, site.gravity_ned())   # Rᵀ·g_ned
     b_tool = np.einsum("nji,j->ni", r_mag, site.field_ned())     # Rᵀ·b_ned
     f, m = probe.measure(g_tool, b_tool, temp, t_all, rng, survey)
-    return ProbeLog(t_all, f, m, temp, np.concatenate(pose), np.concatenate(ref))
+    return ProbeLog(t_all, f, m, temp, np.concatenate(pose), np.concatenate(ref), station=seg_id)
+
+
+def turntable_session(steps: int = 12, duration_s: float = 3.0, tilt_deg: float = 0.0, temp_c: float = 25.0,
+                      mounts=("xy", "xz", "yz"), angles_deg=None) -> list:
+    """The patent's turntable procedure: per mount, the table turned through a full turn in
+    ``steps`` equal steps (or at ``angles_deg``), each held ``duration_s``.  ``tilt_deg``: the table
+    not level (tilted about north by that much).  Returns ``[(mount, table_deg, planned Station)]``."""
+    from .turntable import table_rotation
+
+    out = []
+    for m in mounts:
+        angles = (360.0 * np.arange(steps) / steps) if angles_deg is None else np.asarray(angles_deg, float)
+        for a in angles:
+            out.append((m, float(a), Station.planned(table_rotation(m, a, tilt_deg), duration_s, temp_c=temp_c)))
+    return out
+
+
+def run_turntable(probe: "SimulatedProbe", site: Site, plan, rng: np.random.Generator, rate_hz: float = 50.0,
+                  move_s: float = 2.0, t0: float = 0.0) -> ProbeLog:
+    """Simulate a turntable log (:func:`turntable_session`): the rows of each held step carry its
+    ``mount`` and ``table_deg`` (moves between steps, and remountings, carry none)."""
+    log = run_session(probe, site, [st for _, _, st in plan], rng, rate_hz=rate_hz, move_s=move_s, t0=t0)
+    static = log.station >= 0
+    log.mount = np.full(len(log), "", dtype=object)
+    log.mount[static] = np.array([plan[k][0] for k in log.station[static]], dtype=object)
+    log.table_deg = np.full(len(log), np.nan)
+    log.table_deg[static] = [plan[k][1] for k in log.station[static]]
+    return log
 
 
 def build_probe(seed: int, effects=(), severity: float = 1.0, noise_acc: float = 0.002,
