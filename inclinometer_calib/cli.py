@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 
@@ -18,7 +17,6 @@ import yaml
 from . import simulate as sim
 from .coeffs import Calibration, CoefficientError
 from .deps import MissingDependency
-from .errormodel import TriadModel
 from .frames import Site
 from .capture import CaptureSession
 from .gates import apply_gates
@@ -167,7 +165,6 @@ def cmd_simulate(args):
 def cmd_turntable(args):
     """The patent's turntable calibration of the magnetometer (:mod:`turntable`)."""
     from . import turntable as tt
-    from .model import ProbeModel
 
     site = load_site(args.site) if args.site else None
     acc_rec = None
@@ -190,33 +187,8 @@ def cmd_turntable(args):
         raise UserError(f"{exc.filename}: {exc.strerror}") from None
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    mag = TriadModel.from_matrix(res.matrix, res.bias)
-    not_id = []
-    if acc_rec is not None:
-        model = ProbeModel.base(acc_rec.acc, mag)
-        for t in acc_rec.model.extra_terms:
-            if t.effect.sensor == "acc":
-                model = model.with_effect(t.effect, t.scope)
-    else:
-        model = ProbeModel.base(None, mag)
-        not_id.append({"parameter": "acc", "reason": "the turntable procedure calibrates the magnetometer only: the "
-                                                     "accelerometer is identity here — combine with --acc RECORD"})
-    if site is not None:
-        rec_site, source = site, "given"
-    elif acc_rec is not None:
-        rec_site, source = acc_rec.site, acc_rec.site_source
-        _warn(f"no --site given: the record takes the site reference of {args.acc} ({acc_rec.site_source})")
-    else:
-        level = [n for n in res.nuisance.values()]
-        dip = float(np.degrees(np.mean([math.atan2(abs(n.b_w), abs(n.b_rot)) for n in level])))
-        rec_site, source = Site(res.field_nt, dip, 0.0), "measured"
-        _warn(f"{args.log}: no --site given: the record's site is what the turntable measures — total field "
-              f"{res.field_nt:.1f} (the probe's unit: k is relative), dip {dip:.3f}° if the table was level, "
-              "declination unknown (0): give --site for surveys")
-    doc = res.to_json()
-    cal = Calibration(model, probe_id=args.probe_id, method="turntable" + (" + " + (acc_rec.method or "acc")
-                                                                           if acc_rec else ""),
-                      site=rec_site, site_source=source, diagnostics={"turntable": doc}, not_identifiable=not_id)
+    cal = tt.record(res, acc_rec, site, args.probe_id, warn=lambda m: _warn(f"{args.log}: {m}"))
+    doc = cal.diagnostics["turntable"]
     cal.save(args.output)
     if args.json:
         print(json.dumps(doc, indent=2, default=float))
@@ -818,8 +790,20 @@ def cmd_lab_diagnose(args):
 
 def cmd_lab_report(args):
     lab, site, data, model = _lab_setup(args)
+    methods = None
+    if args.turntable:
+        from .lab.methods import compare
+        if not args.cal or not args.val:
+            raise UserError("--turntable compares the methods on --cal (the twelve poses) and --val logs: give both")
+        truth = load_calibration(args.truth) if args.truth else None
+        try:
+            methods = compare(args.cal[0], args.turntable, args.val, site, truth)
+        except OSError as exc:
+            raise UserError(f"{exc.filename}: {exc.strerror}") from None
+        except ValueError as exc:
+            raise UserError(f"--turntable: {exc}") from None
     steps = lab.write_report(args.output, data, site, args.effects, max_steps=args.max_steps,
-                             progress=_progress(args))
+                             progress=_progress(args), methods=methods)
     for k, s in enumerate(steps):
         v = s.base_val
         print(f"rung {k}: {s.model.describe()}: drift RMS {v.get('drift_rms_deg', float('nan')):.4f} deg, "
@@ -896,6 +880,10 @@ def _lab_parser(sub):
     common(r, "effects to start from")
     r.add_argument("-o", "--output", required=True, help="HTML file to write")
     r.add_argument("--max-steps", type=int, default=4, help="most effects to add")
+    r.add_argument("--turntable", help="a turntable log of the same probe: the report then compares the twelve "
+                                       "positions, the turntable and the lab with both logs on the validation log")
+    r.add_argument("--truth", help="with --turntable: the true record (a simulated probe's truth_coeffs.yaml) for "
+                                   "the parameter errors")
     r.set_defaults(func=cmd_lab_report)
     n = lsub.add_parser("noise", help="the sensors' noise model from static logs: Allan deviation per axis, "
                                       "white noise, bias instability and random walk (IEEE Std 952 figures)")

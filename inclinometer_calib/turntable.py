@@ -534,3 +534,44 @@ def check_angles(steps, field_nt=None) -> list:
     if not all(np.isfinite(s.table_deg) for s in steps):
         return []
     return solve(steps, field_nt, free_angles=True).step_offsets
+
+
+def record(res: TurntableResult, acc_cal=None, site=None, probe_id: str = "probe", warn=None):
+    """The calibration record (:class:`coeffs.Calibration`) of a turntable result: the magnetometer
+    as the base model's ``K·E`` and bias (:meth:`errormodel.TriadModel.from_matrix`); the
+    accelerometer (and its effects) from ``acc_cal`` (e.g. the twelve positions' record), else
+    identity and said not identifiable.  The site: ``site``, else ``acc_cal``'s, else what the
+    turntable measures (the field in the probe's unit, the dip if the table was level, declination
+    unknown: 0), said through ``warn``."""
+    from .coeffs import Calibration
+    from .errormodel import TriadModel
+    from .frames import Site
+    from .model import ProbeModel
+
+    say = warn or (lambda m: None)
+    mag = TriadModel.from_matrix(res.matrix, res.bias)
+    not_id = []
+    if acc_cal is not None:
+        model = ProbeModel.base(acc_cal.acc, mag)
+        for t in acc_cal.model.extra_terms:
+            if t.effect.sensor == "acc":
+                model = model.with_effect(t.effect, t.scope)
+    else:
+        model = ProbeModel.base(None, mag)
+        not_id.append({"parameter": "acc", "reason": "the turntable procedure calibrates the magnetometer only: the "
+                                                     "accelerometer is identity here — combine with an accelerometer "
+                                                     "calibration (turntable --acc RECORD)"})
+    if site is not None:
+        rec_site, source = site, "given"
+    elif acc_cal is not None:
+        rec_site, source = acc_cal.site, acc_cal.site_source
+        say(f"no site given: the record takes the accelerometer record's site reference ({acc_cal.site_source})")
+    else:
+        dip = float(np.degrees(np.mean([math.atan2(abs(n.b_w), abs(n.b_rot)) for n in res.nuisance.values()])))
+        rec_site, source = Site(res.field_nt, dip, 0.0), "measured"
+        say(f"no site given: the record's site is what the turntable measures — total field {res.field_nt:.1f} (the "
+            f"probe's unit: k is relative), dip {dip:.3f}° if the table was level, declination unknown (0): give a "
+            "site for surveys")
+    method = "turntable" + (f" + {acc_cal.method} (accelerometer)" if acc_cal is not None else "")
+    return Calibration(model, probe_id=probe_id, method=method, site=rec_site, site_source=source,
+                       diagnostics={"turntable": res.to_json()}, not_identifiable=not_id)

@@ -264,7 +264,7 @@ table{border-collapse:collapse;font-size:12px;margin:0.5em 0 1.5em}td,th{border:
 pre{background:#f4f4f4;padding:0.8em;white-space:pre-wrap}img{max-width:100%}h2{border-bottom:1px solid #ddd}"""
 
 
-def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib model lab") -> str:
+def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib model lab", methods=None) -> str:
     """HTML for a ladder of diagnoses (``diagnose.ladder``) on ``data``."""
     base, final = steps[0], steps[-1]
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
@@ -293,6 +293,11 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
         for n in s.notes:
             parts.append(f"<p>Rung {k}: {html.escape(n)}</p>")
     parts.append("<h2>Predicted uncertainty</h2>" + uncertainty_html(final))
+    if methods:
+        from .methods import compare_html
+        parts.append("<h2>Calibration methods compared</h2><p>The same probe calibrated by the twelve positions, by "
+                     "the turntable (its accelerometer from the twelve positions) and by the lab with both logs; "
+                     "each record corrects the validation log.</p>" + compare_html(methods))
     if base.noise and any(len(m.curve.tau) for m in base.noise.values()):
         parts.append("<h2>Noise model</h2>" + noise_html(base.noise) + f"<img src='{noise_figure(base.noise)}'>")
     parts.append("<h2>Residuals</h2>")

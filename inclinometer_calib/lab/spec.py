@@ -34,8 +34,10 @@ def uncorrected_metrics(data, site) -> dict:
 
 
 def write_report(path, data, site, effects_text: str | None = None, max_steps: int = 4, progress=None,
-                 candidates=None) -> list:
+                 candidates=None, methods=None) -> list:
     """Run the effect ladder from the base model (plus ``effects_text``) and write the HTML report.
+
+    ``methods``: rows of :func:`lab.methods.compare` (the seed methods side by side) for a section.
 
     Raises :class:`deps.MissingDependency` before any fitting if matplotlib is not installed."""
     from ..deps import require
@@ -46,7 +48,7 @@ def write_report(path, data, site, effects_text: str | None = None, max_steps: i
     steps = ladder(data, site, max_steps=max_steps, progress=progress, candidates=candidates,
                    start=build_model(site, effects_text))
     final_fit = field_fit(steps[-1].model, data)
-    html = render(steps, data, uncorrected_metrics(data, site), final_fit)
+    html = render(steps, data, uncorrected_metrics(data, site), final_fit, methods=methods)
     atomic_write_text(path, html)
     return steps
 
