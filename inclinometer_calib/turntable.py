@@ -51,9 +51,10 @@ Then the offsets and the fields along the table axes from the ``C``: ``C_i = M_i
 (9 equations, 6 unknowns, linear).  The scale: with a site field ``F``, ``√(B_rot² + B_w²) = F`` in
 every mount; without one, the mean ``k`` is 1 and the field is measured in the probe's own unit.
 
-The closed form starts a joint nonlinear least-squares fit on the raw samples of every step
-(``scipy.optimize.least_squares``; ``M``, ``b`` and each mount's nuisances; the step angles too
-when the log does not give them), whose covariance gives every 1σ.  α/β come from the rows of
+The closed form starts a joint nonlinear least-squares fit of every step (``scipy.optimize.
+least_squares``; ``M``, ``b`` and each mount's nuisances; the step angles too when the log does not
+give them), whose covariance gives every 1σ.  It is the fit of the raw samples: a model constant over
+a step sees its samples only through their mean, weighted ``n/σ²`` (:class:`Step`).  α/β come from the rows of
 ``M``; β means nothing when α is within 3σ of 0, and is then reported as undefined.
 
 What the data cannot absorb: the jig (a probe tilted against the table) is indistinguishable from
@@ -102,19 +103,25 @@ class TurntableError(ValueError):
 
 @dataclass
 class Step:
-    """One held table step: ``mount``, set ``table_deg`` (NaN: not recorded), its samples (n, 3) nT,
-    time span and where it is in the file."""
+    """One held table step: ``mount``, set ``table_deg`` (NaN: not recorded), the field's ``mean``
+    (3,) nT over its ``n`` samples and their per-axis ``std`` (3,), its time span and where it is
+    (in a file or a stream).  The step means with weights ``n/σ²`` carry all a least-squares fit of
+    a model constant over the step can take from its samples (their χ² differs by the scatter
+    inside the steps only, which no parameter changes), so logs and live streams are solved alike."""
 
     mount: str
     table_deg: float
-    samples: np.ndarray
+    mean: np.ndarray
+    std: np.ndarray
+    n: int
     t_start: float
     t_end: float
     where: str
 
-    @property
-    def mean(self) -> np.ndarray:
-        return self.samples.mean(axis=0)
+    @classmethod
+    def from_station(cls, st, mount: str, table_deg: float = float("nan"), where: str = "") -> "Step":
+        return cls(mount, float(table_deg), np.asarray(st.b, float).copy(), np.asarray(st.b_std, float).copy(),
+                   int(st.n), float(st.t_start), float(st.t_end), where or f"step at {st.where}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -143,10 +150,17 @@ def steps_from_log(log, path: str = "<log>", detector=None) -> tuple:
         if len(mounts) > 1:
             raise TurntableError(f"{where}: its rows are labelled with mounts {', '.join(sorted(mounts))} but the "
                                  "probe did not move between them: mixed-up mount labels")
+        seen = mount_of_gravity(st.g)
         if not mounts:
-            messages.append(f"{where}: no mount label on its rows: left out")
-            continue
+            if seen is None:
+                messages.append(f"{where}: no mount label, and no marked axis is vertical: left out")
+                continue
+            mounts = {seen}
+            messages.append(f"{where}: no mount label: mount {seen} (gravity along marked {AXES[MOUNTS[seen][2]]})")
         mount = mounts.pop()
+        if seen is not None and seen != mount:
+            raise TurntableError(f"{where}: labelled mount {mount}, but gravity lies along marked {AXES[MOUNTS[seen][2]]} "
+                                 f"(mount {seen}): the mount labels look mixed up")
         if len(angles) > 1:
             raise TurntableError(f"{where} (mount {mount}): its rows give table angles "
                                  f"{', '.join(f'{a:g}' for a in sorted(angles))} without motion between them")
@@ -154,8 +168,7 @@ def steps_from_log(log, path: str = "<log>", detector=None) -> tuple:
         if st.moved:
             raise TurntableError(f"{where} (mount {mount}, table {next(iter(angles), float('nan')):g}°): the probe moved "
                                  "during the step — hold it still, or cut the step out")
-        steps.append(Step(mount, angles.pop() if angles else float("nan"), np.asarray(log.mag[i0:i1], float),
-                          float(st.t_start), float(st.t_end), where))
+        steps.append(Step.from_station(st, mount, angles.pop() if angles else float("nan"), where))
     # one set angle found as several holds: the detector cut the step where the probe moved
     seen = {}
     for st in steps:
@@ -168,6 +181,36 @@ def steps_from_log(log, path: str = "<log>", detector=None) -> tuple:
                                  + "): the probe moved during the step — hold it still, or cut the step out")
     check_steps(steps, path)
     return steps, messages
+
+
+#: A step is in a mount when gravity lies within this angle of one marked axis (the table axis).
+MOUNT_TOLERANCE_DEG = 10.0
+
+
+def mount_of_gravity(g) -> str | None:
+    """The mount whose table axis gravity lies along (within :data:`MOUNT_TOLERANCE_DEG`), or None."""
+    g = np.asarray(g, float)
+    n = float(np.linalg.norm(g))
+    if not np.all(np.isfinite(g)) or n == 0:
+        return None
+    a = int(np.argmax(np.abs(g)))
+    if abs(g[a]) / n < math.cos(math.radians(MOUNT_TOLERANCE_DEG)):
+        return None
+    return next(m for m, (_, _, ax) in MOUNTS.items() if ax == a)
+
+
+def coverage_deg(steps, mount: str) -> float:
+    """How much of a full turn the steps of ``mount`` cover (deg): 360 minus the largest gap between
+    the in-plane field directions of the steps (about their mean)."""
+    ms = [s for s in steps if s.mount == mount]
+    if len(ms) < 3:
+        return 0.0
+    p, q, _ = MOUNTS[mount]
+    v = np.array([s.mean for s in ms])
+    c = v.mean(axis=0)
+    ang = np.sort(np.degrees(np.arctan2(v[:, q] - c[q], v[:, p] - c[p])) % 360.0)
+    gaps = np.diff(np.concatenate([ang, [ang[0] + 360.0]]))
+    return float(360.0 - gaps.max())
 
 
 def check_steps(steps, path: str = "<log>") -> None:
@@ -458,12 +501,12 @@ def solve(steps, field_nt: float | None = None, free_angles: bool | None = None)
     check_mounts(sins, steps)
     mat0, bias0, nuis0 = closed_form(sins, field_nt)
     mounts = list(MOUNTS)
-    # the noise per axis: the pooled scatter inside the steps
-    sigma = np.sqrt(np.mean([np.var(s.samples, axis=0, ddof=1) for s in steps], axis=0))
+    # the noise per axis: the pooled scatter inside the steps; each step mean weighs n/σ²
+    n_s = np.array([s.n for s in steps], float)
+    sigma = np.sqrt(np.sum([(s.n - 1) * np.nan_to_num(s.std) ** 2 for s in steps], axis=0) / max(np.sum(n_s - 1), 1))
     sigma = np.where(sigma > 0, sigma, 1.0)
-    counts = np.array([len(s.samples) for s in steps])
-    samples = np.concatenate([s.samples for s in steps])
-    step_of = np.repeat(np.arange(len(steps)), counts)
+    means = np.array([s.mean for s in steps])
+    weight = np.sqrt(n_s)[:, None] / sigma
     mount_of = np.array([mounts.index(s.mount) for s in steps])
     first = {m: next(i for i, s in enumerate(steps) if s.mount == m) for m in mounts}
     free_idx = [i for i in range(len(steps)) if free and i != first[steps[i].mount]]
@@ -486,8 +529,7 @@ def solve(steps, field_nt: float | None = None, free_angles: bool | None = None)
         return out
 
     def fun(x):
-        pred = model_means(x)[step_of]
-        r = ((samples - pred) / sigma).ravel()
+        r = ((means - model_means(x)) * weight).ravel()
         mat, _, nu, _ = unpack(x)
         if field_nt:       # the field's magnitude in every mount is the site's
             g = [(math.hypot(n.b_rot, n.b_w) - field_nt) / (1e-6 * field_nt) for n in nu.values()]
@@ -503,16 +545,18 @@ def solve(steps, field_nt: float | None = None, free_angles: bool | None = None)
     res = least_squares(fun, x0, x_scale=xs, method="trf", jac="2-point", xtol=1e-12, ftol=1e-12, gtol=1e-12,
                         max_nfev=200)
     mat, b, nu, th = unpack(res.x)
-    n_data = samples.size
+    n_data = means.size
     chi2 = float(np.sum(res.fun[:n_data] ** 2))
     red = max(chi2 / max(n_data - len(res.x), 1), 1.0)
     # the covariance from the Jacobian's SVD (the gauge rows included: they fix the scale)
     _, sv, vt = np.linalg.svd(res.jac, full_matrices=False)
     keep = sv > sv[0] * 1e-12
     cov_all = (vt[keep].T / sv[keep] ** 2) @ vt[keep] * red
-    resid = samples - model_means(res.x)[step_of]
+    # the samples' RMS about the model: the scatter inside the steps and the steps' misfit
+    resid2 = (np.sum((n_s - 1)[:, None] * np.array([np.nan_to_num(s.std) ** 2 for s in steps]))
+              + np.sum(n_s[:, None] * (means - model_means(res.x)) ** 2)) / (3 * np.sum(n_s))
     out = TurntableResult(matrix=mat, bias=b, cov=cov_all[:12, :12], nuisance=nu, sinusoids=sins,
-                          residual_rms_nt=float(np.sqrt(np.mean(resid ** 2))),
+                          residual_rms_nt=float(np.sqrt(resid2)),
                           field_nt=float(field_nt) if field_nt else float(np.mean([math.hypot(n.b_rot, n.b_w)
                                                                                   for n in nu.values()])),
                           scale_known=bool(field_nt), step_angles_deg=th, closed=(mat0, bias0))
@@ -575,3 +619,110 @@ def record(res: TurntableResult, acc_cal=None, site=None, probe_id: str = "probe
     method = "turntable" + (f" + {acc_cal.method} (accelerometer)" if acc_cal is not None else "")
     return Calibration(model, probe_id=probe_id, method=method, site=rec_site, site_source=source,
                        diagnostics={"turntable": res.to_json()}, not_identifiable=not_id)
+
+
+#: A mount is complete with at least MIN_STEPS steps whose largest gap is at most 360° − this.
+COMPLETE_COVERAGE_DEG = 300.0
+
+
+@dataclass
+class TurntableSession:
+    """The turntable procedure live (the calibration node's ``method:=turntable``): static holds
+    (:class:`station.Station`, from the live detector) are offered one by one; the mount of each is
+    the one gravity shows (or ``mount``, set by the operator); a mount is complete with
+    :data:`MIN_STEPS` steps covering the turn (:func:`coverage_deg`); when all three are, the steps'
+    angles are estimated with the calibration (:func:`solve`, free angles: a stream has no table
+    angles) and the record made (:func:`record`).  Every refusal is said (``warnings``)."""
+
+    site: object = None
+    acc_cal: object = None
+    probe_id: str = "probe"
+    mount: str = ""
+    steps: list = field(default_factory=list)
+    warnings: list = field(default_factory=list)
+    infos: list = field(default_factory=list)
+    state: str = "collecting"
+    message: str = ""
+    solves: int = 0
+    calibration: object = None
+    result: object = None
+    _solved_with: int = 0
+
+    def progress(self) -> dict:
+        """Per mount: ``(steps, coverage deg, complete)``."""
+        out = {}
+        for m in MOUNTS:
+            n = sum(s.mount == m for s in self.steps)
+            cov = coverage_deg(self.steps, m)
+            out[m] = (n, cov, n >= MIN_STEPS and cov >= COMPLETE_COVERAGE_DEG)
+        return out
+
+    def progress_text(self) -> str:
+        return "; ".join(f"mount {m}: {n} steps, {cov:.0f}° of the turn" + (" (complete)" if ok else "")
+                         for m, (n, cov, ok) in self.progress().items())
+
+    def identify(self, g) -> str | None:
+        return self.mount or mount_of_gravity(g)
+
+    def offer(self, st) -> str:
+        """Take one closed static hold; returns ``accepted`` or ``rejected``."""
+        from .gates import apply_gates
+
+        apply_gates(st)
+        where = f"step at {st.where}"
+        if st.short:
+            return "rejected"
+        if st.moved or st.unusable:
+            self.warnings.append(f"{where}: " + ("the probe moved during the step" if st.moved else
+                                                 f"a gate refused the {' and '.join(st.unusable)} data")
+                                 + ": not used")
+            return "rejected"
+        seen = mount_of_gravity(st.g)
+        mount = self.mount or seen
+        if mount is None:
+            self.warnings.append(f"{where}: no marked axis is vertical (gravity {np.round(st.g, 2).tolist()} m/s²): not "
+                                 "a turntable mounting, not used")
+            return "rejected"
+        if self.mount and seen is not None and seen != self.mount:
+            self.warnings.append(f"{where}: the mount is set to {self.mount} but gravity lies along marked "
+                                 f"{AXES[MOUNTS[seen][2]]} (mount {seen}): taken as {self.mount}, as set")
+        self.steps.append(Step.from_station(st, mount, where=where))
+        prog = self.progress()
+        self.infos.append(f"{where}: mount {mount}, step {prog[mount][0]} ({prog[mount][1]:.0f}° of the turn)")
+        if self.state != "done" and all(ok for *_, ok in prog.values()):
+            self.solve()
+        return "accepted"
+
+    def solve(self) -> None:
+        try:
+            res = solve(self.steps, self.site.total_field_nt if self.site is not None else None, free_angles=True)
+        except (TurntableError, np.linalg.LinAlgError, ValueError) as exc:
+            self.state, self.message = "error", f"turntable calibration failed: {exc}"
+            return
+        self.result = res
+        self.calibration = record(res, self.acc_cal, self.site, self.probe_id, warn=self.warnings.append)
+        self.solves += 1
+        self._solved_with = len(self.steps)
+        p = res.parameters()
+        self.state = "done"
+        self.message = (f"turntable solved from {len(self.steps)} steps: residual {res.residual_rms_nt:.1f} nT; "
+                        "alpha " + ", ".join(f"{a} {v:.3f}±{sd:.3f}°" for a, v, sd in
+                                             zip(AXES, p["alpha_deg"], p["alpha_std"])))
+
+    def finish(self) -> None:
+        """The end of the data: solve with what there is (again, if steps came after a solve), or
+        say which mount is short of what."""
+        if self.state == "done" and self._solved_with == len(self.steps):
+            return
+        missing = [f"mount {m}: {n} steps, {cov:.0f}° of the turn" for m, (n, cov, ok) in self.progress().items()
+                   if n < MIN_STEPS]
+        if missing:
+            self.state = "error"
+            self.message = ("turntable incomplete — " + "; ".join(missing)
+                            + f" (each mount needs at least {MIN_STEPS} steps over a full turn)")
+            return
+        self.solve()
+
+    def reset(self) -> None:
+        self.steps, self.warnings, self.infos = [], [], []
+        self.state, self.message, self.calibration, self.result, self._solved_with = "collecting", "", None, None, 0

@@ -176,3 +176,34 @@ def test_simulate_then_turntable_gives_a_record_that_corrects_a_survey_to_the_tr
         assert main(["correct", str(out / "val.csv"), "--coeffs", str(out / f"{name}.yaml"), "--json"]) == 0
         az[name] = json.loads(capsys.readouterr().out)["azimuth_rms_deg"]
     assert az["tt"] <= 1.2 * az["truth_coeffs"], az
+
+
+def test_the_live_session_recognises_the_mounts_shows_progress_and_solves_without_labels():
+    from inclinometer_calib.probelog import segment_stations
+
+    probe = _probe()
+    m_true, b_true = _truth(probe)
+    _, log = _steps(probe)
+    stations, _ = segment_stations(log, use_labels=False)
+    session = tt.TurntableSession(site=SITE)
+    states = []
+    for st in stations:
+        assert session.offer(st) == "accepted"
+        states.append(session.state)
+    # solved once the third mount's steps cover the turn (11 of 12 steps: 330°), again at the end with all
+    assert 24 + tt.MIN_STEPS - 1 <= states.index("done") < len(stations) - 1
+    session.finish()
+    assert session.solves == 2 and session.result.step_angles_deg.shape == (36,)
+    prog = session.progress()
+    assert all(ok and n == 12 and cov > 320 for n, cov, ok in prog.values()), prog
+    assert "mount yz: 12 steps" in session.progress_text()
+    p = session.result.parameters()
+    assert _within(p["alpha_deg"], p["alpha_std"], tt.angles_from_matrix(m_true)["alpha_deg"])[0]
+    assert _within(p["bias_nT"], p["bias_std"], b_true)[0]
+    assert session.calibration.method == "turntable" and session.calibration.not_identifiable
+    # an incomplete run says which mount is short
+    short = tt.TurntableSession(site=SITE)
+    for st in stations[:30]:
+        short.offer(st)
+    short.finish()
+    assert short.state == "error" and "mount yz: 6 steps" in short.message
