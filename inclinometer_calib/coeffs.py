@@ -180,6 +180,8 @@ class Calibration:
             rec["notes"] = list(self.diagnostics["notes"])   # what the solve left out or warned about
         if self.diagnostics.get("fit"):
             rec["fit"] = self.diagnostics["fit"]             # a lab fit's statistics
+        if self.diagnostics.get("turntable"):
+            rec["turntable"] = self.diagnostics["turntable"]  # the turntable's α/β, sinusoids, residual
         return rec
 
     def to_yaml(self) -> str:
@@ -274,6 +276,8 @@ class Calibration:
             diags["notes"] = [str(x) for x in rec["notes"]]
         if rec.get("fit"):
             diags["fit"] = rec["fit"]
+        if rec.get("turntable"):
+            diags["turntable"] = rec["turntable"]
         cal = cls(probe, probe_id=str(rec.get("probe_id", "probe")), method=str(rec.get("method", "")),
                   created=str(rec.get("created", "")), site=site, diagnostics=diags,
                   site_source=str(rec.get("site_source", "unknown")),

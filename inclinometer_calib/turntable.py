@@ -72,6 +72,8 @@ from scipy.optimize import least_squares
 
 #: Mount -> (p, q, a): the two marked axes in the table plane in cyclic order, and the table axis.
 MOUNTS = {"xy": (0, 1, 2), "xz": (2, 0, 1), "yz": (1, 2, 0)}
+#: The mounts in the order of the procedure (the calibration node's status numbers them 1..3).
+MOUNT_NAMES_ORDER = tuple(MOUNTS)
 AXES = "xyz"
 MIN_STEPS = 8
 #: β of an axis is reported only when its α exceeds this many σ.
@@ -479,12 +481,13 @@ class TurntableResult:
                         "misalignment_std": [lst(r) for r in p["misalignment_std"]],
                         "matrix": [lst(r) for r in self.matrix]},
                 "sinusoids": [s.to_json() for s in self.sinusoids],
-                "residual_rms_nT": self.residual_rms_nt, "field_nT": self.field_nt,
+                "residual_rms_nT": float(self.residual_rms_nt), "field_nT": float(self.field_nt),
                 "scale": "absolute (site field)" if self.scale_known else "relative (no site: mean k = 1)",
-                "mounts": {m: {"b_rot": n.b_rot, "b_w": n.b_w, "theta0_deg": n.theta0_deg, "sense": n.sense,
+                "mounts": {m: {"b_rot": float(n.b_rot), "b_w": float(n.b_w), "theta0_deg": float(n.theta0_deg),
+                               "sense": int(n.sense),
                                "dip_if_level_deg": math.degrees(math.atan2(abs(n.b_w), abs(n.b_rot)))}
                            for m, n in self.nuisance.items()},
-                "step_offsets": [{"step": w, "offset_deg": d, "std_deg": s} for w, d, s in self.step_offsets],
+                "step_offsets": [{"step": w, "offset_deg": float(d), "std_deg": float(s)} for w, d, s in self.step_offsets],
                 "messages": self.messages}
 
 

@@ -9,6 +9,7 @@ import pytest
 from inclinometer_calib import simulate as sim
 from inclinometer_calib import turntable as tt
 from inclinometer_calib.cli import main
+from inclinometer_calib.coeffs import Calibration
 from inclinometer_calib.frames import Site
 from inclinometer_calib.probelog import write_csv
 
@@ -171,6 +172,8 @@ def test_simulate_then_turntable_gives_a_record_that_corrects_a_survey_to_the_tr
     assert set(doc["mag"]) >= {"k", "bias_nT", "alpha_deg", "beta_deg", "misalignment_rad"}
     assert len(doc["sinusoids"]) == 9 and {"mount", "axis", "A", "b_deg", "C", "rms"} <= set(doc["sinusoids"][0])
     assert np.array(doc["mag"]["misalignment_rad"]).shape == (3, 3) and doc["residual_rms_nT"] < 25
+    rec = Calibration.load(out / "tt.yaml")
+    assert rec.method.startswith("turntable + ") and rec.diagnostics["turntable"]["mag"]["alpha_deg"] == doc["mag"]["alpha_deg"]
     az = {}
     for name in ("tt", "truth_coeffs"):
         assert main(["correct", str(out / "val.csv"), "--coeffs", str(out / f"{name}.yaml"), "--json"]) == 0

@@ -15,6 +15,14 @@ identify are said at WARNING and named in the record (``not_identifiable``).  It
 is the one given (``site.given:=true`` and ``site.*``) or, without one, the one the stand
 measures (dip and the horizontal field's direction; said at WARNING), never a default.
 
+With ``method:=turntable`` the node runs the patent's procedure instead (:class:`turntable.
+TurntableSession`): each static hold is a table step, its mount the one gravity shows (or the
+``turntable.mount`` parameter, settable while running); the status counts the three mounts as
+"poses" 1..3 (xy, xz, yz: captured when complete, ``capture_progress`` the share of the turn the
+current mount covers, the message the steps and coverage per mount); the record (the magnetometer;
+the accelerometer from ``turntable.acc_record``) is published when all three are complete, and
+again at the end of the data with every step.
+
 ``/calibration/status`` (``CalibrationStatus``) is published on every change and at
 ``status_rate_hz``.  Pose numbers in messages and services are those of the paper's Table 1
 (1..12), as everywhere in the package.  Services: ``~/reset`` (std_srvs/Trigger)
@@ -36,6 +44,7 @@ from ..effects import parse_effects
 from ..frames import gravity_from_specific_force
 from ..gates import GateLimits
 from ..streaming import StaticDetector
+from ..turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
 from ..twelve_position import POSES
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, CalibrationStatus
@@ -48,6 +57,14 @@ def _check_effects(text):
     except ValueError as exc:
         return str(exc)
     return None
+
+
+def _check_method(value):
+    return None if value in ("twelve_position", "turntable") else "must be twelve_position or turntable"
+
+
+def _check_mount(value):
+    return None if value in ("",) + tuple(MOUNTS) else "must be empty (recognised from gravity) or xy, xz, yz"
 
 
 class CalibrationNode(Node):
@@ -85,15 +102,33 @@ class CalibrationNode(Node):
         effects = p.declare("model.effects", "", "Effects to fit beyond the paper's model on the captured poses, "
                             "NAME[:sensor[:axes]][@scope],... (e.g. temperature_bias:mag); empty: the paper's model",
                             read_only=True, check=_check_effects)
+        self.method = p.declare("method", "twelve_position", "Calibration procedure: twelve_position (the paper's "
+                                "stand) or turntable (the patent's: the magnetometer on a non-magnetic table, three "
+                                "mounts turned in equal steps)", read_only=True, check=_check_method)
+        mount = p.declare("turntable.mount", "", "turntable: the current mount (xy, xz, yz); empty: recognised from "
+                          "gravity (the marked axis that is vertical)", check=_check_mount)
+        acc_record = p.declare("turntable.acc_record", "", "turntable: a calibration record (e.g. the twelve "
+                               "positions') whose accelerometer joins the turntable's magnetometer in the record",
+                               read_only=True)
         det = c.declare_detector(p, max_duration_s=600.0)
         qos = c.declare_qos(p)
 
         self.detector = StaticDetector(**det)
         self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
         self.implausible_samples = 0
-        self.session = CaptureSession(site=site, min_capture_s=min_capture, pose_tolerance_deg=pose_tol,
-                                      rounds=rounds, probe_id=self.probe_id, effects=effects,
-                                      limits=GateLimits(max_creep_deg=max_creep, max_scatter_ratio=max_ratio))
+        if self.method == "turntable":
+            acc_cal = None
+            if acc_record:
+                from ..coeffs import Calibration
+                try:
+                    acc_cal = Calibration.load(acc_record)
+                except (OSError, ValueError) as exc:
+                    raise SystemExit(f"turntable.acc_record {acc_record}: {exc}") from None
+            self.session = TurntableSession(site=site, acc_cal=acc_cal, probe_id=self.probe_id, mount=mount)
+        else:
+            self.session = CaptureSession(site=site, min_capture_s=min_capture, pose_tolerance_deg=pose_tol,
+                                          rounds=rounds, probe_id=self.probe_id, effects=effects,
+                                          limits=GateLimits(max_creep_deg=max_creep, max_scatter_ratio=max_ratio))
         self.pairer = c.StreamPairer()
         self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
         self._last = None            # latest paired sample (t, f, m)
@@ -110,8 +145,13 @@ class CalibrationNode(Node):
         self.create_service(RecapturePose, "~/recapture", self._on_recapture)
         c.steady_timer(self, 1.0 / self.status_rate, self._on_timer)  # runs on when /clock stops
         self.add_post_set_parameters_callback(self._after_set)
-        self.get_logger().info(f"waiting for the twelve poses on {c.TOPIC_IMU} + {c.TOPIC_MAG}"
+        self.get_logger().info(("waiting for the turntable's steps (mounts xy, xz, yz)" if self.turntable else
+                                "waiting for the twelve poses") + f" on {c.TOPIC_IMU} + {c.TOPIC_MAG}"
                                + (f"; coefficients will be written to {self.output}" if self.output else ""))
+
+    @property
+    def turntable(self) -> bool:
+        return self.method == "turntable"
 
     @staticmethod
     def _check_output(path):
@@ -125,6 +165,9 @@ class CalibrationNode(Node):
         for prm in params:
             if prm.name in ("output", "max_warnings"):
                 setattr(self, prm.name, prm.value)
+            elif prm.name == "turntable.mount" and self.turntable:
+                self.session.mount = prm.value
+                self.get_logger().info(f"turntable mount set to {prm.value or '(recognised from gravity)'}")
 
     # ---- samples ---------------------------------------------------------------------------
     def _on_imu(self, msg):
@@ -174,7 +217,7 @@ class CalibrationNode(Node):
                 self.get_logger().warning(w)
         for i in s.infos[n_info:]:
             self.get_logger().info(i)
-        if result == "accepted":
+        if result == "accepted" and not self.turntable:
             self.get_logger().info(f"captured pose {s.current_pose}; pending {s.pending}")
         if (s.solves != n_solves and s.calibration is not None
                 and (self.coefficients is None or self.coefficients.id != s.calibration.id)):
@@ -223,14 +266,21 @@ class CalibrationNode(Node):
             return
         # Live pose while static (the session only identifies closed segments).
         if self._last is not None and self.detector.static_for_s > 0:
-            pose, _ = self.session.identify(gravity_from_specific_force(tuple(self._last[1])), self._last[2])
-            self._live_pose = pose if pose is not None else -1
+            g = gravity_from_specific_force(tuple(self._last[1]))
+            if self.turntable:
+                m = self.session.identify(g)
+                self._live_pose = MOUNT_NAMES_ORDER.index(m) + 1 if m else -1
+            else:
+                pose, _ = self.session.identify(g, self._last[2])
+                self._live_pose = pose if pose is not None else -1
         else:
             self._live_pose = -1
         if c.ros_time_started(self):  # use_sim_time: no periodic status before the first /clock
             self._publish_status()
 
     def _publish_status(self):
+        if self.turntable:
+            return self._publish_turntable_status()
         s = self.session
         msg = CalibrationStatus()
         msg.header.stamp = self.get_clock().now().to_msg()
@@ -250,6 +300,25 @@ class CalibrationNode(Node):
                                     else "")
         self.pub_status.publish(msg)
 
+    def _publish_turntable_status(self):
+        """The status in turntable mode: the three mounts as poses 1..3 (xy, xz, yz)."""
+        s = self.session
+        msg = CalibrationStatus()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.frame_id
+        prog = s.progress()
+        msg.total_poses = len(MOUNTS)
+        msg.captured = [k + 1 for k, m in enumerate(MOUNT_NAMES_ORDER) if prog[m][2]]
+        msg.pending = [k + 1 for k, m in enumerate(MOUNT_NAMES_ORDER) if not prog[m][2]]
+        msg.current_pose = self._live_pose if self._live_pose > 0 else -1
+        msg.is_static = self.detector.is_static
+        cur = MOUNT_NAMES_ORDER[self._live_pose - 1] if self._live_pose > 0 else None
+        msg.capture_progress = float(min(prog[cur][1] / 360.0, 1.0)) if cur else 0.0
+        msg.warnings = list(s.warnings[-self.max_warnings:]) if self.max_warnings else []
+        msg.state = s.state
+        msg.message = s.message if s.state != "collecting" else s.progress_text()
+        self.pub_status.publish(msg)
+
     # ---- services --------------------------------------------------------------------------
     def _on_reset(self, request, response):
         self.session.reset()
@@ -264,6 +333,19 @@ class CalibrationNode(Node):
 
     def _on_recapture(self, request, response):
         pose = int(request.pose)
+        if self.turntable:       # poses 1..3 are the mounts: their steps are taken again
+            if not 1 <= pose <= len(MOUNTS):
+                response.success = False
+                response.message = f"mount {pose} out of range (1..3: xy, xz, yz)"
+                return response
+            m = MOUNT_NAMES_ORDER[pose - 1]
+            self.session.steps = [st for st in self.session.steps if st.mount != m]
+            self.session.state = "collecting"
+            response.success = True
+            response.message = f"mount {m}: its steps discarded; turn it again"
+            self.get_logger().info(response.message)
+            self._publish_status()
+            return response
         if pose not in POSES:
             response.success = False
             response.message = f"pose {pose} out of range (1..{len(POSES)})"
