@@ -28,7 +28,8 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["inclinometer_calib", "inclinometer_calib.*"]),
-    install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0", "allantools>=2019.9"],
+    install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0", "allantools>=2019.9",
+                      "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6"],
     extras_require=EXTRAS,
     entry_points={
         "console_scripts": [

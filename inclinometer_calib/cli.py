@@ -405,6 +405,9 @@ def cmd_correct(args):
         (("axial_degenerate",) if args.axial_correction else ())
     summ["flagged"] = {n: int(np.sum(res[n])) for n in flags}
     summ["azimuth_method"] = "short_collar" if args.axial_correction else "standard"
+    if site is not None:
+        from .geomag import azimuth_reference
+        summ["azimuth_reference"] = azimuth_reference(site)
     if args.json:
         print(json.dumps(summ, indent=2))
         return 0
@@ -416,6 +419,8 @@ def cmd_correct(args):
         print(format_table5(None, table5(res, ref)).replace(" after ", f" {label[:6]:<6}"))
         print()
     print(_summary_line(summ))
+    if "azimuth_reference" in summ:
+        print(f"azimuths from {summ['azimuth_reference']}")
     if args.output:
         print(f"wrote {args.output} ({len(stations)} stations)")
     return 0

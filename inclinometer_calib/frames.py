@@ -18,7 +18,7 @@ are ``(..., 3)`` arrays.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -114,12 +114,22 @@ class Site:
         true azimuths by adding the declination.
     gravity_mps2 : float
         Local gravity |g| in m/s².
+    reference : dict
+        Where the values came from when the site was given by its location (:mod:`geomag`): the
+        position, date, model, each value's source (the model or a measured IFR value) and, with a
+        projected CRS, the grid convergence; empty for values typed in.
     """
 
     total_field_nt: float = 50000.0
     dip_deg: float = 45.1  # Chengdu, the seed paper's site
     declination_deg: float = 0.0
     gravity_mps2: float = STANDARD_GRAVITY
+    reference: dict = field(default_factory=dict, compare=False, hash=False)
+
+    @property
+    def grid_convergence_deg(self) -> float:
+        """Grid convergence (deg, east positive; grid azimuth = true − it), NaN without a grid."""
+        return float(self.reference.get("grid_convergence_deg", float("nan")))
 
     def field_ned(self) -> np.ndarray:
         """Earth field vector in NED (nT): [B cos(dip) cos(dec), B cos(dip) sin(dec), B sin(dip)]."""
@@ -132,20 +142,31 @@ class Site:
         return np.array([0.0, 0.0, self.gravity_mps2])
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "total_field_nt": float(self.total_field_nt),
             "dip_deg": float(self.dip_deg),
             "declination_deg": float(self.declination_deg),
             "gravity_mps2": float(self.gravity_mps2),
         }
+        if self.reference:
+            out["reference"] = dict(self.reference)
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> "Site":
+        """A site from its values (a record's, a site file's); a site file may instead give a
+        location to look the values up (:func:`geomag.site_from_config`)."""
+        from .geomag import LOCATION_KEYS, site_from_config
+
+        if any(k in d for k in LOCATION_KEYS):
+            return site_from_config(d)
         known = {"total_field_nt", "dip_deg", "declination_deg", "gravity_mps2"}
-        unknown = set(d) - known
+        unknown = set(d) - known - {"reference"}
         if unknown:
-            raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected {sorted(known)}")
-        site = cls(**{k: float(v) for k, v in d.items()})
+            raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected {sorted(known)} or a location "
+                             f"({', '.join(LOCATION_KEYS)})")
+        site = cls(**{k: float(v) for k, v in d.items() if k != "reference"},
+                   reference=dict(d.get("reference") or {}))
         if not (site.total_field_nt > 0 and site.gravity_mps2 > 0 and -90 <= site.dip_deg <= 90):
             raise ValueError(f"site: implausible reference {site.to_dict()}")
         return site

@@ -17,6 +17,7 @@ import numpy as np
 
 from . import frames
 from .frames import Site, gravity_from_specific_force, wrap180, wrap360
+from .geomag import azimuths
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,8 @@ def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict
     """Angles, QC and (if ``ref`` (N, 3) deg is given) errors for corrected vectors ``g``, ``b``.
 
     Returns a dict of (N,) arrays.  Flags are booleans; ``status`` is 0 ok, 1 warn, 2 error.
+    ``azimuth_deg`` is from the site's north (true when the site has a declination), with
+    ``azimuth_magnetic_deg`` and ``azimuth_grid_deg`` (NaN when the site has no grid) beside it.
 
     A reference is used for what it defines (NaN: not given).  Within the vertical cone
     (``tol.min_drift_deg`` of 0° or 180°) the azimuth is undefined, and the toolface error is
@@ -56,7 +59,12 @@ def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict
     g = np.atleast_2d(np.asarray(g, dtype=float))
     b = np.atleast_2d(np.asarray(b, dtype=float))
     out = frames.angles_from_vectors(g, b)
-    out["azimuth_deg"] = wrap360(out["azimuth_deg"] + site.declination_deg)
+    # the azimuth in every reference (geomag.azimuths): magnetic as measured, true with the site's
+    # declination (the reported azimuth_deg), grid with its grid convergence (NaN without a grid)
+    refs = azimuths(wrap360(out["azimuth_deg"] + site.declination_deg), site.declination_deg,
+                    site.grid_convergence_deg)
+    out["azimuth_deg"] = refs["true"]
+    out["azimuth_magnetic_deg"], out["azimuth_grid_deg"] = refs["magnetic"], refs["grid"]
     d, thr = out["drift_deg"], tol.gravity_toolface_min_drift_deg
     gtf_ok = (d >= thr) & (d <= 180.0 - thr)   # outside the cone (NaN drift: magnetic, as the batch kernel)
     out["toolface_deg"] = np.where(gtf_ok, out["gravity_toolface_deg"], out["magnetic_toolface_deg"])

@@ -28,7 +28,7 @@ from inclinometer_calib.reprocess import write_probe_bag
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = os.path.join(ROOT, "inclinometer_calib")
-CORE = {"numpy", "scipy", "pyyaml", "allantools"}
+CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj"}
 OPTIONAL_MODULES = ("matplotlib", "mcap", "zstandard", "lz4", "rosbags")
 #: import name -> PyPI distribution, where they differ
 DISTRIBUTION = {"yaml": "PyYAML"}

@@ -1,0 +1,160 @@
+"""The site's reference field from a geomagnetic model, gravity from the location, grid convergence — ROS-free.
+
+A rig's reference is not typed in: it comes from a main-field model at the well's latitude,
+longitude, altitude and date, unless the site has measured values (an in-field referencing survey,
+IFR), which win, value by value.  Models, through maintained libraries:
+
+* ``WMM2025`` — the World Magnetic Model 2025 (NOAA/BGS; ``pygeomag``), valid 2025.0–2030.0;
+* ``IGRF-14`` — the International Geomagnetic Reference Field, 14th generation (IAGA; ``ppigrf``),
+  1900–2030.
+
+Both give the field's north, east and down components (nT) at a geodetic (WGS84) position; from
+them the total field ``F``, the dip ``I = atan2(Z, H)`` and the declination ``D = atan2(Y, X)``
+(east positive).  Gravity, when not measured, is WGS84 normal gravity (Somigliana) with the
+free-air gradient.  Grid convergence (the angle from true north to grid north, for a projected
+CRS named by EPSG code or PROJ string) comes from ``pyproj``'s meridian convergence: a grid
+azimuth is the true azimuth minus it.
+
+Azimuths then exist in three references: magnetic (what the magnetometers give), true
+(magnetic + declination) and grid (true − convergence); :func:`azimuths` gives all three.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import math
+
+import numpy as np
+
+from .frames import wrap360
+
+MODELS = ("WMM2025", "IGRF-14")
+#: Validity of each model (decimal years); outside it a lookup is refused.
+VALID = {"WMM2025": (2025.0, 2030.0), "IGRF-14": (1900.0, 2030.0)}
+#: Keys of a site given by its location (the rest of a site's keys are measured values).
+LOCATION_KEYS = ("latitude_deg", "longitude_deg", "altitude_m", "date", "model", "crs")
+
+
+def decimal_year(date) -> float:
+    """A date (``datetime.date``, ``datetime.datetime`` or ISO text) as a decimal year."""
+    if isinstance(date, str):
+        date = _dt.date.fromisoformat(date)
+    if isinstance(date, _dt.datetime):
+        start = _dt.datetime(date.year, 1, 1, tzinfo=date.tzinfo)
+        end = _dt.datetime(date.year + 1, 1, 1, tzinfo=date.tzinfo)
+        return date.year + (date - start) / (end - start)
+    start, end = _dt.date(date.year, 1, 1), _dt.date(date.year + 1, 1, 1)
+    return date.year + (date - start).days / (end - start).days
+
+
+def model_field(lat_deg: float, lon_deg: float, alt_m: float, date, model: str = "WMM2025") -> dict:
+    """The main field at a geodetic position: ``x`` (north), ``y`` (east), ``z`` (down), ``h``,
+    ``f`` in nT, ``dip_deg``, ``declination_deg``, with the model and decimal year."""
+    if model not in MODELS:
+        raise ValueError(f"geomagnetic model {model!r} unknown (one of {', '.join(MODELS)})")
+    if not (-90.0 <= lat_deg <= 90.0 and -180.0 <= lon_deg <= 360.0):
+        raise ValueError(f"position {lat_deg}, {lon_deg}: latitude must be within ±90°, longitude ±180° (or 0–360°)")
+    year = decimal_year(date)
+    lo, hi = VALID[model]
+    if not lo <= year < hi:
+        raise ValueError(f"{model} is valid {lo:g}–{hi:g}; the date {year:.3f} is outside it")
+    if model == "WMM2025":
+        from pygeomag import GeoMag
+
+        r = GeoMag().calculate(glat=float(lat_deg), glon=float(lon_deg), alt=float(alt_m) / 1000.0, time=year)
+        x, y, z = float(r.x), float(r.y), float(r.z)
+    else:
+        import ppigrf
+
+        d = date if isinstance(date, (_dt.date, _dt.datetime)) else _dt.date.fromisoformat(str(date))
+        when = d if isinstance(d, _dt.datetime) else _dt.datetime(d.year, d.month, d.day)
+        be, bn, bu = ppigrf.igrf(float(lon_deg), float(lat_deg), float(alt_m) / 1000.0, when)
+        x, y, z = float(np.ravel(bn)[0]), float(np.ravel(be)[0]), -float(np.ravel(bu)[0])
+    h = math.hypot(x, y)
+    return {"model": model, "decimal_year": year, "x": x, "y": y, "z": z, "h": h, "f": math.hypot(h, z),
+            "dip_deg": math.degrees(math.atan2(z, h)), "declination_deg": math.degrees(math.atan2(y, x))}
+
+
+def normal_gravity(lat_deg: float, alt_m: float = 0.0) -> float:
+    """WGS84 normal gravity (m/s²): Somigliana's formula on the ellipsoid, then the free-air
+    gradient to first and second order in height (NIMA TR8350.2, eqs. 4-1 and 4-3)."""
+    a, b = 6378137.0, 6356752.3142
+    ge, gp = 9.7803253359, 9.8321849378
+    s2 = math.sin(math.radians(lat_deg)) ** 2
+    g0 = (a * ge * (1 - s2) + b * gp * s2) / math.sqrt(a * a * (1 - s2) + b * b * s2)
+    f, m = 1 / 298.257223563, 0.00344978650684
+    return g0 * (1 - 2 / a * (1 + f + m - 2 * f * s2) * alt_m + 3 / a ** 2 * alt_m ** 2)
+
+
+def grid_convergence(lat_deg: float, lon_deg: float, crs) -> float:
+    """Grid convergence (deg) at a position for a projected CRS (EPSG code, ``EPSG:…`` or PROJ
+    text): the angle from true north to grid north, east positive — ``grid = true − γ``."""
+    from pyproj import CRS, Proj
+
+    c = CRS.from_user_input(int(crs) if isinstance(crs, (int, np.integer)) or str(crs).isdigit() else crs)
+    if not c.is_projected:
+        raise ValueError(f"CRS {crs!r} is not a projected CRS: it has no grid north")
+    # pyproj's meridian convergence: east of the central meridian (north) true north lies east of
+    # grid north by it, so a line to true north has grid azimuth −γ
+    return float(Proj(c).get_factors(lon_deg, lat_deg).meridian_convergence)
+
+
+def azimuths(azimuth_true_deg, declination_deg: float, convergence_deg: float = float("nan")) -> dict:
+    """The three azimuth references of true azimuths: ``magnetic = true − D``, ``true``,
+    ``grid = true − γ`` (NaN without a grid)."""
+    t = np.asarray(azimuth_true_deg, dtype=float)
+    return {"magnetic": wrap360(t - declination_deg), "true": wrap360(t),
+            "grid": wrap360(t - convergence_deg) if np.isfinite(convergence_deg) else np.full_like(t, np.nan)}
+
+
+def azimuth_reference(site) -> str:
+    """What ``azimuth_deg`` of a site's stations is measured from, in words (with the grid)."""
+    ref = site.reference or {}
+    src = ref.get("sources", {}).get("declination_deg", "given")
+    if site.declination_deg == 0.0 and not ref:
+        out = "magnetic north (the site gives no declination)"
+    else:
+        out = f"true north (declination {site.declination_deg:+.3f}°, {src})"
+    if np.isfinite(site.grid_convergence_deg):
+        out += f"; grid azimuths for {ref.get('crs')} (convergence {site.grid_convergence_deg:+.3f}°)"
+    return out
+
+
+def site_from_config(d: dict):
+    """A :class:`frames.Site` from a site section: measured values (``total_field_nt``,
+    ``dip_deg``, ``declination_deg``, ``gravity_mps2``) and/or a location (``latitude_deg``,
+    ``longitude_deg``, ``altitude_m``, ``date``, ``model``; optional ``crs`` for grid azimuths).
+    Measured values win, value by value; the site's ``reference`` says where each came from."""
+    from .frames import Site
+
+    measured = {k: d[k] for k in ("total_field_nt", "dip_deg", "declination_deg", "gravity_mps2") if k in d}
+    loc = {k: d[k] for k in LOCATION_KEYS if k in d}
+    unknown = set(d) - set(measured) - set(LOCATION_KEYS) - {"reference"}
+    if unknown:
+        raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected measured values (total_field_nt, dip_deg, "
+                         f"declination_deg, gravity_mps2) and/or a location ({', '.join(LOCATION_KEYS)})")
+    if not loc:
+        return Site.from_dict({**measured, **({"reference": d["reference"]} if "reference" in d else {})})
+    missing = [k for k in ("latitude_deg", "longitude_deg", "date") if k not in loc]
+    if missing:
+        raise ValueError(f"site: a location needs {', '.join(missing)} as well")
+    lat, lon = float(loc["latitude_deg"]), float(loc["longitude_deg"])
+    alt = float(loc.get("altitude_m", 0.0))
+    model = str(loc.get("model", "WMM2025"))
+    date = loc["date"] if isinstance(loc["date"], (_dt.date, _dt.datetime)) else str(loc["date"])
+    m = model_field(lat, lon, alt, date, model)
+    values = {"total_field_nt": m["f"], "dip_deg": m["dip_deg"], "declination_deg": m["declination_deg"],
+              "gravity_mps2": normal_gravity(lat, alt)}
+    source = {k: (f"{model} at {lat:g}, {lon:g}, {alt:g} m, {m['decimal_year']:.3f}" if k != "gravity_mps2"
+                  else "WGS84 normal gravity") for k in values}
+    for k, v in measured.items():
+        values[k] = float(v)
+        source[k] = "measured (IFR)"
+    ref = {"latitude_deg": lat, "longitude_deg": lon, "altitude_m": alt, "date": str(date), "model": model,
+           "sources": source}
+    if "crs" in loc:
+        ref["crs"] = str(loc["crs"])
+        ref["grid_convergence_deg"] = grid_convergence(lat, lon, loc["crs"])
+    site = Site(**{k: float(v) for k, v in values.items()}, reference=ref)
+    if not (site.total_field_nt > 0 and site.gravity_mps2 > 0 and -90 <= site.dip_deg <= 90):
+        raise ValueError(f"site: implausible reference {site.to_dict()}")
+    return site
