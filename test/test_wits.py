@@ -1,0 +1,127 @@
+"""WITS level 0 out (:mod:`inclinometer_calib.wits`), read back by a parser written here from the
+WITS0 framing rules (``&&`` CR LF, lines ``RRII`` + value, ``!!`` CR LF), not with our encoder:
+every item of record 07, items without a value left out, several TCP clients served at once,
+a stalled or vanished client dropped without the others losing a record."""
+import datetime as dt
+import io
+import math
+import socket
+import time
+
+import pytest
+
+from inclinometer_calib import wits
+
+
+def parse_wits0(data: bytes) -> list:
+    """Records of a WITS0 byte stream: each a dict {(record, item): value text}; raises on a
+    malformed frame."""
+    text = data.decode("ascii")
+    out = []
+    for chunk in text.split("&&\r\n")[1:]:
+        body, sep, _ = chunk.partition("!!\r\n")
+        if not sep:
+            raise ValueError("record without its '!!' end")
+        rec = {}
+        for line in body.split("\r\n"):
+            if not line:
+                continue
+            if len(line) < 4 or not line[:4].isdigit():
+                raise ValueError(f"bad WITS0 line {line!r}")
+            rec[(int(line[:2]), int(line[2:4]))] = line[4:]
+        out.append(rec)
+    return out
+
+
+STATION = {"measured_depth_m": 1523.4, "tvd_m": 1402.18, "drift_deg": 34.567, "azimuth_magnetic_deg": 120.1,
+           "azimuth_deg": 121.75, "magnetic_toolface_deg": 45.0, "gravity_toolface_deg": 310.25, "north_m": -250.5,
+           "east_m": 433.12, "dls_deg_per_30m": 2.5}
+
+
+def test_a_station_is_one_record_07_with_every_item():
+    when = dt.datetime(2026, 11, 23, 14, 5, 9, tzinfo=dt.timezone.utc)
+    raw = wits.encode(STATION, 17, well_id="NO 15/9-F-12", hole_section=2, when=when)
+    assert raw.startswith(b"&&\r\n") and raw.endswith(b"!!\r\n")
+    (rec,) = parse_wits0(raw)
+    assert rec[(7, 1)] == "NO 15/9-F-12" and rec[(7, 2)] == "2" and rec[(7, 3)] == "7" and rec[(7, 4)] == "17"
+    assert rec[(7, 5)] == "261123" and rec[(7, 6)] == "140509" and rec[(7, 12)] == "MWD"
+    expect = {8: 1523.4, 9: 1402.18, 11: 1523.4, 13: 34.567, 14: 120.1, 15: 121.75, 16: 45.0, 17: 310.25,
+              18: -250.5, 19: 433.12, 20: 2.5}
+    for item, v in expect.items():
+        assert float(rec[(7, item)]) == pytest.approx(v, abs=0.005), item
+    # an undefined value (a vertical station's azimuth) is left out, not sent as a number
+    (rec2,) = parse_wits0(wits.encode({**STATION, "azimuth_deg": math.nan, "north_m": None}, 18))
+    assert (7, 15) not in rec2 and (7, 18) not in rec2 and (7, 13) in rec2
+
+
+def test_records_go_to_a_file_or_device_as_a_byte_stream(tmp_path):
+    dev = io.BytesIO()
+    for k in range(5):
+        dev.write(wits.encode({**STATION, "measured_depth_m": 1500 + 30 * k}, k + 1))
+    recs = parse_wits0(dev.getvalue())
+    assert [float(r[(7, 8)]) for r in recs] == [1500, 1530, 1560, 1590, 1620]
+
+
+def _connect(port):
+    s = socket.create_connection(("127.0.0.1", port), timeout=5)
+    return s
+
+
+def _read_all(s, want_records, timeout=10.0):
+    buf = b""
+    t0 = time.monotonic()
+    s.settimeout(0.5)
+    while buf.count(b"!!\r\n") < want_records and time.monotonic() - t0 < timeout:
+        try:
+            chunk = s.recv(65536)
+        except socket.timeout:
+            continue
+        if not chunk:
+            break
+        buf += chunk
+    return buf
+
+
+def _wait(cond, timeout=5.0):
+    t0 = time.monotonic()
+    while not cond() and time.monotonic() - t0 < timeout:
+        time.sleep(0.01)
+    return cond()
+
+
+def test_several_tcp_clients_get_every_station_and_a_stalled_one_is_dropped_alone():
+    import threading
+
+    said = []
+    srv = wits.WitsServer(port=0, max_buffer=64 * 1024, say=said.append, sndbuf=16 * 1024)
+    n = 3000                                     # about 0.8 MB: far beyond what a stalled client may hold
+    try:
+        a, b, stall = _connect(srv.port), _connect(srv.port), _connect(srv.port)
+        stall.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)   # it never reads
+        assert _wait(lambda: srv.clients == 3)
+        got = {}
+        readers = [threading.Thread(target=lambda s=s, k=k: got.__setitem__(k, _read_all(s, n, timeout=30)))
+                   for k, s in (("a", a), ("b", b))]
+        for t in readers:
+            t.start()
+        for k in range(n):
+            srv.send(wits.encode({**STATION, "measured_depth_m": 1000.0 + k}, k + 1))
+            if k % 100 == 0:
+                time.sleep(0.005)     # a survey comes station by station; the readers keep up
+        for t in readers:
+            t.join()
+        for k in ("a", "b"):
+            recs = parse_wits0(got[k])
+            assert [int(r[(7, 4)]) for r in recs] == list(range(1, n + 1)), k
+            assert float(recs[-1][(7, 8)]) == 1000.0 + n - 1
+        assert _wait(lambda: any("stalled" in why for _, why in srv.dropped)), srv.dropped
+        assert any("dropped: stalled" in m for m in said) and srv.clients == 2
+        # a client that goes away is dropped; the other goes on
+        b.close()
+        srv.send(wits.encode(STATION, n + 1))
+        assert parse_wits0(_read_all(a, 1))[-1][(7, 4)] == str(n + 1)
+        assert _wait(lambda: any(why == "disconnected" for _, why in srv.dropped))
+        a.close()
+        stall.close()
+    finally:
+        srv.close()
