@@ -429,6 +429,10 @@ def read_bag(path):
                     "coefficients_id", "reference_drift_deg", "reference_azimuth_deg",
                     "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
                     "moved_during_capture", "model_misfit", "model_diagnosis")}
+                # depth and trajectory (NaN in a bag recorded before they existed)
+                for k in ("measured_depth_m", "tvd_m", "north_m", "east_m", "dls_deg_per_30m",
+                          "azimuth_magnetic_deg", "azimuth_grid_deg"):
+                    d[k] = getattr(msg, k, float("nan"))
                 d["warnings"] = list(msg.warnings)
                 d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
                 stations.append({k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()})

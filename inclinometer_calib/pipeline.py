@@ -28,10 +28,14 @@ import numpy as np
 
 from .axial import evaluate_with_axial
 from .gates import apply_gates
+from .geomag import azimuths
 from .station import Station
 from .survey import Tolerances, evaluate
+from .trajectory import minimum_curvature
 
 NAN = float("nan")
+#: The default tie-in of a trajectory: the surface (md, inclination, azimuth, tvd, north, east).
+TIE_IN_SURFACE = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 NO_SITE = ("no site reference: no calibration record yet and no site given — |G|, |B| and dip are not "
            "checked, azimuths are magnetic")
 
@@ -108,8 +112,12 @@ class SurveyProcessor:
     """
 
     def __init__(self, tolerances: Tolerances = Tolerances(), calibration=None, *, site=None,
-                 axial: bool = False, monitor=None):
+                 axial: bool = False, monitor=None, tie_in=TIE_IN_SURFACE):
         self.tolerances = tolerances
+        # the trajectory: (md, inclination, azimuth, tvd, north, east) of the stations with a depth,
+        # in order of depth, from the tie-in (default: the surface, vertical)
+        self.tie_in = tuple(float(x) for x in tie_in)
+        self._path = [self.tie_in]
         self.site_given = site
         self.axial = axial
         self.monitor = monitor
@@ -152,6 +160,11 @@ class SurveyProcessor:
             st.warnings.append(NO_SITE)
         res = evaluate_stations(g, b, site, self.tolerances, None if ref is None else [ref], self.axial)
         values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
+        # the azimuth reported (true, or short-collar) in the other references
+        refs = azimuths([values["azimuth_deg"]], site.declination_deg if site is not None else 0.0,
+                        site.grid_convergence_deg if site is not None else NAN)
+        values["azimuth_magnetic_deg"], values["azimuth_grid_deg"] = float(refs["magnetic"][0]), float(refs["grid"][0])
+        values.update(self._trajectory(st, values, site))
         azimuth_reference = "true" if site is not None and site.declination_deg else "magnetic"
         fields = station_fields(self._next_id, st, values, cal.id if cal is not None else "", ref, azimuth_reference,
                                 have_temperature)
@@ -161,6 +174,31 @@ class SurveyProcessor:
             fields["model_misfit"] = verdict.misfit
             fields["model_diagnosis"] = verdict.text
         return fields
+
+    def _trajectory(self, st: Station, values: dict, site) -> dict:
+        """Depth and position of a station by minimum curvature from the station before it in depth
+        (:mod:`trajectory`; north/east along grid north when the site has a grid, else the site's
+        north).  A station at or above a depth already surveyed (a re-survey) replaces what lies
+        below it.  Without a depth (or a drift, or when the probe moved) the fields are NaN."""
+        out = {"measured_depth_m": NAN, "tvd_m": NAN, "north_m": NAN, "east_m": NAN, "dls_deg_per_30m": NAN}
+        md, inc = float(st.md_m), float(values.get("drift_deg", NAN))
+        if not (math.isfinite(md) and math.isfinite(inc)) or st.moved:
+            out["measured_depth_m"] = md if math.isfinite(md) else NAN
+            return out
+        grid = site is not None and math.isfinite(site.grid_convergence_deg)
+        azi = values["azimuth_grid_deg"] if grid else values["azimuth_deg"]
+        azi = float(azi) if math.isfinite(float(azi)) and not values.get("azimuth_undefined") else 0.0
+        while len(self._path) > 1 and self._path[-1][0] >= md:      # a re-survey replaces what it overlaps
+            self._path.pop()
+        prev = self._path[-1]
+        if md <= prev[0]:      # at or above the tie-in: nothing to place it from
+            out["measured_depth_m"] = md
+            return out
+        t = minimum_curvature([prev[0], md], [prev[1], inc], [prev[2], azi], tie_in=(prev[3], prev[4], prev[5]))
+        self._path.append((md, inc, azi, float(t.tvd[-1]), float(t.north[-1]), float(t.east[-1])))
+        out.update(measured_depth_m=md, tvd_m=float(t.tvd[-1]), north_m=float(t.north[-1]),
+                   east_m=float(t.east[-1]), dls_deg_per_30m=float(t.dls[-1]))
+        return out
 
 
 def _finite_or_nan(x) -> float:
@@ -212,4 +250,11 @@ def station_fields(station_id: int, seg: Station, v: dict, coefficients_id: str,
         reference_drift_deg=ref[0],
         reference_azimuth_deg=ref[1],
         reference_toolface_deg=ref[2],
+        measured_depth_m=_finite_or_nan(v.get("measured_depth_m", NAN)),
+        tvd_m=_finite_or_nan(v.get("tvd_m", NAN)),
+        north_m=_finite_or_nan(v.get("north_m", NAN)),
+        east_m=_finite_or_nan(v.get("east_m", NAN)),
+        dls_deg_per_30m=_finite_or_nan(v.get("dls_deg_per_30m", NAN)),
+        azimuth_magnetic_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_magnetic_deg", NAN)),
+        azimuth_grid_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_grid_deg", NAN)),
     )

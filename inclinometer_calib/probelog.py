@@ -11,9 +11,11 @@ CSV format (the header line is literal)::
   (``mag_unit``: nT, uT, mT, T, G, mG), converted to nT when read.
 * ``temp_c``: probe temperature, °C; empty (or ``nan``) when the probe has no sensor.
 * ``pose``: 1..12 while the probe sits in that pose of the paper's Table 1, empty otherwise.
-* a turntable log (the patent's procedure, :mod:`turntable`) has two more columns, ``mount``
-  (``xy``, ``xz`` or ``yz``: the two marked axes in the table plane) and ``table_deg`` (the table
-  angle the operator set, empty when not recorded), on the static rows.
+* optional columns after these, in this order: a turntable log (the patent's procedure,
+  :mod:`turntable`) has ``mount`` (``xy``, ``xz`` or ``yz``: the two marked axes in the table
+  plane) and ``table_deg`` (the table angle the operator set, empty when not recorded), on the
+  static rows; a survey log may have ``md_m``, the measured depth of the probe (m, empty where not
+  known) — the stations' depth, from which the trajectory follows (:mod:`trajectory`).
 * ``ref_*``: the stand's set orientation where known, empty otherwise.  Rows recorded while the
   probe moves have all four of ``pose`` and ``ref_*`` empty.  A reference is used for what it
   defines: a vertical pose gives drift and toolface but no azimuth (the azimuth of a vertical
@@ -45,6 +47,8 @@ HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
 MAG_UNITS = {"nT": 1.0, "uT": 1e3, "mT": 1e6, "T": 1e9, "G": 1e5, "mG": 1e2}
 #: The turntable log's two extra columns (after :data:`HEADER`).
 TURNTABLE_COLUMNS = ["mount", "table_deg"]
+#: The optional columns after :data:`HEADER`, in their order (any of them may be left out).
+OPTIONAL_COLUMNS = TURNTABLE_COLUMNS + ["md_m"]
 MOUNT_NAMES = ("xy", "xz", "yz")
 UNIT_NAMES = {"nT": "nanotesla", "uT": "microtesla", "mT": "millitesla", "T": "tesla", "G": "gauss",
               "mG": "milligauss"}
@@ -59,7 +63,8 @@ class ProbeLog:
     toolface), NaN where unknown; ``row`` (N,) int, the data row of the file each sample came from
     (1-based; rows rejected by the reader are missing), for messages that point into the file;
     a turntable log's ``mount`` (N,) str ('' where none) and ``table_deg`` (N,) deg (NaN where
-    none); ``station`` (N,) the planned station a simulated row belongs to (-1: moving; not written).
+    none); ``md_m`` (N,) the measured depth (m, NaN where not known); ``station`` (N,) the planned
+    station a simulated row belongs to (-1: moving; not written).
     """
 
     t_s: np.ndarray
@@ -72,6 +77,7 @@ class ProbeLog:
     mount: np.ndarray = None
     table_deg: np.ndarray = None
     station: np.ndarray = None
+    md_m: np.ndarray = None
 
     def __post_init__(self):
         n = len(self.t_s)
@@ -83,6 +89,8 @@ class ProbeLog:
             self.table_deg = np.full(n, np.nan)
         if self.station is None:
             self.station = np.full(n, -1)
+        if self.md_m is None:
+            self.md_m = np.full(n, np.nan)
 
     @property
     def is_turntable(self) -> bool:
@@ -102,8 +110,9 @@ class ProbeLog:
         logs = list(logs)
         out = cls(*(np.concatenate([getattr(lg, f) for lg in logs]) for f in
                     ("t_s", "acc", "mag", "temp_c", "pose", "ref")))
-        out.mount = np.concatenate([lg.mount for lg in logs]) if logs else out.mount
-        out.table_deg = np.concatenate([lg.table_deg for lg in logs]) if logs else out.table_deg
+        for name in ("mount", "table_deg", "md_m"):
+            if logs:
+                setattr(out, name, np.concatenate([getattr(lg, name) for lg in logs]))
         return out
 
 
@@ -186,12 +195,16 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
     if not lines:
         raise ValueError(f"{source}: empty file (expected header {','.join(HEADER)})")
     header = [h.strip() for h in lines[0].lstrip("\ufeff").split(",")]
-    turntable = header == HEADER + TURNTABLE_COLUMNS
-    if header != HEADER and not turntable:
-        raise ValueError(f"{source}: line 1: header must be exactly {','.join(HEADER)!r} (a turntable log: followed by "
-                         f"{','.join(TURNTABLE_COLUMNS)!r}), got {lines[0]!r}")
+    extra = header[len(HEADER):]
+    if header[:len(HEADER)] != HEADER or extra != [c for c in OPTIONAL_COLUMNS if c in extra]:
+        raise ValueError(f"{source}: line 1: header must be exactly {','.join(HEADER)!r}, optionally followed by "
+                         f"any of {','.join(OPTIONAL_COLUMNS)!r} in that order, got {lines[0]!r}")
+    turntable = "mount" in extra
+    if turntable != ("table_deg" in extra):
+        raise ValueError(f"{source}: line 1: a turntable log has both 'mount' and 'table_deg' columns")
+    depth_col = header.index("md_m") if "md_m" in extra else None
     n_fields = len(header)
-    rows, rejections, mounts, tables = [], [], [], []
+    rows, rejections, mounts, tables, depths = [], [], [], [], []
     last_t = -math.inf
     reader = csv.reader(io.StringIO("\n".join(lines[1:])))
     for k, fields in enumerate(reader, start=1):
@@ -222,6 +235,15 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
         mount, table = "", math.nan
         if reason is None and turntable:
             mount, table, reason = _parse_turntable(fields[12:14])
+        md = math.nan
+        if reason is None and depth_col is not None and fields[depth_col].strip():
+            try:
+                md = float(fields[depth_col])
+            except ValueError:
+                reason = f"md_m={fields[depth_col]!r} is not a number"
+            else:
+                if not math.isfinite(md):
+                    reason, md = "md_m not finite", math.nan
         if reason is not None:
             rejections.append(Rejection(k, line, reason))
             continue
@@ -229,12 +251,14 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
         rows.append((t, *acc, *mag, temp, pose, *ref, k))
         mounts.append(mount)
         tables.append(table)
+        depths.append(md)
     if not rows:
         detail = f"; first rejection: {rejections[0]}" if rejections else ""
         raise ValueError(f"{source}: no usable rows{detail}")
     a = np.array(rows, dtype=float)
     log = ProbeLog(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8].astype(int), a[:, 9:12], a[:, 12].astype(int),
-                   mount=np.array(mounts, dtype=object), table_deg=np.array(tables, dtype=float))
+                   mount=np.array(mounts, dtype=object), table_deg=np.array(tables, dtype=float),
+                   md_m=np.array(depths, dtype=float))
     return log, rejections
 
 
@@ -319,7 +343,8 @@ def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
     mfmt = ".3f" if mag_unit == "nT" else ".6g"
     out = io.StringIO()
     turntable = log.is_turntable
-    out.write(",".join(HEADER + (TURNTABLE_COLUMNS if turntable else [])) + "\n")
+    depth = bool(np.any(np.isfinite(log.md_m)))
+    out.write(",".join(HEADER + (TURNTABLE_COLUMNS if turntable else []) + (["md_m"] if depth else [])) + "\n")
     for i in range(len(log)):
         fields = [f"{log.t_s[i]:.4f}",
                   *(f"{v:.6f}" for v in log.acc[i]),
@@ -329,6 +354,8 @@ def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
                   *(_fmt(v, ".4f") for v in log.ref[i])]
         if turntable:
             fields += [str(log.mount[i] or ""), _fmt(log.table_deg[i], ".4f")]
+        if depth:
+            fields.append(_fmt(log.md_m[i], ".3f"))
         out.write(",".join(fields) + "\n")
     return out.getvalue()
 
@@ -429,6 +456,9 @@ def segment_stations(log: ProbeLog, detector=None, use_labels: bool = True):
                                 f"{_label_text(labelled[0])}: taken as unlabelled (no pose, no reference)")
             st.pose = pose
             st.ref = np.array([np.nan if v is None else v for v in ref], dtype=float)
+        depth = log.md_m[i0:i1 + 1]
+        if np.any(np.isfinite(depth)):         # the depth the rows of the hold give
+            st.md_m = float(np.nanmedian(depth))
         if not st.short:
             st.index = len(stations)
             stations.append(st)

@@ -50,8 +50,9 @@ from .coeffs import message_fields
 from .pipeline import SurveyProcessor
 from .streaming import ReferenceTrack, StaticDetector, StreamPairer
 from .survey import Tolerances
-from .topics import (COEFFICIENTS_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
-                     STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_IMU, TOPIC_MAG, TOPIC_REFERENCE,
+from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
+                     STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG,
+                     TOPIC_REFERENCE,
                      TOPIC_STATION, TOPIC_TEMPERATURE)
 
 #: Input topics read (and copied through) and the type each must have.
@@ -115,6 +116,12 @@ def decode_vector3(data):
     Vector3 (``sensor_msgs/MagneticField``, ``geometry_msgs/Vector3Stamped``)."""
     sec, nsec, pos, s = _header(data)
     return (sec, nsec), s[1].unpack_from(data, pos)
+
+
+def decode_float64(data) -> float:
+    """The value of a ``std_msgs/Float64`` (no header: the double right after the 4-byte CDR
+    encapsulation header, 8-byte aligned from there)."""
+    return struct.unpack_from("<d" if data[1] == 1 else ">d", data, 4)[0]
 
 
 def decode_temperature(data):
@@ -290,10 +297,17 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     issue = report._issue
     n_warned = 0
 
+    # /probe/depth has no stamp: each value holds from the last pair before it (the bag's order)
+    depths = ReferenceTrack()
+    t_pair = [-math.inf]
+
     def emit(st, log_time):
         if st.short:
             report.short_intervals += 1
             return
+        if not math.isfinite(st.md_m):         # as the correction node: the depth at its middle
+            d = depths.at(st.t_mid)
+            st.md_m = d[0] if d is not None else NAN
         # as the correction node: a station waits until the reference is current up to its end
         if pending or not refs.current_at(st.t_end):
             pending.append((st, log_time))
@@ -396,6 +410,10 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
                                   f"{pairer.last_t:.9f} s")
                         continue
                     t, f, mm = got
+                    t_pair[0] = t
+                elif topic == TOPIC_DEPTH:
+                    depths.add(t_pair[0], (decode_float64(m.data),))
+                    continue
                 elif topic == TOPIC_TEMPERATURE:
                     key, temp = decode_temperature(m.data)
                     det.add_temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
@@ -462,8 +480,10 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
 def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, frame_id: str = "probe",
                     reference: bool = True, compression: str = "zstd", latency_ns: int = 0) -> Dict[str, int]:
     """Write a :class:`probelog.ProbeLog` as a bag of ``/probe/imu``, ``/probe/mag``,
-    ``/probe/temperature`` (one of each per sample, same header stamp ``epoch + t_s``) and, if
-    ``reference``, ``/probe/reference`` at every change of the log's ``ref`` (NaN = none).
+    ``/probe/temperature`` (one of each per sample, same header stamp ``epoch + t_s``), if
+    ``reference``, ``/probe/reference`` at every change of the log's ``ref`` (NaN = none), and when
+    the log has depths ``/probe/depth`` as the probe node publishes it (before the first sample at
+    a depth that holds; while it runs at most every 0.5 s).
 
     Serialized with the ``rosbags`` type store (no ROS needed).  Accelerometer as REP-145 specific
     force (m/s², as in the log), magnetometer converted nT → tesla; the covariances state the noise
@@ -500,6 +520,11 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
         c_tmp = w.add_topic(TOPIC_TEMPERATURE, TEMPERATURE_TYPE, qos_profiles=sensor_qos)
         c_ref = w.add_topic(TOPIC_REFERENCE, REFERENCE_TYPE,
                             qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)]) if reference else None
+        md = np.asarray(log.md_m, float)
+        c_dep = w.add_topic(TOPIC_DEPTH, DEPTH_TYPE, qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)]) \
+            if np.any(np.isfinite(md)) else None
+        F64 = T[DEPTH_TYPE]
+        last_md, md_sent = None, -np.inf
         stamps = epoch_ns + np.round(np.asarray(log.t_s, float) * 1e9).astype(np.int64)
         mag_t = np.asarray(log.mag, float) / NT_PER_TESLA
         last_ref = None
@@ -508,6 +533,11 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
             sec, nsec = divmod(ns, 1_000_000_000)
             hdr = Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=frame_id)
             lt = ns + latency_ns
+            if c_dep is not None and np.isfinite(md[i]) and md[i] != last_md:
+                held = i + 1 >= len(md) or md[i + 1] == md[i]
+                if held or log.t_s[i] - md_sent >= 0.5:
+                    w.write(c_dep, bytes(ser(F64(data=float(md[i])), DEPTH_TYPE)), lt)
+                    last_md, md_sent = md[i], log.t_s[i]
             if c_ref is not None:
                 r = tuple(float(x) for x in log.ref[i])
                 if last_ref is None or any(a != b and not (a != a and b != b) for a, b in zip(r, last_ref)):

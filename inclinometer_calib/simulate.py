@@ -252,7 +252,12 @@ def run_session(probe: SimulatedProbe, site: Site, stations, rng: np.random.Gene
     g_tool = np.einsum("nji,j->ni", r_acc, site.gravity_ned())   # Rᵀ·g_ned
     b_tool = np.einsum("nji,j->ni", r_mag, site.field_ned())     # Rᵀ·b_ned
     f, m = probe.measure(g_tool, b_tool, temp, t_all, rng, survey)
-    return ProbeLog(t_all, f, m, temp, np.concatenate(pose), np.concatenate(ref), station=seg_id)
+    # the measured depth: a station's own while held, between two stations running from one to the next
+    key_t = np.array([x for (ts, te, k, _, _) in segments if k >= 0 for x in (ts, te)])
+    key_md = np.array([stations[k].md_m for (_, _, k, _, _) in segments if k >= 0 for _ in (0, 1)])
+    ok = np.isfinite(key_md)
+    md = np.interp(t_all, key_t[ok], key_md[ok], left=np.nan, right=np.nan) if ok.any() else np.full(len(t_all), np.nan)
+    return ProbeLog(t_all, f, m, temp, np.concatenate(pose), np.concatenate(ref), station=seg_id, md_m=md)
 
 
 def turntable_session(steps: int = 12, duration_s: float = 3.0, tilt_deg: float = 0.0, temp_c: float = 25.0,
@@ -309,12 +314,14 @@ def build_probe(seed: int, effects=(), severity: float = 1.0, noise_acc: float =
 def well_path_session(n_stations: int = 30, kickoff_deg: float = 0.0, build_deg_per_station: float = 3.0,
                       max_drift_deg: float = 85.0, azimuth_start_deg: float = 40.0,
                       turn_deg_per_station: float = 1.5, duration_s: float = 2.0,
-                      temp_start_c: float = 25.0, temp_end_c: float = 60.0, seed: int = 0):
+                      temp_start_c: float = 25.0, temp_end_c: float = 60.0, seed: int = 0,
+                      md_start_m: float = 500.0, md_step_m: float = 30.0):
     """Survey stations down a synthetic build-and-turn well path (reference angles known).
 
     Drift builds from ``kickoff_deg`` by ``build_deg_per_station`` up to ``max_drift_deg``;
     azimuth turns steadily; toolface is random per station (the tool rolls while drilling);
-    temperature rises with depth.
+    temperature rises with depth.  Stations are ``md_step_m`` apart in measured depth (a stand
+    of pipe) from ``md_start_m``: the log carries the depth.
     """
     rng = np.random.default_rng(seed)
     out = []
@@ -324,5 +331,5 @@ def well_path_session(n_stations: int = 30, kickoff_deg: float = 0.0, build_deg_
         a = (azimuth_start_deg + turn_deg_per_station * k) % 360.0
         t = float(rng.uniform(0, 360))
         out.append(Station.planned(orientation_matrix(i, a, t), duration_s, ref=(float(i), float(a), t),
-                                   temp_c=float(temps[k])))
+                                   temp_c=float(temps[k]), md_m=md_start_m + md_step_m * k))
     return out

@@ -86,6 +86,9 @@ class Station:
     gated: bool = False
     rotation: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
     t_origin: float = 0.0
+    #: Measured depth of the station (m; NaN: not known): a log's ``md_m`` rows, a stream's
+    #: ``/probe/depth``, a plan's set depth.
+    md_m: float = math.nan
 
     def __post_init__(self):
         for name in ("g", "b", "g_std", "b_std", "g_rate", "b_rate", "g_noise", "b_noise", "ref"):
@@ -93,11 +96,12 @@ class Station:
         self.rotation = np.asarray(self.rotation, dtype=float).reshape(3, 3)
 
     @classmethod
-    def planned(cls, rotation, duration_s: float, pose: int = 0, ref=NAN3, temp_c: float = 25.0) -> "Station":
+    def planned(cls, rotation, duration_s: float, pose: int = 0, ref=NAN3, temp_c: float = 25.0,
+                md_m: float = math.nan) -> "Station":
         """A station to be held (the simulator's session plan): set orientation ``rotation`` (tool →
-        NED), how long, its labels and temperature; nothing measured yet."""
+        NED), how long, its labels, temperature and measured depth; nothing measured yet."""
         return cls(t_start=0.0, t_end=float(duration_s), n=0, g=NAN3, b=NAN3, temp_c=float(temp_c), pose=int(pose),
-                   ref=np.asarray(ref, dtype=float), rotation=rotation)
+                   ref=np.asarray(ref, dtype=float), rotation=rotation, md_m=float(md_m))
 
     @property
     def t_mid(self) -> float:

@@ -443,6 +443,22 @@ class TemperatureTrack:
             del self._v[:k]
 
 
+def depth_per_sample(depth_messages, sample_log_times) -> np.ndarray:
+    """The measured depth of each sample of a recorded stream (NaN before the first depth):
+    ``depth_messages`` [(log time, m)], ``sample_log_times`` the samples' log times, both in the
+    bag's one clock (a depth message has no stamp: it holds from where it was recorded)."""
+    out = np.full(len(sample_log_times), np.nan)
+    if not depth_messages:
+        return out
+    d = sorted(depth_messages)
+    times = np.array([x[0] for x in d])
+    vals = np.array([x[1] for x in d], dtype=float)
+    k = np.searchsorted(times, np.asarray(sample_log_times), side="right") - 1
+    ok = k >= 0
+    out[ok] = vals[k[ok]]
+    return out
+
+
 class ReferenceTrack:
     """The reference attitude over time, from ``/probe/reference`` messages — ROS-free.
 

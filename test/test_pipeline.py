@@ -88,3 +88,37 @@ def test_a_temperature_model_without_a_temperature_is_said_not_defaulted():
     f = SurveyProcessor(calibration=Calibration(probe.model, site=site)).process(st)
     assert any("no temperature" in w for w in f["warnings"])
     assert np.isnan(f["azimuth_deg"]) and f["status"] == 2
+
+
+def test_stations_with_a_depth_get_the_trajectory_by_minimum_curvature_and_a_resurvey_replaces():
+    from inclinometer_calib.probelog import segment_stations
+    from inclinometer_calib.trajectory import minimum_curvature
+
+    probe = sim.build_probe(2)
+    site = Site(declination_deg=2.0)
+    log = sim.run_session(probe, site, sim.well_path_session(10, md_start_m=800.0, md_step_m=30.0),
+                          np.random.default_rng(1), rate_hz=50.0)
+    stations, _ = segment_stations(log)
+    assert [round(s.md_m, 3) for s in stations] == [800.0 + 30 * k for k in range(10)]
+    proc = SurveyProcessor(calibration=Calibration(probe.model, site=site))
+    fields = [proc.process(st, ref=tuple(st.ref)) for st in stations]
+    ref = np.array([s.ref for s in stations])
+    true = minimum_curvature(np.r_[0.0, [s.md_m for s in stations]], np.r_[0.0, ref[:, 0]],
+                             np.r_[0.0, np.nan_to_num(ref[:, 1])])
+    for k, f in enumerate(fields):
+        assert f["measured_depth_m"] == 800.0 + 30 * k
+        # the measured angles' trajectory: within what their errors (0.01°) make over 1 km
+        assert abs(f["tvd_m"] - true.tvd[k + 1]) < 0.05 and abs(f["north_m"] - true.north[k + 1]) < 0.1
+        assert abs(f["east_m"] - true.east[k + 1]) < 0.1 and abs(f["dls_deg_per_30m"] - true.dls[k + 1]) < 0.05
+        if np.isfinite(f["azimuth_deg"]):
+            assert f["azimuth_magnetic_deg"] == pytest.approx((f["azimuth_deg"] - 2.0) % 360, abs=1e-9)
+        assert np.isnan(f["azimuth_grid_deg"])            # the site has no grid
+    # a re-survey at a depth already passed replaces what lies below it
+    again = proc.process(stations[5], ref=tuple(stations[5].ref))
+    assert again["tvd_m"] == pytest.approx(fields[5]["tvd_m"], abs=1e-6)
+    nxt = proc.process(stations[6], ref=tuple(stations[6].ref))
+    assert nxt["north_m"] == pytest.approx(fields[6]["north_m"], abs=1e-6)
+    # without a depth: no position
+    st = _one(probe, site, 30, 40, 0)
+    f = SurveyProcessor(calibration=Calibration(probe.model, site=site)).process(st)
+    assert np.isnan(f["measured_depth_m"]) and np.isnan(f["tvd_m"]) and np.isnan(f["north_m"])

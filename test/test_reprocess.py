@@ -185,3 +185,26 @@ def test_station_messages_carry_our_definition_and_hash(survey, tmp_path):
     assert info.type == STATION_TYPE and info.type_hash.startswith("RIHS01_")
     assert "uint32 station_id" in info.definition
     assert os.path.getsize(out) > 0
+
+
+def test_a_well_logged_with_its_depth_is_reprocessed_into_a_trajectory(tmp_path):
+    from inclinometer_calib.launcher import read_bag
+    from inclinometer_calib.probelog import read_csv, write_csv
+    from inclinometer_calib.trajectory import minimum_curvature
+
+    probe = sim.build_probe(3)
+    log = sim.run_session(probe, SITE, sim.well_path_session(12), np.random.default_rng(0), rate_hz=50)
+    write_csv(tmp_path / "well.csv", log)
+    assert read_csv(tmp_path / "well.csv")[0].md_m[0] == 500.0          # the CSV's md_m column
+    counts = write_probe_bag(read_csv(tmp_path / "well.csv")[0], tmp_path / "well.mcap")
+    assert 12 <= counts["/probe/depth"] < 60                             # held depths, and the runs between
+    cal = Calibration(probe.model, site=SITE)
+    reprocess(tmp_path / "well.mcap", tmp_path / "re.mcap", cal)
+    stations = read_bag(tmp_path / "re.mcap")[0]
+    assert [s["measured_depth_m"] for s in stations] == [500.0 + 30 * k for k in range(12)]
+    ref = np.array([[s["reference_drift_deg"], s["reference_azimuth_deg"]] for s in stations])
+    true = minimum_curvature(np.r_[0.0, [s["measured_depth_m"] for s in stations]], np.r_[0.0, ref[:, 0]],
+                             np.r_[0.0, np.nan_to_num(ref[:, 1])])
+    for k, s in enumerate(stations):
+        assert abs(s["tvd_m"] - true.tvd[k + 1]) < 0.05 and abs(s["north_m"] - true.north[k + 1]) < 0.1
+        assert abs(s["east_m"] - true.east[k + 1]) < 0.1

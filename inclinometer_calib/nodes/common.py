@@ -35,7 +35,7 @@ from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-fre
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
 
-from ..topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DIAGNOSTICS, TOPIC_IMU,  # noqa: F401,E402
+from ..topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_DIAGNOSTICS, TOPIC_IMU,  # noqa: F401,E402
                       TOPIC_IMU_CORRECTED, TOPIC_MAG, TOPIC_MAG_CORRECTED, TOPIC_REFERENCE, TOPIC_STATION,
                       TOPIC_STATUS, TOPIC_TEMPERATURE)   # the graph's names, one place (re-exported)
 

@@ -1,7 +1,9 @@
 """Correction node: applies the latest calibration and publishes quality-checked survey stations.
 
 Inputs: ``/probe/imu`` + ``/probe/mag`` (paired by header stamp), ``/probe/temperature``,
-``/probe/reference`` (optional reference attitudes), and the coefficients: the latched topic
+``/probe/reference`` (optional reference attitudes), ``/probe/depth`` (optional measured depth: a
+station takes the latest when it closes, and gets its trajectory by minimum curvature from the
+station before it in depth — :meth:`pipeline.SurveyProcessor`), and the coefficients: the latched topic
 ``/calibration/coefficients`` (transient-local subscription; ``use_topic``) and/or a coefficient
 YAML file (``coeffs_file``, may be changed at run time: the file is checked before it is
 accepted).  The most recently received set is applied.
@@ -46,6 +48,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, MagneticField, Temperature
+from std_msgs.msg import Float64
 
 from ..coeffs import Calibration, CoefficientError
 from ..frames import gravity_from_specific_force, specific_force_from_gravity
@@ -124,6 +127,9 @@ class CorrectionNode(Node):
         self._have_temp = False
         self._last_wall = None
         self.refs = ReferenceTrack()
+        # /probe/depth has no stamp: each value holds from the last sample before it arrived
+        self.depths = ReferenceTrack()
+        self._t_sample = -math.inf
         self._pending = collections.deque()   # (station, monotonic time) waiting for the reference
         self._last_diag = None
         self._last_verdict = None
@@ -141,6 +147,7 @@ class CorrectionNode(Node):
         self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos)
         self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
         self.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100))
+        self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))
         if self.use_topic:
             self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
                                      c.latched_qos())
@@ -303,6 +310,9 @@ class CorrectionNode(Node):
         """The reference and the temperatures are in up to ``t``: a station ending then can go."""
         return self.refs.current_at(t) and (not self._have_temp or self.detector.temps.latest >= t - TIME_EPS)
 
+    def _on_depth(self, msg):
+        self.depths.add(self._t_sample, (float(msg.data),))
+
     def _on_reference(self, msg):
         self.refs.add(c.stamp_to_sec(msg.header.stamp), (msg.vector.x, msg.vector.y, msg.vector.z))
         self._release(force=False)
@@ -321,6 +331,7 @@ class CorrectionNode(Node):
             self._publish_station(st)
 
     def _sample(self, t, f, m):
+        self._t_sample = t
         c.feed_sample(self, t, f, m, self._station)
 
     # ---- stations --------------------------------------------------------------------------
@@ -329,6 +340,9 @@ class CorrectionNode(Node):
         its end (:class:`streaming.ReferenceTrack`; at most ``reference_wait_s`` later)."""
         if seg.short and not self.publish_short:
             return
+        if not math.isfinite(seg.md_m):    # the depth it was held at (in effect at its middle)
+            d = self.depths.at(seg.t_mid)
+            seg.md_m = d[0] if d is not None else math.nan
         if self._pending or not self._current_at(seg.t_end):
             self._pending.append((seg, time.monotonic()))
             return

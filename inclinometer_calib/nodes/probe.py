@@ -13,6 +13,10 @@ header stamp per sample:
   NaN = no reference (the probe is moving or the attitude is unknown), per component (a vertical
   pose has no azimuth).  Published when it changes, and again every second of log time while it
   does not (``REFERENCE_PERIOD_S``), so that a reader knows the last one it has is current.
+* ``/probe/depth`` (``std_msgs/Float64``, reliable): the probe's measured depth, m (a log's
+  ``md_m``, a bag's ``/probe/depth``, the simulated well path's stations 30 m apart).  It has no
+  stamp: published just before the first sample at a new depth, so it holds from there on in the
+  order of the stream; while it runs (the probe moving) at most every ``DEPTH_PERIOD_S``.
 
 The whole log is prepared at start-up (simulated, read or decoded) and then published sample by
 sample from a timer that follows the log's time line scaled by ``speed`` (several samples per
@@ -53,16 +57,20 @@ from rclpy.parameter import Parameter
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, MagneticField, Temperature
+from std_msgs.msg import Float64
 
 from .. import effects as fx
 from .. import simulate as sim
 from ..coeffs import Calibration
 from ..noise import estimate_noise
 from ..probelog import MAG_UNITS, ProbeLog, atomic_write_text, label_runs, read_csv
+from ..streaming import depth_per_sample
 from ..topics import GRAPH_OUTPUTS, PROBE_TOPICS
 from . import common as c
 
 SOURCES = ("simulate", "csv", "mcap")
+#: While the depth changes (the probe moving), it is published at most this often (log time, s).
+DEPTH_PERIOD_S = 0.5
 #: The reference in effect is published again after this much log time without a change, so that
 #: a reader knows its last reference is current (a station waits for that before it is published).
 REFERENCE_PERIOD_S = 1.0
@@ -196,11 +204,13 @@ class ProbeNode(Node):
         self._mag = (recorded if recorded is not None else self.log.mag / c.NT_PER_TESLA).tolist()
         self._temp = self.log.temp_c.tolist()
         self._ref_changes = self._reference_changes(self.log.ref)
+        self._depth_changes = self._reference_changes(self.log.md_m[:, None])
 
         self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU, qos)
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG, qos)
         self.pub_temp = self.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
         self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, c.reliable_qos(100))
+        self.pub_depth = self.create_publisher(Float64, c.TOPIC_DEPTH, c.reliable_qos(100))
         self.pub_clock = (self.create_publisher(ClockMsg, c.TOPIC_CLOCK, c.sensor_qos(10))
                           if self.stamp_mode == "log" else None)
         self._clock_msg = ClockMsg()
@@ -210,6 +220,8 @@ class ProbeNode(Node):
         self.done = Future()
         self._i = 0
         self._next_ref = 0
+        self._next_depth = 0
+        self._depth_sent = -math.inf
         self._ref_now = None          # the reference in effect (published), None before the first
         self._ref_sent = -math.inf    # stamp of the last reference published
         self._state = "waiting"
@@ -306,7 +318,7 @@ class ProbeNode(Node):
         from ..bag import BagError, open_bag
 
         types = {c.TOPIC_IMU: Imu, c.TOPIC_MAG: MagneticField, c.TOPIC_TEMPERATURE: Temperature,
-                 c.TOPIC_REFERENCE: Vector3Stamped}
+                 c.TOPIC_REFERENCE: Vector3Stamped, c.TOPIC_DEPTH: Float64}
         try:
             reader = open_bag(path)
         except BagError as exc:
@@ -314,6 +326,7 @@ class ProbeNode(Node):
         log = self.get_logger()
         skipped, undecodable = {}, {}
         imu, mag, temp, ref = {}, {}, {}, []
+        depth, imu_log_time = [], {}     # the depth has no stamp: it holds in the bag's order
         cov_acc = cov_mag = None
         for m in reader.messages(strict=False):
             want = KNOWN_BAG_TOPICS.get(m.topic)
@@ -336,8 +349,12 @@ class ProbeNode(Node):
                                 f"({type(exc).__name__}: {exc}): skipped")
                 undecodable[m.topic] = undecodable.get(m.topic, 0) + 1
                 continue
+            if m.topic == c.TOPIC_DEPTH:
+                depth.append((m.log_time, msg.data))
+                continue
             key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
             if m.topic == c.TOPIC_IMU:
+                imu_log_time[key] = m.log_time
                 a = msg.linear_acceleration
                 imu[key] = (a.x, a.y, a.z)
                 cov_acc = msg.linear_acceleration_covariance
@@ -372,7 +389,8 @@ class ProbeNode(Node):
             refs[(t >= t_r - 1e-10) & (t < t_next - 1e-10)] = v
         self._recorded_tesla = np.array([mag[k] for k in keys])
         log = ProbeLog(t, np.array([imu[k] for k in keys]), self._recorded_tesla * c.NT_PER_TESLA,
-                       np.array([temp.get(k, np.nan) for k in keys]), np.zeros(len(keys), dtype=int), refs)
+                       np.array([temp.get(k, np.nan) for k in keys]), np.zeros(len(keys), dtype=int), refs,
+                       md_m=depth_per_sample(depth, [imu_log_time[k] for k in keys]))
         self.get_logger().info(f"{path}: {len(keys)} samples, {len(ref)} reference changes")
         return log, self._covariance(log, (cov_acc, cov_mag))
 
@@ -546,6 +564,14 @@ class ProbeNode(Node):
             self.get_logger().info(f"end of script: {n} samples published (on_end:={self.on_end})")
 
     def _publish_sample(self, k, stamp_s):
+        ch = self._depth_changes
+        if self._next_depth < len(ch) and ch[self._next_depth][0] <= k:
+            # a depth running (a move) goes out at most every DEPTH_PERIOD_S; one that holds at once
+            held = self._next_depth + 1 >= len(ch) or ch[self._next_depth + 1][0] - k >= 2
+            if held or stamp_s - self._depth_sent >= DEPTH_PERIOD_S:
+                self.pub_depth.publish(Float64(data=float(ch[self._next_depth][1][0])))
+                self._depth_sent = stamp_s
+            self._next_depth += 1
         if self._next_ref < len(self._ref_changes) and self._ref_changes[self._next_ref][0] <= k:
             self._ref_now = self._ref_changes[self._next_ref][1]
             self._publish_reference(stamp_s)

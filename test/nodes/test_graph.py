@@ -19,6 +19,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
@@ -191,6 +192,19 @@ def test_survey_angles_within_tolerance(sim_run):
         assert abs(s.delta_b_nt) < 300 and abs(s.delta_dip_deg) < 0.25
         assert s.samples_averaged > 100 and s.duration_s > 1.0
         assert 24.0 < s.temperature_c < 61.0
+    # the survey's depth (/probe/depth) and its trajectory by minimum curvature, tied in at the
+    # surface; the twelve calibration poses have no depth
+    from inclinometer_calib.trajectory import minimum_curvature
+
+    md = [s.measured_depth_m for s in surveyed]
+    assert md == [500.0 + 30.0 * k for k in range(N_STATIONS)], md
+    assert all(math.isnan(s.measured_depth_m) for s in raw)
+    true = minimum_curvature([0.0] + md, [0.0] + [s.reference_drift_deg for s in surveyed],
+                             [0.0] + [s.reference_azimuth_deg for s in surveyed])
+    np.testing.assert_allclose([s.tvd_m for s in surveyed], true.tvd[1:], atol=0.1)
+    np.testing.assert_allclose([s.north_m for s in surveyed], true.north[1:], atol=0.3)
+    np.testing.assert_allclose([s.east_m for s in surveyed], true.east[1:], atol=0.3)
+    assert all(s.dls_deg_per_30m > 0 for s in surveyed[1:])
     summary = json.loads((out / "summary.json").read_text())
     assert summary["survey"]["stations"] == N_STATIONS
     assert summary["survey"]["drift_max_abs_deg"] < DRIFT_TOL_DEG
