@@ -39,6 +39,7 @@ setup(
             "inclinometer-calib-calibration = inclinometer_calib.nodes.calibration:main",
             "inclinometer-calib-correction = inclinometer_calib.nodes.correction:main",
             "inclinometer-calib-recorder = inclinometer_calib.nodes.recorder:main",
+            "inclinometer-calib-wits = inclinometer_calib.nodes.wits:main",
             "inclinometer-calib-launch = inclinometer_calib.launcher:main",
         ],
     },

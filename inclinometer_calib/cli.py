@@ -220,6 +220,32 @@ def cmd_turntable(args):
     return 0
 
 
+def cmd_wits(args):
+    """Export the corrected stations of a recorded run as WITS0 record 07 (:mod:`wits`)."""
+    import datetime as dt
+
+    from .launcher import read_bag
+    from .wits import encode
+
+    try:
+        stations = read_bag(args.bag)[0]
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{args.bag}: {exc}") from None
+    survey = [s for s in stations if s["coefficients_id"] and s["status"] != 2]
+    if not survey:
+        raise UserError(f"{args.bag}: no corrected survey station to export")
+    data = b"".join(encode(s, k + 1, args.well_id, args.hole_section,
+                           dt.datetime.fromtimestamp(s["stamp"], dt.timezone.utc)) for k, s in enumerate(survey))
+    if args.output:
+        with open(args.output, "wb") as fh:
+            fh.write(data)
+        print(f"wrote {args.output}: {len(survey)} WITS0 record 07 ({len(stations) - len(survey)} raw or error "
+              "stations not exported)")
+    else:
+        sys.stdout.buffer.write(data)
+    return 0
+
+
 def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", detector=None, effects=""):
     """Solve a twelve-pose log with the live calibration node's session (:class:`capture.CaptureSession`):
     the same detector, gates, pose identification, sequence and solve (and, with ``effects``, the
@@ -981,6 +1007,13 @@ def build_parser():
     tt.add_argument("--json", action="store_true")
     _detector_options(tt)
     tt.set_defaults(func=cmd_turntable)
+
+    w = sub.add_parser("wits", help="export a recorded run's corrected survey stations as WITS level 0 record 07")
+    w.add_argument("bag", help="a recorded run (MCAP) with /survey/station")
+    w.add_argument("-o", "--output", help="file to write (default: standard output)")
+    w.add_argument("--well-id", default="WELL", help="item 0701")
+    w.add_argument("--hole-section", type=int, default=0, help="item 0702")
+    w.set_defaults(func=cmd_wits)
 
     c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")
     c.add_argument("log", help="probe log CSV")

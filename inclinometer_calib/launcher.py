@@ -64,8 +64,8 @@ import numpy as np
 from .deps import MissingDependency, require
 from .topics import TOPIC_STATION
 
-NODES = ("probe", "calibration", "correction", "recorder")
-STOP_ORDER = ("probe", "calibration", "correction", "recorder")  # the recorder last: it records the others
+NODES = ("probe", "calibration", "correction", "wits", "recorder")
+STOP_ORDER = ("probe", "calibration", "correction", "wits", "recorder")  # the recorder last: it records the others
 #: Nodes restarted when they die mid-run: they carry no state the run cannot rebuild (a new bag
 #: part; the coefficients from the latched topic or coeffs.yaml, station ids from the state file).
 #: The calibration node is not: its captured poses would be lost.
@@ -190,6 +190,8 @@ def build_params(args, out):
         p["correction"]["fallback_coeffs_file"] = os.path.join(out, "coeffs.yaml")
     p["correction"]["state_file"] = os.path.join(out, STATE_FILE)  # station ids continue across restarts
     p["recorder"]["output"] = os.path.join(out, BAG)
+    if args.wits_port:
+        p["wits"].update(port=int(args.wits_port), output=os.path.join(out, "wits0.dat"))
     if args.reliable:
         for n in ("probe", "calibration", "correction"):
             p[n]["qos.reliability"] = "reliable"
@@ -297,14 +299,17 @@ def run_graph(args, out, env) -> GraphResult:
             names.append("recorder")
         else:
             print("[launch] recorder module not available: running without recording", flush=True)
-    consumers = [n for n in names if n != "probe"]
+    if args.wits_port and "correction" in names:
+        names.append("wits")
+    consumers = [n for n in names if n not in ("probe", "wits")]
     # every other node reads imu, mag and temperature; the reference goes to correction and recorder
     params["probe"].setdefault("wait_for_subscribers", len(consumers))
     params["probe"].setdefault("wait_for_reference_subscribers",
                                sum(n in ("correction", "recorder") for n in consumers))
-    if "recorder" in consumers and "correction" in consumers:
-        # stations are reliable but volatile: a recorder not yet subscribed would miss the first ones
-        params["probe"].setdefault("wait_for_topic_subscribers", [f"{TOPIC_STATION}=1"])
+    station_readers = sum(n in ("recorder", "wits") for n in names)
+    if station_readers and "correction" in consumers:
+        # stations are reliable but volatile: a reader not yet subscribed would miss the first ones
+        params["probe"].setdefault("wait_for_topic_subscribers", [f"{TOPIC_STATION}={station_readers}"])
     if params["probe"].get("stamp", _config_value(cfg, "probe", "stamp", "log")) == "log":
         # one time base: the probe publishes /clock (log time), the others run on it
         for n in ("calibration", "correction"):
@@ -337,7 +342,7 @@ def run_graph(args, out, env) -> GraphResult:
     t0 = time.monotonic()
     try:
         # the consumers first, so that they are up when the probe starts publishing
-        for name in consumers + ["probe"]:
+        for name in consumers + [n for n in names if n == "wits"] + ["probe"]:
             start(name)
         reason = None
         drain_until = None  # set when the probe has finished: let the others close the last station
@@ -424,6 +429,7 @@ def read_bag(path):
             if conn.topic == "/survey/station":
                 d = {k: getattr(msg, k) for k in (
                     "station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg",
+                    "magnetic_toolface_deg",
                     "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
                     "delta_dip_deg", "status", "azimuth_undefined", "interference_suspected",
                     "coefficients_id", "reference_drift_deg", "reference_azimuth_deg",
@@ -825,6 +831,9 @@ def parse_args(argv=None):
                                    "the calibration and correction nodes (and the simulated probe)")
     ap.add_argument("--no-calibration", action="store_true", help="no calibration node and no twelve-pose session")
     ap.add_argument("--no-recorder", action="store_true", help="do not record (no summary from the bag)")
+    ap.add_argument("--wits-port", type=int, default=0, metavar="PORT",
+                    help="also start the wits node: the corrected stations as WITS0 record 07 on tcp://127.0.0.1:PORT "
+                         "and in <out>/wits0.dat (0: no wits node)")
     ap.add_argument("--no-loop", action="store_true", help="no model loop in the summary (the lab's finding on the "
                     "recorded data and the field effect ladder)")
     ap.add_argument("--reliable", action="store_true", help="reliable QoS for the raw streams (lossless replay)")

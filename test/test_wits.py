@@ -11,26 +11,7 @@ import time
 import pytest
 
 from inclinometer_calib import wits
-
-
-def parse_wits0(data: bytes) -> list:
-    """Records of a WITS0 byte stream: each a dict {(record, item): value text}; raises on a
-    malformed frame."""
-    text = data.decode("ascii")
-    out = []
-    for chunk in text.split("&&\r\n")[1:]:
-        body, sep, _ = chunk.partition("!!\r\n")
-        if not sep:
-            raise ValueError("record without its '!!' end")
-        rec = {}
-        for line in body.split("\r\n"):
-            if not line:
-                continue
-            if len(line) < 4 or not line[:4].isdigit():
-                raise ValueError(f"bad WITS0 line {line!r}")
-            rec[(int(line[:2]), int(line[2:4]))] = line[4:]
-        out.append(rec)
-    return out
+from wits_parser import parse_wits0
 
 
 STATION = {"measured_depth_m": 1523.4, "tvd_m": 1402.18, "drift_deg": 34.567, "azimuth_magnetic_deg": 120.1,
@@ -93,7 +74,7 @@ def test_several_tcp_clients_get_every_station_and_a_stalled_one_is_dropped_alon
     import threading
 
     said = []
-    srv = wits.WitsServer(port=0, max_buffer=64 * 1024, say=said.append, sndbuf=16 * 1024)
+    srv = wits.WitsServer(port=0, max_buffer=256 * 1024, say=said.append, sndbuf=16 * 1024)
     n = 3000                                     # about 0.8 MB: far beyond what a stalled client may hold
     try:
         a, b, stall = _connect(srv.port), _connect(srv.port), _connect(srv.port)
@@ -106,8 +87,8 @@ def test_several_tcp_clients_get_every_station_and_a_stalled_one_is_dropped_alon
             t.start()
         for k in range(n):
             srv.send(wits.encode({**STATION, "measured_depth_m": 1000.0 + k}, k + 1))
-            if k % 100 == 0:
-                time.sleep(0.005)     # a survey comes station by station; the readers keep up
+            if k % 20 == 0:
+                time.sleep(0.002)     # a survey comes station by station; the readers keep up
         for t in readers:
             t.join()
         for k in ("a", "b"):
@@ -125,3 +106,28 @@ def test_several_tcp_clients_get_every_station_and_a_stalled_one_is_dropped_alon
         stall.close()
     finally:
         srv.close()
+
+
+def test_the_cli_exports_a_recorded_runs_survey_stations(tmp_path, capsys):
+    import numpy as np
+
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.cli import main
+    from inclinometer_calib.coeffs import Calibration
+    from inclinometer_calib.frames import Site
+    from inclinometer_calib.launcher import read_bag
+    from inclinometer_calib.reprocess import reprocess, write_probe_bag
+
+    probe = sim.build_probe(3)
+    log = sim.run_session(probe, Site(), sim.well_path_session(8), np.random.default_rng(0), rate_hz=50)
+    write_probe_bag(log, tmp_path / "well.mcap")
+    reprocess(tmp_path / "well.mcap", tmp_path / "re.mcap", Calibration(probe.model, site=Site()))
+    assert main(["wits", str(tmp_path / "re.mcap"), "-o", str(tmp_path / "w.dat"), "--well-id", "X-1"]) == 0
+    recs = parse_wits0((tmp_path / "w.dat").read_bytes())
+    stations = read_bag(tmp_path / "re.mcap")[0]
+    assert len(recs) == len(stations) == 8 and all(r[(7, 1)] == "X-1" for r in recs)
+    for r, s in zip(recs, stations):
+        assert float(r[(7, 8)]) == s["measured_depth_m"] and float(r[(7, 9)]) == pytest.approx(s["tvd_m"], abs=0.005)
+        assert float(r[(7, 18)]) == pytest.approx(s["north_m"], abs=0.005)
+    assert main(["wits", str(tmp_path / "nowhere.mcap")]) != 0
+    assert "nowhere.mcap" in capsys.readouterr().err

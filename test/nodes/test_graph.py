@@ -15,8 +15,10 @@ Run with the environment of scripts/env.sh.  Takes about a minute.
 """
 import json
 import math
+import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -66,19 +68,73 @@ def launch(args, env, timeout):
     return proc, time.monotonic() - t0
 
 
+def _wits_client(port, got, stop):
+    """A rig's WITS0 client: connects to the graph's wits node as soon as it listens and reads
+    until the node closes the connection (the graph stopped)."""
+    s = None
+    while s is None and not stop.is_set():
+        try:
+            s = socket.create_connection(("127.0.0.1", port), timeout=1)
+        except OSError:
+            time.sleep(0.1)
+    if s is None:
+        return
+    s.settimeout(0.5)
+    while True:
+        try:
+            chunk = s.recv(65536)
+        except socket.timeout:
+            if stop.is_set():
+                break
+            continue
+        except OSError:
+            break
+        if not chunk:
+            break
+        got.append(chunk)
+    s.close()
+
+
 @pytest.fixture(scope="module")
 def sim_run(domain_env, tmp_path_factory):
     env, _ = domain_env
     out = tmp_path_factory.mktemp("graph") / "run"
+    with socket.socket() as probe_port:
+        probe_port.bind(("127.0.0.1", 0))
+        port = probe_port.getsockname()[1]
+    got, stop = [], threading.Event()
+    client = threading.Thread(target=_wits_client, args=(port, got, stop), daemon=True)
+    client.start()
     # --reliable: lossless raw streams, so that what the correction node saw live is exactly what
     # the recorder stored, and the replay regression below is deterministic on a loaded machine
     proc, seconds = launch(["--out", str(out), "--speed", str(SPEED), "--stations", str(N_STATIONS),
-                            "--seed", "11", "--reliable", "--timeout", "150", "--effect", EFFECT], env, timeout=200)
+                            "--seed", "11", "--reliable", "--timeout", "150", "--effect", EFFECT,
+                            "--wits-port", str(port)], env, timeout=200)
+    stop.set()
+    client.join(5)
+    (out / "wits0_tcp.dat").write_bytes(b"".join(got))
     print(f"simulated calibration + survey through the launcher: {seconds:.1f} s")
     if proc.returncode != 0:
         pytest.fail(f"launcher exit status {proc.returncode}\n--- output ---\n{proc.stdout[-6000:]}\n"
                     f"{proc.stderr[-3000:]}")
     return out, proc, seconds
+
+
+def test_a_rig_client_gets_every_survey_station_as_wits0_record_07(sim_run):
+    from wits_parser import parse_wits0
+
+    out, _, _ = sim_run
+    bag = read_mcap(out / "survey.mcap", ["/survey/station"])
+    surveyed = [s for s in bag["/survey/station"] if s.coefficients_id and s.status != 2]
+    tcp = parse_wits0((out / "wits0_tcp.dat").read_bytes())
+    assert len(tcp) == len(surveyed) >= N_STATIONS, (len(tcp), len(surveyed))
+    for r, s in zip(tcp, surveyed):
+        assert float(r[(7, 8)]) == pytest.approx(s.measured_depth_m, abs=0.005)
+        assert float(r[(7, 13)]) == pytest.approx(s.drift_deg, abs=0.005)
+        if math.isfinite(s.azimuth_deg):
+            assert float(r[(7, 15)]) == pytest.approx(s.azimuth_deg, abs=0.005)
+    assert [int(r[(7, 4)]) for r in tcp] == list(range(1, len(tcp) + 1))
+    assert parse_wits0((out / "wits0.dat").read_bytes()) == tcp       # the file has the same records
 
 
 def test_launcher_leaves_the_run_files(sim_run):
