@@ -123,7 +123,8 @@ class CalibrationNode(Node):
                 try:
                     acc_cal = Calibration.load(acc_record)
                 except (OSError, ValueError) as exc:
-                    raise SystemExit(f"turntable.acc_record {acc_record}: {exc}") from None
+                    # a bad start-up parameter: one line on stderr, exit status 2 (common.run)
+                    raise ValueError(f"turntable.acc_record {acc_record}: {exc}") from None
             self.session = TurntableSession(site=site, acc_cal=acc_cal, probe_id=self.probe_id, mount=mount)
         else:
             self.session = CaptureSession(site=site, min_capture_s=min_capture, pose_tolerance_deg=pose_tol,
