@@ -29,7 +29,14 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["inclinometer_calib", "inclinometer_calib.*"]),
     install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0", "allantools>=2019.9",
-                      "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6"],
+                      "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6",
+                      # WITSML 2.1 out (inclinometer_calib/witsml.py): building/reading, schema validation
+                      "lxml>=6.1", "xmlschema>=4.3",
+                      # live view in Foxglove (inclinometer_calib/nodes/live.py, liveview.py)
+                      "foxglove-sdk>=0.30.3"],
+    # the Energistics schemas the WITSML documents are validated against (schemas/witsml21/README.md)
+    package_data={"inclinometer_calib": ["schemas/witsml21/README.md",
+                                         "schemas/witsml21/energyml/data/*/*/xsd_schemas/*.xsd"]},
     extras_require=EXTRAS,
     entry_points={
         "console_scripts": [
@@ -40,6 +47,7 @@ setup(
             "inclinometer-calib-correction = inclinometer_calib.nodes.correction:main",
             "inclinometer-calib-recorder = inclinometer_calib.nodes.recorder:main",
             "inclinometer-calib-wits = inclinometer_calib.nodes.wits:main",
+            "inclinometer-calib-live = inclinometer_calib.nodes.live:main",
             "inclinometer-calib-launch = inclinometer_calib.launcher:main",
         ],
     },

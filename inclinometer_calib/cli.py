@@ -246,6 +246,33 @@ def cmd_wits(args):
     return 0
 
 
+def cmd_witsml(args):
+    """Export the survey stations of a recorded run as a WITSML 2.1 Trajectory (:mod:`witsml`): validated
+    against the schema before it is written, and written atomically."""
+    from .launcher import read_bag
+    from .witsml import WitsmlError, trajectory_document, validate
+
+    try:
+        stations = read_bag(args.bag)[0]
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{args.bag}: {exc}") from None
+    try:
+        export = trajectory_document(stations, well=args.well, wellbore=args.wellbore, version=args.version)
+        if not export.exported:
+            raise UserError(f"{args.bag}: no corrected survey station with a measured depth to export (left out: "
+                            f"{export.skipped_text()})")
+        validate(export.xml)
+    except WitsmlError as exc:
+        raise UserError(f"{args.bag}: {exc}") from None
+    if args.output:
+        atomic_write_text(args.output, export.xml.decode("utf-8"))
+        print(f"wrote {args.output}: WITSML {args.version} Trajectory of {export.exported} stations (left out: "
+              f"{export.skipped_text()})")
+    else:
+        sys.stdout.buffer.write(export.xml)
+    return 0
+
+
 def run_twelve_position(cal_path, site, probe_id, quiet=False, mag_unit="nT", detector=None, effects=""):
     """Solve a twelve-pose log with the live calibration node's session (:class:`capture.CaptureSession`):
     the same detector, gates, pose identification, sequence and solve (and, with ``effects``, the
@@ -340,13 +367,15 @@ def cmd_twelve_position(args):
     return 0
 
 
-def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT", detector=None):
+def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT", detector=None, msa=None):
     """Evaluate every static station of a log; returns (stations, result, summary).
 
     Stations are found by the live nodes' detector and checked by the gates (in-hold motion,
     flat axes): a station that fails is kept in the output, flagged and left out of the error
     statistics.  ``axial``: azimuths from the short-collar correction of axial drill-string
-    interference.
+    interference.  ``msa``: an :class:`msa.MSASettings` — azimuths from the multi-station analysis
+    of the log's stations (:func:`msa.evaluate_with_msa`; stations that moved or have an unusable
+    sensor stay out of the fit); the summary's ``msa`` is then the :class:`msa.MSAResult`.
     """
     _, stations, _, _ = load_stations(log_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
     if not stations:
@@ -365,6 +394,17 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
     ref = np.array([s.ref for s in stations])
     ref_used = np.where(np.array([s.moved for s in stations])[:, None], np.nan, ref)  # moved: no error figures
     has_ref = np.any(np.isfinite(ref_used), axis=1)
+    if msa is not None:
+        from .msa import evaluate_with_msa
+        if site is None:
+            raise UserError(f"{log_path}: multi-station analysis needs a site reference "
+                            "(a record, or --site SITE.yaml)")
+        use = np.array([not s.moved and not s.unusable for s in stations])
+        try:
+            res, fit = evaluate_with_msa(g, b, site, tol, ref_used if has_ref.any() else None, msa, use=use)
+        except ValueError as exc:
+            raise UserError(f"{log_path}: {exc}") from None
+        return stations, res, {**summarize(res), "msa": fit}
     res = evaluate_stations(g, b, site, tol, ref_used if has_ref.any() else None, axial)
     return stations, res, summarize(res)
 
@@ -384,7 +424,7 @@ def format_station_csv(stations, res) -> str:
 
     for k, st in enumerate(stations):
         flags = [n for n in ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance",
-                             "axial_degenerate") if n in res and res[n][k]]
+                             "axial_degenerate", "msa_rejected", "msa_unobservable") if n in res and res[n][k]]
         flags += ["moved_during_capture"] if st.moved else []
         flags += [f"{s}_unusable" for s in st.unusable]
         err = (lambda n: res[n][k] if n in res else None)
@@ -422,15 +462,22 @@ def cmd_correct(args):
     cal = load_calibration(args.coeffs)
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
     site = site_for(args, cal, tol, args.log)
+    msa = _msa_settings(args, site)
     stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction, mag_unit=args.mag_unit,
-                                      detector=detector_from_args(args))
+                                      detector=detector_from_args(args), msa=msa)
+    fit = summ.pop("msa", None)
     if args.output:
         atomic_write_text(args.output, format_station_csv(stations, res))
     summ["coefficients"] = cal.id if cal else "none"
     flags = ("azimuth_undefined", "interference_suspected", "gravity_out_of_tolerance") + \
-        (("axial_degenerate",) if args.axial_correction else ())
+        (("axial_degenerate",) if args.axial_correction or fit else ()) + \
+        (("msa_rejected", "msa_unobservable") if fit else ())
     summ["flagged"] = {n: int(np.sum(res[n])) for n in flags}
-    summ["azimuth_method"] = "short_collar" if args.axial_correction else "standard"
+    summ["azimuth_method"] = ("short_collar" if args.axial_correction else
+                              ("msa" if fit.observable else "standard (MSA unobservable)") if fit else "standard")
+    if fit is not None:
+        summ["msa"] = fit.to_dict()
+        summ["msa"]["stations"] = [st.index for st in stations]
     if site is not None:
         from .geomag import azimuth_reference
         summ["azimuth_reference"] = azimuth_reference(site)
@@ -444,12 +491,41 @@ def cmd_correct(args):
         print()
         print(format_table5(None, table5(res, ref)).replace(" after ", f" {label[:6]:<6}"))
         print()
+    if fit is not None:
+        from .msa import format_result
+        print(format_result(fit, [st.index for st in stations], res["drift_deg"]))
+        print()
     print(_summary_line(summ))
     if "azimuth_reference" in summ:
         print(f"azimuths from {summ['azimuth_reference']}")
     if args.output:
         print(f"wrote {args.output} ({len(stations)} stations)")
     return 0
+
+
+def _msa_settings(args, site):
+    """The multi-station analysis' settings from ``--msa`` and ``--reference-sigma`` (default:
+    from where the site's values came from, :func:`msa.reference_sigma`), or None without
+    ``--msa``."""
+    if args.msa is None:
+        if args.reference_sigma:
+            raise UserError("--reference-sigma is a setting of --msa")
+        return None
+    if args.axial_correction:
+        raise UserError("--axial-correction and --msa are two ways to correct axial interference: give one")
+    from .msa import MSASettings, reference_sigma
+    if args.reference_sigma:
+        try:
+            sb, sd = (float(x) for x in args.reference_sigma.split(","))
+        except ValueError:
+            raise UserError(f"--reference-sigma {args.reference_sigma!r}: expected FIELD_NT,DIP_DEG "
+                            "(e.g. 50,0.1 for IFR, 152,0.22 for WMM)") from None
+    else:
+        sb, sd, _ = reference_sigma(site) if site is not None else (50.0, 0.1, "")
+    try:
+        return MSASettings(sigma_field_nt=sb, sigma_dip_deg=sd, parameters=args.msa)
+    except ValueError as exc:
+        raise UserError(f"--msa / --reference-sigma: {exc}") from None
 
 
 def _summary_line(s):
@@ -960,7 +1036,7 @@ def build_parser():
     s.add_argument("--cal-temps", default="25", help="temperature of each calibration round, °C (comma list)")
     s.add_argument("--val-temp", default="25:45:30",
                    help="validation temperature profile T1:T2[:T3..] (piecewise linear over the stations), °C")
-    s.add_argument("--stand-azimuth", type=float, default=0.0, help="stand's rotation from north, deg")
+    s.add_argument("--stand-azimuth", type=float, default=0.0, help="stand's rotation from (true) north, deg")
     s.add_argument("--total-field", type=float, default=Site.total_field_nt, help="site total field, nT")
     s.add_argument("--dip", type=float, default=Site.dip_deg, help="site dip, deg")
     s.add_argument("--declination", type=float, default=Site.declination_deg, help="site declination, deg")
@@ -1015,6 +1091,15 @@ def build_parser():
     w.add_argument("--hole-section", type=int, default=0, help="item 0702")
     w.set_defaults(func=cmd_wits)
 
+    wx = sub.add_parser("witsml", help="export a recorded run's survey stations as a WITSML 2.1 Trajectory "
+                                       "(validated against the Energistics schema)")
+    wx.add_argument("bag", help="a recorded run (MCAP) with /survey/station")
+    wx.add_argument("-o", "--output", help="file to write (default: standard output)")
+    wx.add_argument("--well", default="WELL", help="well name (the wits node's well_id)")
+    wx.add_argument("--wellbore", default="WELLBORE", help="wellbore name")
+    wx.add_argument("--version", default="2.1", choices=["2.1"], help="WITSML version (2.1, the current release)")
+    wx.set_defaults(func=cmd_witsml)
+
     c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")
     c.add_argument("log", help="probe log CSV")
     c.add_argument("--coeffs", required=True, help="coefficient YAML, or 'none' for uncorrected figures")
@@ -1029,6 +1114,13 @@ def build_parser():
     c.add_argument("--axial-correction", action="store_true",
                    help="short-collar correction of axial drill-string interference (azimuth from the site's "
                         "total field and dip; degenerate stations flagged and left uncorrected)")
+    c.add_argument("--msa", nargs="?", const="auto", choices=("auto", "dz", "dz+msz", "dz+mbxy", "all"),
+                   help="multi-station analysis of axial interference: the axial field (and, as the attitudes "
+                        "support them, Z scale and X/Y biases) fitted over all stations with the reference's "
+                        "uncertainty (default auto; docs/interference.md)")
+    c.add_argument("--reference-sigma", metavar="FIELD_NT,DIP_DEG",
+                   help="with --msa: 1-sigma of the site reference (default from its source: 50,0.1 measured/IFR; "
+                        "152,0.22 a main-field model)")
     _detector_options(c)
     c.set_defaults(func=cmd_correct)
 

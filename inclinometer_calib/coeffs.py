@@ -45,6 +45,8 @@ FORMAT_VERSION = 2
 #: Versions this code reads: 1 (the paper's base model only), 2 (any lab model).
 READABLE_VERSIONS = (1, 2)
 UNITS = {"acc": "m/s^2", "mag": "nT"}
+#: The 1σ a record may carry per triad (``uncertainty``): bias in the triad's unit, scale (1).
+UNCERTAINTY_KEYS = ("bias", "scale")
 TRIAD_KEYS = {"acc": "accelerometer", "mag": "magnetometer"}
 CONVENTIONS = {
     "tool_frame": "right-handed; Z along the tool axis pointing down-hole; X to the high side at toolface 0",
@@ -73,12 +75,16 @@ class Calibration:
     says where it came from: "given" (a site file, node parameters), "measured" (the stand's field
     measured by the twelve poses, its total field in the scale of an assumed vertical component:
     the magnetometer's scale is then relative), "unknown" (an older record).
-    ``not_identifiable``: parameters the data could not determine, with the reason (a lab fit)."""
+    ``not_identifiable``: parameters the data could not determine, with the reason (a lab fit).
+    ``uncertainty``: the calibrator's 1σ of the corrected sensors, per triad (``acc``, ``mag``):
+    ``bias`` (3, in m/s² or nT of the corrected output) and ``scale`` (3, dimensionless), with the
+    ``basis`` they were computed on; the sensor terms of the position uncertainty
+    (:func:`iscwsa.terms_from_calibration`).  Not part of the id: it describes the numbers."""
 
     def __init__(self, model: ProbeModel | None = None, *, acc: TriadModel | None = None,
                  mag: TriadModel | None = None, probe_id: str = "probe", method: str = "twelve_position",
                  created: str = "", site: Site | None = None, diagnostics: dict | None = None,
-                 site_source: str = "given", not_identifiable=()):
+                 site_source: str = "given", not_identifiable=(), uncertainty: dict | None = None):
         if model is None:
             model = ProbeModel.base(acc, mag)
         elif acc is not None or mag is not None:
@@ -91,6 +97,7 @@ class Calibration:
         self.diagnostics = dict(diagnostics or {})
         self.site_source = site_source
         self.not_identifiable = [dict(x) for x in not_identifiable]
+        self.uncertainty = {k: dict(v) for k, v in (uncertainty or {}).items()}
         self._plan = None
 
     def __repr__(self):
@@ -171,6 +178,10 @@ class Calibration:
                 "correction_matrix": [[float(x) for x in row] for row in t.correction_matrix],
                 "offset": [float(x) for x in t.correction_offset],
             }
+            if self.uncertainty.get(sensor):
+                unc = self.uncertainty[sensor]
+                rec[key]["uncertainty"] = {k: ([float(x) for x in unc[k]] if k in UNCERTAINTY_KEYS else unc[k])
+                                           for k in unc}
             diag = self.diagnostics.get(sensor)
             if diag:
                 rec[key]["diagnostics"] = diag
@@ -208,6 +219,7 @@ class Calibration:
             fail(f"format_version {version!r} is not supported (this version reads "
                  f"{', '.join(map(str, READABLE_VERSIONS))})")
         triads = {}
+        uncertainty = {}
         for sensor, key in TRIAD_KEYS.items():
             sec = rec.get(key)
             if not isinstance(sec, dict):
@@ -246,6 +258,18 @@ class Calibration:
                     not np.allclose(off, model.correction_offset, rtol=1e-6, atol=1e-6 * max(1.0, np.abs(off).max())):
                 fail(f"{key}: correction_matrix/offset disagree with the parameters (hand-edited?)")
             triads[sensor] = (model, sec.get("diagnostics", {}))
+            if "uncertainty" in sec:
+                unc = sec["uncertainty"]
+                if not isinstance(unc, dict):
+                    fail(f"{key}.uncertainty must be a mapping")
+                for k in UNCERTAINTY_KEYS:
+                    try:
+                        v = np.asarray(unc.get(k), dtype=float)
+                    except (TypeError, ValueError):
+                        fail(f"{key}.uncertainty.{k} must be three numbers")
+                    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.any(v < 0):
+                        fail(f"{key}.uncertainty.{k} must be three finite non-negative numbers, got {unc.get(k)!r}")
+                uncertainty[sensor] = dict(unc)
         try:
             site = Site.from_dict(rec.get("site", {}))
         except (TypeError, ValueError) as exc:
@@ -281,7 +305,8 @@ class Calibration:
         cal = cls(probe, probe_id=str(rec.get("probe_id", "probe")), method=str(rec.get("method", "")),
                   created=str(rec.get("created", "")), site=site, diagnostics=diags,
                   site_source=str(rec.get("site_source", "unknown")),
-                  not_identifiable=mod.get("not_identifiable", ()) if version >= 2 else ())
+                  not_identifiable=mod.get("not_identifiable", ()) if version >= 2 else (),
+                  uncertainty=uncertainty)
         if "id" in rec and rec["id"] != cal._hash(version):
             fail(f"id {rec['id']!r} does not match the content (expected {cal._hash(version)!r}): edited without "
                  "re-issuing")

@@ -119,6 +119,20 @@ def azimuth_reference(site) -> str:
     return out
 
 
+def site_parameters(d: dict) -> dict:
+    """The node parameters (names after ``site.``) of a site section (:func:`site_from_config`'s
+    keys): the values as they are, a location's keys, and with a location the measured values'
+    names in ``measured`` (they win over the model's in the node as here)."""
+    measured = [k for k in ("total_field_nt", "dip_deg", "declination_deg", "gravity_mps2") if k in d]
+    out = {k: float(d[k]) for k in measured}
+    loc = {k: d[k] for k in LOCATION_KEYS if k in d}
+    if loc:
+        for k, v in loc.items():
+            out[k] = float(v) if k in ("latitude_deg", "longitude_deg", "altitude_m") else str(v)
+        out["measured"] = ",".join(measured)
+    return out
+
+
 def site_from_config(d: dict):
     """A :class:`frames.Site` from a site section: measured values (``total_field_nt``,
     ``dip_deg``, ``declination_deg``, ``gravity_mps2``) and/or a location (``latitude_deg``,

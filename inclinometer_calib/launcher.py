@@ -64,8 +64,8 @@ import numpy as np
 from .deps import MissingDependency, require
 from .topics import TOPIC_STATION
 
-NODES = ("probe", "calibration", "correction", "wits", "recorder")
-STOP_ORDER = ("probe", "calibration", "correction", "wits", "recorder")  # the recorder last: it records the others
+NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
+STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder")  # the recorder last: it records the others
 #: Nodes restarted when they die mid-run: they carry no state the run cannot rebuild (a new bag
 #: part; the coefficients from the latched topic or coeffs.yaml, station ids from the state file).
 #: The calibration node is not: its captured poses would be lost.
@@ -76,6 +76,7 @@ PROBE_INPUT_DAMAGED = 3
 BAG = "survey.mcap"  # the first bag part; later parts survey_1.mcap, survey_2.mcap, ...
 _PART_RE = re.compile(r"^survey(?:_(\d+))?\.mcap$")
 STATE_FILE = "correction_state.json"
+WITSML_FILE = "trajectory.xml"  # the wits node's WITSML 2.1 Trajectory (--witsml or --wits-port)
 
 
 def config_dir():
@@ -100,6 +101,8 @@ def _fmt(value) -> str:
         return "true" if value else "false"
     if isinstance(value, float):
         return repr(value)
+    if isinstance(value, str) and not value:
+        return '""'          # rcl cannot parse "name:=" (nothing after it)
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(json.dumps(v) if isinstance(v, str) else _fmt(v) for v in value) + "]"
     return str(value)
@@ -192,19 +195,32 @@ def build_params(args, out):
     p["recorder"]["output"] = os.path.join(out, BAG)
     if args.wits_port:
         p["wits"].update(port=int(args.wits_port), output=os.path.join(out, "wits0.dat"))
+    if args.wits_port or args.witsml:
+        p["wits"]["witsml_file"] = os.path.join(out, WITSML_FILE)
+    if args.foxglove_port:
+        if not 1 <= args.foxglove_port <= 65535:
+            raise SystemExit(f"--foxglove-port {args.foxglove_port}: a TCP port is 1..65535 (0: no live view)")
+        p["live"]["port"] = int(args.foxglove_port)   # the live view in Foxglove (host: config/live.yaml, loopback)
     if args.reliable:
         for n in ("probe", "calibration", "correction"):
             p[n]["qos.reliability"] = "reliable"
     if args.site:
         # the site reference of the run (total field, dip, declination, gravity): the calibration
         # and correction nodes use it, the simulated probe lives in it
+        # (a location is looked up by each node, in the same geomagnetic model: geomag.site_parameters)
         from .cli import UserError, load_site
+        import yaml
+
+        from .geomag import site_parameters
         try:
-            site = load_site(args.site)
+            load_site(args.site)         # refused here, once, rather than by three nodes
+            with open(args.site, encoding="utf-8") as fh:
+                d = yaml.safe_load(fh)
         except UserError as exc:
             raise SystemExit(f"--site: {exc}") from None
+        d = d.get("site", d)
         for n in ("probe", "calibration", "correction"):
-            p[n].update({f"site.{k}": float(v) for k, v in site.to_dict().items()})
+            p[n].update({f"site.{k}": v for k, v in site_parameters(d).items()})
         for n in ("calibration", "correction"):
             p[n]["site.given"] = True
     for spec in args.param:
@@ -299,14 +315,16 @@ def run_graph(args, out, env) -> GraphResult:
             names.append("recorder")
         else:
             print("[launch] recorder module not available: running without recording", flush=True)
-    if args.wits_port and "correction" in names:
+    if (args.wits_port or args.witsml) and "correction" in names:
         names.append("wits")
-    consumers = [n for n in names if n not in ("probe", "wits")]
+    if args.foxglove_port and "correction" in names:
+        names.append("live")
+    consumers = [n for n in names if n not in ("probe", "wits", "live")]
     # every other node reads imu, mag and temperature; the reference goes to correction and recorder
     params["probe"].setdefault("wait_for_subscribers", len(consumers))
     params["probe"].setdefault("wait_for_reference_subscribers",
                                sum(n in ("correction", "recorder") for n in consumers))
-    station_readers = sum(n in ("recorder", "wits") for n in names)
+    station_readers = sum(n in ("recorder", "wits", "live") for n in names)
     if station_readers and "correction" in consumers:
         # stations are reliable but volatile: a reader not yet subscribed would miss the first ones
         params["probe"].setdefault("wait_for_topic_subscribers", [f"{TOPIC_STATION}={station_readers}"])
@@ -342,8 +360,12 @@ def run_graph(args, out, env) -> GraphResult:
     t0 = time.monotonic()
     try:
         # the consumers first, so that they are up when the probe starts publishing
-        for name in consumers + [n for n in names if n == "wits"] + ["probe"]:
+        for name in consumers + [n for n in names if n in ("wits", "live")] + ["probe"]:
             start(name)
+            if name == "live":
+                host = params["live"].get("host", _config_value(cfg, "live", "host", "127.0.0.1"))
+                say(f"live view: open ws://{host}:{params['live']['port']} in Foxglove (Open connection -> "
+                    f"Foxglove WebSocket) with the layout {os.path.join(cfg or 'config', 'foxglove_layout.json')}")
         reason = None
         drain_until = None  # set when the probe has finished: let the others close the last station
         while reason is None:
@@ -411,6 +433,36 @@ def run_graph(args, out, env) -> GraphResult:
 # --------------------------------------------------------------------------------------------
 # Summary (independent reader: rosbags)
 # --------------------------------------------------------------------------------------------
+def station_dict(msg) -> dict:
+    """A ``SurveyStation`` message as a plain dict (Python numbers, lists): one conversion for a
+    bag's messages (``rosbags``, :func:`read_bag`) and live ones (``rclpy``, the wits node)."""
+    d = {k: getattr(msg, k) for k in (
+        "station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg",
+        "magnetic_toolface_deg",
+        "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
+        "delta_dip_deg", "status", "azimuth_undefined", "interference_suspected",
+        "coefficients_id", "reference_drift_deg", "reference_azimuth_deg",
+        "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
+        "moved_during_capture", "model_misfit", "model_diagnosis")}
+    # depth and trajectory (NaN in a bag recorded before they existed)
+    for k in ("measured_depth_m", "tvd_m", "north_m", "east_m", "dls_deg_per_30m",
+              "azimuth_magnetic_deg", "azimuth_grid_deg", "axial_field_nt"):
+        d[k] = getattr(msg, k, float("nan"))
+    # the azimuth's north and method ("" in a bag recorded before they existed)
+    for k in ("azimuth_reference", "azimuth_method"):
+        d[k] = getattr(msg, k, "")
+    # the rest of the message, so that the dict has every field (the live view shows them all)
+    for k, default in (("toolface_type", ""), ("azimuth_sigma_deg", float("nan")), ("axial_degenerate", False),
+                       ("is_static", True), ("gravity_out_of_tolerance", False)):
+        d[k] = getattr(msg, k, default)
+    # raw means and the position's covariance (NaN in a bag recorded before they existed)
+    for k, n in (("raw_gravity_mps2", 3), ("raw_field_nt", 3), ("position_covariance_ned_m2", 9)):
+        d[k] = [float(x) for x in getattr(msg, k, [float("nan")] * n)]
+    d["warnings"] = list(msg.warnings)
+    d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+    return {k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()}
+
+
 def read_bag(path):
     """Stations, coefficient messages and the last calibration status of a bag as plain dicts, read
     with ``rosbags`` (in receive order)."""
@@ -427,21 +479,7 @@ def read_bag(path):
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == "/survey/station":
-                d = {k: getattr(msg, k) for k in (
-                    "station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg",
-                    "magnetic_toolface_deg",
-                    "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
-                    "delta_dip_deg", "status", "azimuth_undefined", "interference_suspected",
-                    "coefficients_id", "reference_drift_deg", "reference_azimuth_deg",
-                    "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
-                    "moved_during_capture", "model_misfit", "model_diagnosis")}
-                # depth and trajectory (NaN in a bag recorded before they existed)
-                for k in ("measured_depth_m", "tvd_m", "north_m", "east_m", "dls_deg_per_30m",
-                          "azimuth_magnetic_deg", "azimuth_grid_deg"):
-                    d[k] = getattr(msg, k, float("nan"))
-                d["warnings"] = list(msg.warnings)
-                d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-                stations.append({k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()})
+                stations.append(station_dict(msg))
             elif conn.topic == "/calibration/status":
                 status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
                           "pending": [int(x) for x in msg.pending], "warnings": list(msg.warnings)}
@@ -451,6 +489,24 @@ def read_bag(path):
                                      "accel_correction_matrix": [float(x) for x in msg.accel_correction_matrix],
                                      "mag_correction_matrix": [float(x) for x in msg.mag_correction_matrix]})
     return stations, coefficients, status
+
+
+def trajectory_summary(stations, coefficients_id=None) -> dict:
+    """The deepest corrected station with a position: MD, TVD, north, east and its ISCWSA 1σ
+    (horizontal semi-major and vertical, m), and how many stations have a position."""
+    placed = [s for s in stations if (coefficients_id is None or s["coefficients_id"] == coefficients_id)
+              and math.isfinite(s.get("tvd_m", math.nan))]
+    out = {"stations": len(placed)}
+    if placed:
+        import numpy as np
+
+        last = max(placed, key=lambda s: s["measured_depth_m"])
+        out.update({k: last[k] for k in ("measured_depth_m", "tvd_m", "north_m", "east_m")})
+        cov = np.reshape(last.get("position_covariance_ned_m2", [math.nan] * 9), (3, 3))
+        if np.all(np.isfinite(cov)):
+            out["sigma_horizontal_major_m"] = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0)))
+            out["sigma_vertical_m"] = float(math.sqrt(max(cov[2, 2], 0.0)))
+    return out
 
 
 def station_errors(stations, coefficients_id=None):
@@ -618,6 +674,9 @@ def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
         summary["coefficient_errors"] = coefficient_errors(cal, truth)
     summary["survey"] = station_errors(stations, cal.id if cal is not None else None)
     summary["raw_stations"] = sum(1 for s in stations if not s["coefficients_id"])
+    summary["trajectory"] = trajectory_summary(stations, cal.id if cal is not None else None)
+    if os.path.exists(os.path.join(out, WITSML_FILE)):
+        summary["witsml"] = witsml_summary(os.path.join(out, WITSML_FILE), stations)
     misfit = [s for s in stations if s.get("model_misfit")]
     summary["model_misfit_stations"] = len(misfit)
     if misfit:
@@ -637,6 +696,25 @@ def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
     bags = ", ".join(p["file"] for p in parts) or "none"
     print_fn(f"report: {os.path.join(out, 'report.md')}" + (f" and {page}" if page else "") + f"; bag: {bags}")
     return summary
+
+
+def witsml_summary(path, stations) -> dict:
+    """The live WITSML document checked: valid against the schema, and its stations those the
+    recorded bag's stations export to (:mod:`witsml`)."""
+    from . import witsml
+
+    res = {"file": path}
+    try:
+        with open(path, "rb") as fh:
+            xml = fh.read()
+        witsml.validate(xml)
+        res["stations"] = len(witsml.read_trajectory(xml))
+        res["valid"] = True
+    except (OSError, witsml.WitsmlError) as exc:
+        res.update(valid=False, error=str(exc))
+        return res
+    res["bag_stations"] = len(witsml.select_stations(stations)[0])
+    return res
 
 
 def model_loop(out, readable, cal, print_fn):
@@ -800,11 +878,27 @@ def format_summary(s) -> list:
                      f"{_num(sv['max_abs_delta_g_mps2'], '.4f')} m/s^2")
     else:
         lines.append("survey: no corrected stations with a reference")
+    tr = s.get("trajectory") or {}
+    if tr.get("stations"):
+        line = (f"trajectory: {tr['stations']} stations placed by minimum curvature; deepest MD "
+                f"{tr['measured_depth_m']:.1f} m: TVD {tr['tvd_m']:.1f} m, N {tr['north_m']:+.1f} m, "
+                f"E {tr['east_m']:+.1f} m")
+        if "sigma_vertical_m" in tr:
+            line += (f"; ISCWSA 1σ there {tr['sigma_horizontal_major_m']:.2f} m horizontal (semi-major), "
+                     f"{tr['sigma_vertical_m']:.2f} m vertical")
+        lines.append(line)
     if s.get("model_misfit_stations"):
         lines.append(f"field monitor (live): {s['model_misfit_stations']} station(s) flagged — the last said: "
                      f"{s['model_diagnosis']}")
     elif sv.get("stations"):
         lines.append("field monitor (live): the record's model explained every station tested")
+    wx = s.get("witsml")
+    if wx:
+        if wx.get("valid"):
+            lines.append(f"WITSML 2.1 trajectory: {wx['file']}: {wx['stations']} stations, valid against the "
+                         f"schema (the bag's stations export to {wx['bag_stations']})")
+        else:
+            lines.append(f"WITSML 2.1 trajectory: {wx['file']}: NOT valid: {wx['error']}")
     return lines
 
 
@@ -833,7 +927,13 @@ def parse_args(argv=None):
     ap.add_argument("--no-recorder", action="store_true", help="do not record (no summary from the bag)")
     ap.add_argument("--wits-port", type=int, default=0, metavar="PORT",
                     help="also start the wits node: the corrected stations as WITS0 record 07 on tcp://127.0.0.1:PORT "
-                         "and in <out>/wits0.dat (0: no wits node)")
+                         "and in <out>/wits0.dat (0: no wits node); it also writes <out>/trajectory.xml")
+    ap.add_argument("--foxglove-port", type=int, default=0, metavar="PORT",
+                    help="also start the live node: the survey live in Foxglove on ws://127.0.0.1:PORT (stations, "
+                         "QC residuals, trajectory, diagnostics; layout config/foxglove_layout.json; 0: no live node)")
+    ap.add_argument("--witsml", action="store_true",
+                    help="start the wits node for <out>/trajectory.xml: the survey as a WITSML 2.1 Trajectory, "
+                         "rewritten after every station")
     ap.add_argument("--no-loop", action="store_true", help="no model loop in the summary (the lab's finding on the "
                     "recorded data and the field effect ladder)")
     ap.add_argument("--reliable", action="store_true", help="reliable QoS for the raw streams (lossless replay)")
@@ -881,7 +981,8 @@ def _lock_out_dir(out):
 
 def run_files(out) -> list:
     """Files of an earlier run in ``out`` that a new run would mix with (refused without --overwrite)."""
-    names = ["coeffs.yaml", "summary.json", "truth.json", STATE_FILE, "lab_model.yaml", "report.html", "compare"]
+    names = ["coeffs.yaml", "summary.json", "truth.json", STATE_FILE, "lab_model.yaml", "report.html", "compare",
+             WITSML_FILE, "wits0.dat"]
     found = [os.path.basename(p) for p in bag_parts(out)]
     return found + [f for f in names if os.path.exists(os.path.join(out, f))]
 

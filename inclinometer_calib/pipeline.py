@@ -29,6 +29,7 @@ import numpy as np
 from .axial import evaluate_with_axial
 from .gates import apply_gates
 from .geomag import azimuths
+from .iscwsa import position_covariance, terms_from_calibration
 from .station import Station
 from .survey import Tolerances, evaluate
 from .trajectory import minimum_curvature
@@ -118,6 +119,8 @@ class SurveyProcessor:
         # in order of depth, from the tie-in (default: the surface, vertical)
         self.tie_in = tuple(float(x) for x in tie_in)
         self._path = [self.tie_in]
+        self._mag_azimuths = [NAN]          # magnetic azimuth of each station of the path (ISCWSA weights)
+        self._terms = None                  # the ISCWSA tool model for this record and site
         self.site_given = site
         self.axial = axial
         self.monitor = monitor
@@ -137,6 +140,7 @@ class SurveyProcessor:
     def set_calibration(self, calibration) -> list:
         """Apply a record from now on; returns what must be said about it (a site override)."""
         self.calibration = calibration
+        self._terms = None
         note = site_override_note(calibration, self.site_given)
         self.notes = [note] if note else []
         if self.monitor is not None:
@@ -180,7 +184,8 @@ class SurveyProcessor:
         (:mod:`trajectory`; north/east along grid north when the site has a grid, else the site's
         north).  A station at or above a depth already surveyed (a re-survey) replaces what lies
         below it.  Without a depth (or a drift, or when the probe moved) the fields are NaN."""
-        out = {"measured_depth_m": NAN, "tvd_m": NAN, "north_m": NAN, "east_m": NAN, "dls_deg_per_30m": NAN}
+        out = {"measured_depth_m": NAN, "tvd_m": NAN, "north_m": NAN, "east_m": NAN, "dls_deg_per_30m": NAN,
+               "position_covariance_ned_m2": [NAN] * 9}
         md, inc = float(st.md_m), float(values.get("drift_deg", NAN))
         if not (math.isfinite(md) and math.isfinite(inc)) or st.moved:
             out["measured_depth_m"] = md if math.isfinite(md) else NAN
@@ -190,15 +195,34 @@ class SurveyProcessor:
         azi = float(azi) if math.isfinite(float(azi)) and not values.get("azimuth_undefined") else 0.0
         while len(self._path) > 1 and self._path[-1][0] >= md:      # a re-survey replaces what it overlaps
             self._path.pop()
+            self._mag_azimuths.pop()
         prev = self._path[-1]
         if md <= prev[0]:      # at or above the tie-in: nothing to place it from
             out["measured_depth_m"] = md
             return out
         t = minimum_curvature([prev[0], md], [prev[1], inc], [prev[2], azi], tie_in=(prev[3], prev[4], prev[5]))
         self._path.append((md, inc, azi, float(t.tvd[-1]), float(t.north[-1]), float(t.east[-1])))
+        azi_mag = values.get("azimuth_magnetic_deg", NAN)
+        self._mag_azimuths.append(float(azi_mag) if math.isfinite(float(azi_mag)) else azi)
         out.update(measured_depth_m=md, tvd_m=float(t.tvd[-1]), north_m=float(t.north[-1]),
-                   east_m=float(t.east[-1]), dls_deg_per_30m=float(t.dls[-1]))
+                   east_m=float(t.east[-1]), dls_deg_per_30m=float(t.dls[-1]),
+                   position_covariance_ned_m2=self._covariance(site))
         return out
+
+    def _covariance(self, site) -> list:
+        """The ISCWSA MWD covariance (NEV m², row-major 3×3, along the positions' north) of the
+        station just placed, from the tie-in through every station of the path (:mod:`iscwsa`;
+        the sensor terms from the record's uncertainty, the declination's from the site's source).
+        NaN without a site (no field to weigh the magnetic terms by)."""
+        if site is None:
+            return [NAN] * 9
+        if self._terms is None:
+            self._terms = terms_from_calibration(self.calibration, site)
+        path = np.array(self._path)
+        unc = position_covariance(path[:, 0], path[:, 1], path[:, 2], total_gravity_mps2=site.gravity_mps2,
+                                  total_field_nt=site.total_field_nt, dip_deg=site.dip_deg, tvd=path[:, 3],
+                                  terms=self._terms, azi_magnetic_deg=np.array(self._mag_azimuths))
+        return [float(x) for x in unc.cov[-1].ravel()]
 
 
 def _finite_or_nan(x) -> float:
@@ -257,4 +281,7 @@ def station_fields(station_id: int, seg: Station, v: dict, coefficients_id: str,
         dls_deg_per_30m=_finite_or_nan(v.get("dls_deg_per_30m", NAN)),
         azimuth_magnetic_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_magnetic_deg", NAN)),
         azimuth_grid_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_grid_deg", NAN)),
+        raw_gravity_mps2=[_finite_or_nan(x) for x in np.asarray(seg.g, float).reshape(3)],
+        raw_field_nt=[_finite_or_nan(x) for x in np.asarray(seg.b, float).reshape(3)],
+        position_covariance_ned_m2=[_finite_or_nan(x) for x in v.get("position_covariance_ned_m2", [NAN] * 9)],
     )

@@ -190,6 +190,7 @@ class TriadSolution:
     method: str = "closed form (eqs. 5-16)"
     z_rms: float = float("nan")
     left_out: list = field(default_factory=list)
+    uncertainty: dict = field(default_factory=dict)   # 1σ bias/scale of the corrected triad (fit_uncertainty)
 
     @property
     def rms_residual(self) -> float:
@@ -434,6 +435,28 @@ def fit_triad(poses, h, sigma, vertical_ref: float, horizontal0=(0.0, 0.0), iter
     return TriadFit(model, r, res, float(math.sqrt(z @ z / dof)), rank, weak)
 
 
+def fit_uncertainty(poses, sigma, fit: TriadFit) -> dict:
+    """1σ of the corrected triad's bias and scale from a fit's covariance (the sensor terms of the
+    ISCWSA position uncertainty, :mod:`iscwsa`).
+
+    The covariance of (vec A, B) is ``(JᵀWJ)⁻¹`` of the weighted design (:func:`_design`), inflated
+    by the residuals' ratio to the measured noise when above 1 (a model that does not explain the
+    data to its noise is that much less certain).  A corrected vector is ``v = A⁻¹(h − B)``: an error
+    δB gives ``δv = −A⁻¹·δB`` (the bias σ, in the triad's input units: ``diag(A⁻¹ Σ_B A⁻ᵀ)``) and an
+    error in the diagonal ``A_ii`` a relative scale error ``δA_ii/A_ii`` (the scale σ)."""
+    w = 1.0 / np.asarray(sigma, float).reshape(-1, 3)
+    jac = _design([int(p) for p in poses], fit.reference, fit.model.A) * w.reshape(-1)[:, None]
+    cov = np.linalg.pinv(jac.T @ jac)
+    z = fit.z_rms if np.isfinite(fit.z_rms) else 1.0
+    cov = cov * max(1.0, z) ** 2
+    c = np.linalg.inv(fit.model.A)
+    bias = np.sqrt(np.maximum(np.diag(c @ cov[9:12, 9:12] @ c.T), 0.0))
+    diag = np.array([0, 4, 8])
+    scale = np.sqrt(np.maximum(np.diag(cov)[diag], 0.0)) / np.abs(np.diag(fit.model.A))
+    return {"bias": [float(x) for x in bias], "scale": [float(x) for x in scale],
+            "basis": f"twelve-position fit covariance over {len(poses)} captures, residuals {z:.2f}x the noise"}
+
+
 #: A design whose parameters are this many times less certain than the complete twelve-pose
 #: design's does not determine them (a design missing an axis' vertical poses on a level stand is
 #: ≥ 100× worse, one missing a few poses ≤ 3×).
@@ -588,6 +611,7 @@ def solve_triad_captures(caps: CaptureSet, vertical_ref: float, horizontal0, *, 
                                              f"{missing}: the closed form needs all twelve)")
         check_solution(sol, name, scale_range, unit)
     sol.left_out = left_out
+    sol.uncertainty = fit_uncertainty(kept.poses, kept.sigmas, fit)
     return sol
 
 
@@ -662,7 +686,9 @@ def to_calibration(result: TwelvePositionResult, site, probe_id: str = "probe"):
     if result.notes:
         diagnostics["notes"] = list(result.notes)
     return Calibration(acc=result.acc.model, mag=result.mag.model, probe_id=probe_id, method=method, site=site,
-                       diagnostics=diagnostics)
+                       diagnostics=diagnostics,
+                       uncertainty={k: s.uncertainty for k, s in (("acc", result.acc), ("mag", result.mag))
+                                    if s.uncertainty})
 
 
 _TABLE2_E = {0: ("e_xy", "e_xz"), 1: ("e_yx", "e_yz"), 2: ("e_zx", "e_zy")}

@@ -74,6 +74,10 @@ def station_cdr(store, i: int) -> bytes:
             kwargs[name] = False
         elif name == "samples_averaged":
             kwargs[name] = 100
+        elif name in ("raw_gravity_mps2", "raw_field_nt"):
+            kwargs[name] = np.full(3, float(i))
+        elif name == "position_covariance_ned_m2":
+            kwargs[name] = np.eye(3).ravel() * (i + 1)
         else:
             kwargs[name] = float(i) + 0.5
     return bytes(store.serialize_cdr(cls(**kwargs), STATION))

@@ -5,7 +5,7 @@ import sys
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORE = ["frames", "errormodel", "twelve_position", "effects", "model", "plugins", "simulate", "probelog", "coeffs",
-        "survey", "noise", "station", "gates", "streaming", "capture", "pipeline", "axial", "bag", "reprocess", "cli",
+        "survey", "noise", "station", "gates", "streaming", "capture", "pipeline", "axial", "msa", "bag", "reprocess", "cli",
         "lab", "lab.fit", "lab.diagnose", "lab.report", "lab.field", "lab.stats"]
 
 

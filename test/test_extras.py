@@ -28,10 +28,11 @@ from inclinometer_calib.reprocess import write_probe_bag
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = os.path.join(ROOT, "inclinometer_calib")
-CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj"}
+CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj", "lxml", "xmlschema",
+        "foxglove-sdk"}
 OPTIONAL_MODULES = ("matplotlib", "mcap", "zstandard", "lz4", "rosbags")
 #: import name -> PyPI distribution, where they differ
-DISTRIBUTION = {"yaml": "PyYAML"}
+DISTRIBUTION = {"yaml": "PyYAML", "foxglove": "foxglove-sdk"}
 #: modules that come with ROS 2 (colcon / the ROS wheels), never from this package's metadata
 ROS_MODULES = {"rclpy", "rcl_interfaces", "ament_index_python", "std_srvs", "launch", "launch_ros",
                "builtin_interfaces", "rosidl_runtime_py"}

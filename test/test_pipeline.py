@@ -122,3 +122,37 @@ def test_stations_with_a_depth_get_the_trajectory_by_minimum_curvature_and_a_res
     st = _one(probe, site, 30, 40, 0)
     f = SurveyProcessor(calibration=Calibration(probe.model, site=site)).process(st)
     assert np.isnan(f["measured_depth_m"]) and np.isnan(f["tvd_m"]) and np.isnan(f["north_m"])
+
+
+def test_each_placed_station_carries_its_iscwsa_covariance_and_its_raw_means():
+    from inclinometer_calib import iscwsa
+    from inclinometer_calib.probelog import segment_stations
+
+    probe = sim.build_probe(4)
+    site = Site(declination_deg=3.0)
+    log = sim.run_session(probe, site, sim.well_path_session(8, md_start_m=600.0, md_step_m=30.0),
+                          np.random.default_rng(2), rate_hz=50.0)
+    stations, _ = segment_stations(log)
+    unc = {"acc": {"bias": [2e-4, 2e-4, 3e-4], "scale": [1e-4, 1e-4, 1e-4]},
+           "mag": {"bias": [5.0, 5.0, 8.0], "scale": [3e-4, 3e-4, 4e-4]}}
+    cal = Calibration(probe.model, site=site, uncertainty=unc)
+    proc = SurveyProcessor(calibration=cal)
+    fields = [proc.process(st) for st in stations]
+    for st, f in zip(stations, fields):
+        np.testing.assert_array_equal(f["raw_gravity_mps2"], st.g)
+        np.testing.assert_array_equal(f["raw_field_nt"], st.b)
+    # the same as the model over the whole path at once, with the record's sensor terms
+    md = np.r_[0.0, [f["measured_depth_m"] for f in fields]]
+    inc = np.r_[0.0, [f["drift_deg"] for f in fields]]
+    azi = np.r_[0.0, [f["azimuth_deg"] for f in fields]]
+    whole = iscwsa.position_covariance(md, inc, azi, total_gravity_mps2=site.gravity_mps2,
+                                       total_field_nt=site.total_field_nt, dip_deg=site.dip_deg,
+                                       declination_deg=3.0, terms=iscwsa.terms_from_calibration(cal, site))
+    for k, f in enumerate(fields):
+        np.testing.assert_allclose(np.reshape(f["position_covariance_ned_m2"], (3, 3)), whole.cov[k + 1],
+                                   rtol=0, atol=1e-6 * np.max(whole.cov[k + 1]))
+    sig = [np.sqrt(np.trace(np.reshape(f["position_covariance_ned_m2"], (3, 3)))) for f in fields]
+    assert all(b > a for a, b in zip(sig, sig[1:]))        # uncertainty grows with depth
+    # without a site there is no field to weigh the magnetic terms: NaN, not a guess
+    bare = SurveyProcessor(calibration=None).process(stations[0])
+    assert np.all(np.isnan(bare["position_covariance_ned_m2"]))

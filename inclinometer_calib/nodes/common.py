@@ -172,6 +172,37 @@ def declare_site(params: Params, site: Site = Site(), prefix: str = "site", give
                                     "Reference local gravity |g|, m/s^2", read_only=True,
                                     range=(9.7, 9.9)),
     )
+    # the rig's site by location: the values from a geomagnetic model (geomag.site_from_config), the
+    # site.* values listed in site.measured (IFR) winning value by value
+    lat = params.declare(f"{p}.latitude_deg", float("nan"), "Site latitude, degrees north (NaN: no location; the "
+                         "site.* values are the reference)", read_only=True)
+    lon = params.declare(f"{p}.longitude_deg", float("nan"), "Site longitude, degrees east", read_only=True)
+    alt = params.declare(f"{p}.altitude_m", 0.0, "Site altitude above the WGS84 ellipsoid, m", read_only=True)
+    date = params.declare(f"{p}.date", "", "Survey date (YYYY-MM-DD) for the geomagnetic model", read_only=True)
+    model = params.declare(f"{p}.model", "WMM2025", "Geomagnetic model: WMM2025 or IGRF-14", read_only=True,
+                           choices=("WMM2025", "IGRF-14"))
+    crs = params.declare(f"{p}.crs", "", "Projected CRS for grid azimuths (e.g. EPSG:32631; empty: none)",
+                         read_only=True)
+    measured = params.declare(f"{p}.measured", "", "Comma-separated site.* values that are measured (IFR) and win "
+                              "over the model's, e.g. 'total_field_nt,dip_deg'", read_only=True)
+    if math.isfinite(lat) or math.isfinite(lon):
+        from inclinometer_calib.geomag import site_from_config
+
+        names = [x.strip() for x in measured.split(",") if x.strip()]
+        values = s.to_dict()
+        unknown = [n for n in names if n not in values]
+        if unknown:
+            raise ValueError(f"{p}.measured names {unknown}; the site values are {', '.join(values)}")
+        loc = {"latitude_deg": lat, "longitude_deg": lon, "altitude_m": alt, "date": date, "model": model}
+        if not date:
+            raise ValueError(f"{p}.latitude_deg/longitude_deg given without {p}.date: the geomagnetic model needs "
+                             "the survey date")
+        if crs:
+            loc["crs"] = crs
+        try:
+            s = site_from_config({**loc, **{n: values[n] for n in names}})
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{p}: {exc}") from None
     return s if given else None
 
 

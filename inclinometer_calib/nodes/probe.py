@@ -256,9 +256,9 @@ class ProbeNode(Node):
         rng = np.random.default_rng(self.seed + 1)
         logs, t0, lead_in = [], 0.0, None
         if self.calibrate:
-            # The stand is set up against magnetic north (rotated by the declination in NED).
-            stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s,
-                                               azimuth_deg=self.site.declination_deg)
+            # The stand faces true north (the lab's convention for Table 1's poses, lab.model: a
+            # surveyed reference line); a stand facing elsewhere is the lab's heading offset.
+            stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s)
             logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
                                         move_s=self.move_s, t0=t0, survey=False))
             t0 = logs[-1].t_s[-1] + 1.0 / self.rate_hz

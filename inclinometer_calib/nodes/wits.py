@@ -12,6 +12,15 @@ as one record 07 to:
 Record items: well ``well_id``, hole section ``hole_section``, a sequence number per record, date
 and time of the station's stamp (UTC), MD, TVD, inclination, magnetic and corrected azimuth,
 magnetic and gravity toolface, north/east, dogleg severity (``wits.NUMERIC_ITEMS``).
+
+WITSML 2.1 (``witsml_file``, empty: off): after every survey station the node rewrites the run's
+``Trajectory`` document (:mod:`witsml`: well ``well_id``, wellbore ``wellbore``) with every station
+so far, validated against the schema and written atomically (a temporary file renamed over it: a
+reader never sees half a document, and one that does not validate is not written, said at ERROR).
+``ActiveStatus`` is ``active`` while the node runs and ``inactive`` in the last rewrite when it
+stops.  The message becomes the same station dict as a recorded bag's
+(:func:`launcher.station_dict`), so the live document equals ``inclinometer-calib witsml`` of the
+recorded run.
 """
 from __future__ import annotations
 
@@ -20,6 +29,8 @@ import sys
 
 from rclpy.node import Node
 
+from .. import witsml
+from ..launcher import station_dict
 from ..wits import WitsServer, encode
 from . import common as c
 from inclinometer_calib.msg import SurveyStation
@@ -43,8 +54,16 @@ class WitsNode(Node):
                                       read_only=True, range=(0, 99))
         max_buffer = p.declare("max_buffer_bytes", 1 << 20, "A client with more than this waiting is "
                                "dropped as stalled", read_only=True, range=(1024, 1 << 30))
-        if not self.port and not self.output:
-            raise ValueError("give a TCP port and/or an output file: nothing to send the records to")
+        self.witsml_file = p.declare("witsml_file", "", "WITSML 2.1 Trajectory document rewritten (atomically) "
+                                     "after every survey station (empty: none)", read_only=True)
+        self.wellbore = p.declare("wellbore", "WELLBORE", "Wellbore name of the WITSML document (the well is "
+                                  "well_id)", read_only=True)
+        if not self.port and not self.output and not self.witsml_file:
+            raise ValueError("give a TCP port, an output file and/or a witsml_file: nothing to send the stations to")
+        self.stations = []           # every station received (station dicts), for the WITSML document
+        self.witsml_written = 0      # stations in the document on disk
+        if self.witsml_file:
+            witsml.schema()          # load the schema now (about a second), not at the first station
         self.server = WitsServer(self.host, self.port, max_buffer=max_buffer, say=self.get_logger().info) \
             if self.port else None
         self.sink = open(self.output, "ab") if self.output else None   # noqa: SIM115 (closed in destroy_node)
@@ -52,9 +71,14 @@ class WitsNode(Node):
         self.create_subscription(SurveyStation, c.TOPIC_STATION, self._on_station, c.reliable_qos(100))
         self.get_logger().info("WITS0 record 07 of the survey stations"
                                + (f" on tcp://{self.host}:{self.server.port}" if self.server else "")
-                               + (f" to {self.output}" if self.output else ""))
+                               + (f" to {self.output}" if self.output else "")
+                               + (f"; WITSML 2.1 Trajectory in {self.witsml_file}" if self.witsml_file else ""))
 
     def _on_station(self, msg):
+        if self.witsml_file:
+            self.stations.append(station_dict(msg))
+            if witsml.select_stations(self.stations[-1:])[0]:
+                self._write_witsml(active=True)
         if not msg.coefficients_id:
             return                                   # raw: before any calibration
         if msg.status == 2:
@@ -70,7 +94,20 @@ class WitsNode(Node):
             self.sink.write(record)
             self.sink.flush()
 
+    def _write_witsml(self, active: bool) -> None:
+        """Rewrite the WITSML document with every station so far (validated, atomic)."""
+        try:
+            export = witsml.write_trajectory(self.witsml_file, self.stations, well=self.well_id,
+                                             wellbore=self.wellbore, active=active)
+        except (witsml.WitsmlError, OSError) as exc:
+            self.get_logger().error(f"WITSML document {self.witsml_file} not rewritten (the previous one stays): "
+                                    f"{exc}")
+            return
+        self.witsml_written = export.exported
+
     def destroy_node(self):
+        if self.witsml_file and self.witsml_written:
+            self._write_witsml(active=False)         # the survey is over: the document stops growing
         if self.server is not None:
             self.server.close()
         if self.sink is not None:

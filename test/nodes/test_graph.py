@@ -137,6 +137,20 @@ def test_a_rig_client_gets_every_survey_station_as_wits0_record_07(sim_run):
     assert parse_wits0((out / "wits0.dat").read_bytes()) == tcp       # the file has the same records
 
 
+def test_the_live_witsml_trajectory_is_the_export_of_the_recorded_run(sim_run):
+    """The wits node's <out>/trajectory.xml (rewritten live after every station, inactive at the end)
+    validates and is byte for byte what ``inclinometer-calib witsml`` makes of the recorded bag."""
+    from inclinometer_calib import witsml
+    from inclinometer_calib.launcher import read_bag
+
+    out, proc, _ = sim_run
+    live = (out / "trajectory.xml").read_bytes()
+    witsml.validate(live)
+    export = witsml.trajectory_document(read_bag(out / "survey.mcap")[0], well="WELL", wellbore="WELLBORE")
+    assert export.exported >= N_STATIONS and live == export.xml
+    assert f"WITSML 2.1 trajectory: {out / 'trajectory.xml'}: {export.exported} stations, valid" in proc.stdout
+
+
 def test_launcher_leaves_the_run_files(sim_run):
     out, proc, seconds = sim_run
     for name in ("survey.mcap", "coeffs.yaml", "truth.json", "summary.json"):

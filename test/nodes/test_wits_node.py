@@ -1,6 +1,9 @@
 """The ``wits`` node over real DDS: SurveyStation messages published in this process reach the
 node (a separate process) and leave it as WITS0 record 07 to a TCP client on loopback and to a
-file, read back by the tests' own parser; raw and error stations are not sent."""
+file, read back by the tests' own parser; raw and error stations are not sent.  The same node
+rewrites a WITSML 2.1 Trajectory after every station: it validates against the Energistics schema
+and parses back to the numbers published (error stations as ``rejected``), and is marked inactive
+when the node stops."""
 import socket
 import subprocess
 import sys
@@ -10,6 +13,7 @@ import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
+from inclinometer_calib import witsml  # noqa: E402
 from wits_parser import parse_wits0  # noqa: E402
 
 
@@ -26,8 +30,10 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
 
     port = _free_port()
     out = tmp_path / "wits.dat"
+    traj = tmp_path / "trajectory.xml"
     proc = subprocess.Popen([sys.executable, "-m", "inclinometer_calib.nodes.wits", "--ros-args", "-p",
-                             f"port:={port}", "-p", f"output:={out}", "-p", "well_id:=TEST-1"],
+                             f"port:={port}", "-p", f"output:={out}", "-p", "well_id:=TEST-1",
+                             "-p", f"witsml_file:={traj}", "-p", "wellbore:=TEST-1 A"],
                             env=ros_env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         client = None
@@ -44,7 +50,7 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
         t0 = time.monotonic()
         while pub.get_subscription_count() < 1 and time.monotonic() - t0 < 20:
             rclpy.spin_once(node, timeout_sec=0.1)
-        sent = []
+        sent, published = [], []
         for k in range(6):
             m = SurveyStation()
             m.header.stamp.sec = 1_795_000_000 + 30 * k
@@ -55,7 +61,13 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
             m.drift_deg, m.azimuth_deg, m.azimuth_magnetic_deg = 3.0 * k, 40.0 + k, 38.5 + k
             m.magnetic_toolface_deg = m.gravity_toolface_deg = 10.0 * k
             m.north_m, m.east_m, m.dls_deg_per_30m = 1.5 * k, 2.5 * k, 3.0
+            m.azimuth_reference, m.azimuth_method = "true", "standard"
+            m.azimuth_grid_deg = m.axial_field_nt = float("nan")                # no grid, no short collar
+            m.total_gravity_mps2, m.total_field_nt, m.dip_deg = 9.81 + 0.001 * k, 50_000.0 + k, 60.0 + 0.01 * k
+            m.raw_gravity_mps2 = [0.1 * k, -0.2, 9.8]
+            m.raw_field_nt = [1000.0 + k, -2000.0, 40_000.5]
             pub.publish(m)
+            published.append(m)
             if k not in (0, 3):
                 sent.append(m)
         buf = b""
@@ -77,7 +89,27 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
             assert float(r[(7, 9)]) == pytest.approx(m.tvd_m, abs=0.005)
         assert parse_wits0(out.read_bytes()) == recs                      # the same bytes to the file
         client.close()
+        # WITSML: every calibrated station (the error one rejected), rewritten after each station
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 20 and not (traj.exists() and b"station-5" in traj.read_bytes()):
+            time.sleep(0.1)
+        xml = traj.read_bytes()
+        witsml.validate(xml)
+        assert b"<eml:ActiveStatus>active<" in xml
+        back = witsml.read_trajectory(xml)
+        survey = published[1:]
+        assert [b["uid"] for b in back] == [f"station-{m.station_id}" for m in survey]
+        for b, m in zip(back, survey):
+            assert b["station_status"] == ("rejected" if m.status == 2 else "position")
+            for k in ("measured_depth_m", "tvd_m", "drift_deg", "azimuth_deg", "north_m", "east_m",
+                      "dls_deg_per_30m", "total_gravity_mps2", "total_field_nt", "dip_deg"):
+                assert b[k] == getattr(m, k), (m.station_id, k)
+            assert b["raw_gravity_mps2"] == list(m.raw_gravity_mps2) and b["raw_field_nt"] == list(m.raw_field_nt)
+            assert b["coefficients_id"] == "abc123" and b["azimuth_reference"] == "true"
     finally:
         proc.terminate()
         log = proc.communicate(timeout=20)[0]
     assert "station 3: status error" in log and "Traceback" not in log, log
+    final = traj.read_bytes()                                 # the node's last rewrite: the survey is over
+    witsml.validate(final)
+    assert b"<eml:ActiveStatus>inactive<" in final and len(witsml.read_trajectory(final)) == 5
