@@ -33,10 +33,19 @@ setup(
                       # WITSML 2.1 out (inclinometer_calib/witsml.py): building/reading, schema validation
                       "lxml>=6.1", "xmlschema>=4.3",
                       # live view in Foxglove (inclinometer_calib/nodes/live.py, liveview.py)
-                      "foxglove-sdk>=0.30.3"],
+                      "foxglove-sdk>=0.30.3",
+                      # fleet registry (inclinometer_calib/fleet/registry.py): database, migrations, PostgreSQL
+                      "sqlalchemy>=2.0", "alembic>=1.13", "psycopg[binary]>=3.1",
+                      # fleet reprocessing on Dask into Parquet (inclinometer_calib/fleet/reprocess.py)
+                      "dask>=2026.8.0", "distributed>=2026.8.0", "pyarrow>=26.0", "tqdm>=4.66",
+                      # fused batch-correction kernel (inclinometer_calib/batchkernel.py; numpy fallback without it)
+                      "numba>=0.68.1"],
     # the Energistics schemas the WITSML documents are validated against (schemas/witsml21/README.md)
     package_data={"inclinometer_calib": ["schemas/witsml21/README.md",
-                                         "schemas/witsml21/energyml/data/*/*/xsd_schemas/*.xsd"]},
+                                         "schemas/witsml21/energyml/data/*/*/xsd_schemas/*.xsd",
+                                         # the fleet registry's Alembic environment and schema versions
+                                         "fleet/migrations/README", "fleet/migrations/*.py",
+                                         "fleet/migrations/script.py.mako", "fleet/migrations/versions/*.py"]},
     extras_require=EXTRAS,
     entry_points={
         "console_scripts": [

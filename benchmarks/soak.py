@@ -16,7 +16,8 @@ it reports, per topic, what the probe published against what the recorder wrote 
 way through DDS and the recorder), the survey stations recorded against those the probe held,
 whether the calibration solved, each process' CPU load, and memory growth in MB/min: the mean
 RSS of the last third of the run minus that of the first third, over the time between the
-thirds' midpoints (start-up, where the probe builds its whole script, is excluded).
+thirds' midpoints (start-up is excluded; the probe prepares its script piece by piece, so its
+RSS does not depend on the script's length: ``bench_probe_memory.py``).
 """
 from __future__ import annotations
 

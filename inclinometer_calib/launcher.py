@@ -449,7 +449,7 @@ def station_dict(msg) -> dict:
               "azimuth_magnetic_deg", "azimuth_grid_deg", "axial_field_nt"):
         d[k] = getattr(msg, k, float("nan"))
     # the azimuth's north and method ("" in a bag recorded before they existed)
-    for k in ("azimuth_reference", "azimuth_method"):
+    for k in ("azimuth_reference", "azimuth_method", "probe_serial"):
         d[k] = getattr(msg, k, "")
     # the rest of the message, so that the dict has every field (the live view shows them all)
     for k, default in (("toolface_type", ""), ("azimuth_sigma_deg", float("nan")), ("axial_degenerate", False),
@@ -921,8 +921,10 @@ def parse_args(argv=None):
     ap.add_argument("--model-effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
                     help="effects the calibration node fits beyond the paper's model on the captured poses, e.g. "
                          "temperature_bias:mag")
-    ap.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2) for "
-                                   "the calibration and correction nodes (and the simulated probe)")
+    ap.add_argument("--site", help="site reference YAML for the calibration and correction nodes (and the simulated "
+                                   "probe): values (total_field_nt, dip_deg, declination_deg, gravity_mps2) and/or a "
+                                   "location (latitude_deg, longitude_deg, altitude_m, date, model WMM2025|IGRF-14, crs) "
+                                   "looked up by each node; e.g. config/rig_site.yaml")
     ap.add_argument("--no-calibration", action="store_true", help="no calibration node and no twelve-pose session")
     ap.add_argument("--no-recorder", action="store_true", help="do not record (no summary from the bag)")
     ap.add_argument("--wits-port", type=int, default=0, metavar="PORT",

@@ -41,6 +41,27 @@ NO_SITE = ("no site reference: no calibration record yet and no site given — |
            "checked, azimuths are magnetic")
 
 
+#: A record's ``probe_id`` that names no probe (the default of older records and tools): applied
+#: without the serial check, and said.
+UNNAMED_PROBE = "probe"
+
+
+class ProbeMismatch(ValueError):
+    """A calibration record of one probe offered for another probe's data (not forced)."""
+
+
+def probe_mismatch(cal, serial: str):
+    """What is wrong with applying record ``cal`` to the data of probe ``serial`` — the record
+    names another probe — or None (no record, data of no named probe, a record naming no probe,
+    or the same probe)."""
+    if cal is None or not serial:
+        return None
+    rec = str(getattr(cal, "probe_id", "") or "")
+    if not rec or rec == UNNAMED_PROBE or rec == serial:
+        return None
+    return f"record {cal.id} is a calibration of probe {rec}, the data are of probe {serial}"
+
+
 def site_override_note(cal, site) -> str:
     """What a user's site changes against the record's (said loudly wherever it happens), or ""."""
     if cal is None or site is None:
@@ -113,7 +134,8 @@ class SurveyProcessor:
     """
 
     def __init__(self, tolerances: Tolerances = Tolerances(), calibration=None, *, site=None,
-                 axial: bool = False, monitor=None, tie_in=TIE_IN_SURFACE):
+                 axial: bool = False, monitor=None, tie_in=TIE_IN_SURFACE, probe_serial: str = "",
+                 force_probe: bool = False):
         self.tolerances = tolerances
         # the trajectory: (md, inclination, azimuth, tvd, north, east) of the stations with a depth,
         # in order of depth, from the tie-in (default: the surface, vertical)
@@ -125,6 +147,10 @@ class SurveyProcessor:
         self.axial = axial
         self.monitor = monitor
         self.calibration = None
+        self.probe_serial = str(probe_serial or "")
+        self.force_probe = bool(force_probe)
+        self.forced = ""                    # what every station says when a mismatched record is forced
+        self.refused = ""                   # why the record was dropped (the data's serial is another probe's)
         self._next_id = 0
         self.notes: list = []
         if calibration is not None:
@@ -138,14 +164,42 @@ class SurveyProcessor:
         return self.calibration.site if self.calibration is not None else None
 
     def set_calibration(self, calibration) -> list:
-        """Apply a record from now on; returns what must be said about it (a site override)."""
+        """Apply a record from now on; returns what must be said about it (a site override, a
+        forced record of another probe).  Raises :class:`ProbeMismatch` for a record of another
+        probe than the data's (:func:`probe_mismatch`) unless ``force_probe``: the record in force
+        stays."""
+        forced = self._check_probe(calibration, self.probe_serial)
         self.calibration = calibration
         self._terms = None
+        self.forced, self.refused = forced, ""
         note = site_override_note(calibration, self.site_given)
-        self.notes = [note] if note else []
+        self.notes = [n for n in (note, forced) if n]
         if self.monitor is not None:
             self.monitor.reset(calibration)
         return list(self.notes)
+
+    def _check_probe(self, cal, serial) -> str:
+        why = probe_mismatch(cal, serial)
+        if why is None:
+            return ""
+        if not self.force_probe:
+            raise ProbeMismatch(f"{why}: not applied (force it only if the record is known to fit these data)")
+        return f"FORCED: {why}, applied by the user's order"
+
+    def set_probe_serial(self, serial: str) -> list:
+        """The data's probe from now on (``/probe/serial``).  Raises :class:`ProbeMismatch` when the
+        record in force is another probe's (not forced): the record is then dropped (the stations
+        go uncorrected, and say why)."""
+        serial = str(serial or "")
+        try:
+            forced = self._check_probe(self.calibration, serial)
+        except ProbeMismatch as exc:
+            self.probe_serial = serial
+            self.calibration, self._terms, self.forced, self.refused = None, None, "", f"uncorrected: {exc}"
+            raise
+        self.probe_serial = serial
+        self.forced = forced
+        return [forced] if forced else []
 
     def process(self, st: Station, ref=None, have_temperature: bool = True) -> dict:
         """The ``SurveyStation`` fields of one closed station (:func:`station_fields`).
@@ -156,6 +210,9 @@ class SurveyProcessor:
         apply_gates(st)
         cal = self.calibration
         st.warnings.extend(w for w in context_warnings(st, cal) if w not in st.warnings)
+        for said in (self.forced, self.refused if cal is None else ""):
+            if said and said not in st.warnings:
+                st.warnings.append(said)
         if ref is not None and not any(math.isfinite(x) for x in ref):
             ref = None
         g, b = correct_stations([st], cal)
@@ -172,6 +229,7 @@ class SurveyProcessor:
         azimuth_reference = "true" if site is not None and site.declination_deg else "magnetic"
         fields = station_fields(self._next_id, st, values, cal.id if cal is not None else "", ref, azimuth_reference,
                                 have_temperature)
+        fields["probe_serial"] = self.probe_serial
         self._next_id += 1
         if self.monitor is not None and cal is not None:
             verdict = self.monitor.add(st, fields, g[0], b[0])

@@ -36,6 +36,7 @@ import os
 import tempfile
 from collections import Counter
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -181,85 +182,430 @@ def _unit_guess(total: float):
     return None
 
 
-def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_unit: str = "nT"):
+#: The readers of :func:`parse_csv` and :func:`read_csv`.  ``"arrow"`` (the default) splits and
+#: converts the columns with pyarrow and checks them with numpy; ``"rows"`` is one Python pass per
+#: row, the reference.  Both give the same log and the same rejections, message for message: the
+#: arrow reader hands the rows its vectorised checks do not pass (rare) to the same per-row code.
+ENGINES = ("arrow", "rows")
+
+
+def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_unit: str = "nT",
+              engine: str = "arrow"):
     """Parse probe-log CSV text.  Returns ``(ProbeLog, [Rejection, ...])``.
 
     ``mag_unit``: the unit of the magnetometer columns (a key of :data:`MAG_UNITS`), converted to
-    nT here.  Raises ``ValueError`` only when the file as a whole is unusable (wrong header, no
-    data, unknown unit).
+    nT here.  ``engine``: one of :data:`ENGINES` (the same results; ``"rows"`` is the slow
+    reference).  Raises ``ValueError`` only when the file as a whole is unusable (wrong header,
+    no data, unknown unit).
     """
+    _check_engine(engine)
+    if engine == "arrow":
+        try:
+            data = text.encode("utf-8")
+        except UnicodeEncodeError:       # lone surrogates: text no file read as UTF-8 can hold
+            pass
+        else:
+            return _parse_arrow(data, limits, source, mag_unit)
+    return _parse_rows(text, limits, source, mag_unit)
+
+
+def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT", engine: str = "arrow"):
+    """Read a probe-log CSV file (``.gz``: compressed).  Returns ``(ProbeLog, [Rejection, ...])``.
+
+    ``engine``: as for :func:`parse_csv`."""
+    _check_engine(engine)
+    opener = gzip.open if str(path).endswith(".gz") else open
+    if engine == "rows":
+        with opener(path, "rt", encoding="utf-8") as fh:
+            return _parse_rows(fh.read(), limits, str(path), mag_unit)
+    with opener(path, "rb") as fh:
+        return _parse_arrow(fh.read(), limits, str(path), mag_unit)
+
+
+def _check_engine(engine):
+    if engine not in ENGINES:
+        raise ValueError(f"probe-log reader {engine!r} unknown (one of {', '.join(ENGINES)})")
+
+
+def _mag_scale(mag_unit, source) -> float:
     if mag_unit not in MAG_UNITS:
         raise ValueError(f"{source}: magnetometer unit {mag_unit!r} unknown (one of {', '.join(MAG_UNITS)})")
-    mag_scale = MAG_UNITS[mag_unit]
-    lines = text.splitlines()
-    if not lines:
-        raise ValueError(f"{source}: empty file (expected header {','.join(HEADER)})")
-    header = [h.strip() for h in lines[0].lstrip("\ufeff").split(",")]
+    return MAG_UNITS[mag_unit]
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """The columns a header line gives: their ``names``; whether the turntable columns are there
+    (fields 12 and 13); the index of ``md_m`` (None without it)."""
+
+    names: tuple
+    turntable: bool
+    depth_col: int | None
+
+    @property
+    def n_fields(self) -> int:
+        return len(self.names)
+
+
+def _layout(first_line: str, source) -> _Layout:
+    """The layout of a log from its first line, or ``ValueError`` naming line 1."""
+    header = [h.strip() for h in first_line.lstrip("\ufeff").split(",")]
     extra = header[len(HEADER):]
     if header[:len(HEADER)] != HEADER or extra != [c for c in OPTIONAL_COLUMNS if c in extra]:
         raise ValueError(f"{source}: line 1: header must be exactly {','.join(HEADER)!r}, optionally followed by "
-                         f"any of {','.join(OPTIONAL_COLUMNS)!r} in that order, got {lines[0]!r}")
+                         f"any of {','.join(OPTIONAL_COLUMNS)!r} in that order, got {first_line!r}")
     turntable = "mount" in extra
     if turntable != ("table_deg" in extra):
         raise ValueError(f"{source}: line 1: a turntable log has both 'mount' and 'table_deg' columns")
-    depth_col = header.index("md_m") if "md_m" in extra else None
-    n_fields = len(header)
+    return _Layout(tuple(header), turntable, header.index("md_m") if "md_m" in extra else None)
+
+
+def _empty_file(source):
+    return ValueError(f"{source}: empty file (expected header {','.join(HEADER)})")
+
+
+def _no_rows(source, rejections):
+    detail = f"; first rejection: {rejections[0]}" if rejections else ""
+    return ValueError(f"{source}: no usable rows{detail}")
+
+
+def _nonmonotonic(t, last_t) -> str:
+    return f"time t_s={t:g} does not increase (previous {last_t:g}): non-monotonic timestamp"
+
+
+class _Row(NamedTuple):
+    """One data row as read: its values (t_s, s; acc, m/s²; mag, nT; temp_c, °C; pose; ref, deg;
+    mount; table_deg, deg; md_m, m) and why it is unusable — ``before``: a reason found before the
+    time check (field count, numbers, the sample's plausibility); ``after``: one found after it
+    (labels, turntable columns, depth).  The time check needs the rows kept before it."""
+
+    t: float = math.nan
+    acc: tuple = ()
+    mag: tuple = ()
+    temp: float = math.nan
+    pose: int = 0
+    ref: tuple = ()
+    mount: str = ""
+    table: float = math.nan
+    md: float = math.nan
+    before: str | None = None
+    after: str | None = None
+
+
+def _parse_row(fields, layout: _Layout, mag_scale: float, limits: Limits):
+    """One row's fields (as ``csv.reader`` splits its line) → :class:`_Row`, or None for a blank
+    row.  The format's per-row rules, in one place for both readers."""
+    if not fields or all(not f.strip() for f in fields):
+        return None
+    if len(fields) != layout.n_fields:
+        return _Row(before=f"{len(fields)} fields, expected {layout.n_fields}")
+    try:
+        # an empty temp_c is an unknown temperature (a probe without a sensor), not a bad row
+        nums = [float(f) for f in fields[:7]] + [float(fields[7]) if fields[7].strip() else math.nan]
+    except ValueError:
+        bad = next(n for n, f in zip(HEADER, fields) if not _is_float(f))
+        return _Row(before=f"{bad}={fields[HEADER.index(bad)]!r} is not a number")
+    nonfinite = [n for n, v in zip(HEADER, nums) if not math.isfinite(v)
+                 and not (n == "temp_c" and math.isnan(v))]
+    if nonfinite:
+        return _Row(before=f"{', '.join(nonfinite)} not finite (NaN/inf)")
+    t, acc, mag, temp = nums[0], nums[1:4], [v * mag_scale for v in nums[4:7]], nums[7]
+    reason = check_sample(acc, mag, temp, limits)
+    if reason is not None:
+        return _Row(before=reason)
+    pose, ref, reason = _parse_labels(fields[8:12])
+    mount, table = "", math.nan
+    if reason is None and layout.turntable:
+        mount, table, reason = _parse_turntable(fields[12:14])
+    md = math.nan
+    col = layout.depth_col
+    if reason is None and col is not None and fields[col].strip():
+        try:
+            md = float(fields[col])
+        except ValueError:
+            reason = f"md_m={fields[col]!r} is not a number"
+        else:
+            if not math.isfinite(md):
+                reason, md = "md_m not finite", math.nan
+    return _Row(t, acc, mag, temp, pose, ref or (math.nan,) * 3, mount, table, md, after=reason)
+
+
+def _parse_rows(text: str, limits, source, mag_unit):
+    """The row reader: ``csv.reader`` and :func:`_parse_row` on every row, one pass."""
+    mag_scale = _mag_scale(mag_unit, source)
+    lines = text.splitlines()
+    if not lines:
+        raise _empty_file(source)
+    layout = _layout(lines[0], source)
     rows, rejections, mounts, tables, depths = [], [], [], [], []
     last_t = -math.inf
     reader = csv.reader(io.StringIO("\n".join(lines[1:])))
     for k, fields in enumerate(reader, start=1):
-        line = k + 1
-        if not fields or all(not f.strip() for f in fields):
+        r = _parse_row(fields, layout, mag_scale, limits)
+        if r is None:
             continue
-        if len(fields) != n_fields:
-            rejections.append(Rejection(k, line, f"{len(fields)} fields, expected {n_fields}"))
-            continue
-        try:
-            # an empty temp_c is an unknown temperature (a probe without a sensor), not a bad row
-            nums = [float(f) for f in fields[:7]] + [float(fields[7]) if fields[7].strip() else math.nan]
-        except ValueError:
-            bad = next(n for n, f in zip(HEADER, fields) if not _is_float(f))
-            rejections.append(Rejection(k, line, f"{bad}={fields[HEADER.index(bad)]!r} is not a number"))
-            continue
-        nonfinite = [n for n, v in zip(HEADER, nums) if not math.isfinite(v)
-                     and not (n == "temp_c" and math.isnan(v))]
-        if nonfinite:
-            rejections.append(Rejection(k, line, f"{', '.join(nonfinite)} not finite (NaN/inf)"))
-            continue
-        t, acc, mag, temp = nums[0], nums[1:4], [v * mag_scale for v in nums[4:7]], nums[7]
-        reason = check_sample(acc, mag, temp, limits)
-        if reason is None and t <= last_t:
-            reason = f"time t_s={t:g} does not increase (previous {last_t:g}): non-monotonic timestamp"
+        reason = r.before
+        if reason is None and r.t <= last_t:
+            reason = _nonmonotonic(r.t, last_t)
         if reason is None:
-            pose, ref, reason = _parse_labels(fields[8:12])
-        mount, table = "", math.nan
-        if reason is None and turntable:
-            mount, table, reason = _parse_turntable(fields[12:14])
-        md = math.nan
-        if reason is None and depth_col is not None and fields[depth_col].strip():
-            try:
-                md = float(fields[depth_col])
-            except ValueError:
-                reason = f"md_m={fields[depth_col]!r} is not a number"
-            else:
-                if not math.isfinite(md):
-                    reason, md = "md_m not finite", math.nan
+            reason = r.after
         if reason is not None:
-            rejections.append(Rejection(k, line, reason))
+            rejections.append(Rejection(k, k + 1, reason))
             continue
-        last_t = t
-        rows.append((t, *acc, *mag, temp, pose, *ref, k))
-        mounts.append(mount)
-        tables.append(table)
-        depths.append(md)
+        last_t = r.t
+        rows.append((r.t, *r.acc, *r.mag, r.temp, r.pose, *r.ref, k))
+        mounts.append(r.mount)
+        tables.append(r.table)
+        depths.append(r.md)
     if not rows:
-        detail = f"; first rejection: {rejections[0]}" if rejections else ""
-        raise ValueError(f"{source}: no usable rows{detail}")
+        raise _no_rows(source, rejections)
     a = np.array(rows, dtype=float)
     log = ProbeLog(a[:, 0], a[:, 1:4], a[:, 4:7], a[:, 7], a[:, 8].astype(int), a[:, 9:12], a[:, 12].astype(int),
                    mount=np.array(mounts, dtype=object), table_deg=np.array(tables, dtype=float),
                    md_m=np.array(depths, dtype=float))
     return log, rejections
+
+
+# ---- the vectorised reader ---------------------------------------------------------------------
+#: Bytes with which the row reader splits a file differently from pyarrow's CSV parser: quotes
+#: (``csv`` unquotes them, and a quoted field may span lines), the line breaks of
+#: ``str.splitlines`` other than \n and \r, NUL.  A file holding any of them is read row by row.
+_ROWS_ONLY_BYTES = (b'"', b"\x0b", b"\x0c", b"\x1c", b"\x1d", b"\x1e", b"\x00")
+_ROWS_ONLY_CHARS = ("\x85", "\u2028", "\u2029")       # line breaks of str.splitlines beyond ASCII
+#: Numbers that pyarrow's cast and Python's ``float`` both read, to the same double (both round
+#: correctly).  pyarrow's CSV parser also reads ``nan(...)``, which ``float`` refuses: a file
+#: with a "(" has its numeric columns read as text and checked against this.
+_PLAIN_NUMBER = r"^[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?$|^[+-]?(?i:inf|infinity|nan)$"
+_SKIP, _BEFORE, _AFTER, _OK = 0, 1, 2, 3     # a record's state after its own checks
+_MOUNTS = ("",) + MOUNT_NAMES
+
+
+class _RowsOnly(Exception):
+    """pyarrow cannot split this file as ``csv.reader`` would: read it row by row."""
+
+
+def _parse_arrow(data: bytes, limits, source, mag_unit):
+    """The vectorised reader (``data``: the file's bytes, UTF-8): :func:`_parse_rows`' results.
+
+    pyarrow's CSV parser splits the rows of the header's columns and converts the numeric columns
+    to float64 (exactly, as ``float`` does); numpy applies every per-row check to all rows at
+    once.  A row that fails any check, or that pyarrow cannot split into the header's columns, is
+    handed with its line to :func:`_parse_row`, which gives the reason (or the values of a row
+    that is only written unusually, e.g. " xy" for a mount).  The time check — each row after
+    the last row kept — is a running maximum: a row that would be kept but for its time never
+    raises the maximum, so the maximum over the rows passing the other checks is the last time
+    kept.  Memory: the bytes, pyarrow's columns and the log's arrays; no Python object per row.
+    """
+    mag_scale = _mag_scale(mag_unit, source)
+    if any(b in data for b in _ROWS_ONLY_BYTES):
+        return _parse_rows(data.decode("utf-8"), limits, source, mag_unit)
+    if not data.isascii():
+        text = data.decode("utf-8")            # the UnicodeDecodeError the row reader would raise
+        if any(c in text for c in _ROWS_ONLY_CHARS):
+            return _parse_rows(text, limits, source, mag_unit)
+        del text
+    if not data:
+        raise _empty_file(source)
+    breaks = [i for i in (data.find(b"\n"), data.find(b"\r")) if i >= 0]
+    end = min(breaks) if breaks else len(data)
+    layout = _layout(data[:end].decode("utf-8"), source)
+    body = memoryview(data)[end + (2 if data[end:end + 2] == b"\r\n" else 1):]
+    if not len(body):
+        raise _no_rows(source, [])
+    try:
+        cols, invalid = _arrow_columns(body, layout, numbers_as_text=b"(" in data)
+    except _RowsOnly:
+        return _parse_rows(data.decode("utf-8"), limits, source, mag_unit)
+    n = len(cols["t_s"])
+    for c in ("mx", "my", "mz"):
+        cols[c] *= mag_scale                     # nT, as float() * scale does row by row
+    ok = _checks(cols, limits)
+    state = np.where(ok, _OK, _SKIP).astype(np.int8)
+    # pyarrow's row j is line j + 2 of the file, but for the rows pyarrow set aside (a wrong number
+    # of fields: always refused, so they neither enter the log nor move the time check)
+    set_aside = np.asarray(invalid, dtype=np.int64) - 1        # their 0-based data rows, ascending
+    before = set_aside - np.arange(len(set_aside))             # pyarrow rows before each of them
+
+    def data_row(j):                                           # 0-based data row of pyarrow's row j
+        return j + np.searchsorted(before, j, side="right") if len(before) else j
+
+    reasons = {}                                               # 0-based data row → reason
+    slow = np.flatnonzero(~ok)
+    lines = np.union1d(data_row(slow), set_aside)
+    at = dict(zip(data_row(slow).tolist(), slow.tolist()))     # data row → pyarrow row
+    for k0, line in zip(lines.tolist(), _lines(body, lines, b"\r" in data)):
+        r = _parse_row(next(csv.reader([line]), []), layout, mag_scale, limits)
+        j = at.get(k0)
+        if r is None:
+            continue
+        if r.before is not None:
+            reasons[k0] = r.before
+            continue
+        if j is None:        # a line pyarrow set aside that the row code takes: they split it differently
+            return _parse_rows(data.decode("utf-8"), limits, source, mag_unit)
+        # a row the vectorised checks refused but the row code takes as written (" xy"), or refuses
+        # only after its time was checked: its values
+        cols["t_s"][j], cols["temp_c"][j], cols["pose"][j] = r.t, r.temp, r.pose
+        for c, v in zip(("ax", "ay", "az", "mx", "my", "mz", *HEADER[9:12]), (*r.acc, *r.mag, *r.ref)):
+            cols[c][j] = v
+        cols["mount"][j], cols["table_deg"][j], cols["md_m"][j] = _MOUNTS.index(r.mount), r.table, r.md
+        state[j] = _OK if r.after is None else _AFTER
+        if r.after is not None:
+            reasons[k0] = r.after
+    t = cols["t_s"]
+    last = np.where(state == _OK, t, -np.inf)
+    np.maximum.accumulate(last, out=last)
+    last = np.concatenate(([-np.inf], last[:-1]))          # the last time kept before each row
+    backwards = (state >= _AFTER) & (t <= last)
+    for j in np.flatnonzero(backwards).tolist():
+        reasons[int(data_row(j))] = _nonmonotonic(float(t[j]), float(last[j]))
+    rejections = [Rejection(k0 + 1, k0 + 2, reasons[k0]) for k0 in sorted(reasons)]
+    keep = (state == _OK) & ~backwards
+    sel = np.flatnonzero(keep)
+    if not len(sel):
+        raise _no_rows(source, rejections)
+    if len(sel) == n:
+        sel = slice(None)
+
+    def triad(names):
+        out = np.empty((n if isinstance(sel, slice) else len(sel), 3))
+        for i, c in enumerate(names):
+            out[:, i] = cols[c][sel]
+        return out
+
+    pose = cols["pose"][sel]
+    log = ProbeLog(t[sel], triad(("ax", "ay", "az")), triad(("mx", "my", "mz")), cols["temp_c"][sel],
+                   np.where(np.isnan(pose), 0, pose).astype(np.int64), triad(HEADER[9:12]),
+                   data_row(np.arange(n)[sel]) + 1, mount=np.array(_MOUNTS, dtype=object)[cols["mount"][sel]],
+                   table_deg=cols["table_deg"][sel], md_m=cols["md_m"][sel])
+    return log, rejections
+
+
+def _arrow_columns(body, layout: _Layout, numbers_as_text: bool):
+    """The columns of the data rows by pyarrow: ``({name: array}, invalid)``.
+
+    Numeric columns come as float64 (NaN where empty) with a ``<name>_null`` mask for the
+    optional ones; ``mount`` as indices into :data:`_MOUNTS` (-1: anything else); ``_text`` marks
+    rows holding a field not of the plain form pyarrow and ``float`` read alike (their line is
+    checked row by row).  ``invalid``: the line numbers (1 = first data row) of rows without the
+    header's number of fields.  The turntable and depth columns are NaN/0 when not in the file.
+    """
+    import pyarrow as pa
+    from pyarrow import compute as pc
+    from pyarrow import csv as pacsv
+
+    names = list(layout.names)
+    invalid = []
+
+    def on_invalid(row):
+        if row.number is None:
+            raise _RowsOnly()
+        invalid.append(row.number)
+        return "skip"
+
+    def read(types):
+        invalid.clear()
+        return pacsv.read_csv(
+            pa.py_buffer(body),
+            read_options=pacsv.ReadOptions(use_threads=False, column_names=names),   # threads: no row numbers
+            parse_options=pacsv.ParseOptions(quote_char=False, ignore_empty_lines=False,
+                                              invalid_row_handler=on_invalid),
+            convert_options=pacsv.ConvertOptions(column_types=types, null_values=[""], strings_can_be_null=True))
+
+    numeric = [c for c in names if c != "mount"]
+    table = None
+    if not numbers_as_text:
+        try:
+            table = read({c: (pa.string() if c == "mount" else pa.float64()) for c in names})
+        except pa.ArrowInvalid:              # text pyarrow does not read as a number: see below
+            table = None
+    text = None
+    if table is None:
+        try:
+            table = read({c: pa.string() for c in names})
+        except pa.ArrowInvalid as exc:
+            raise _RowsOnly() from exc
+        text = np.zeros(table.num_rows, dtype=bool)
+    n = table.num_rows
+    cols = {}
+    for c in numeric:
+        col = table.column(c)
+        if text is not None:
+            plain = pc.fill_null(pc.match_substring_regex(col, _PLAIN_NUMBER), True)
+            text |= ~plain.to_numpy()
+            col = pc.cast(pc.if_else(plain, col, pa.scalar(None, pa.string())), pa.float64())
+        cols[c] = _writable(col.to_numpy())
+        if c in ("pose", "table_deg", "md_m") or c in HEADER[9:12]:
+            cols[c + "_null"] = col.is_null().to_numpy()
+    for c in ("table_deg", "md_m"):
+        if c not in cols:
+            cols[c], cols[c + "_null"] = np.full(n, np.nan), np.ones(n, dtype=bool)
+    if "mount" in names:
+        col = pc.fill_null(table.column("mount"), "")
+        cols["mount"] = _writable(pc.fill_null(pc.index_in(col, value_set=pa.array(_MOUNTS)), -1).to_numpy())
+    else:
+        cols["mount"] = np.zeros(n, dtype=np.int64)
+    cols["_text"] = text if text is not None else np.zeros(n, dtype=bool)
+    return cols, invalid
+
+
+def _checks(cols, limits: Limits):
+    """Rows (of :func:`_arrow_columns`, magnetometer in nT) that pass every check of
+    :func:`_parse_row` as written plainly — the rest go through it.  Row for row the same
+    arithmetic as :func:`check_sample` (IEEE double: the same sums of squares, a correctly rounded
+    sqrt)."""
+    ok = ~cols["_text"] & np.isfinite(cols["t_s"])
+    fs = 0.999 * limits.acc_full_scale
+    sq = None
+    for c in ("ax", "ay", "az"):
+        v = cols[c]
+        ok &= np.abs(v) < fs                    # also refuses NaN and inf
+        sq = v * v if sq is None else sq + v * v
+    a = np.sqrt(sq)
+    ok &= (limits.acc_total_range[0] <= a) & (a <= limits.acc_total_range[1])
+    fs, sq = 0.999 * limits.mag_full_scale, None
+    for c in ("mx", "my", "mz"):
+        v = cols[c]
+        ok &= np.abs(v) < fs
+        sq = v * v if sq is None else sq + v * v
+    m = np.sqrt(sq)
+    ok &= (limits.mag_total_range[0] <= m) & (m <= limits.mag_total_range[1])
+    temp = cols["temp_c"]
+    ok &= np.isnan(temp) | ((limits.temp_range_c[0] <= temp) & (temp <= limits.temp_range_c[1]))
+    pose = cols["pose"]
+    ok &= cols["pose_null"] | ((pose >= 1) & (pose <= 12) & (pose == np.floor(pose)))
+    for c in HEADER[9:12]:
+        ok &= cols[c + "_null"] | np.isfinite(cols[c])
+    drift = cols["ref_drift_deg"]
+    ok &= cols["ref_drift_deg_null"] | ((drift >= 0) & (drift <= 180))
+    ok &= cols["mount"] >= 0
+    for c in ("table_deg", "md_m"):
+        ok &= cols[c + "_null"] | np.isfinite(cols[c])
+    return ok
+
+
+def _writable(x):
+    return x if x.flags.writeable else x.copy()          # a single chunk of pyarrow's comes read-only
+
+
+def _lines(body, which, has_cr: bool):
+    """The text of the lines ``which`` (0-based, ascending) of ``body``: lines end at \\n, \\r or
+    \\r\\n, as for ``str.splitlines`` and pyarrow."""
+    if not len(which):
+        return
+    b = np.frombuffer(body, dtype=np.uint8)
+    brk = b == 10
+    if has_cr:
+        brk |= b == 13
+        brk[1:] &= ~((b[1:] == 10) & (b[:-1] == 13))        # the \n of a \r\n is no break of its own
+    pos = np.flatnonzero(brk)
+    for k in which:
+        start = 0
+        if k:
+            p = int(pos[k - 1])
+            start = p + (2 if b[p] == 13 and p + 1 < len(b) and b[p + 1] == 10 else 1)
+        stop = int(pos[k]) if k < len(pos) else len(b)
+        yield bytes(body[start:stop]).decode("utf-8")
 
 
 def _parse_turntable(fields):
@@ -292,10 +638,13 @@ def _parse_labels(fields):
     pose = 0
     if pose_s:
         try:
-            pose = int(float(pose_s))
-        except ValueError:
+            v = float(pose_s)
+            pose = int(v)
+        except ValueError:                     # not a number, or NaN
             return 0, None, f"pose={pose_s!r} is not a number"
-        if float(pose_s) != pose or not 1 <= pose <= 12:
+        except OverflowError:                  # ±inf
+            return 0, None, f"pose={pose_s!r} is not one of 1..12"
+        if v != pose or not 1 <= pose <= 12:
             return 0, None, f"pose={pose_s!r} is not one of 1..12"
     ref = []
     for name, f in zip(HEADER[9:], fields[1:]):
@@ -323,13 +672,6 @@ def report(path, rejections, problems, warn, limit: int = 20) -> None:
         warn(f"{path}: ... and {len(rejections) - limit} more rejected rows")
     for p in problems:
         warn(f"{path}: {p}")
-
-
-def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT"):
-    """Read a probe-log CSV file (``.gz``: compressed).  Returns ``(ProbeLog, [Rejection, ...])``."""
-    opener = gzip.open if str(path).endswith(".gz") else open
-    with opener(path, "rt", encoding="utf-8") as fh:
-        return parse_csv(fh.read(), limits, source=str(path), mag_unit=mag_unit)
 
 
 def _fmt(v, fmt):

@@ -47,12 +47,12 @@ from .deps import require
 from .frames import NT_PER_TESLA, Site
 from .probelog import Limits, check_sample
 from .coeffs import message_fields
-from .pipeline import SurveyProcessor
+from .pipeline import ProbeMismatch, SurveyProcessor
 from .streaming import ReferenceTrack, StaticDetector, StreamPairer
 from .survey import Tolerances
 from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
                      STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG,
-                     TOPIC_REFERENCE,
+                     TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL,
                      TOPIC_STATION, TOPIC_TEMPERATURE)
 
 #: Input topics read (and copied through) and the type each must have.
@@ -122,6 +122,27 @@ def decode_float64(data) -> float:
     """The value of a ``std_msgs/Float64`` (no header: the double right after the 4-byte CDR
     encapsulation header, 8-byte aligned from there)."""
     return struct.unpack_from("<d" if data[1] == 1 else ">d", data, 4)[0]
+
+
+def decode_string(data) -> str:
+    """The text of a ``std_msgs/String`` (uint32 length including the terminating NUL, then the
+    bytes, right after the 4-byte CDR encapsulation header)."""
+    n = struct.unpack_from("<I" if data[1] == 1 else ">I", data, 4)[0]
+    if n < 1 or 8 + n > len(data):
+        raise ValueError(f"string length {n} does not fit the message ({len(data)} bytes)")
+    return bytes(data[8:8 + n - 1]).decode("utf-8")
+
+
+def bag_probe_serial(path) -> Optional[str]:
+    """The probe serial a bag records (its first ``/probe/serial`` message), or None when it has
+    none.  Raises :class:`bag.BagError` if ``path`` is not a bag."""
+    reader = open_bag(path)
+    for m in reader.messages([TOPIC_SERIAL], strict=False):
+        try:
+            return decode_string(m.data)
+        except (struct.error, ValueError, UnicodeDecodeError) as exc:
+            raise ReprocessError(f"{path}: undecodable {TOPIC_SERIAL} message ({exc})") from None
+    return None
 
 
 def decode_temperature(data):
@@ -197,6 +218,7 @@ class ReprocessReport:
     calibration_state: str = ""                            # calibrate: done | error | collecting
     calibration_message: str = ""
     noise: object = None                                   # the noise.NoiseLevel the detector used
+    probe_serial: str = ""                                 # the data's probe (the bag's /probe/serial)
     notes: List[str] = field(default_factory=list)         # what the pipeline said (a site override)
     raw_stations: List[object] = field(default_factory=list)   # each station.Station published, raw means, with
     #                                                            its reference in .ref (NaN: none): the lab's input
@@ -243,7 +265,8 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
               detector: Optional[StaticDetector] = None, *, compression: str = "zstd",
               frame_id: str = "probe", copy_input: bool = True,
               warn: Optional[Callable[[str], None]] = None, calibrate: bool = False,
-              probe_id: str = "probe", effects: str = "", monitor=None) -> ReprocessReport:
+              probe_id: str = "probe", effects: str = "", monitor=None, force_probe: bool = False,
+              probe_serial: Optional[str] = None) -> ReprocessReport:
     """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten;
     None: nothing is written, the report's stations are the result).
 
@@ -253,7 +276,10 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     beyond the paper's (the package's effect grammar).  ``monitor``: a
     :class:`lab.field.FieldMonitor` (the correction node's model check) or None.  ``detector``:
     a configured :class:`streaming.StaticDetector` (default: thresholds from the noise the data
-    show).  ``calibrate``: run the live calibration node's twelve-pose session
+    show).  The data's probe is the bag's ``/probe/serial`` (:func:`bag_probe_serial`; ``probe_serial``
+    gives it for a bag without one): a record of another probe is refused (:class:`ReprocessError`)
+    unless ``force_probe``, and then every station says so; with ``calibrate`` the records made are
+    that probe's (else ``probe_id``'s).  ``calibrate``: run the live calibration node's twelve-pose session
     (:class:`capture.CaptureSession`) on the bag's stations, as the live graph does: each solve
     is written as ``/calibration/coefficients`` and applied to the stations that close after it
     (a station is never corrected by coefficients solved from itself — live, the station that
@@ -271,10 +297,15 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     reader = open_bag(src)                      # BagError: not an MCAP / unreadable header
     report = ReprocessReport(Path(src), Path(dst) if dst is not None else None)
     det = detector if detector is not None else StaticDetector()
-    proc = SurveyProcessor(tolerances, site=site, monitor=monitor)
+    serial = bag_probe_serial(src) if probe_serial is None else str(probe_serial)
+    report.probe_serial = serial or ""
+    proc = SurveyProcessor(tolerances, site=site, monitor=monitor, probe_serial=serial or "", force_probe=force_probe)
     if calibration is not None:
-        report.notes.extend(proc.set_calibration(calibration))
-    session = CaptureSession(site=site, probe_id=probe_id, effects=effects) if calibrate else None
+        try:
+            report.notes.extend(proc.set_calibration(calibration))
+        except ProbeMismatch as exc:
+            raise ReprocessError(f"{src}: {exc} (--force-probe applies it anyway)") from None
+    session = CaptureSession(site=site, probe_id=serial or probe_id, effects=effects) if calibrate else None
     encoder = MessageEncoder()
     limits = Limits()
 
@@ -414,6 +445,11 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
                 elif topic == TOPIC_DEPTH:
                     depths.add(t_pair[0], (decode_float64(m.data),))
                     continue
+                elif topic == TOPIC_SERIAL:       # read before the loop (bag_probe_serial)
+                    if decode_string(m.data) != report.probe_serial:
+                        issue(f"a second probe serial in one bag ({decode_string(m.data)!r} after "
+                              f"{report.probe_serial!r}), ignored", _where(topic, log_time))
+                    continue
                 elif topic == TOPIC_TEMPERATURE:
                     key, temp = decode_temperature(m.data)
                     det.add_temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
@@ -478,12 +514,14 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
 # Probe log (CSV / simulator) → bag, as the probe node would have recorded it
 
 def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, frame_id: str = "probe",
-                    reference: bool = True, compression: str = "zstd", latency_ns: int = 0) -> Dict[str, int]:
+                    reference: bool = True, compression: str = "zstd", latency_ns: int = 0,
+                    serial: str = "") -> Dict[str, int]:
     """Write a :class:`probelog.ProbeLog` as a bag of ``/probe/imu``, ``/probe/mag``,
     ``/probe/temperature`` (one of each per sample, same header stamp ``epoch + t_s``), if
     ``reference``, ``/probe/reference`` at every change of the log's ``ref`` (NaN = none), and when
     the log has depths ``/probe/depth`` as the probe node publishes it (before the first sample at
-    a depth that holds; while it runs at most every 0.5 s).
+    a depth that holds; while it runs at most every 0.5 s), and with a ``serial`` the probe's
+    ``/probe/serial`` (latched) before everything else, as the probe node publishes it.
 
     Serialized with the ``rosbags`` type store (no ROS needed).  Accelerometer as REP-145 specific
     force (m/s², as in the log), magnetometer converted nT → tesla; the covariances state the noise
@@ -524,6 +562,10 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
         c_dep = w.add_topic(TOPIC_DEPTH, DEPTH_TYPE, qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=100)]) \
             if np.any(np.isfinite(md)) else None
         F64 = T[DEPTH_TYPE]
+        if serial:
+            c_ser = w.add_topic(TOPIC_SERIAL, SERIAL_TYPE, qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=1,
+                                                                              durability="transient_local")])
+            w.write(c_ser, bytes(ser(T[SERIAL_TYPE](data=str(serial)), SERIAL_TYPE)), int(epoch_ns) + latency_ns)
         last_md, md_sent = None, -np.inf
         stamps = epoch_ns + np.round(np.asarray(log.t_s, float) * 1e9).astype(np.int64)
         mag_t = np.asarray(log.mag, float) / NT_PER_TESLA

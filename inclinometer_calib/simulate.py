@@ -16,6 +16,7 @@ The output accelerometer is REP-145 specific force (``-g``), as a real IMU repor
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,24 +72,37 @@ class SimulatedProbe:
     def time_skew_s(self) -> float:
         return self._whole(fx.TimeSkew)
 
-    def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool):
+    def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool, draws: "SessionDraws | None" = None):
         """Raw outputs for true tool-frame gravity (m/s², down) and field (nT), (N, 3) each, on the
         stand (``survey`` False) or in the survey; ``t_s`` s since the data's first sample.
+
+        The random numbers come from ``rng`` in this order: each stochastic effect's walk
+        increments (N × its axes), the accelerometer noise (N × 3), the magnetometer noise (N × 3).
+        ``draws`` (:class:`SessionDraws`): the samples are one piece of a longer block, in order,
+        and take their numbers from the block's streams instead, the same ones the whole block
+        would have taken from ``rng``.
 
         Returns ``(specific_force_mps2, field_nt)``.
         """
         role = "val" if survey else "cal"
         a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role=role)
-        walk = self._walk(np.asarray(t_s, dtype=float), rng, role)
+        walk = self._walk(np.asarray(t_s, dtype=float), rng, role, draws)
         a, m = a + walk["acc"], m + walk["mag"]
-        a = a + rng.normal(0.0, self.noise_acc, a.shape)
-        m = m + rng.normal(0.0, self.noise_mag, m.shape)
+        a = a + (draws.stream("acc") if draws else rng).normal(0.0, self.noise_acc, a.shape)
+        m = m + (draws.stream("mag") if draws else rng).normal(0.0, self.noise_mag, m.shape)
         return specific_force_from_gravity(a), m
 
-    def _walk(self, t_s, rng, role) -> dict:
+    def walk_widths(self, role: str) -> list:
+        """``[(key, axes)]`` of the stochastic effects acting in ``role``, in the order they draw."""
+        return [(t.effect.key, len(np.atleast_1d(t.effect.values["density"]))) for t in self.model.terms
+                if t.effect.stochastic and t.acts_on(role)]
+
+    def _walk(self, t_s, rng, role, draws=None) -> dict:
         """The stochastic effects' draws at times ``t_s`` (ascending), per sensor (N, 3): a random
         walk ``w(t+Δt) = w(t) + K·√Δt·ε`` per axis (:class:`effects.BiasWander`, output stage: added
-        to the output), continuing from where the previous session left it."""
+        to the output), continuing from where the previous session left it.  In pieces
+        (``draws``), the running sum is carried from piece to piece so that every value is the
+        whole block's, bit for bit (``np.cumsum`` adds left to right)."""
         out = {"acc": np.zeros((len(t_s), 3)), "mag": np.zeros((len(t_s), 3))}
         for term in self.model.terms:
             e = term.effect
@@ -97,7 +111,16 @@ class SimulatedProbe:
             k = np.asarray(e.values["density"], dtype=float)
             t_last, w_last = self.walks.get(e.key, (float(t_s[0]), np.zeros(len(k))))
             dt = np.maximum(np.diff(np.concatenate([[t_last], t_s])), 0.0)
-            w = w_last + np.cumsum(rng.normal(0.0, 1.0, (len(t_s), len(k))) * k * np.sqrt(dt)[:, None], axis=0)
+            z = (draws.stream(e.key) if draws else rng).normal(0.0, 1.0, (len(t_s), len(k)))
+            inc = z * k * np.sqrt(dt)[:, None]
+            if draws is None:
+                w = w_last + np.cumsum(inc, axis=0)
+            else:   # w = (w at the block's start) + (running sum of the block's increments)
+                base, carry = draws.carry.get(e.key, (w_last, None))
+                run = np.cumsum(inc if carry is None else np.vstack([carry, inc]), axis=0)
+                run = run if carry is None else run[1:]
+                draws.carry[e.key] = (base, run[-1].copy())
+                w = base + run
             self.walks[e.key] = (float(t_s[-1]), w[-1].copy())
             out[e.sensor][:, [fx.AXIS_INDEX[a] for a in e.axes]] += w
         return out
@@ -175,89 +198,178 @@ def stand_grid_session(drifts=VAL_DRIFTS, azimuths=VAL_AZIMUTHS, toolfaces=VAL_T
                             temp_c=float(tc)) for (i, a, t), tc in zip(combos, temps)]
 
 
-def run_session(probe: SimulatedProbe, site: Site, stations, rng: np.random.Generator, rate_hz: float = 100.0,
-                move_s: float = 1.0, t0: float = 0.0, survey: bool = False, lead_in=None) -> ProbeLog:
-    """Simulate a session: each planned station (:meth:`station.Station.planned`) held for its
-    duration, with moves of ``move_s`` between.  Times (and time-dependent effects) are log time.
+class SessionDraws:
+    """The random numbers of one session's samples, drawn piece by piece in order.
 
-    During moves the orientation follows a slerp between the stations (rows carry no labels).
-    ``lead_in = (rotation, seconds)``: the session starts with a move of that length from that
-    orientation (where an earlier session left the probe), so that sessions run one after the
-    other make one continuous stream.
+    A whole session takes from ``rng``, in this order (:meth:`SimulatedProbe.measure`): for each
+    stochastic effect N × its axes standard normals (the walk), then N × 3 for the accelerometer
+    noise, then N × 3 for the magnetometer noise.  Here each of these blocks gets its own copy of
+    ``rng`` positioned at the block's start (found by drawing and discarding the numbers before
+    it, ``SKIP`` at a time), so that pieces of the session taken in order get exactly the numbers
+    the whole session would have got — every draw is ``loc + scale·z`` of one standard normal
+    per element, in order — and ``rng`` is left where the whole session leaves it.  ``carry``
+    holds each walk's running sum from piece to piece.
     """
-    if rate_hz <= 0:
-        raise ValueError("rate_hz must be positive")
-    dt = 1.0 / rate_hz
-    # Build a time line of key orientations: each station is held constant, moves interpolate.
-    actual = []
-    for st in stations:
-        r = st.rotation
-        if probe.stand_pose_error_deg > 0:
-            err = Rotation.from_rotvec(np.radians(rng.normal(0, probe.stand_pose_error_deg, 3))).as_matrix()
-            r = r @ err
-        actual.append(r)
-    key_t, key_r = [], []
-    segments = []  # (t_start, t_end, station index or -1, temp_start, temp_end)
-    t = t0
-    prev_temp = stations[0].temp_c if stations else 25.0
-    if lead_in is not None and stations and lead_in[1] > 0:
-        key_t.append(t)
-        key_r.append(np.asarray(lead_in[0], dtype=float))
-        segments.append((t, t + lead_in[1], -1, prev_temp, prev_temp))
-        t += lead_in[1]
-    for k, (st, r) in enumerate(zip(stations, actual)):
-        if k > 0 and move_s > 0:
-            segments.append((t, t + move_s, -1, prev_temp, st.temp_c))
-            t += move_s
-        key_t += [t, t + st.duration_s]
-        key_r += [r, r]
-        segments.append((t, t + st.duration_s, k, st.temp_c, st.temp_c))
-        t += st.duration_s
-        prev_temp = st.temp_c
-    if not segments:
-        return ProbeLog.empty()
-    key_t = np.array(key_t)
-    # Nudge duplicate key times (zero-length moves) so the slerp stays well defined.
-    key_t = key_t + np.arange(len(key_t)) * 1e-9
-    slerp = Slerp(key_t, Rotation.from_matrix(np.array(key_r)))
 
-    t_all, pose, ref, temp, seg_id = [], [], [], [], []
-    for (ts, te, k, t_a, t_b) in segments:
-        n = max(int(round((te - ts) * rate_hz)), 1)
-        tt = ts + dt * np.arange(n)
-        t_all.append(tt)
-        seg_id.append(np.full(n, k))
-        temp.append(np.interp(tt, [ts, te], [t_a, t_b]))
-        if k >= 0:
-            pose.append(np.full(n, stations[k].pose, dtype=int))
-            ref.append(np.tile(np.asarray(stations[k].ref, float), (n, 1)))
-        else:
-            pose.append(np.zeros(n, dtype=int))
-            ref.append(np.full((n, 3), np.nan))
-    t_all = np.concatenate(t_all)
-    temp = np.concatenate(temp)
-    seg_id = np.concatenate(seg_id)
-    actual = np.array(actual)
+    SKIP = 1 << 16
 
-    def rot_at(times):
+    def __init__(self, rng: np.random.Generator, n: int, widths):
+        self.carry = {}
+        self._streams = {}
+        for key, per_sample in list(widths) + [("acc", 3), ("mag", 3)]:
+            self._streams[key] = copy.deepcopy(rng)
+            left = n * per_sample
+            while left > 0:
+                k = min(left, self.SKIP)
+                rng.normal(0.0, 1.0, k)
+                left -= k
+
+    def stream(self, key) -> np.random.Generator:
+        return self._streams[key]
+
+
+class SessionPlan:
+    """A session laid out in time: each planned station (:meth:`station.Station.planned`) held for
+    its duration, with moves of ``move_s`` between; its samples are simulated on demand, whole
+    (:meth:`log`) or in pieces of bounded size (:meth:`chunks`), with the same numbers either way.
+
+    Building the plan takes the stations' stand pose errors from ``rng`` (the first draws of a
+    session); the samples' draws follow (:class:`SessionDraws`).  Times (and time-dependent
+    effects) are log time.  During moves the orientation follows a slerp between the stations
+    (rows carry no labels).  ``lead_in = (rotation, seconds)``: the session starts with a move of
+    that length from that orientation (where an earlier session left the probe), so that sessions
+    run one after the other make one continuous stream.
+
+    ``n`` is the number of samples and ``t_last`` the time of the last one (s).
+    """
+
+    def __init__(self, probe: SimulatedProbe, site: Site, stations, rng: np.random.Generator,
+                 rate_hz: float = 100.0, move_s: float = 1.0, t0: float = 0.0, survey: bool = False, lead_in=None):
+        if rate_hz <= 0:
+            raise ValueError("rate_hz must be positive")
+        self.probe, self.site, self.stations, self.rng, self.survey = probe, site, list(stations), rng, survey
+        stations = self.stations
+        self.rate_hz = rate_hz
+        self.dt = dt = 1.0 / rate_hz
+        # Build a time line of key orientations: each station is held constant, moves interpolate.
+        actual = []
+        for st in stations:
+            r = st.rotation
+            if probe.stand_pose_error_deg > 0:
+                err = Rotation.from_rotvec(np.radians(rng.normal(0, probe.stand_pose_error_deg, 3))).as_matrix()
+                r = r @ err
+            actual.append(r)
+        key_t, key_r = [], []
+        segments = []  # (t_start, t_end, station index or -1, temp_start, temp_end)
+        t = t0
+        prev_temp = stations[0].temp_c if stations else 25.0
+        if lead_in is not None and stations and lead_in[1] > 0:
+            key_t.append(t)
+            key_r.append(np.asarray(lead_in[0], dtype=float))
+            segments.append((t, t + lead_in[1], -1, prev_temp, prev_temp))
+            t += lead_in[1]
+        for k, (st, r) in enumerate(zip(stations, actual)):
+            if k > 0 and move_s > 0:
+                segments.append((t, t + move_s, -1, prev_temp, st.temp_c))
+                t += move_s
+            key_t += [t, t + st.duration_s]
+            key_r += [r, r]
+            segments.append((t, t + st.duration_s, k, st.temp_c, st.temp_c))
+            t += st.duration_s
+            prev_temp = st.temp_c
+        self.segments = segments
+        self.counts = [max(int(round((te - ts) * rate_hz)), 1) for (ts, te, _, _, _) in segments]
+        self.offsets = np.concatenate([[0], np.cumsum(self.counts, dtype=np.int64)]).astype(int).tolist()
+        self.n = self.offsets[-1]
+        self.t_last = segments[-1][0] + dt * (self.counts[-1] - 1) if segments else t0
+        self._draws = None
+        if not segments:
+            return
+        key_t = np.array(key_t)
+        # Nudge duplicate key times (zero-length moves) so the slerp stays well defined.
+        self._key_t = key_t + np.arange(len(key_t)) * 1e-9
+        self._slerp = Slerp(self._key_t, Rotation.from_matrix(np.array(key_r)))
+        self._actual = np.array(actual)
+        # the measured depth: a station's own while held, between two stations running from one to the next
+        md_t = np.array([x for (ts, te, k, _, _) in segments if k >= 0 for x in (ts, te)])
+        md = np.array([stations[k].md_m for (_, _, k, _, _) in segments if k >= 0 for _ in (0, 1)])
+        ok = np.isfinite(md)
+        self._md_keys = (md_t[ok], md[ok]) if ok.any() else None
+
+    def labels(self, a: int = 0, b: int | None = None):
+        """``(t_s, station, temp_c, pose, ref)`` of samples ``a`` to ``b`` (exclusive): the time line
+        and the labels, without simulating any measurement."""
+        b = self.n if b is None else b
+        t_all, seg_id, temp, pose, ref = [], [], [], [], []
+        for j, (ts, te, k, t_a, t_b) in enumerate(self.segments):
+            o, c = self.offsets[j], self.counts[j]
+            lo, hi = max(a, o), min(b, o + c)
+            if lo >= hi:
+                continue
+            n = hi - lo
+            tt = ts + self.dt * np.arange(lo - o, hi - o)
+            t_all.append(tt)
+            seg_id.append(np.full(n, k))
+            temp.append(np.interp(tt, [ts, te], [t_a, t_b]))
+            if k >= 0:
+                pose.append(np.full(n, self.stations[k].pose, dtype=int))
+                ref.append(np.tile(np.asarray(self.stations[k].ref, float), (n, 1)))
+            else:
+                pose.append(np.zeros(n, dtype=int))
+                ref.append(np.full((n, 3), np.nan))
+        if not t_all:
+            return (np.zeros(0), np.zeros(0, dtype=int), np.zeros(0), np.zeros(0, dtype=int), np.zeros((0, 3)))
+        return tuple(np.concatenate(x) for x in (t_all, seg_id, temp, pose, ref))
+
+    def _rot_at(self, times, t_all, seg_id):
         # Static rows use the station's matrix exactly (no quaternion round trip); moves slerp.
-        r = slerp(np.clip(times, key_t[0], key_t[-1])).as_matrix()
-        static = seg_id >= 0
-        hold = static & (times == t_all)
-        r[hold] = actual[seg_id[hold]]
+        r = self._slerp(np.clip(times, self._key_t[0], self._key_t[-1])).as_matrix()
+        hold = (seg_id >= 0) & (times == t_all)
+        r[hold] = self._actual[seg_id[hold]]
         return r
 
-    r_acc = rot_at(t_all)
-    r_mag = rot_at(t_all + probe.time_skew_s) if probe.time_skew_s else r_acc
-    g_tool = np.einsum("nji,j->ni", r_acc, site.gravity_ned())   # Rᵀ·g_ned
-    b_tool = np.einsum("nji,j->ni", r_mag, site.field_ned())     # Rᵀ·b_ned
-    f, m = probe.measure(g_tool, b_tool, temp, t_all, rng, survey)
-    # the measured depth: a station's own while held, between two stations running from one to the next
-    key_t = np.array([x for (ts, te, k, _, _) in segments if k >= 0 for x in (ts, te)])
-    key_md = np.array([stations[k].md_m for (_, _, k, _, _) in segments if k >= 0 for _ in (0, 1)])
-    ok = np.isfinite(key_md)
-    md = np.interp(t_all, key_t[ok], key_md[ok], left=np.nan, right=np.nan) if ok.any() else np.full(len(t_all), np.nan)
-    return ProbeLog(t_all, f, m, temp, np.concatenate(pose), np.concatenate(ref), station=seg_id, md_m=md)
+    def _simulate(self, a: int, b: int, draws) -> ProbeLog:
+        probe, site = self.probe, self.site
+        t_all, seg_id, temp, pose, ref = self.labels(a, b)
+        r_acc = self._rot_at(t_all, t_all, seg_id)
+        r_mag = self._rot_at(t_all + probe.time_skew_s, t_all, seg_id) if probe.time_skew_s else r_acc
+        g_tool = np.einsum("nji,j->ni", r_acc, site.gravity_ned())   # Rᵀ·g_ned
+        b_tool = np.einsum("nji,j->ni", r_mag, site.field_ned())     # Rᵀ·b_ned
+        f, m = probe.measure(g_tool, b_tool, temp, t_all, self.rng, self.survey, draws=draws)
+        md = (np.interp(t_all, *self._md_keys, left=np.nan, right=np.nan) if self._md_keys is not None
+              else np.full(len(t_all), np.nan))
+        return ProbeLog(t_all, f, m, temp, pose, ref, station=seg_id, md_m=md)
+
+    def log(self) -> ProbeLog:
+        """All the samples at once (their draws straight from ``rng``)."""
+        if not self.segments:
+            return ProbeLog.empty()
+        return self._simulate(0, self.n, None)
+
+    def chunks(self, chunk_samples: int):
+        """The samples as consecutive logs of at most ``chunk_samples`` rows (``station`` still counts
+        the session's stations), equal to :meth:`log` cut into pieces, bit for bit.
+
+        The random numbers are set aside when this is called (``rng`` moves past the session at
+        once, so that a session planned after this one starts where a whole simulation would), and
+        the pieces must be taken in order: a stochastic effect's walk runs from piece to piece,
+        and on into the next session, as in one whole simulation.  Use either this or :meth:`log`
+        once per plan.
+        """
+        if chunk_samples < 1:
+            raise ValueError("chunk_samples must be at least 1")
+        if not self.segments:
+            return iter(())
+        draws = SessionDraws(self.rng, self.n, self.probe.walk_widths("val" if self.survey else "cal"))
+        return (self._simulate(a, min(a + chunk_samples, self.n), draws) for a in range(0, self.n, chunk_samples))
+
+
+def run_session(probe: SimulatedProbe, site: Site, stations, rng: np.random.Generator, rate_hz: float = 100.0,
+                move_s: float = 1.0, t0: float = 0.0, survey: bool = False, lead_in=None) -> ProbeLog:
+    """Simulate a session, all its samples at once (:class:`SessionPlan`; in pieces of bounded
+    memory: ``SessionPlan(...).chunks(n)``, the same numbers)."""
+    return SessionPlan(probe, site, stations, rng, rate_hz=rate_hz, move_s=move_s, t0=t0, survey=survey,
+                       lead_in=lead_in).log()
 
 
 def turntable_session(steps: int = 12, duration_s: float = 3.0, tilt_deg: float = 0.0, temp_c: float = 25.0,

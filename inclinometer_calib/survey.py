@@ -206,7 +206,8 @@ BATCH_KEYS = ("drift_deg", "azimuth_deg", "toolface_deg", "total_gravity", "tota
 
 
 def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
-                    temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None) -> dict:
+                    temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None,
+                    backend: str | None = None) -> dict:
     """Correct and evaluate raw samples in bulk: both triads, angles and QC per sample.
 
     Parameters
@@ -224,6 +225,8 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
     block : samples per block: the work runs block by block so that every temporary stays in
         the CPU cache and the arrays of N samples are read once and written once.
     out : optional dict of preallocated output arrays (keys as returned) to write into.
+    backend : ``numba`` (the fused kernel, :mod:`batchkernel`), ``numpy`` (the blocked body below)
+        or ``auto`` (numba when importable); None: ``$INCLINOMETER_CALIB_BATCH_BACKEND``, else auto.
 
     Returns
     -------
@@ -249,10 +252,16 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
     tim = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=float), (n,))
     if calibration is not None:
         calibration.model.context(0, temp, tim, "val", "correct_samples: ")   # what the model needs: said up front
+    from . import batchkernel
+
+    kernel = batchkernel.resolve_backend(backend) == "numba"
     if out is None:
         out = {k: np.empty(n) for k in BATCH_KEYS}
         out["flags"] = np.empty(n, dtype=np.uint8)
         out["status"] = np.empty(n, dtype=np.uint8)
+    if kernel:
+        return batchkernel.fused(f, m, calibration, site, tol, temp, tim, block, out,
+                                 lambda g, b, tc, ts: calibration.correct(g, b, tc, ts))
     blk = max(1, min(int(block), n)) if n else 1
     gt = np.empty((3, blk))
     bt = np.empty((3, blk))

@@ -457,6 +457,35 @@ def fit_uncertainty(poses, sigma, fit: TriadFit) -> dict:
             "basis": f"twelve-position fit covariance over {len(poses)} captures, residuals {z:.2f}x the noise"}
 
 
+def closed_form_uncertainty(means, sigma_means, vertical_ref: float, z_rms: float = float("nan")) -> dict:
+    """1σ of the corrected triad's bias and scale from the paper's closed form (eqs. 5–16), the
+    way :func:`fit_uncertainty` gives them for the least-squares fit: the closed form is linearised
+    about the pose means (central differences of :func:`solve_closed_form`, 36 inputs) and the
+    means' noise ``sigma_means`` (12, 3) propagated, inflated by the residuals' ratio to the noise
+    when above 1.  The closed form weighs the poses otherwise than least squares (it is less
+    efficient): its own propagation, not the fit's covariance, is the uncertainty of the record it
+    makes."""
+    means = np.asarray(means, float).reshape(12, 3)
+    sig = np.asarray(sigma_means, float).reshape(12, 3)
+    base = solve_closed_form(means, vertical_ref)
+    step = 1e-6 * max(float(np.max(np.abs(means))), 1.0)
+    jac = np.zeros((12, 36))
+    for k in range(36):
+        d = np.zeros(36)
+        d[k] = step
+        hi = solve_closed_form(means + d.reshape(12, 3), vertical_ref)
+        lo = solve_closed_form(means - d.reshape(12, 3), vertical_ref)
+        jac[:, k] = (np.r_[hi.bias, hi.A.ravel()] - np.r_[lo.bias, lo.A.ravel()]) / (2 * step)
+    z = z_rms if np.isfinite(z_rms) else 1.0
+    cov = (jac * sig.reshape(-1) ** 2) @ jac.T * max(1.0, z) ** 2
+    c = np.linalg.inv(base.A)
+    bias = np.sqrt(np.maximum(np.diag(c @ cov[:3, :3] @ c.T), 0.0))
+    diag = 3 + np.array([0, 4, 8])
+    scale = np.sqrt(np.maximum(np.diag(cov)[diag], 0.0)) / np.abs(np.diag(base.A))
+    return {"bias": [float(x) for x in bias], "scale": [float(x) for x in scale],
+            "basis": f"closed form (eqs. 5-16) linearised about the pose means, residuals {z:.2f}x the noise"}
+
+
 #: A design whose parameters are this many times less certain than the complete twelve-pose
 #: design's does not determine them (a design missing an axis' vertical poses on a level stand is
 #: ≥ 100× worse, one missing a few poses ≤ 3×).
@@ -606,12 +635,17 @@ def solve_triad_captures(caps: CaptureSet, vertical_ref: float, horizontal0, *, 
             by_pose.setdefault(p, []).append(m)
         sol = solve_triad(by_pose, vertical_ref, name=name, scale_range=scale_range, unit=unit)
         sol.z_rms = fit.z_rms
+        # the noise of each pose's mean: its captures' (each the σ of its own mean) averaged
+        sig = np.array([np.sqrt(np.sum([np.asarray(s, float) ** 2 for q, s in zip(kept.poses, kept.sigmas) if q == p],
+                                       axis=0)) / sum(1 for q in kept.poses if q == p) for p in POSES])
+        sol.uncertainty = closed_form_uncertainty(sol.pose_means, sig, vertical_ref, fit.z_rms)
     else:
         sol = _solution_from_fit(fit, kept, f"least squares over {len(kept)} captures (no capture of pose(s) "
                                              f"{missing}: the closed form needs all twelve)")
         check_solution(sol, name, scale_range, unit)
     sol.left_out = left_out
-    sol.uncertainty = fit_uncertainty(kept.poses, kept.sigmas, fit)
+    if not sol.uncertainty:        # least squares over the captures: the fit's own covariance
+        sol.uncertainty = fit_uncertainty(kept.poses, kept.sigmas, fit)
     return sol
 
 

@@ -65,6 +65,20 @@ if [ ${#missing[@]} -gt 0 ]; then apt_install "${missing[@]}"; fi
 cmake_ver="$(cmake --version | head -1 | awk '{print $3}')"
 printf '%s\n%s\n' 3.16 "$cmake_ver" | sort -V -C || die "cmake >= 3.16 required (found $cmake_ver)"
 log "system tools ok (cmake $cmake_ver, $(g++ --version | head -1))"
+# PostgreSQL server binaries for the fleet registry's tests (test/fleet/conftest.py starts a throw-away
+# cluster on 127.0.0.1; no service is enabled). Not fatal: without them those tests skip, saying why.
+if ! ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 && ! command -v initdb >/dev/null; then
+    log "apt: installing postgresql (for the fleet registry's PostgreSQL tests)"
+    sudo_pg=""
+    [ "$(id -u)" -eq 0 ] || sudo_pg="sudo"
+    if command -v apt-get >/dev/null \
+        && $sudo_pg apt-get update -qq \
+        && DEBIAN_FRONTEND=noninteractive $sudo_pg apt-get install -y -qq --no-install-recommends postgresql; then
+        log "postgresql installed"
+    else
+        log "WARNING: could not install postgresql: the fleet registry's PostgreSQL tests will be skipped"
+    fi
+fi
 
 # ---------------------------------------------------------------------------------------------
 # 2. venv + pip

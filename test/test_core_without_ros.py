@@ -6,7 +6,8 @@ import sys
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CORE = ["frames", "errormodel", "twelve_position", "effects", "model", "plugins", "simulate", "probelog", "coeffs",
         "survey", "noise", "station", "gates", "streaming", "capture", "pipeline", "axial", "msa", "bag", "reprocess", "cli",
-        "lab", "lab.fit", "lab.diagnose", "lab.report", "lab.field", "lab.stats"]
+        "lab", "lab.fit", "lab.diagnose", "lab.report", "lab.field", "lab.stats",
+        "fleet.registry", "fleet.history", "fleet.manifest", "fleet.reprocess"]
 
 
 def test_core_modules_import_no_ros():

@@ -156,3 +156,30 @@ def test_each_placed_station_carries_its_iscwsa_covariance_and_its_raw_means():
     # without a site there is no field to weigh the magnetic terms: NaN, not a guess
     bare = SurveyProcessor(calibration=None).process(stations[0])
     assert np.all(np.isnan(bare["position_covariance_ned_m2"]))
+
+
+def test_a_record_of_another_probe_is_refused_and_a_later_serial_drops_it_saying_why():
+    from inclinometer_calib.pipeline import ProbeMismatch, probe_mismatch
+
+    probe = sim.build_probe(2)
+    site = Site()
+    st = _one(probe, site, 30, 40, 0)
+    mine = Calibration(probe.model, site=site, probe_id="SN-1")
+    theirs = Calibration(probe.model, site=site, probe_id="SN-2")
+    assert probe_mismatch(theirs, "SN-1") and probe_mismatch(mine, "SN-1") is None
+    assert probe_mismatch(Calibration(probe.model, site=site), "SN-1") is None    # a record naming no probe
+    proc = SurveyProcessor(calibration=mine, probe_serial="SN-1")
+    with pytest.raises(ProbeMismatch, match="SN-2"):
+        proc.set_calibration(theirs)
+    assert proc.calibration is mine                                  # the record in force stays
+    f = proc.process(st)
+    assert f["probe_serial"] == "SN-1" and f["coefficients_id"] == mine.id
+    # the data turn out to be another probe's: the record is dropped, the stations say why
+    with pytest.raises(ProbeMismatch):
+        proc.set_probe_serial("SN-3")
+    f = proc.process(_one(probe, site, 30, 40, 0))
+    assert f["coefficients_id"] == "" and any("uncorrected: record" in w for w in f["warnings"])
+    # forced: applied, and every station says so
+    forced = SurveyProcessor(calibration=theirs, probe_serial="SN-1", force_probe=True)
+    f = forced.process(_one(probe, site, 30, 40, 0))
+    assert f["coefficients_id"] == theirs.id and any(w.startswith("FORCED") for w in f["warnings"])

@@ -208,3 +208,39 @@ def test_a_well_logged_with_its_depth_is_reprocessed_into_a_trajectory(tmp_path)
     for k, s in enumerate(stations):
         assert abs(s["tvd_m"] - true.tvd[k + 1]) < 0.05 and abs(s["north_m"] - true.north[k + 1]) < 0.1
         assert abs(s["east_m"] - true.east[k + 1]) < 0.1
+
+
+def test_the_bags_probe_serial_is_every_stations_and_another_probes_record_is_refused_unless_forced(survey, tmp_path,
+                                                                                                    capsys):
+    from inclinometer_calib.reprocess import ReprocessError, bag_probe_serial
+
+    bag = tmp_path / "sn.mcap"
+    counts = write_probe_bag(survey["log"], bag, serial="SN-0815")
+    assert counts["/probe/serial"] == 1 and bag_probe_serial(bag) == "SN-0815"
+    assert bag_probe_serial(survey["bag"]) is None                  # a bag that names no probe
+    mine = Calibration(acc=survey["cal"].acc, mag=survey["cal"].mag, probe_id="SN-0815", site=SITE)
+    rep = reprocess(bag, None, mine)
+    assert rep.probe_serial == "SN-0815"
+    assert {s["probe_serial"] for s in rep.stations} == {"SN-0815"}
+    assert not any("FORCED" in w for s in rep.stations for w in s["warnings"])
+    other = Calibration(acc=survey["cal"].acc, mag=survey["cal"].mag, probe_id="SN-4711", site=SITE)
+    with pytest.raises(ReprocessError, match="probe SN-4711, the data are of probe SN-0815"):
+        reprocess(bag, tmp_path / "no.mcap", other)
+    assert not (tmp_path / "no.mcap").exists()                      # refused before anything is written
+    forced = reprocess(bag, None, other, force_probe=True)
+    assert all(any(w.startswith("FORCED: record") and "SN-4711" in w for w in s["warnings"]) for s in forced.stations)
+    assert any("FORCED" in n for n in forced.warnings())
+    # the same numbers: forcing changes what is said, not the correction
+    assert [s["azimuth_deg"] for s in forced.stations] == pytest.approx([s["azimuth_deg"] for s in rep.stations],
+                                                                         nan_ok=True)
+    # a record that names no probe (older records: 'probe') is applied unchecked
+    assert reprocess(bag, None, Calibration(acc=survey["cal"].acc, mag=survey["cal"].mag, site=SITE)).stations
+    # the CLI: refused with the reason, forced with --force-probe (and said)
+    rec = tmp_path / "other.yaml"
+    other.save(rec)
+    assert main(["reprocess", str(bag), "--coeffs", str(rec), "-o", str(tmp_path / "a.mcap")]) == 2
+    assert "another" not in capsys.readouterr().out
+    assert main(["reprocess", str(bag), "--coeffs", str(rec), "-o", str(tmp_path / "b.mcap"), "--force-probe"]) == 0
+    out = capsys.readouterr()
+    assert "FORCED" in out.err and "probe SN-0815" in out.out
+    assert all("FORCED" in " ".join(s.warnings) and s.probe_serial == "SN-0815" for s in _stations(tmp_path / "b.mcap"))

@@ -120,3 +120,35 @@ def test_a_simulated_probe_round_trips_through_its_truth():
     assert again.model.labels() == probe.model.labels() == ["temperature_bias:mag:xyz", "axial_interference:mag:z@val"]
     np.testing.assert_array_equal(again.model.get_vector(), probe.model.get_vector())
     assert again.stand_pose_error_deg == 0.1
+
+
+_LOG_FIELDS = ("t_s", "acc", "mag", "temp_c", "pose", "ref", "station", "md_m")
+
+
+@pytest.mark.parametrize("effects", [[], ["bias_wander:mag=5", "stand_pose_error=0.05", "temperature_bias:mag=2",
+                                          "time_skew=0.01", "axial_interference=300"]])
+@pytest.mark.parametrize("chunk", [1, 7, 250])
+def test_a_session_simulated_in_chunks_is_the_whole_session_bit_for_bit(effects, chunk):
+    """The probe node simulates its script in pieces (bounded memory): the same RNG stream, the
+    same numbers as the whole simulation, a calibration then a survey continuing from it (one
+    walk, one generator), whatever the piece size — also one sample, or a piece across a move."""
+    def two_sessions(chunked):
+        probe, rng = sim.build_probe(3, effects), np.random.default_rng(11)
+        cal = sim.SessionPlan(probe, Site(), sim.twelve_pose_session((25.0, 40.0), duration_s=0.9), rng, rate_hz=97.0)
+        pieces = cal.chunks(chunk) if chunked else [cal.log()]
+        # the survey is planned before the calibration's pieces are taken (as the probe node does)
+        well = sim.SessionPlan(probe, Site(), sim.well_path_session(4, duration_s=1.1), rng, rate_hz=97.0,
+                               t0=cal.t_last + 1.0 / 97.0, survey=True, lead_in=(np.eye(3), 0.7))
+        pieces2 = well.chunks(chunk) if chunked else None
+        pieces = list(pieces)
+        pieces2 = list(pieces2) if chunked else [well.log()]
+        assert max(len(p) for p in pieces + pieces2) <= (chunk if chunked else cal.n + well.n)
+        assert sum(map(len, pieces)) == cal.n and pieces[-1].t_s[-1] == cal.t_last
+        return [pieces, pieces2], rng.normal()
+
+    whole, after_whole = two_sessions(False)
+    chunked, after_chunked = two_sessions(True)
+    assert after_whole == after_chunked      # the generator is left where the whole simulation leaves it
+    for w, c in zip(whole, chunked):
+        for f in _LOG_FIELDS:
+            np.testing.assert_array_equal(getattr(w[0], f), np.concatenate([getattr(p, f) for p in c]), err_msg=f)

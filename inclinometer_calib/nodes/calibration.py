@@ -37,6 +37,7 @@ import time
 
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, MagneticField, Temperature
+from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..capture import CaptureSession
@@ -142,6 +143,7 @@ class CalibrationNode(Node):
         self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos)
         self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos)
         self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
+        self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(RecapturePose, "~/recapture", self._on_recapture)
         c.steady_timer(self, 1.0 / self.status_rate, self._on_timer)  # runs on when /clock stops
@@ -195,6 +197,17 @@ class CalibrationNode(Node):
 
     def _on_temp(self, msg):
         self.detector.add_temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
+
+    def _on_serial(self, msg):
+        """The data's probe (latched): the records this node makes are that probe's."""
+        serial = str(msg.data)
+        if not serial or serial == self.session.probe_id:
+            return
+        if self.probe_id not in ("", "probe", serial):
+            self.get_logger().warning(f"probe_id {self.probe_id!r} is not the probe on {c.TOPIC_SERIAL} ({serial}): "
+                                      "the records are named for the data's probe")
+        self.session.probe_id = serial
+        self.get_logger().info(f"calibrating probe {serial}")
 
     def _sample(self, t, f, m):
         self._last = (t, f, m)

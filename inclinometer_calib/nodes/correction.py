@@ -48,12 +48,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from sensor_msgs.msg import Imu, MagneticField, Temperature
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, String
 
 from ..coeffs import Calibration, CoefficientError
 from ..frames import gravity_from_specific_force, specific_force_from_gravity
 from ..lab.field import FieldMonitor
-from ..pipeline import NO_SITE, SurveyProcessor
+from ..pipeline import NO_SITE, ProbeMismatch, SurveyProcessor
 from ..probelog import atomic_write_text
 from ..streaming import TIME_EPS, ReferenceTrack, StaticDetector
 from . import common as c
@@ -106,6 +106,9 @@ class CorrectionNode(Node):
         materiality = p.declare("monitor.materiality", 0.1, "Smallest trend that counts, as a fraction of each "
                                 "channel's QC tolerance (RMS of the part it explains)", read_only=True,
                                 range=(0.0, 10.0))
+        force_probe = p.declare("force_probe", False, "Apply a calibration record of another probe than the one "
+                                f"on {c.TOPIC_SERIAL} (refused otherwise); every station then says so",
+                                read_only=True)
         det = c.declare_detector(p)
         qos = c.declare_qos(p)
         self.add_post_set_parameters_callback(self._after_set)
@@ -115,7 +118,8 @@ class CorrectionNode(Node):
         self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
         self.implausible_samples = 0
         monitor = FieldMonitor(window=window, materiality=materiality, tolerances=self.tol) if window else None
-        self.processor = SurveyProcessor(self.tol, site=site, axial=axial, monitor=monitor)
+        self.processor = SurveyProcessor(self.tol, site=site, axial=axial, monitor=monitor, force_probe=force_probe)
+        self._mismatch = ""          # why the record offered is not applied (another probe's), said in diagnostics
         self.processor._next_id = self._read_state()  # station ids continue across restarts
         if site is None:
             self.get_logger().info("the site reference is the calibration record's (site.given is false)")
@@ -148,6 +152,7 @@ class CorrectionNode(Node):
         self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
         self.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100))
         self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))
+        self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
         if self.use_topic:
             self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
                                      c.latched_qos())
@@ -176,8 +181,26 @@ class CorrectionNode(Node):
     def calibration(self):
         return self.processor.calibration
 
+    def _on_serial(self, msg):
+        """The data's probe (latched): a record of another probe stops being applied (unless forced)."""
+        if msg.data == self.processor.probe_serial:
+            return
+        try:
+            for note in self.processor.set_probe_serial(msg.data):
+                self.get_logger().warning(note)
+            self.get_logger().info(f"the data are of probe {msg.data}")
+        except ProbeMismatch as exc:
+            self._mismatch = str(exc)
+            self.get_logger().error(f"{exc}: the stations go uncorrected")
+
     def _apply(self, cal: Calibration, origin: str, fallback: bool = False):
-        notes = self.processor.set_calibration(cal)
+        try:
+            notes = self.processor.set_calibration(cal)
+        except ProbeMismatch as exc:
+            self._mismatch = f"{exc} (from {origin})"
+            self.get_logger().error(f"{self._mismatch}; force_probe:=true applies it anyway")
+            return
+        self._mismatch = ""
         self.get_logger().info(f"applying coefficients {cal.id} (probe {cal.probe_id}, model {cal.model.describe()}, "
                                f"site {cal.site_source}) from {origin}")
         for note in notes:
@@ -408,6 +431,8 @@ class CorrectionNode(Node):
         site = self.processor.site
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
+        probe = ([DiagnosticStatus(level=DiagnosticStatus.ERROR, name="inclinometer_calib: probe identity",
+                                   hardware_id=self.probe_id, message=self._mismatch)] if self._mismatch else [])
         if site is None:
             arr.status = [DiagnosticStatus(level=DiagnosticStatus.WARN, name="inclinometer_calib: site reference",
                                            hardware_id=self.probe_id, message=NO_SITE)]
@@ -437,6 +462,7 @@ class CorrectionNode(Node):
                 m.values.append(KeyValue(key=f"trend_{k + 1}", value=f"{tr['channel']} ~ {tr['regressor']} "
                                                                        f"(R² {tr['r2']:.2f})"))
             arr.status.append(m)
+        arr.status.extend(probe)
         summary = DiagnosticStatus(name="inclinometer_calib: station", hardware_id=self.probe_id)
         summary.level = max(s.level for s in arr.status)
         summary.message = (f"station {st.station_id}: {_LEVEL_NAMES[summary.level]}; coefficients "

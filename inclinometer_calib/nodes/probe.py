@@ -18,9 +18,13 @@ header stamp per sample:
   stamp: published just before the first sample at a new depth, so it holds from there on in the
   order of the stream; while it runs (the probe moving) at most every ``DEPTH_PERIOD_S``.
 
-The whole log is prepared at start-up (simulated, read or decoded) and then published sample by
-sample from a timer that follows the log's time line scaled by ``speed`` (several samples per
-tick at high rates).  Stamps are the log time (``stamp:=log``, a simulation time base starting
+The script is prepared in pieces of :data:`CHUNK_SAMPLES` samples while it is published (the
+simulator generates it piece by piece with the same numbers as a whole simulation,
+:meth:`simulate.SessionPlan.chunks`; a CSV log or a bag is read whole into arrays — the noise
+measured from the whole log and the pairing of a bag's streams by stamp need every sample — and
+turned into messages piece by piece), so that the node's memory does not grow with the length
+of a simulated script.  It is published sample by sample from a timer that follows the log's time
+line scaled by ``speed`` (several samples per tick at high rates).  Stamps are the log time (``stamp:=log``, a simulation time base starting
 at the log's first sample) or the wall-clock time the sample is due (``stamp:=now``).  With
 ``stamp:=log`` the node also publishes ``/clock`` (``rosgraph_msgs/Clock``): the log time of the
 samples published so far (the first sample's while waiting; at most every
@@ -57,7 +61,7 @@ from rclpy.parameter import Parameter
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, MagneticField, Temperature
-from std_msgs.msg import Float64
+from std_msgs.msg import Float64, String
 
 from .. import effects as fx
 from .. import simulate as sim
@@ -80,6 +84,49 @@ INPUT_DAMAGED = 3
 #: stamps (10 ms of wall time), a fraction of the sample rate's message load.
 CLOCK_PERIOD_S = 0.01
 KNOWN_BAG_TOPICS = PROBE_TOPICS   # what a replay publishes again, with the type each must have
+#: Samples prepared (simulated, converted to messages' floats) at a time by default (the
+#: ``chunk_samples`` parameter): 10 s at 1 kHz, a few MB.
+CHUNK_SAMPLES = 10000
+
+
+class _Script:
+    """The samples to publish, in order, as pieces: ``n`` samples from ``t_first`` to ``t_last``
+    (s, log time); :meth:`pieces` yields ``(ProbeLog, field in tesla (k, 3))`` of at most
+    ``chunk_samples`` rows each."""
+
+    def __init__(self, n: int, t_first: float, t_last: float, pieces):
+        self.n, self.t_first, self.t_last = n, t_first, t_last
+        self._pieces = pieces
+
+    @classmethod
+    def whole(cls, log: ProbeLog, tesla, size: int) -> "_Script":
+        """A log held whole (read from a file): cut into pieces as it is published."""
+        n = len(log)
+        def piece(a, b):
+            return ProbeLog(log.t_s[a:b], log.acc[a:b], log.mag[a:b], log.temp_c[a:b], log.pose[a:b], log.ref[a:b],
+                            md_m=log.md_m[a:b])
+        pieces = ((piece(a, a + size), tesla[a:a + size]) for a in range(0, n, size))
+        return cls(n, float(log.t_s[0]) if n else 0.0, float(log.t_s[-1]) if n else 0.0, pieces)
+
+    def pieces(self):
+        return self._pieces
+
+
+def _same(a: float, b: float) -> bool:
+    """Equal depths, NaN equal to NaN (no depth)."""
+    return a == b or (a != a and b != b)
+
+
+def _changes(rows, base: int, prev):
+    """``(changes, last key)``: ``(sample index, row)`` wherever ``rows`` (k, d) change from the row
+    before (``prev``: the key of the row before the first; NaN = none), indices from ``base``."""
+    out = []
+    for i, row in enumerate(rows):
+        key = tuple(None if not math.isfinite(x) else x for x in row)
+        if key != prev:
+            out.append((base + i, tuple(row)))
+            prev = key
+    return out, prev
 
 
 def _check_effects(values):
@@ -125,6 +172,9 @@ class ProbeNode(Node):
         self.frame_id = p.declare("frame_id", "probe", "frame_id of the published messages", read_only=True)
         self.max_batch = p.declare("max_batch", 2000, "Most samples published per timer tick",
                                    range=(1, 100000))
+        self.chunk_samples = p.declare("chunk_samples", CHUNK_SAMPLES, "Samples prepared at a time (simulated, "
+                                       "turned into message values) while publishing: the memory a script takes "
+                                       "does not grow with its length", read_only=True, range=(1, 1000000))
         self.wait_subs = p.declare("wait_for_subscribers", 0, f"Start publishing once {c.TOPIC_IMU}, "
                                    f"{c.TOPIC_MAG} and {c.TOPIC_TEMPERATURE} each have this many subscribers "
                                    "(0: do not wait for them)", read_only=True, range=(0, 100))
@@ -148,6 +198,10 @@ class ProbeNode(Node):
                                  range=(1.0, 10000.0))
         self.seed = p.declare("seed", 7, "Simulator seed (probe errors and noise)", read_only=True,
                               range=(0, 2**31 - 1))
+        self.serial = p.declare("probe_serial", "", f"The probe's serial number, published latched on "
+                                f"{c.TOPIC_SERIAL} (its identity in the fleet registry, the records and every "
+                                "station). Empty: simulate SIM-<seed>, mcap the bag's; a csv log then names no probe "
+                                "(said)", read_only=True)
         self.effects = p.declare("effects", [], "Extra simulated effects, NAME[:sensor[:axes]]=V[,V...] "
                                  "(e.g. axial_interference=300)", read_only=True, check=_check_effects,
                                  ptype=Parameter.Type.STRING_ARRAY)
@@ -195,22 +249,22 @@ class ProbeNode(Node):
         self.add_post_set_parameters_callback(self._after_set)
 
         self.input_damaged = 0  # problems found in an MCAP input (exit status INPUT_DAMAGED at the end)
-        self.log, self.cov = self._load()  # raises ValueError/OSError on bad input
-        self._t = self.log.t_s.tolist()
-        self._acc = self.log.acc.tolist()
-        # tesla: a bag's recorded values unchanged (bit for bit), a log's nT divided as reprocess and
-        # `bag from-csv` do, so that every path sees the same numbers
-        recorded = getattr(self, "_recorded_tesla", None)
-        self._mag = (recorded if recorded is not None else self.log.mag / c.NT_PER_TESLA).tolist()
-        self._temp = self.log.temp_c.tolist()
-        self._ref_changes = self._reference_changes(self.log.ref)
-        self._depth_changes = self._reference_changes(self.log.md_m[:, None])
+        self.script, self.cov = self._load()  # raises ValueError/OSError on bad input
+        self._pieces = iter(self.script.pieces())
+        self._next_piece = next(self._pieces, None)
+        self._base = 0                 # sample index of the current piece's first row
+        self._t, self._acc, self._mag, self._temp = [], [], [], []
+        self._ref_changes, self._depth_changes = [], []   # of the current piece, sample indices
+        self._ref_key = self._depth_key = None            # the last row's, across pieces
+        self._load_piece()
 
         self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU, qos)
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG, qos)
         self.pub_temp = self.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
         self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, c.reliable_qos(100))
         self.pub_depth = self.create_publisher(Float64, c.TOPIC_DEPTH, c.reliable_qos(100))
+        self.pub_serial = self.create_publisher(String, c.TOPIC_SERIAL, c.latched_qos())
+        self._publish_serial()
         self.pub_clock = (self.create_publisher(ClockMsg, c.TOPIC_CLOCK, c.sensor_qos(10))
                           if self.stamp_mode == "log" else None)
         self._clock_msg = ClockMsg()
@@ -218,8 +272,8 @@ class ProbeNode(Node):
         self._init_messages()
 
         self.done = Future()
-        self._i = 0
-        self._next_ref = 0
+        self._i = 0                   # the next sample to publish (index in the script)
+        self._next_ref = 0            # the next change to publish (index in the piece's lists)
         self._next_depth = 0
         self._depth_sent = -math.inf
         self._ref_now = None          # the reference in effect (published), None before the first
@@ -230,9 +284,9 @@ class ProbeNode(Node):
         self._stamp0 = 0.0
         period = min(max(1.0 / (self.rate_hz * self.speed), 0.002), 0.02)
         self._timer = c.steady_timer(self, period, self._tick)
-        dur = (self._t[-1] - self._t[0]) if self._t else 0.0
+        dur = self.script.t_last - self.script.t_first
         self.get_logger().info(
-            f"source={self.source}: {len(self._t)} samples over {dur:.1f} s of log time; speed {self.speed:g} "
+            f"source={self.source}: {self.script.n} samples over {dur:.1f} s of log time; speed {self.speed:g} "
             f"-> about {dur / self.speed:.1f} s; timer {1e3 * period:.1f} ms")
 
     # ---- preparation -----------------------------------------------------------------------
@@ -247,21 +301,28 @@ class ProbeNode(Node):
                 self.get_logger().warning(f"{self.path}: {r}")
             if rejections:
                 self.get_logger().warning(f"{self.path}: {len(rejections)} rows rejected")
-            return log, self._covariance(log)
-        return self._read_bag(self.path)
+            # tesla: a log's nT divided as reprocess and `bag from-csv` do, so that every path sees the
+            # same numbers
+            return _Script.whole(log, log.mag / c.NT_PER_TESLA, self.chunk_samples), self._covariance(log)
+        log, cov = self._read_bag(self.path)
+        # a bag's recorded values unchanged (bit for bit)
+        return _Script.whole(log, self._recorded_tesla, self.chunk_samples), cov
 
     def _simulate(self):
         noise = {k: v for k, v in (("noise_acc", self.noise_acc), ("noise_mag", self.noise_mag)) if v > 0}
         probe = sim.build_probe(self.seed, list(self.effects), severity=self.severity, **noise)
         rng = np.random.default_rng(self.seed + 1)
-        logs, t0, lead_in = [], 0.0, None
+        # Each session's pieces are set aside (chunks) before the next session is planned: the
+        # generator then runs as in one whole simulation (:meth:`simulate.SessionPlan.chunks`).
+        plans, pieces, t0, lead_in = [], [], 0.0, None
         if self.calibrate:
             # The stand faces true north (the lab's convention for Table 1's poses, lab.model: a
             # surveyed reference line); a stand facing elsewhere is the lab's heading offset.
             stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s)
-            logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
-                                        move_s=self.move_s, t0=t0, survey=False))
-            t0 = logs[-1].t_s[-1] + 1.0 / self.rate_hz
+            plans.append(sim.SessionPlan(probe, self.site, stations, rng, rate_hz=self.rate_hz,
+                                         move_s=self.move_s, t0=t0, survey=False))
+            pieces.append(plans[-1].chunks(self.chunk_samples))
+            t0 = plans[-1].t_last + 1.0 / self.rate_hz
             # the probe keeps streaming while it is taken from the stand to the survey
             lead_in = (stations[-1].rotation, self.survey_gap)
         if self.survey == "stand_grid":
@@ -274,18 +335,38 @@ class ProbeNode(Node):
         else:
             stations = []
         if stations:
-            logs.append(sim.run_session(probe, self.site, stations, rng, rate_hz=self.rate_hz,
-                                        move_s=self.move_s, t0=t0, survey=True, lead_in=lead_in))
-        if not logs:
+            plans.append(sim.SessionPlan(probe, self.site, stations, rng, rate_hz=self.rate_hz,
+                                         move_s=self.move_s, t0=t0, survey=True, lead_in=lead_in))
+            pieces.append(plans[-1].chunks(self.chunk_samples))
+        if not plans:
             raise ValueError("nothing to simulate: calibration_session is false and survey is none")
-        log = ProbeLog.concatenate(logs)
         if self.truth_file:
-            self._write_truth(probe, log)
-        return log, (self._diagonal((probe.noise_acc,) * 3), self._diagonal((probe.noise_mag * c.TESLA_PER_NT,) * 3))
+            self._write_truth(probe, plans)
+        script = _Script(sum(p.n for p in plans), float(plans[0].labels(0, 1)[0][0]), plans[-1].t_last,
+                         ((log, log.mag / c.NT_PER_TESLA) for it in pieces for log in it))
+        return script, (self._diagonal((probe.noise_acc,) * 3),
+                        self._diagonal((probe.noise_mag * c.TESLA_PER_NT,) * 3))
 
-    def _write_truth(self, probe, log):
-        runs = label_runs(log)   # the stations as simulated (labels), not as detected
-        truth_cal = Calibration(probe.model, probe_id=f"sim-{self.seed}", method="simulator truth", site=self.site)
+    def _write_truth(self, probe, plans):
+        # The stations as simulated (labels), not as detected: the label runs of the script, found on
+        # one row per segment of the plans (a segment's rows all carry its labels), so that no
+        # per-sample list of the whole script is built.
+        segs = [(plan, base, j) for plan, base in zip(plans, np.cumsum([0] + [p.n for p in plans]).tolist())
+                for j in range(len(plan.segments))]
+        pose = np.array([p.stations[p.segments[j][2]].pose if p.segments[j][2] >= 0 else 0 for p, _, j in segs])
+        ref = np.array([p.stations[p.segments[j][2]].ref if p.segments[j][2] >= 0 else (np.nan,) * 3
+                        for p, _, j in segs], dtype=float).reshape(-1, 3)
+        z = np.zeros(len(segs))
+        runs = []
+        for j0, j1, pose_k, ref_k in label_runs(ProbeLog(z, np.zeros((len(segs), 3)), np.zeros((len(segs), 3)), z,
+                                                         pose, ref)):
+            (p0, b0, s0), (p1, b1, s1) = segs[j0], segs[j1]
+            runs.append((b0 + p0.offsets[s0], b1 + p1.offsets[s1 + 1] - 1, pose_k, ref_k,
+                         float(p0.labels(p0.offsets[s0], p0.offsets[s0] + 1)[0][0]),
+                         float(p1.labels(p1.offsets[s1 + 1] - 1, p1.offsets[s1 + 1])[0][0])))
+        n = sum(p.n for p in plans)
+        truth_cal = Calibration(probe.model, probe_id=self.serial or f"SIM-{self.seed}", method="simulator truth",
+                                site=self.site)     # the probe's own record: named by the serial it publishes
         truth = {
             "source": "simulate", "seed": self.seed, "effects": list(self.effects),
             "severity": self.severity, "rate_hz": self.rate_hz, "site": self.site.to_dict(),
@@ -295,14 +376,28 @@ class ProbeNode(Node):
                                  "offset": c.as_list(truth_cal.triad(s).correction_offset),
                                  "convention": "gravity vector (acc), nT (mag)"} for s in ("acc", "mag")},
             "stations": [{"pose": int(pose), "ref": [None if not math.isfinite(x) else float(x) for x in ref],
-                          "t_start": float(log.t_s[i0]), "t_end": float(log.t_s[i1])} for i0, i1, pose, ref in runs],
-            "samples": len(log),
+                          "t_start": t0, "t_end": t1} for _, _, pose, ref, t0, t1 in runs],
+            "samples": n,
         }
         d = os.path.dirname(os.path.abspath(self.truth_file))
         os.makedirs(d, exist_ok=True)
         atomic_write_text(self.truth_file, json.dumps(truth, indent=1) + "\n")
         truth_cal.save(os.path.join(d, "truth_coeffs.yaml"))
         self.get_logger().info(f"wrote {self.truth_file} and truth_coeffs.yaml")
+
+    def _publish_serial(self):
+        """The probe's serial, latched: the parameter, else the bag's, else SIM-<seed> for the
+        simulator; a parameter contradicting the bag's is a bad start-up parameter."""
+        bag = getattr(self, "_bag_serial", "")
+        if self.serial and bag and self.serial != bag:
+            raise ValueError(f"probe_serial {self.serial!r} contradicts the bag's {c.TOPIC_SERIAL} ({bag!r})")
+        serial = self.serial or bag or (f"SIM-{self.seed}" if self.source == "simulate" else "")
+        if not serial:
+            self.get_logger().warning("the data name no probe (no probe_serial, none in the input): the records and "
+                                      "stations cannot be checked against it")
+            return
+        self.pub_serial.publish(String(data=serial))
+        self.get_logger().info(f"probe {serial}")
 
     def _read_bag(self, path):
         """Samples of a recorded bag: imu, mag (and temperature, reference) paired by stamp.
@@ -318,7 +413,7 @@ class ProbeNode(Node):
         from ..bag import BagError, open_bag
 
         types = {c.TOPIC_IMU: Imu, c.TOPIC_MAG: MagneticField, c.TOPIC_TEMPERATURE: Temperature,
-                 c.TOPIC_REFERENCE: Vector3Stamped, c.TOPIC_DEPTH: Float64}
+                 c.TOPIC_REFERENCE: Vector3Stamped, c.TOPIC_DEPTH: Float64, c.TOPIC_SERIAL: String}
         try:
             reader = open_bag(path)
         except BagError as exc:
@@ -328,6 +423,7 @@ class ProbeNode(Node):
         imu, mag, temp, ref = {}, {}, {}, []
         depth, imu_log_time = [], {}     # the depth has no stamp: it holds in the bag's order
         cov_acc = cov_mag = None
+        self._bag_serial = ""
         for m in reader.messages(strict=False):
             want = KNOWN_BAG_TOPICS.get(m.topic)
             if want is None or m.type != want:
@@ -351,6 +447,9 @@ class ProbeNode(Node):
                 continue
             if m.topic == c.TOPIC_DEPTH:
                 depth.append((m.log_time, msg.data))
+                continue
+            if m.topic == c.TOPIC_SERIAL:          # latched, published once at the start (not replayed)
+                self._bag_serial = self._bag_serial or msg.data
                 continue
             key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
             if m.topic == c.TOPIC_IMU:
@@ -443,18 +542,37 @@ class ProbeNode(Node):
         self.pub_ref.publish(ref)
         self._ref_sent = stamp_s
 
-    @staticmethod
-    def _reference_changes(ref):
-        """(sample index, (drift, azimuth, toolface)) wherever the reference changes (NaN = none)."""
-        out, prev = [], None
-        for i, row in enumerate(ref.tolist()):
-            key = tuple(None if not math.isfinite(x) else x for x in row)
-            if key != prev:
-                out.append((i, tuple(row)))
-                prev = key
-        if out and all(not math.isfinite(x) for x in out[0][1]):
-            out.pop(0)  # no reference at the start: nothing to announce
-        return out
+    def _load_piece(self) -> bool:
+        """Make the next piece of the script current (its samples as floats, the reference and
+        depth changes in it); False at the end of the script.  One piece ahead is prepared, so
+        that a depth change at a piece's last sample knows whether it holds."""
+        piece, self._next_piece = self._next_piece, next(self._pieces, None)
+        if piece is None:
+            return False
+        log, tesla = piece
+        self._base += len(self._t)
+        self._t = log.t_s.tolist()
+        self._acc = log.acc.tolist()
+        self._mag = np.asarray(tesla).tolist()
+        self._temp = log.temp_c.tolist()
+        first = self._base == 0
+        self._ref_changes, self._ref_key = _changes(log.ref.tolist(), self._base, self._ref_key)
+        if first and self._ref_changes and all(not math.isfinite(x) for x in self._ref_changes[0][1]):
+            self._ref_changes.pop(0)  # no reference at the start: nothing to announce
+        md = log.md_m.tolist()
+        if self._next_piece is not None and len(self._next_piece[0]):
+            md.append(float(self._next_piece[0].md_m[0]))   # the sample after the piece's last
+        changes, _ = _changes([(x,) for x in md], self._base, self._depth_key)
+        changes = [ch for ch in changes if ch[0] < self._base + len(self._t)]
+        if first and changes and not math.isfinite(changes[0][1][0]):
+            changes.pop(0)
+        # a depth that holds (the next sample has the same) goes out at once; a running one throttled
+        self._depth_changes = [(k, v, k + 1 - self._base >= len(md) or _same(md[k - self._base], md[k + 1 - self._base]))
+                               for k, v in changes]
+        self._depth_key = (None if not math.isfinite(md[len(self._t) - 1]) else md[len(self._t) - 1],) if self._t \
+            else self._depth_key
+        self._next_ref = self._next_depth = 0
+        return True
 
     def _init_messages(self):
         cov_acc, cov_mag = self.cov
@@ -489,7 +607,7 @@ class ProbeNode(Node):
     def _start(self):
         self._state = "running"
         self._wall0 = time.monotonic()
-        self._log0 = self._t[0] if self._t else 0.0
+        self._log0 = self.script.t_first
         self._stamp0 = self.get_clock().now().nanoseconds * 1e-9
         self.get_logger().info("publishing")
 
@@ -519,8 +637,8 @@ class ProbeNode(Node):
         if self._state == "running":
             self._publish_due()
         elif self._state == "waiting":
-            if self._t:
-                self._publish_clock(self._t[0])  # the other nodes' clocks start at the log's start
+            if self.script.n:
+                self._publish_clock(self.script.t_first)  # the other nodes' clocks start at the log's start
             waited = time.monotonic() - self._created
             missing = self._missing_subscribers()
             if not missing and waited >= self.start_delay:
@@ -545,20 +663,35 @@ class ProbeNode(Node):
     def _publish_due(self):
         now = time.monotonic()
         target = self._log0 + (now - self._wall0) * self.speed
-        t, n, i, n_max = self._t, len(self._t), self._i, self.max_batch
-        end = i
-        while end < n and t[end] <= target and end - i < n_max:
-            end += 1
+        budget, last = self.max_batch, None
         now_stamps = self.stamp_mode == "now"
-        for k in range(i, end):
-            tk = t[k]
-            if now_stamps:
-                tk = self._stamp0 + (tk - self._log0) / self.speed
-            self._publish_sample(k, tk)
-        self._i = end
-        if end > i:
-            self._publish_clock(t[end - 1], force=end >= n)  # stamp:=log only
-        if end >= n:
+        n = self.script.n
+        while budget > 0:
+            t, base = self._t, self._base
+            i = self._i - base
+            if i >= len(t):
+                if not self._load_piece():
+                    break
+                continue
+            end = i
+            while end < len(t) and t[end] <= target and end - i < budget:
+                end += 1
+            for k in range(i, end):
+                tk = t[k]
+                if now_stamps:
+                    tk = self._stamp0 + (tk - self._log0) / self.speed
+                self._publish_sample(base + k, tk)
+            if end > i:
+                last = t[end - 1]
+            budget -= end - i
+            self._i = base + end
+            if end < len(t):
+                break        # the samples due are out (or the batch is full)
+        if self._i >= n and self._next_piece is None and self._i - self._base >= len(self._t):
+            self._i = n
+        if last is not None:
+            self._publish_clock(last, force=self._i >= n)  # stamp:=log only
+        if self._i >= n:
             self._state = "ending"
             self._end_at = time.monotonic() + 0.5  # let the last samples go out
             self.get_logger().info(f"end of script: {n} samples published (on_end:={self.on_end})")
@@ -567,9 +700,9 @@ class ProbeNode(Node):
         ch = self._depth_changes
         if self._next_depth < len(ch) and ch[self._next_depth][0] <= k:
             # a depth running (a move) goes out at most every DEPTH_PERIOD_S; one that holds at once
-            held = self._next_depth + 1 >= len(ch) or ch[self._next_depth + 1][0] - k >= 2
+            _, value, held = ch[self._next_depth]
             if held or stamp_s - self._depth_sent >= DEPTH_PERIOD_S:
-                self.pub_depth.publish(Float64(data=float(ch[self._next_depth][1][0])))
+                self.pub_depth.publish(Float64(data=float(value[0])))
                 self._depth_sent = stamp_s
             self._next_depth += 1
         if self._next_ref < len(self._ref_changes) and self._ref_changes[self._next_ref][0] <= k:
@@ -581,15 +714,16 @@ class ProbeNode(Node):
         mi, mm, mt = self.m_imu, self.m_mag, self.m_temp
         c.set_stamp(mi.header.stamp, stamp_s)
         mm.header.stamp = mt.header.stamp = mi.header.stamp
-        a = self._acc[k]
+        j = k - self._base
+        a = self._acc[j]
         la = mi.linear_acceleration
         la.x, la.y, la.z = a
-        m = self._mag[k]
+        m = self._mag[j]
         mf = mm.magnetic_field
         mf.x, mf.y, mf.z = m
         self.pub_imu.publish(mi)
         self.pub_mag.publish(mm)
-        tc = self._temp[k]
+        tc = self._temp[j]
         if tc == tc:  # not NaN
             mt.temperature = tc
             self.pub_temp.publish(mt)

@@ -310,3 +310,12 @@ def test_replaying_the_bag_reproduces_the_stations(sim_run, ros_env, tmp_path):
         for f in fields:
             a, b = getattr(s, f), getattr(r, f)
             assert (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-9 * max(1.0, abs(a)), (s.station_id, f, a, b)
+
+
+def test_the_probes_serial_names_the_record_and_every_station(sim_run):
+    out, _, _ = sim_run
+    bag = read_mcap(out / "survey.mcap", ["/survey/station", "/calibration/coefficients", "/probe/serial"])
+    assert [m.data for m in bag["/probe/serial"]] == ["SIM-11"]       # latched, recorded once
+    cal = Calibration.from_yaml(bag["/calibration/coefficients"][0].coefficients_yaml)
+    assert cal.probe_id == "SIM-11"
+    assert {s.probe_serial for s in bag["/survey/station"]} == {"SIM-11"}

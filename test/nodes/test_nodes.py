@@ -22,6 +22,7 @@ from inclinometer_calib.nodes import common as c  # noqa: E402
 from inclinometer_calib.nodes.calibration import CalibrationNode  # noqa: E402
 from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
 from inclinometer_calib.nodes.probe import ProbeNode  # noqa: E402
+from inclinometer_calib.probelog import ProbeLog  # noqa: E402
 
 
 @pytest.fixture
@@ -207,15 +208,20 @@ def test_probe_publishes_rep145_tesla_and_shared_stamps(spinning):
     sub.create_subscription(Imu, c.TOPIC_IMU, got["imu"].append, qos)
     sub.create_subscription(MagneticField, c.TOPIC_MAG, got["mag"].append, qos)
     sub.create_subscription(Temperature, c.TOPIC_TEMPERATURE, got["temp"].append, qos)
+    # pieces of 700 samples (the script is simulated piece by piece while it is published)
     probe = spinning(ProbeNode(parameter_overrides=[
-        Parameter("survey", value="none"), Parameter("speed", value=10.0),
+        Parameter("survey", value="none"), Parameter("speed", value=10.0), Parameter("chunk_samples", value=700),
         Parameter("wait_for_subscribers", value=1), Parameter("start_delay_s", value=0.2),
         Parameter("qos.reliability", value="reliable")]))
+    # the same script simulated whole: the probe node's defaults (seed 7, its generator seed + 1)
+    log = sim.run_session(sim.build_probe(7), Site(), sim.twelve_pose_session([25.0], duration_s=2.0),
+                          np.random.default_rng(8), rate_hz=100.0, move_s=1.0)
     end = time.monotonic() + 30
     while not probe.done.done() and time.monotonic() < end:
         time.sleep(0.05)
     assert probe.done.done(), "probe did not finish"
-    n = len(probe.log)
+    n = len(log)
+    assert probe.script.n == n > 3 * 700
     end = time.monotonic() + 10
     while time.monotonic() < end and min(len(v) for v in got.values()) < n:
         time.sleep(0.05)
@@ -223,15 +229,82 @@ def test_probe_publishes_rep145_tesla_and_shared_stamps(spinning):
     imu, mag, temp = got["imu"][50], got["mag"][50], got["temp"][50]
     assert (imu.header.stamp.sec, imu.header.stamp.nanosec) == (mag.header.stamp.sec, mag.header.stamp.nanosec) \
         == (temp.header.stamp.sec, temp.header.stamp.nanosec)
-    assert math.isclose(c.stamp_to_sec(imu.header.stamp), probe.log.t_s[50], abs_tol=1e-9)
+    assert math.isclose(c.stamp_to_sec(imu.header.stamp), log.t_s[50], abs_tol=1e-9)
     a = np.array([imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z])
     assert 9.0 < np.linalg.norm(a) < 10.6
-    assert np.allclose(a, probe.log.acc[50])  # REP-145 as simulated: a resting probe reads -g
+    # every sample, across the pieces, is the whole simulation's (REP-145: a resting probe reads -g; tesla)
+    acc = np.array([(m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z) for m in got["imu"]])
+    field = np.array([(m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z) for m in got["mag"]])
+    np.testing.assert_array_equal(acc, log.acc)
+    np.testing.assert_array_equal(field, log.mag / c.NT_PER_TESLA)
+    np.testing.assert_array_equal([m.temperature for m in got["temp"]], log.temp_c)
+    assert all(math.isclose(c.stamp_to_sec(m.header.stamp), t, abs_tol=1e-9) for m, t in zip(got["imu"], log.t_s))
     b = np.array([mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z])
     assert 3e-5 < np.linalg.norm(b) < 7e-5  # tesla
     assert imu.orientation_covariance[0] == -1.0
     assert math.isclose(imu.linear_acceleration_covariance[0], 0.002 ** 2)
     assert math.isclose(mag.magnetic_field_covariance[4], (20e-9) ** 2)
+
+
+def _whole_probe_script(n_well, rate_hz):
+    """The probe node's default script (seed 7, its generator seed + 1) simulated whole."""
+    probe, rng = sim.build_probe(7), np.random.default_rng(8)
+    stations = sim.twelve_pose_session([25.0], duration_s=2.0)
+    cal = sim.run_session(probe, Site(), stations, rng, rate_hz=rate_hz)
+    well = sim.run_session(probe, Site(), sim.well_path_session(n_well, duration_s=2.0, seed=7), rng,
+                           rate_hz=rate_hz, t0=cal.t_s[-1] + 1.0 / rate_hz, survey=True,
+                           lead_in=(stations[-1].rotation, 2.0))
+    return ProbeLog.concatenate([cal, well])
+
+
+def test_probe_truth_names_the_stations_of_the_whole_script(ros, tmp_path):
+    import json
+
+    from inclinometer_calib.probelog import label_runs
+
+    node = ProbeNode(parameter_overrides=[Parameter("well.n_stations", value=4), Parameter("rate_hz", value=50.0),
+                                          Parameter("chunk_samples", value=300),
+                                          Parameter("truth_file", value=str(tmp_path / "truth.json"))])
+    ros.append(node)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    log = _whole_probe_script(n_well=4, rate_hz=50.0)
+    want = [{"pose": int(pose), "ref": [None if not math.isfinite(x) else float(x) for x in ref],
+             "t_start": float(log.t_s[i0]), "t_end": float(log.t_s[i1])} for i0, i1, pose, ref in label_runs(log)]
+    assert len(want) == 16 and truth["stations"] == want and truth["samples"] == len(log)
+
+
+@pytest.mark.parametrize("chunk", [1, 97, 100000])
+def test_probe_pieces_announce_the_reference_and_depth_changes_of_the_whole_script(ros, chunk):
+    """Across piece boundaries the probe announces the same reference changes and depth changes
+    (held or running: whether the next sample has the same depth) as over the whole log."""
+    node = ProbeNode(parameter_overrides=[Parameter("survey", value="well_path"),
+                                          Parameter("well.n_stations", value=3), Parameter("chunk_samples", value=chunk),
+                                          Parameter("rate_hz", value=50.0)])
+    ros.append(node)
+    refs, depths, t = list(node._ref_changes), list(node._depth_changes), list(node._t)
+    while node._load_piece():
+        refs += node._ref_changes
+        depths += node._depth_changes
+        t += node._t
+    assert node._base + len(node._t) == node.script.n == len(t)
+    log = _whole_probe_script(n_well=3, rate_hz=50.0)
+    assert t == log.t_s.tolist()
+
+    def changes(rows):
+        out, prev = [], None
+        for i, row in enumerate(rows):
+            key = tuple(None if not math.isfinite(x) else x for x in row)
+            if key != prev:
+                out.append((i, tuple(row)))
+                prev = key
+        return out[1:] if out and not any(map(math.isfinite, out[0][1])) else out
+
+    want_refs = changes(log.ref.tolist())
+    assert len(want_refs) >= 5 and [(k, str(v)) for k, v in refs] == [(k, str(v)) for k, v in want_refs]
+    md = changes(log.md_m[:, None].tolist())
+    want_depths = [(k, v, j + 1 >= len(md) or md[j + 1][0] - k >= 2) for j, (k, v) in enumerate(md)]
+    assert len(want_depths) > 3 and any(h for *_, h in want_depths) and not all(h for *_, h in want_depths)
+    assert [(k, str(v), h) for k, v, h in depths] == [(k, str(v), h) for k, v, h in want_depths]
 
 
 def test_probe_waits_for_temperature_and_reference_subscribers_too(spinning):
@@ -446,3 +519,47 @@ def test_a_model_the_captures_cannot_identify_is_said(spinning):
 def test_a_bad_model_is_refused_at_start_up(ros):
     with pytest.raises(InvalidParameterValueException, match="unknown effect"):
         CalibrationNode(parameter_overrides=[Parameter("model.effects", value="no_such_effect")])
+
+
+def test_the_probes_serial_from_a_bag_is_published_and_a_contradicting_parameter_refused(ros, tmp_path):
+    from std_msgs.msg import String
+
+    from inclinometer_calib.reprocess import write_probe_bag
+
+    path = tmp_path / "sn.mcap"
+    write_probe_bag(_noisy_log(0.002, 20.0), path, serial="SN-77")
+    node = ProbeNode(parameter_overrides=[Parameter("source", value="mcap"), Parameter("path", value=str(path))])
+    ros.append(node)
+    got = []
+    sub_node = rclpy.create_node("serial_listener")
+    ros.append(sub_node)
+    sub_node.create_subscription(String, c.TOPIC_SERIAL, lambda m: got.append(m.data), c.latched_qos())
+    t0 = time.monotonic()
+    while not got and time.monotonic() - t0 < 10:
+        rclpy.spin_once(sub_node, timeout_sec=0.1)
+    assert got == ["SN-77"]                       # latched: a late subscriber gets it
+    with pytest.raises(ValueError, match="contradicts"):
+        ProbeNode(parameter_overrides=[Parameter("source", value="mcap"), Parameter("path", value=str(path)),
+                                       Parameter("probe_serial", value="SN-78")])
+
+
+def test_the_correction_node_refuses_another_probes_record_and_says_so(spinning, tmp_path):
+    from std_msgs.msg import String
+
+    cal = _truth_calibration()
+    cal.probe_id = "SN-2"
+    path = tmp_path / "c.yaml"
+    cal.save(path)
+    node = spinning(CorrectionNode(parameter_overrides=[Parameter("coeffs_file", value=str(path))]))
+    assert node.calibration is not None and node.calibration.probe_id == "SN-2"
+    pub_node = spinning(rclpy.create_node("serial_publisher"))
+    pub = pub_node.create_publisher(String, c.TOPIC_SERIAL, c.latched_qos())
+    pub.publish(String(data="SN-1"))
+    t0 = time.monotonic()
+    while not node._mismatch and time.monotonic() - t0 < 10:
+        time.sleep(0.05)
+    assert node.processor.probe_serial == "SN-1"
+    assert node.calibration is None and "probe SN-2, the data are of probe SN-1" in node._mismatch
+    # a record of the right probe is applied again
+    node._apply(Calibration(acc=cal.acc, mag=cal.mag, probe_id="SN-1", site=Site()), "test")
+    assert node.calibration is not None and node._mismatch == ""

@@ -78,6 +78,8 @@ def assert_station_equal(a, b):
         va, vb = getattr(a, name), getattr(b, name)
         if isinstance(va, float) and math.isnan(va):
             assert math.isnan(vb), name
+        elif hasattr(va, "shape"):          # fixed-size arrays (numpy): element by element, NaN = NaN
+            np.testing.assert_array_equal(va, vb, err_msg=name)
         else:
             assert va == vb, name
 

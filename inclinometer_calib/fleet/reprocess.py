@@ -1,0 +1,666 @@
+"""Reprocessing many bags on Dask into one Parquet dataset (issue 13, item 4).
+
+Bags are grouped into tasks of ``bags_per_task`` (default :func:`auto_bags_per_task`: up to
+:data:`MAX_BAGS_PER_TASK`, while every worker still gets at least :data:`TASKS_PER_WORKER` tasks;
+chosen from the measurement in ``docs/fleet.md``), run on a Dask cluster — a local one by default
+(:class:`distributed.LocalCluster`, one thread per worker process, on loopback), or the cluster of
+the scheduler address given, unchanged. A task:
+
+1. hashes the bag (SHA-256 of its MCAP file) and reads the probe serial it records
+   (:func:`inclinometer_calib.reprocess.bag_probe_serial`) and its survey time (the log time of
+   its first message, UTC);
+2. looks up the calibration record valid for that probe at that time
+   (:meth:`registry.Registry.valid_record`: never guessed; an unknown probe, no record before
+   the survey, or an overdue one fails the bag with the registry's reason);
+3. if the bag is in the done-index with the same key — bag content, record id, the pipeline
+   settings and this package's version — it is skipped;
+4. otherwise runs the one pipeline, :func:`inclinometer_calib.reprocess.reprocess` (no output
+   bag), with the same defaults as the single-bag ``reprocess`` command (static detector from the
+   data's noise, default QC tolerances, field monitor over 30 stations), so its stations are the
+   single-bag command's exactly;
+5. writes the stations as one Parquet fragment of the dataset ``OUT/stations/``, hive-partitioned
+   by ``probe`` (the serial) and ``survey_date`` (``YYYY-MM-DD``, UTC):
+   ``OUT/stations/probe=SN-1/survey_date=2026-11-03/part-<key>.parquet``. Written to a hidden
+   temporary file in the same folder and renamed: a crashed task leaves no half fragment (a hidden
+   ``.part-*.tmp`` at most, which readers skip).
+
+Columns of a fragment: ``bag`` (absolute path), ``bag_sha256``, ``record_id``, ``survey_start``
+(timestamp, UTC), ``probe_forced`` (the record was applied to a bag that records another serial,
+with ``force_probe``), ``stamp`` (the station message's header stamp, s since the epoch, as
+``launcher.read_bag`` gives it), then every field of ``SurveyStation`` in the message's order, typed
+from the message definition (float64, uint32, uint8, bool, string; ``string[]`` as a list of
+strings; ``float64[N]`` as a fixed-size list of N float64: ``raw_gravity_mps2``, ``raw_field_nt``,
+``position_covariance_ned_m2``). Read the dataset with :func:`read_stations`.
+
+A bag that fails — not a bag, truncated or damaged, no serial recorded, unknown probe, no valid
+record — is reported with its reason in the summary and does not stop the others; a truncated
+bag's readable part is not written (the dataset holds only complete bags: ``bag recover`` it, and
+reprocess the recovered bag). The driver keeps ``OUT/done-index.json`` (written atomically, every
+few seconds and at the end) and ``OUT/summary.csv`` (this run, one row per bag). A bag redone
+under a new key (new record, new content, new settings) replaces its old fragment. One run at a
+time per output folder (``OUT/.lock``, released when the run's process ends, however it ends).
+
+The output folder, the bags and the registry must be reachable from every worker (on a cluster: a
+shared file system and a shared database URL such as PostgreSQL).
+"""
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import hashlib
+import io
+import json
+import os
+import time
+import urllib.parse
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Dict, List, Optional, Sequence
+
+from .. import __version__
+from ..bag import BagError, open_bag
+from ..probelog import atomic_write_text
+from ..survey import Tolerances
+from .manifest import BagEntry, dedupe, entries_from_paths
+
+#: Version of the dataset's layout and of the key: a change redoes every bag.
+LAYOUT_VERSION = 1
+DATASET_DIR = "stations"
+INDEX_FILE = "done-index.json"
+SUMMARY_FILE = "summary.csv"
+LOCK_FILE = ".lock"
+INDEX_FORMAT = "inclinometer_calib/fleet-done-index"
+#: Partition keys of the dataset (hive style, values URI-encoded), in folder order.
+PARTITION_KEYS = ("probe", "survey_date")
+#: Columns each fragment has before the station's own fields.
+PROVENANCE_COLUMNS = ("bag", "bag_sha256", "record_id", "survey_start", "probe_forced", "stamp")
+#: Bags per task at most by default: 10 short bags (~0.6 s of work) made the most of 2 local workers
+#: in benchmarks/fleet_reprocess.py (1.59× the single-process loop, against 1.17× with 1 bag per task).
+MAX_BAGS_PER_TASK = 10
+#: Tasks per worker at least by default (so that no worker idles at the end while another has a batch).
+TASKS_PER_WORKER = 4
+#: Seconds between rewrites of the done-index while a run goes on (and once at its end).
+INDEX_FLUSH_S = 5.0
+
+Resolver = Callable[[str, _dt.datetime], object]   # (serial, survey time UTC) -> coeffs.Calibration
+
+
+# ---------------------------------------------------------------------------------------------
+# settings and the key
+
+@dataclass(frozen=True)
+class Settings:
+    """What, besides the bag and the record, decides a bag's stations; part of the done key.
+
+    Defaults are the single-bag ``reprocess`` command's: QC tolerances ``Tolerances()``, the static
+    detector's thresholds from the data's noise, the field monitor over ``monitor_window`` = 30
+    stations (0: off). ``force_probe``: apply the record of the serial the manifest gives to a bag
+    that records another serial or none (every station then says so in its warnings)."""
+
+    field_nt: float = Tolerances.field_nt
+    dip_deg: float = Tolerances.dip_deg
+    gravity_mps2: float = Tolerances.gravity_mps2
+    monitor_window: int = 30
+    force_probe: bool = False
+
+    @property
+    def tolerances(self) -> Tolerances:
+        return Tolerances(field_nt=self.field_nt, dip_deg=self.dip_deg, gravity_mps2=self.gravity_mps2)
+
+
+def done_key(bag_sha256: str, record_id: str, serial: str, settings: Settings) -> str:
+    """The key a bag's result is done under: SHA-256 over the bag's content hash, the record id,
+    the serial it was filed under, the settings, this package's version and the layout version."""
+    blob = json.dumps({"bag": bag_sha256, "record": record_id, "serial": serial, "settings": asdict(settings),
+                       "package": __version__, "layout": LAYOUT_VERSION}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# the registry, seen from a worker
+
+_REGISTRIES: Dict[str, object] = {}
+
+
+def absolute_db_url(url: str) -> str:
+    """The registry's URL (:func:`registry.normalize_url`) with a relative SQLite path
+    (``sqlite:///fleet.db``) made absolute against this working directory: a worker's may differ."""
+    from .registry import normalize_url
+
+    url = normalize_url(url)
+    prefix = "sqlite:///"
+    if url.startswith(prefix) and not url.startswith(prefix + "/"):
+        rest = url[len(prefix):]
+        path, sep, query = rest.partition("?")
+        if path and path != ":memory:":
+            return prefix + os.path.abspath(path) + sep + query
+    return url
+
+
+class RegistryResolver:
+    """The valid record of a probe at a date from the registry at ``url`` (a picklable callable:
+    it travels to the workers as its URL; each worker process opens the registry once)."""
+
+    def __init__(self, url: str):
+        self.url = absolute_db_url(url)
+
+    def registry(self):
+        reg = _REGISTRIES.get(self.url)
+        if reg is None:
+            from .registry import Registry
+
+            reg = _REGISTRIES[self.url] = Registry(self.url)
+        return reg
+
+    def __call__(self, serial: str, at: _dt.datetime):
+        return self.registry().valid_record(serial, at)
+
+    def __repr__(self):
+        return f"RegistryResolver({self.url!r})"
+
+
+def _lookup_errors() -> tuple:
+    """The exceptions a resolver raises for a bag it has no valid record for."""
+    from .registry import RegistryError
+
+    return (RegistryError,)
+
+
+# ---------------------------------------------------------------------------------------------
+# bags
+
+def bag_sha256(path) -> str:
+    """SHA-256 (hex) of a bag's MCAP file (the file itself for a ``.mcap``, the one a bag folder's
+    ``metadata.yaml`` names otherwise). Raises :class:`bag.BagError` for what is not a bag."""
+    reader = open_bag(path)
+    with open(reader.mcap_path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def survey_start(path) -> _dt.datetime:
+    """The log time of a bag's first message as an aware UTC datetime (the survey's date for the
+    registry). Raises :class:`bag.BagError` when the bag holds no readable message."""
+    reader = open_bag(path)
+    for m in reader.messages(strict=False):
+        return _dt.datetime.fromtimestamp(m.log_time / 1e9, _dt.timezone.utc)
+    first = reader.errors[0] if reader.errors else None
+    raise BagError(reader.mcap_path, first.offset if first else 0,
+                   f"no readable message{f' ({first.reason})' if first else ''}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Parquet
+
+_SCHEMA = None
+
+
+def _arrow_type(pa, kind, rest):
+    from rosbags.typesys.base import Nodetype
+
+    scalars = {"float64": pa.float64(), "float32": pa.float32(), "uint8": pa.uint8(), "uint16": pa.uint16(),
+               "uint32": pa.uint32(), "uint64": pa.uint64(), "int8": pa.int8(), "int16": pa.int16(),
+               "int32": pa.int32(), "int64": pa.int64(), "bool": pa.bool_(), "string": pa.string()}
+    if kind == Nodetype.BASE:
+        return scalars[rest[0]]
+    if kind == Nodetype.ARRAY:
+        (ek, er), n = rest
+        return pa.list_(_arrow_type(pa, ek, er), n)
+    if kind == Nodetype.SEQUENCE:
+        (ek, er), _ = rest
+        return pa.list_(_arrow_type(pa, ek, er))
+    raise TypeError(f"no Parquet column type for a field of kind {kind}")
+
+
+def station_schema():
+    """The Arrow schema of a fragment: the provenance columns, then every ``SurveyStation`` field
+    (but the header) typed from the message definition (the one place the fields are declared)."""
+    global _SCHEMA
+    if _SCHEMA is None:
+        import pyarrow as pa
+        from ..bag import MessageDefinitions
+        from ..topics import STATION_TYPE
+
+        defs = MessageDefinitions()
+        name = defs.register(STATION_TYPE)
+        fields = [pa.field("bag", pa.string()), pa.field("bag_sha256", pa.string()),
+                  pa.field("record_id", pa.string()), pa.field("survey_start", pa.timestamp("ns", tz="UTC")),
+                  pa.field("probe_forced", pa.bool_()), pa.field("stamp", pa.float64())]
+        for fname, (kind, rest) in defs.typestore.fielddefs[name][1]:
+            if fname == "header":
+                continue
+            fields.append(pa.field(fname, _arrow_type(pa, kind, rest)))
+        _SCHEMA = pa.schema(fields)
+    return _SCHEMA
+
+
+def header_stamp_s(t_end: float) -> float:
+    """A station's header stamp (s since the epoch) as ``launcher.read_bag`` gives it: the message
+    stamp ``round(t_end·1e9)`` ns read back as ``sec + 1e-9·nanosec``."""
+    sec, nsec = divmod(int(round(t_end * 1e9)), 1_000_000_000)
+    return sec + 1e-9 * nsec
+
+
+def stations_table(stations: Sequence[dict], provenance: dict, stamps: Sequence[float]):
+    """The stations (``reprocess`` report dicts) with their provenance and header stamps (s) as
+    one Arrow table. Raises :class:`ValueError` for a station field the message does not declare."""
+    import pyarrow as pa
+
+    schema = station_schema()
+    names = set(schema.names)
+    rows = []
+    for st, stamp in zip(stations, stamps, strict=True):
+        extra = set(st) - names
+        if extra:
+            raise ValueError(f"station fields {sorted(extra)} are not SurveyStation fields")
+        rows.append({**provenance, "stamp": stamp, **st})
+    return pa.Table.from_pylist(rows, schema=schema)
+
+
+def partition_dir(serial: str, date: str) -> str:
+    """The fragment folder of a probe and a date, relative to the dataset (hive style, values
+    URI-encoded as pyarrow reads them)."""
+    q = lambda v: urllib.parse.quote(v, safe="")  # noqa: E731
+    return os.path.join(f"{PARTITION_KEYS[0]}={q(serial)}", f"{PARTITION_KEYS[1]}={q(date)}")
+
+
+def write_fragment(table, out_dir, rel_path: str) -> None:
+    """Write ``table`` as ``out_dir/rel_path`` via a hidden temporary file in the same folder and a
+    rename (atomic: a reader sees the old file, the new one or none, never half of one)."""
+    import pyarrow.parquet as pq
+
+    path = os.path.join(out_dir, rel_path)
+    folder, name = os.path.split(path)
+    os.makedirs(folder, exist_ok=True)
+    tmp = os.path.join(folder, f".{name}.{os.getpid()}.tmp")
+    try:
+        pq.write_table(table, tmp, compression="zstd")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def read_stations(out_dir, filter=None):
+    """The dataset's stations as one Arrow table (``probe`` and ``survey_date`` columns from the
+    folders); ``filter``: a ``pyarrow.dataset`` expression, e.g. ``pc.field("probe") == "SN-1"``."""
+    import pyarrow as pa
+    import pyarrow.dataset as ds
+
+    root = os.path.join(os.fspath(out_dir), DATASET_DIR)
+    part = ds.partitioning(pa.schema([(k, pa.string()) for k in PARTITION_KEYS]), flavor="hive")
+    if not os.path.isdir(root):
+        return station_schema().empty_table().append_column(
+            PARTITION_KEYS[0], pa.array([], pa.string())).append_column(PARTITION_KEYS[1], pa.array([], pa.string()))
+    return ds.dataset(root, format="parquet", partitioning=part, schema=None).to_table(filter=filter)
+
+
+# ---------------------------------------------------------------------------------------------
+# one bag: the task body
+
+@dataclass
+class BagResult:
+    """What became of one bag. ``status``: ``ok``, ``failed`` (``reason`` says why) or
+    ``skipped`` (done before under the same key). ``fragment``: relative to the output folder
+    ("" when none: failed, or no station)."""
+
+    bag: str
+    status: str
+    reason: str = ""
+    serial: str = ""
+    survey_start: str = ""
+    record_id: str = ""
+    stations: int = 0
+    seconds: float = 0.0
+    bag_sha256: str = ""
+    key: str = ""
+    fragment: str = ""
+    probe_forced: bool = False
+
+
+def _serial_for(entry: BagEntry, recorded: Optional[str], settings: Settings):
+    """(serial whose record applies, forced?) or raise ValueError with the reason.
+
+    The bag's recorded serial is the data's probe. A bag that records none takes the manifest's
+    (as ``reprocess --probe-serial`` does); a manifest serial that contradicts the bag's is
+    refused unless ``force_probe``."""
+    if recorded is None:
+        if entry.serial is None:
+            raise ValueError("no probe serial recorded in the bag (no /probe/serial topic): give it in the "
+                             "manifest's serial column")
+        return entry.serial, False
+    if entry.serial is None or entry.serial == recorded:
+        return recorded, False
+    if not settings.force_probe:
+        raise ValueError(f"the bag records probe {recorded!r} but the manifest says {entry.serial!r}: refused "
+                         "(--force-probe applies that probe's record anyway, and every station says so)")
+    return entry.serial, True
+
+
+def process_bag(entry: BagEntry, resolver: Resolver, out_dir: str, settings: Settings = Settings(),
+                done: Optional[str] = None) -> BagResult:
+    """Reprocess one bag into its fragment (the module docstring's steps 1–5). ``done``: the key
+    the bag is done under in the index (skipped when it is the key now). Expected failures
+    (not a bag, damage, no serial, no valid record, no probe samples) come back as a ``failed``
+    result with the reason; anything else is a bug and raises."""
+    from ..lab.field import FieldMonitor
+    from ..reprocess import ReprocessError, bag_probe_serial, reprocess
+
+    t0 = time.perf_counter()
+    res = BagResult(bag=entry.path, status="failed")
+    try:
+        res.bag_sha256 = bag_sha256(entry.path)
+        start = survey_start(entry.path)
+        res.survey_start = start.isoformat()
+        recorded = bag_probe_serial(entry.path)
+        serial, forced = _serial_for(entry, recorded, settings)
+        res.serial, res.probe_forced = serial, forced
+        try:
+            cal = resolver(serial, start)
+        except _lookup_errors() as exc:
+            raise ValueError(f"no valid record in the registry: {exc}") from None
+        res.record_id = cal.id
+        res.key = done_key(res.bag_sha256, cal.id, serial, settings)
+        if done is not None and done == res.key:
+            res.status, res.reason = "skipped", "done before with the same bag, record and settings"
+            return res
+        monitor = FieldMonitor(window=settings.monitor_window) if settings.monitor_window else None
+        rep = reprocess(entry.path, None, cal, None, settings.tolerances, monitor=monitor, force_probe=forced,
+                        probe_serial=serial if recorded is None else None)
+        if rep.bag_errors:
+            e = rep.bag_errors[0]
+            more = f" (+{len(rep.bag_errors) - 1} more)" if len(rep.bag_errors) > 1 else ""
+            raise ValueError(f"damaged bag: {e}{more}; nothing written (the dataset holds complete bags only: "
+                             "`inclinometer-calib bag recover` it and reprocess the recovered bag)")
+        res.stations = len(rep.stations)
+        if rep.stations:
+            date = start.date().isoformat()
+            res.fragment = os.path.join(DATASET_DIR, partition_dir(serial, date), f"part-{res.key[:24]}.parquet")
+            prov = {"bag": entry.path, "bag_sha256": res.bag_sha256, "record_id": cal.id, "survey_start": start,
+                    "probe_forced": forced}
+            stamps = [header_stamp_s(st.t_end) for st in rep.raw_stations]
+            write_fragment(stations_table(rep.stations, prov, stamps), out_dir, res.fragment)
+        res.status = "ok"
+    except (BagError, ReprocessError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+        res.reason = str(exc)
+    except ValueError as exc:            # the reasons raised above (serial, record, damage)
+        res.reason = str(exc)
+    finally:
+        res.seconds = time.perf_counter() - t0
+    return res
+
+
+def process_batch(entries: Sequence[BagEntry], resolver: Resolver, out_dir: str, settings: Settings,
+                  done: Sequence[Optional[str]]) -> List[BagResult]:
+    """One task: the bags of ``entries`` one after the other. A bag that raises (a bug, not an
+    expected failure) is reported failed with the exception and does not take its batch-mates
+    down with it."""
+    out = []
+    for entry, key in zip(entries, done):
+        try:
+            out.append(process_bag(entry, resolver, out_dir, settings, key))
+        except Exception as exc:  # noqa: BLE001 - task boundary: one bag's bug must not fail the others
+            out.append(BagResult(bag=entry.path, status="failed", reason=f"internal error: {type(exc).__name__}: {exc}"))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the done-index and the summary
+
+class DoneIndex:
+    """``OUT/done-index.json``: per bag path, the key it is done under and its fragment."""
+
+    def __init__(self, out_dir: str):
+        self.path = os.path.join(out_dir, INDEX_FILE)
+        self.bags: Dict[str, dict] = {}
+        if os.path.exists(self.path):
+            try:
+                with open(self.path, encoding="utf-8") as fh:
+                    doc = json.load(fh)
+            except (OSError, json.JSONDecodeError) as exc:
+                raise ValueError(f"{self.path}: cannot read the done-index ({exc}); remove it to redo every bag") \
+                    from None
+            if not isinstance(doc, dict) or doc.get("format") != INDEX_FORMAT or not isinstance(doc.get("bags"), dict):
+                raise ValueError(f"{self.path}: not a done-index of this package (format {INDEX_FORMAT!r})")
+            self.bags = doc["bags"]
+
+    def key(self, bag: str) -> Optional[str]:
+        e = self.bags.get(bag)
+        return e.get("key") if e else None
+
+    def record(self, res: BagResult, out_dir: str) -> None:
+        """Take a finished result: an ok one replaces the bag's entry (and removes its old fragment
+        when the new key wrote another); a failed or skipped one changes nothing."""
+        if res.status != "ok":
+            return
+        old = self.bags.get(res.bag)
+        if old and old.get("fragment") and old["fragment"] != res.fragment:
+            try:
+                os.unlink(os.path.join(out_dir, old["fragment"]))
+            except FileNotFoundError:
+                pass
+        self.bags[res.bag] = {"key": res.key, "bag_sha256": res.bag_sha256, "record_id": res.record_id,
+                              "serial": res.serial, "survey_start": res.survey_start, "stations": res.stations,
+                              "fragment": res.fragment, "probe_forced": res.probe_forced,
+                              "finished": _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat()}
+
+    def save(self) -> None:
+        atomic_write_text(self.path, json.dumps({"format": INDEX_FORMAT, "version": LAYOUT_VERSION,
+                                                 "bags": self.bags}, indent=1, sort_keys=True) + "\n")
+
+
+SUMMARY_COLUMNS = ("bag", "status", "reason", "serial", "survey_start", "record_id", "stations", "seconds",
+                   "probe_forced", "bag_sha256", "fragment")
+
+
+@dataclass
+class FleetSummary:
+    """A run's outcome: one :class:`BagResult` per bag (in the order given), where it wrote, how it
+    ran and how long it took."""
+
+    results: List[BagResult]
+    out_dir: str
+    seconds: float = 0.0
+    engine: str = ""
+    bags_per_task: int = 1
+    paths: Dict[str, str] = field(default_factory=dict)
+
+    def count(self, status: str) -> int:
+        return sum(r.status == status for r in self.results)
+
+    @property
+    def failed(self) -> List[BagResult]:
+        return [r for r in self.results if r.status == "failed"]
+
+    def to_csv(self) -> str:
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(SUMMARY_COLUMNS)
+        for r in self.results:
+            d = asdict(r)
+            d["seconds"] = f"{r.seconds:.3f}"
+            w.writerow([d[c] for c in SUMMARY_COLUMNS])
+        return buf.getvalue()
+
+    def lines(self) -> List[str]:
+        """The summary as printed: one line per bag, then the totals."""
+        out = []
+        for r in self.results:
+            what = (f"{r.stations} stations, record {r.record_id} ({r.serial}"
+                    + (", FORCED onto this bag" if r.probe_forced else "") + f"), {r.seconds:.2f} s")
+            out.append(f"{r.status:7s} {r.bag}: " + (what if r.status == "ok" else
+                                                     f"{r.reason}" + (f" [{r.record_id}]" if r.record_id else "")))
+        n = len(self.results)
+        rate = n / self.seconds if self.seconds > 0 else float("inf")
+        out.append(f"{n} bags: {self.count('ok')} ok, {self.count('skipped')} skipped (done), "
+                   f"{self.count('failed')} failed; {sum(r.stations for r in self.results if r.status == 'ok')} "
+                   f"stations written in {self.seconds:.1f} s ({rate:.1f} bags/s, {self.engine}, "
+                   f"{self.bags_per_task} bag(s) per task)")
+        return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the run
+
+class _RunLock:
+    """``OUT/.lock`` held with ``flock`` for the run (released by the OS when the process ends)."""
+
+    def __init__(self, out_dir: str):
+        import fcntl
+
+        self.path = os.path.join(out_dir, LOCK_FILE)
+        self.fh = open(self.path, "a+")
+        try:
+            fcntl.flock(self.fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.fh.close()
+            raise ValueError(f"{out_dir}: another fleet reprocess run is writing there (it holds {self.path})") \
+                from None
+
+    def release(self) -> None:
+        self.fh.close()
+
+
+def default_workers() -> int:
+    """Worker processes of the local cluster by default: the cores this process may run on."""
+    return len(os.sched_getaffinity(0))
+
+
+def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolver: Optional[Resolver] = None,
+                    scheduler: Optional[str] = None, n_workers: Optional[int] = None, progress: bool = True,
+                    force_probe: bool = False, bags_per_task: Optional[int] = None, settings: Optional[Settings] = None,
+                    client=None) -> FleetSummary:
+    """Reprocess ``bags`` (paths or :class:`manifest.BagEntry`) into the dataset in ``out_dir``.
+
+    The record of each bag comes from the registry at ``registry_url`` or from ``resolver``
+    (``resolver(serial, survey_time_utc) -> Calibration``, raising ``RegistryError`` when there
+    is none; it must pickle, to travel to the workers). Engine: ``client`` (a
+    ``distributed.Client`` the caller owns), else the scheduler at ``scheduler``
+    (``tcp://HOST:PORT``), else a local cluster of ``n_workers`` processes (default: the cores;
+    0: no Dask, the bags one after the other in this process). ``force_probe``: see
+    :class:`Settings` (``settings`` gives them all). ``progress``: a progress bar of bags done on
+    stderr. Writes ``OUT/stations/``, ``OUT/done-index.json`` and ``OUT/summary.csv``; returns the
+    :class:`FleetSummary`. Raises ``ValueError`` for bad arguments, an unreadable done-index or a
+    run already writing to ``out_dir``; a bag's own failure is in the summary, never raised.
+    """
+    if (registry_url is None) == (resolver is None):
+        raise ValueError("give either registry_url or resolver")
+    if bags_per_task is not None and bags_per_task < 1:
+        raise ValueError(f"bags_per_task must be at least 1, not {bags_per_task}")
+    if n_workers is not None and n_workers < 0:
+        raise ValueError(f"n_workers must be 0 (in this process) or more, not {n_workers}")
+    settings = settings or Settings(force_probe=force_probe)
+    entries = dedupe(b if isinstance(b, BagEntry) else entries_from_paths([b])[0] for b in bags)
+    out_dir = os.path.abspath(os.fspath(out_dir))
+    os.makedirs(out_dir, exist_ok=True)
+    if resolver is None:
+        resolver = RegistryResolver(registry_url)
+        resolver.registry()          # created and migrated here, once, before workers open it
+    lock = _RunLock(out_dir)
+    try:
+        index = DoneIndex(out_dir)
+        results: Dict[str, BagResult] = {}
+        t0 = time.perf_counter()
+        last_flush = [time.monotonic()]
+
+        def take(batch_results):
+            for r in batch_results:
+                results[r.bag] = r
+                index.record(r, out_dir)
+            if time.monotonic() - last_flush[0] > INDEX_FLUSH_S:
+                index.save()
+                last_flush[0] = time.monotonic()
+
+        bar = _progress_bar(len(entries), progress)
+        try:
+            if client is None and scheduler is None and n_workers == 0:
+                engine = "in this process (no Dask)"
+                bags_per_task = bags_per_task or 1
+                for batch in _batches(entries, bags_per_task):
+                    take(process_batch(batch, resolver, out_dir, settings, [index.key(e.path) for e in batch]))
+                    bar.update(len(batch))
+            else:
+                engine, bags_per_task = _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take,
+                                                  bar, client, scheduler, n_workers)
+        finally:
+            bar.close()
+            index.save()
+        summary = FleetSummary([results[e.path] for e in entries], out_dir, time.perf_counter() - t0, engine,
+                               bags_per_task)
+        summary.paths = {"dataset": os.path.join(out_dir, DATASET_DIR), "index": index.path,
+                         "summary": os.path.join(out_dir, SUMMARY_FILE)}
+        atomic_write_text(summary.paths["summary"], summary.to_csv())
+        return summary
+    finally:
+        lock.release()
+
+
+def _progress_bar(total: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="bag", desc="bags", disable=not enabled, smoothing=0.1)
+
+
+def local_cluster(n_workers: int):
+    """A local Dask cluster of ``n_workers`` processes of one thread each, on loopback, without
+    the dashboard and without the workers' statistical profiler: sampling the task thread's stack
+    every 10 ms costs this Python-heavy pipeline 2–3× its time (``docs/fleet.md``). Workers of a
+    cluster started elsewhere: ``DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED=False`` in their
+    environment does the same."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.worker.profile.enabled": False}):
+        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True, host="127.0.0.1",
+                            dashboard_address=None)
+
+
+def auto_bags_per_task(n_bags: int, n_workers: int) -> int:
+    """The default task size: as many bags as keep at least :data:`TASKS_PER_WORKER` tasks per
+    worker, at most :data:`MAX_BAGS_PER_TASK`."""
+    return max(1, min(MAX_BAGS_PER_TASK, n_bags // (TASKS_PER_WORKER * max(1, n_workers))))
+
+
+def _batches(entries, size):
+    return [entries[i:i + size] for i in range(0, len(entries), size)]
+
+
+def _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take, bar, client, scheduler, n_workers):
+    """Submit one task per batch and take results as they complete; a task that errors (a worker
+    died, say) fails its bags with the reason and the others go on. Returns the engine's name and
+    the task size used."""
+    from distributed import Client, as_completed
+
+    cluster = own = None
+    try:
+        if client is not None:
+            engine = f"Dask client {client.scheduler.address}"
+        elif scheduler is not None:
+            client = own = Client(scheduler)
+            engine = f"Dask cluster {scheduler}"
+        else:
+            n = n_workers or default_workers()
+            cluster = local_cluster(n)
+            client = own = Client(cluster)
+            engine = f"local Dask cluster, {n} worker process(es)"
+        if bags_per_task is None:
+            bags_per_task = auto_bags_per_task(len(entries), len(client.nthreads()))
+        futures = {}
+        for batch in _batches(entries, bags_per_task):
+            fut = client.submit(process_batch, batch, resolver, out_dir, settings,
+                                [index.key(e.path) for e in batch], pure=False)
+            futures[fut] = batch
+        for fut in as_completed(futures):
+            batch = futures.pop(fut)
+            if fut.status == "finished":
+                take(fut.result())
+            else:
+                exc = fut.exception()
+                take([BagResult(bag=e.path, status="failed", reason=f"task failed: {type(exc).__name__}: {exc}")
+                      for e in batch])
+            bar.update(len(batch))
+        return engine, bags_per_task
+    finally:
+        if own is not None:
+            own.close()
+        if cluster is not None:
+            cluster.close()

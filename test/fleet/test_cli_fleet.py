@@ -1,0 +1,86 @@
+"""``inclinometer-calib fleet register | add | history`` on SQLite and PostgreSQL."""
+import datetime as dt
+import hashlib
+import json
+
+import pytest
+
+from inclinometer_calib import cli
+from inclinometer_calib import simulate as sim
+from inclinometer_calib.fleet.registry import Registry
+
+from test_history import JUMP_NT, with_mag_bias_jump
+
+
+@pytest.fixture(scope="module")
+def records(calibrate, tmp_path_factory):
+    """Record files of probe SN-C: a calibration, a re-calibration, one after a 50 nT mag bias jump."""
+    d = tmp_path_factory.mktemp("records")
+    probe = sim.build_probe(5)
+    paths = []
+    for k, p in enumerate((probe, probe, with_mag_bias_jump(probe, JUMP_NT))):
+        path = d / f"cal{k + 1}.yaml"
+        calibrate(p, "SN-C", k + 1).save(path)
+        paths.append(str(path))
+    raw = d / "raw.csv"
+    raw.write_text("t_s,ax,ay,az\n0,0,0,9.81\n")
+    return paths, str(raw)
+
+
+def run(capsys, *argv):
+    rc = cli.main(list(argv))
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_register_add_history(db_url, records, capsys, tmp_path):
+    paths, raw = records
+    rc, out, _ = run(capsys, "fleet", "register", "SN-C", "--model", "MX-3", "--interval", "60", "--db", db_url)
+    assert rc == 0 and "probe SN-C: model MX-3, calibration interval 60 days" in out
+    rc, out, _ = run(capsys, "fleet", "add", paths[0], "--date", "2026-01-10", "--note", "new probe",
+                     "--raw-log", raw, "--db", db_url)
+    assert rc == 0 and "stored" in out
+    for k, date in ((1, "2026-02-09T00:00Z"), (2, "2026-03-11T02:00+02:00")):   # = 2026-03-11 00:00 UTC
+        assert run(capsys, "fleet", "add", paths[k], "--date", date, "--db", db_url)[0] == 0
+    with Registry(db_url) as reg:
+        h = reg.history("SN-C")
+        assert [e.date for e in h] == [dt.datetime(2026, 1, 10, tzinfo=dt.timezone.utc),
+                                       dt.datetime(2026, 2, 9, tzinfo=dt.timezone.utc),
+                                       dt.datetime(2026, 3, 11, tzinfo=dt.timezone.utc)]
+        with open(raw, "rb") as fh:
+            assert h[0].raw_log_sha256 == hashlib.sha256(fh.read()).hexdigest()
+        assert h[0].operator_note == "new probe"
+    html = tmp_path / "hist.html"
+    rc, out, _ = run(capsys, "fleet", "history", "SN-C", "--at", "2026-06-01", "--html", str(html), "--db", db_url)
+    assert rc == 0
+    flags = [ln for ln in out.splitlines() if ln.startswith("FLAG")]
+    assert len(flags) == 1 and flags[0].startswith("FLAG #3 2026-03-11") and flags[0].endswith(": mag bias_x")
+    assert "OVERDUE at 2026-06-01: last calibrated 2026-03-11, 82 days ago" in out
+    assert html.read_text().count("data:image/png;base64,") == 2
+    rc, out, _ = run(capsys, "fleet", "history", "SN-C", "--at", "2026-04-01", "--json", "--db", db_url)
+    js = json.loads(out)
+    assert rc == 0 and js["overdue"] is None and [f["index"] for f in js["flags"]] == [2]
+    assert [m["parameter"] for m in js["flags"][0]["moved"]] == ["mag bias_x"]
+    assert js["calibrations"][0]["parameters"]["mag e_yx"]["sigma"] is None
+
+
+def test_errors_are_one_line_and_name_the_problem(db_url, records, capsys, tmp_path):
+    paths, _ = records
+    rc, _, err = run(capsys, "fleet", "add", paths[0], "--date", "2026-01-10", "--db", db_url)
+    assert rc == 2 and f"error: {paths[0]}: calibration" in err and "probe 'SN-C' is not registered" in err
+    assert run(capsys, "fleet", "register", "SN-C", "--db", db_url)[0] == 0
+    rc, _, err = run(capsys, "fleet", "add", paths[0], "--date", "10/01/2026", "--db", db_url)
+    assert rc == 2 and "--date: '10/01/2026' is not an ISO 8601 date" in err
+    rc, _, err = run(capsys, "fleet", "add", str(tmp_path / "none.yaml"), "--date", "2026-01-10", "--db", db_url)
+    assert rc == 2 and "none.yaml: No such file or directory" in err
+    rc, _, err = run(capsys, "fleet", "add", paths[0], "--date", "2026-01-10", "--raw-log", str(tmp_path / "x.csv"),
+                     "--db", db_url)
+    assert rc == 2 and "--raw-log" in err and "No such file" in err
+    rc, _, err = run(capsys, "fleet", "history", "SN-X", "--db", db_url)
+    assert rc == 2 and "probe 'SN-X' is not registered" in err
+    rc, _, err = run(capsys, "fleet", "register", "SN-C", "--model", "other", "--db", db_url)
+    assert rc == 2 and "already registered" in err
+    rc, out, _ = run(capsys, "fleet", "register", "SN-C", "--update", "--model", "other", "--db", db_url)
+    assert rc == 0 and "model other" in out
+    rc, _, err = run(capsys, "fleet", "register", "SN-C", "--db", str(tmp_path / "missing" / "f.db"))
+    assert rc == 2 and "does not exist" in err

@@ -1,0 +1,322 @@
+"""Fleet reprocessing on Dask (issue 13, item 4): a generated fleet of bags from several probes,
+each calibrated twice, reprocessed on a real local Dask cluster into one Parquet dataset whose
+stations are single-bag ``reprocess``'s exactly; the registry's record per bag by serial and date;
+failed bags reported with their reason while the others finish; reruns skip what is done and redo
+what changed; the CLI on a separately started scheduler and worker (real processes, loopback)."""
+from __future__ import annotations
+
+import datetime as dt
+import math
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pyarrow.compute as pc
+import pytest
+
+from inclinometer_calib import cli
+from inclinometer_calib import simulate as sim
+from inclinometer_calib.capture import CaptureSession
+from inclinometer_calib.fleet.manifest import ManifestError, read_manifest
+from inclinometer_calib.fleet.registry import Registry
+from inclinometer_calib.fleet.reprocess import DATASET_DIR, INDEX_FILE, read_stations, reprocess_fleet, write_fragment
+from inclinometer_calib.frames import Site
+from inclinometer_calib.launcher import read_bag
+from inclinometer_calib.reprocess import reprocess, write_probe_bag
+from inclinometer_calib.streaming import StaticDetector
+
+UTC = dt.timezone.utc
+T0 = dt.datetime(2026, 3, 2, 8, 0, tzinfo=UTC)      # first calibration of every probe
+T1 = T0 + dt.timedelta(days=30)                     # second
+PROBES = {"SN-A": 21, "SN-B": 22, "SN-C": 23}       # serial -> simulator seed
+
+
+def _ns(t: dt.datetime) -> int:
+    return int(t.timestamp()) * 1_000_000_000
+
+
+def calibrate(probe, serial: str, seed: int):
+    """A twelve-pose calibration of ``probe`` on the stand, as the calibration node solves it."""
+    log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0), np.random.default_rng(seed))
+    session = CaptureSession(site=Site(), probe_id=serial)
+    det = StaticDetector()
+    for i in range(len(log)):
+        for st in det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]):
+            session.offer(st)
+    for st in det.flush():
+        session.offer(st)
+    session.finish()
+    assert session.calibration is not None, session.message
+    return session.calibration
+
+
+def survey_bag(probe, path, when: dt.datetime, seed: int, serial: str = ""):
+    log = sim.run_session(probe, Site(), sim.well_path_session(4, kickoff_deg=5.0, seed=seed),
+                          np.random.default_rng(seed), survey=True)
+    write_probe_bag(log, path, epoch_ns=_ns(when), serial=serial)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def fleet_bags(tmp_path_factory):
+    """Three probes, each calibrated at T0 and T1, each with a survey under each record; and four
+    bags that must fail, each for its own reason (no database yet: see ``fleet``)."""
+    root = tmp_path_factory.mktemp("fleet")
+    (root / "bags").mkdir()
+    probes, records, expected, good = {}, {}, {}, []
+    for k, (serial, seed) in enumerate(PROBES.items()):
+        probe = probes[serial] = sim.build_probe(seed)
+        recs = records[serial] = [calibrate(probe, serial, 100 + 2 * seed), calibrate(probe, serial, 101 + 2 * seed)]
+        assert recs[0].id != recs[1].id
+        for j, when in enumerate((T0 + dt.timedelta(days=10 + k), T1 + dt.timedelta(days=5 + k))):
+            path = survey_bag(probe, root / "bags" / f"{serial}-{j}.mcap", when, seed=10 * seed + j, serial=serial)
+            expected[path] = (serial, recs[j], when.date().isoformat())
+            good.append(path)
+    bad = {}
+    a = probes["SN-A"]
+    bad[survey_bag(a, root / "bags" / "unknown.mcap", T1, 7, serial="SN-Z")] = "'SN-Z' is not registered"
+    bad[survey_bag(a, root / "bags" / "early.mcap", T0 - dt.timedelta(days=3), 8, serial="SN-A")] = \
+        "no calibration at or before"
+    bad[survey_bag(a, root / "bags" / "overdue.mcap", T1 + dt.timedelta(days=61), 12, serial="SN-A")] = "overdue"
+    bad[survey_bag(a, root / "bags" / "noserial.mcap", T1, 9)] = "no probe serial recorded"
+    whole = survey_bag(a, root / "bags" / "whole.mcap", T1, 11, serial="SN-A")
+    cut = root / "bags" / "truncated.mcap"
+    data = open(whole, "rb").read()
+    cut.write_bytes(data[: int(len(data) * 0.6)])
+    os.unlink(whole)
+    bad[str(cut)] = "damaged bag"
+    return {"root": root, "expected": expected, "good": good, "bad": bad, "probes": probes, "records": records}
+
+
+def new_registry(request, backend: str, folder) -> str:
+    """A fresh registry URL: an SQLite file in ``folder``, or a new PostgreSQL database of the
+    session's cluster (``pg_cluster`` of conftest.py)."""
+    if backend == "sqlite":
+        return f"sqlite:///{folder / 'fleet.db'}"
+    return request.getfixturevalue("pg_cluster").new_database()
+
+
+def fill_registry(url: str, bags) -> None:
+    """Every probe (interval 60 days) with its two calibrations, at T0 and T1."""
+    with Registry(url) as reg:
+        for serial, recs in bags["records"].items():
+            reg.add_probe(serial, model="sim", calibration_interval_days=60)
+            reg.add_calibration(recs[0], calibrated_at=T0, operator_note="first")
+            reg.add_calibration(recs[1], calibrated_at=T1, operator_note="second")
+
+
+@pytest.fixture(scope="module", params=["sqlite", "postgresql"])
+def fleet(request, fleet_bags, tmp_path_factory):
+    """The fleet's bags with a registry of their probes on each database the registry supports."""
+    folder = tmp_path_factory.mktemp(request.param)
+    url = new_registry(request, request.param, folder)
+    fill_registry(url, fleet_bags)
+    return dict(fleet_bags, db=url, backend=request.param, root=folder)
+
+
+def same(a, b) -> bool:
+    """Equal, NaN equal to NaN, floats bit for bit."""
+    if isinstance(a, float) and isinstance(b, float):
+        return (math.isnan(a) and math.isnan(b)) or a == b
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+    return a == b and type(a) is type(b)
+
+
+def rows_of(table, bag):
+    rows = table.filter(pc.field("bag") == bag).to_pylist()
+    return sorted(rows, key=lambda r: r["station_id"])
+
+
+@pytest.fixture(scope="module")
+def first_run(fleet):
+    out = fleet["root"] / "out"
+    summary = reprocess_fleet(fleet["good"] + list(fleet["bad"]), out_dir=out, registry_url=fleet["db"],
+                              n_workers=2, progress=False)
+    return out, summary
+
+
+def test_local_cluster_dataset_equals_single_bag_reprocess_with_the_record_of_each_bags_date(fleet, first_run):
+    out, summary = first_run
+    assert summary.engine.startswith("local Dask cluster, 2 worker")
+    by_bag = {r.bag: r for r in summary.results}
+    table = read_stations(out)
+    fields = None
+    for path, (serial, rec, date) in fleet["expected"].items():
+        r = by_bag[path]
+        assert (r.status, r.serial, r.record_id) == ("ok", serial, rec.id), r
+        want = reprocess(path, None, rec, monitor=cli.field_monitor(cli.build_parser().parse_args(
+            ["reprocess", path, "-o", "x"]))).stations
+        got = rows_of(table, path)
+        assert len(got) == len(want) == r.stations == 4
+        for g, w in zip(got, want):
+            fields = list(w)
+            assert (g["probe"], g["survey_date"], g["record_id"], g["probe_forced"]) == (serial, date, rec.id, False)
+            assert g["coefficients_id"] == rec.id and g["probe_serial"] == serial
+            for k in w:
+                assert same(g[k], w[k]), (path, k, g[k], w[k])
+    assert "raw_gravity_mps2" in fields and "position_covariance_ned_m2" in fields and "warnings" in fields
+    assert table.schema.field("position_covariance_ned_m2").type.list_size == 9
+    # each good bag once; nothing else in the dataset
+    assert sorted(set(table.column("bag").to_pylist())) == sorted(fleet["good"])
+
+
+def test_dataset_equals_the_reprocess_command_output_bag(fleet, first_run, tmp_path):
+    out, _ = first_run
+    path = fleet["good"][3]
+    rec = fleet["expected"][path][1]
+    rec_file = tmp_path / "rec.yaml"
+    rec.save(rec_file)
+    assert cli.main(["reprocess", path, "--coeffs", str(rec_file), "-o", str(tmp_path / "one.mcap")]) == 0
+    stations, _, _ = read_bag(tmp_path / "one.mcap")
+    got = rows_of(read_stations(out), path)
+    assert len(stations) == len(got) == 4
+    for g, w in zip(got, sorted(stations, key=lambda s: s["station_id"])):
+        for k, v in w.items():
+            assert same(g[k], v), (k, g[k], v)
+
+
+def test_each_failed_bag_has_its_reason_and_the_others_finish(fleet, first_run):
+    out, summary = first_run
+    by_bag = {r.bag: r for r in summary.results}
+    for path, reason in fleet["bad"].items():
+        r = by_bag[path]
+        assert r.status == "failed" and reason in r.reason, (path, r.reason)
+        assert r.fragment == ""
+    assert summary.count("ok") == len(fleet["good"]) and summary.count("failed") == len(fleet["bad"])
+    csv_text = (out / "summary.csv").read_text()
+    assert csv_text.count(",failed,") == len(fleet["bad"]) and "damaged bag" in csv_text
+    # no temporary or half fragment anywhere
+    names = [f for _, _, fs in os.walk(out / DATASET_DIR) for f in fs]
+    assert len(names) == len(fleet["good"]) and all(n.startswith("part-") and n.endswith(".parquet") for n in names)
+
+
+def test_rerun_skips_what_is_done_and_redoes_a_bag_whose_record_changed(request, fleet, first_run, tmp_path):
+    out0, _ = first_run
+    out = tmp_path / "out"
+    shutil.copytree(out0, out)
+    db = new_registry(request, fleet["backend"], tmp_path)     # the same records in a registry of its own
+    fill_registry(db, fleet)
+    bags = fleet["good"] + list(fleet["bad"])
+    again = reprocess_fleet(bags, out_dir=out, registry_url=db, n_workers=0, progress=False)
+    assert again.count("skipped") == len(fleet["good"]) and again.count("failed") == len(fleet["bad"])
+    assert again.count("ok") == 0
+    # SN-B recalibrated after T1: its survey under the second record is redone with the new one
+    target = next(p for p, (s, _, _) in fleet["expected"].items() if s == "SN-B" and p.endswith("-1.mcap"))
+    new = calibrate(fleet["probes"]["SN-B"], "SN-B", 999)
+    when = T1 + dt.timedelta(days=2)
+    with Registry(db) as reg:
+        reg.add_calibration(new, calibrated_at=when, operator_note="after a knock")
+    third = reprocess_fleet(bags, out_dir=out, registry_url=db, n_workers=0, progress=False)
+    by_bag = {r.bag: r for r in third.results}
+    assert by_bag[target].status == "ok" and by_bag[target].record_id == new.id
+    assert third.count("ok") == 1 and third.count("skipped") == len(fleet["good"]) - 1
+    table = read_stations(out)
+    rows = rows_of(table, target)
+    assert len(rows) == 4 and {r["record_id"] for r in rows} == {new.id}   # the old fragment is gone
+    want = reprocess(target, None, new, monitor=cli.field_monitor(cli.build_parser().parse_args(
+        ["reprocess", target, "-o", "x"]))).stations
+    for g, w in zip(rows, want):
+        assert all(same(g[k], w[k]) for k in w)
+    assert table.num_rows == 4 * len(fleet["good"])
+
+
+def test_manifest_serial_refused_against_the_bags_own_unless_forced_then_said(fleet, tmp_path):
+    a_bag = next(p for p, (s, _, _) in fleet["expected"].items() if s == "SN-A")
+    noserial = next(p for p, why in fleet["bad"].items() if "serial" in why)
+    man = tmp_path / "list.csv"
+    man.write_text("# two bags\nbag,serial\n"
+                   f"{os.path.relpath(a_bag, tmp_path)},SN-B\n{os.path.relpath(noserial, tmp_path)},SN-A\n")
+    entries = read_manifest(man)
+    assert [e.path for e in entries] == [a_bag, noserial] and [e.serial for e in entries] == ["SN-B", "SN-A"]
+    s = reprocess_fleet(entries, out_dir=tmp_path / "o1", registry_url=fleet["db"], n_workers=0, progress=False)
+    r = {x.bag: x for x in s.results}
+    assert r[a_bag].status == "failed" and "records probe 'SN-A' but the manifest says 'SN-B'" in r[a_bag].reason
+    assert r[noserial].status == "ok" and r[noserial].serial == "SN-A"   # the manifest names its probe
+    s = reprocess_fleet(entries[:1], out_dir=tmp_path / "o2", registry_url=fleet["db"], n_workers=0,
+                        progress=False, force_probe=True)
+    assert s.results[0].status == "ok" and s.results[0].probe_forced and s.results[0].serial == "SN-B"
+    rows = read_stations(tmp_path / "o2").to_pylist()
+    assert rows and all(r["probe"] == "SN-B" and r["probe_forced"] and r["probe_serial"] == "SN-A" for r in rows)
+    assert all(any("SN-B" in w and "SN-A" in w for w in r["warnings"]) for r in rows)
+
+
+def test_manifest_errors_name_the_line(tmp_path):
+    man = tmp_path / "m.csv"
+    man.write_text("bag,probe\nx.mcap,SN-1\n")
+    with pytest.raises(ManifestError, match=r"m\.csv:1: unknown column\(s\) \['probe'\]"):
+        read_manifest(man)
+    man.write_text("# nothing\n\n")
+    with pytest.raises(ManifestError, match="lists no bag"):
+        read_manifest(man)
+    man.write_text("bag,serial\na.mcap,SN-1,extra\n")
+    with pytest.raises(ManifestError, match=r"m\.csv:2: 3 fields"):
+        read_manifest(man)
+    assert cli.main(["fleet", "reprocess", "--manifest", str(man), "-o", str(tmp_path / "o")]) == 2
+
+
+def test_a_crashed_fragment_write_leaves_no_file(tmp_path, monkeypatch):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    real = pq.write_table
+
+    def crash(table, where, **kw):
+        real(table.slice(0, 1), where, **kw)      # part of it is on disk, then the task dies
+        raise OSError("disk full")
+
+    monkeypatch.setattr(pq, "write_table", crash)
+    with pytest.raises(OSError, match="disk full"):
+        write_fragment(pa.table({"x": [1, 2]}), tmp_path, "stations/probe=A/part-1.parquet")
+    assert os.listdir(tmp_path / "stations" / "probe=A") == []
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_cli_on_a_separately_started_scheduler_and_worker(fleet, tmp_path):
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    bindir = os.path.dirname(sys.executable)
+    procs = [subprocess.Popen([os.path.join(bindir, "dask"), "scheduler", "--host", "127.0.0.1", "--port",
+                               str(port), "--no-dashboard"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        procs.append(subprocess.Popen([os.path.join(bindir, "dask"), "worker", addr, "--nworkers", "1",
+                                       "--nthreads", "1", "--host", "127.0.0.1", "--no-dashboard"],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        man = tmp_path / "bags.txt"
+        man.write_text("\n".join(fleet["good"][:3] + [p for p, why in fleet["bad"].items() if "damaged" in why]) + "\n")
+        out = tmp_path / "out"
+        t = time.monotonic()
+        res = subprocess.run([sys.executable, "-m", "inclinometer_calib.cli", "fleet", "reprocess", "--manifest",
+                              str(man), "--scheduler", addr, "--db", fleet["db"], "-o", str(out), "--no-progress"],
+                             capture_output=True, text=True, timeout=120)
+        assert res.returncode == 1, res.stderr         # one bag failed, the others were done
+        assert f"Dask cluster {addr}" in res.stdout and "3 ok, 0 skipped (done), 1 failed" in res.stdout
+        assert "damaged bag" in res.stdout
+        assert read_stations(out).num_rows == 12 and time.monotonic() - t < 120
+        assert (out / INDEX_FILE).exists() and (out / "summary.csv").exists()
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_default_task_size_batches_short_bags_but_keeps_every_worker_busy():
+    from inclinometer_calib.fleet.reprocess import auto_bags_per_task
+
+    assert auto_bags_per_task(200, 2) == 10          # the measured best on 2 local workers
+    assert auto_bags_per_task(10_000, 50) == 10
+    assert auto_bags_per_task(40, 2) == 5            # 8 tasks: 4 per worker
+    assert auto_bags_per_task(13, 2) == 1 and auto_bags_per_task(3, 0) == 1
