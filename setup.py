@@ -36,7 +36,8 @@ setup(
                       "foxglove-sdk>=0.30.3",
                       # fleet registry (inclinometer_calib/fleet/registry.py): database, migrations, PostgreSQL
                       "sqlalchemy>=2.0", "alembic>=1.13", "psycopg[binary]>=3.1",
-                      # fleet reprocessing on Dask into Parquet (inclinometer_calib/fleet/reprocess.py)
+                      # fleet reprocessing on Dask into Parquet (inclinometer_calib/fleet/reprocess.py);
+                      # pyarrow also reads the probe-log CSVs (inclinometer_calib/probelog.py)
                       "dask>=2026.8.0", "distributed>=2026.8.0", "pyarrow>=26.0", "tqdm>=4.66",
                       # fused batch-correction kernel (inclinometer_calib/batchkernel.py; numpy fallback without it)
                       "numba>=0.68.1"],

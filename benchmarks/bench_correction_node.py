@@ -23,8 +23,14 @@ Figures per rate and node: CPU per input pair (utime + stime of the node's proce
 ``/proc`` over the publishing window, divided by the pairs published), the node's CPU load,
 latency p50/p99 (ms) and drops (pairs published minus samples received, per output topic).
 The ratio is correction / pass-through CPU per message, measured in the same run (target
-<= 1.3).  The ramp raises the rate until either node drops samples or the publisher cannot keep
-up; the highest rate with no drops is the node's maximum.
+<= 1.15 at 1 and 2 kHz, and no drops at 2 kHz: issue 14).  With ``--repeat N`` every rate runs N
+times, the two nodes alternating, and the lowest CPU per pair of each node is kept (a burst of
+other load on a shared machine then hits both alike); the drops of every run are shown.  The
+correction node runs as its process does (``common.run``: its sample streams on
+``common.HotPathExecutor``'s own thread), so ``--profile`` (cProfile: the main thread only)
+shows the spinning thread's share, not the sample path.  The ramp raises the rate until either
+node drops samples or the publisher cannot keep up; the highest rate with no drops is the node's
+maximum.
 
 Internally the script also runs as each of its child processes (``--role``).
 """
@@ -239,6 +245,8 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="3 s runs and a short ramp")
     ap.add_argument("--rates", default="100,1000,2000", help="fixed rates, Hz (default 100,1000,2000)")
     ap.add_argument("--ramp", default="3000,4000,5000,6000,8000", help="ramp rates, Hz")
+    ap.add_argument("--repeat", type=int, default=1, help="runs per fixed rate and node, alternating; the "
+                    "lowest CPU per pair of each is kept (default 1)")
     ap.add_argument("--profile", action="store_true", help="cProfile the correction node at 1 kHz and "
                     "print the top functions")
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
@@ -262,12 +270,21 @@ def main(argv=None) -> int:
     print(machine())
     print(f"domain {domain}; {seconds:g} s per run; logs in {work}", flush=True)
     results = []
+    runs = {}   # (kind, rate) -> every run of the fixed rates
     try:
-        for rate in rates:
-            for kind in ("passthrough", "correction"):
-                r = run_once(kind, rate, seconds, env, work, coeffs)
-                results.append(r)
-                print("  " + "  ".join(map(str, _row(r))), flush=True)
+        for _ in range(max(1, args.repeat)):
+            for rate in rates:
+                for kind in ("passthrough", "correction"):
+                    r = run_once(kind, rate, seconds, env, work, coeffs)
+                    runs.setdefault((kind, rate), []).append(r)
+                    print("  " + "  ".join(map(str, _row(r))), flush=True)
+        for (kind, rate), rs in runs.items():   # the best of each, with the drops of all
+            best = dict(min(rs, key=lambda r: r["cpu_us_per_msg"]))
+            best["drops_all"] = [(r["drops_imu"], r["drops_mag"]) for r in rs]
+            best["drops_imu"], best["drops_mag"] = (max(d[0] for d in best["drops_all"]),
+                                                    max(d[1] for d in best["drops_all"]))
+            best["runs"] = len(rs)
+            results.append(best)
         max_ok = {}
         for kind in ("passthrough", "correction"):
             ok = [r["rate"] for r in results if r["kind"] == kind and r["drops_imu"] == r["drops_mag"] == 0
@@ -293,16 +310,24 @@ def main(argv=None) -> int:
     print()
     print(table([_row(r) for r in results], HEAD))
     print()
-    rows = []
+    rows, verdict = [], []
     for rate in rates + ramp:
         p = [r for r in results if r["kind"] == "passthrough" and r["rate"] == rate]
         q = [r for r in results if r["kind"] == "correction" and r["rate"] == rate]
         if p and q:
             ratio = q[0]["cpu_us_per_msg"] / p[0]["cpu_us_per_msg"]
+            drops = " ".join(f"{a}/{b}" for a, b in q[0].get("drops_all", [(q[0]["drops_imu"], q[0]["drops_mag"])]))
             rows.append([f"{rate:g}", f"{p[0]['cpu_us_per_msg']:.1f}", f"{q[0]['cpu_us_per_msg']:.1f}", f"{ratio:.2f}",
-                         f"{q[0]['p99_ms'] / p[0]['p99_ms']:.2f}" if p[0]["p99_ms"] > 0 else "-"])
-    print(table(rows, ["rate Hz", "pass-through us/pair", "correction us/pair", "CPU ratio (<= 1.3)",
-                       "p99 ratio"]))
+                         f"{q[0]['p99_ms'] / p[0]['p99_ms']:.2f}" if p[0]["p99_ms"] > 0 else "-", drops])
+            if rate in (1000.0, 2000.0):
+                verdict.append(f"{rate:g} Hz ratio {ratio:.2f} {'<=' if ratio <= 1.15 else '>'} 1.15")
+                if rate == 2000.0:
+                    no_drops = q[0]["drops_imu"] == q[0]["drops_mag"] == 0
+                    verdict.append(f"2 kHz drops {'none' if no_drops else drops}")
+    print(table(rows, ["rate Hz", "pass-through us/pair", "correction us/pair", "CPU ratio (target <= 1.15)",
+                       "p99 ratio", "correction drops imu/mag per run"]))
+    if verdict:
+        print("target 4 (<= 1.15 at 1 and 2 kHz, no drops at 2 kHz): " + "; ".join(verdict))
     print(f"max rate without drops: pass-through {max_ok['passthrough']:g} Hz, correction "
           f"{max_ok['correction']:g} Hz (tried up to {max(rates + ramp):g} Hz)")
     if prof:

@@ -8,7 +8,7 @@ Baseline, timed in the same run: ``read_csv(..., engine="rows")``, the per-row p
 and float() on every field, one Python pass), which is what reading was before.  Target: the
 vectorised reader (``engine="arrow"``) ≥ 20× faster at 10⁶ rows.  Both readers' results are
 compared (every array, every rejection message).  Peak memory of each reader is measured in a
-fresh process (``ru_maxrss`` after reading minus before).
+fresh process (peak RSS while reading minus the RSS before).
 
     python benchmarks/bench_probelog.py [--quick] [--sizes 1e5,1e6] [--rounds 3] [--no-memory]
 """
@@ -73,14 +73,31 @@ def same(a, b) -> bool:
     return la.mount.tolist() == lb.mount.tolist()
 
 
+PEAK = """
+import sys
+from inclinometer_calib.probelog import read_csv
+import pyarrow.csv, pyarrow.compute
+
+
+def status(key):
+    with open("/proc/self/status") as fh:
+        return next(int(ln.split()[1]) for ln in fh if ln.startswith(key))
+
+
+with open("/proc/self/clear_refs", "w") as fh:     # reset the peak (VmHWM) to the RSS now
+    fh.write("5")
+rss0 = status("VmRSS:")
+log, rej = read_csv(sys.argv[1], engine=sys.argv[2])
+print((status("VmHWM:") - rss0) / 1024)
+"""
+
+
 def peak_rss_mb(path, engine) -> float:
-    """Peak RSS growth (MB) of reading ``path`` in a fresh process, after the imports."""
-    code = ("import resource, sys; from inclinometer_calib.probelog import read_csv; import pyarrow.csv, "
-            "pyarrow.compute; r0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss; "
-            f"log, rej = read_csv(sys.argv[1], engine={engine!r}); "
-            "print((resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - r0) / 1024)")
+    """Peak RSS growth (MB) while reading ``path`` in a fresh process, after the imports (Linux:
+    the peak is reset through /proc/self/clear_refs, then read from VmHWM)."""
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, env=env, check=True)
+    out = subprocess.run([sys.executable, "-c", PEAK, str(path), engine], capture_output=True, text=True, env=env,
+                         check=True)
     return float(out.stdout.strip())
 
 
@@ -106,7 +123,8 @@ def main(argv=None):
             ref, new = read_csv(path, engine="rows"), read_csv(path, engine="arrow")
             ok = same(ref, new)
             ratio = best["rows"] / best["arrow"]
-            mem = ("", "") if args.no_memory else (f"{peak_rss_mb(path, 'rows'):.0f}", f"{peak_rss_mb(path, 'arrow'):.0f}")
+            mem = ("", "") if args.no_memory else (f"{peak_rss_mb(path, 'rows'):.0f}",
+                                                    f"{peak_rss_mb(path, 'arrow'):.0f}")
             rows.append([f"{n:.0e}", f"{mb:.0f}", len(new[1]),
                          f"{best['rows']:.3f} ({best['rows'] / n * 1e6:.2f} µs/row)",
                          f"{best['arrow']:.4f} ({best['arrow'] / n * 1e6:.3f} µs/row)",

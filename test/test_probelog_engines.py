@@ -218,3 +218,29 @@ def test_only_the_lines_that_fail_a_check_go_through_the_row_code(monkeypatch):
     log, rej = parse_csv("\n".join([head] + rows) + "\n")
     assert len(seen) == 3 and len(rows) > 300
     assert [r.row for r in rej] == [11, 21] and 31 in log.row and log.mount[log.row == 31][0] == "xy"
+
+
+def test_a_file_that_is_not_utf8_is_refused_alike(tmp_path):
+    head, rows = _rows("plain")
+    rows[4] = rows[4].replace(",", ",\xff", 1)
+    p = tmp_path / "latin.csv"
+    p.write_bytes(("\n".join([head] + rows) + "\n").encode("latin-1"))
+    for engine in probelog.ENGINES:
+        with pytest.raises(UnicodeDecodeError):
+            read_csv(p, engine=engine)
+
+
+def test_a_header_holding_a_line_break_of_splitlines_is_read_alike():
+    head, rows = _rows("plain")
+    assert_same("\n".join([head + "\x0bjunk"] + rows) + "\n")
+    assert_same("\n".join([head + "\x0b"] + rows) + "\n")
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n", "\r", "\n\r"])
+def test_lines_are_found_across_block_edges(newline):
+    text = newline.join(f"{k}," + "x" * (k % 7) for k in range(200))
+    body = memoryview(text.encode())
+    which = np.arange(0, len(text.splitlines()), 3)
+    for block in (5, 7, 64, 1 << 20):
+        got = list(probelog._lines(body, which, "\r" in newline, block=block))
+        assert got == [text.splitlines()[k] for k in which]

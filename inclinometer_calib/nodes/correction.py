@@ -147,9 +147,11 @@ class CorrectionNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, c.TOPIC_DIAGNOSTICS, c.reliable_qos(10))
         self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU_CORRECTED, qos)
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG_CORRECTED, qos)
-        self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos)
-        self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos)
-        self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
+        # the sample streams (the probe publishes a temperature with every sample): served on a wait set
+        # of their own when the node runs as a process (common.HotPathExecutor, through common.run)
+        self.hot_subscriptions = (self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
+                                  self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
+                                  self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos))
         self.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100))
         self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))
         self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
@@ -309,18 +311,16 @@ class CorrectionNode(Node):
                 self.pub_mag.publish(msg)
 
     def _correct_stream(self, sensor, h, t):
-        """One sample of one stream through the record's correction (:meth:`model.CorrectionPlan.correct_triad`:
-        the path the stations take), with the latest temperature and the time since the first
-        sample; None (and a warning) when the model needs a temperature there is none of."""
-        cal = self.calibration
+        """One sample of one stream through the record's correction (:meth:`model.CorrectionPlan.correct_sample`:
+        the path the stations take, in plain floats), with the latest temperature and the time since
+        the first sample; None (and a warning) when the model needs a temperature there is none of."""
         t0 = self.detector.t_first
         try:
-            v = cal.plan.correct_triad(sensor, h, self._temp if self._have_temp else None,
-                                       t - t0 if t0 == t0 else 0.0)
+            return self.calibration.plan.correct_sample(sensor, h, self._temp if self._have_temp else None,
+                                                        t - t0 if t0 == t0 else 0.0)
         except ValueError as exc:
             self.get_logger().warning(f"corrected {sensor} stream not published: {exc}", throttle_duration_sec=10.0)
             return None
-        return (float(v[0]), float(v[1]), float(v[2]))
 
     def _on_temp(self, msg):
         self._temp = msg.temperature   # the latest: for the corrected streams

@@ -20,14 +20,12 @@ import pytest
 
 from inclinometer_calib import cli
 from inclinometer_calib import simulate as sim
-from inclinometer_calib.capture import CaptureSession
 from inclinometer_calib.fleet.manifest import ManifestError, read_manifest
 from inclinometer_calib.fleet.registry import Registry
 from inclinometer_calib.fleet.reprocess import DATASET_DIR, INDEX_FILE, read_stations, reprocess_fleet, write_fragment
 from inclinometer_calib.frames import Site
 from inclinometer_calib.launcher import read_bag
 from inclinometer_calib.reprocess import reprocess, write_probe_bag
-from inclinometer_calib.streaming import StaticDetector
 
 UTC = dt.timezone.utc
 T0 = dt.datetime(2026, 3, 2, 8, 0, tzinfo=UTC)      # first calibration of every probe
@@ -39,21 +37,6 @@ def _ns(t: dt.datetime) -> int:
     return int(t.timestamp()) * 1_000_000_000
 
 
-def calibrate(probe, serial: str, seed: int):
-    """A twelve-pose calibration of ``probe`` on the stand, as the calibration node solves it."""
-    log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0), np.random.default_rng(seed))
-    session = CaptureSession(site=Site(), probe_id=serial)
-    det = StaticDetector()
-    for i in range(len(log)):
-        for st in det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]):
-            session.offer(st)
-    for st in det.flush():
-        session.offer(st)
-    session.finish()
-    assert session.calibration is not None, session.message
-    return session.calibration
-
-
 def survey_bag(probe, path, when: dt.datetime, seed: int, serial: str = ""):
     log = sim.run_session(probe, Site(), sim.well_path_session(4, kickoff_deg=5.0, seed=seed),
                           np.random.default_rng(seed), survey=True)
@@ -62,7 +45,7 @@ def survey_bag(probe, path, when: dt.datetime, seed: int, serial: str = ""):
 
 
 @pytest.fixture(scope="module")
-def fleet_bags(tmp_path_factory):
+def fleet_bags(tmp_path_factory, calibrate):
     """Three probes, each calibrated at T0 and T1, each with a survey under each record; and four
     bags that must fail, each for its own reason (no database yet: see ``fleet``)."""
     root = tmp_path_factory.mktemp("fleet")
@@ -195,7 +178,8 @@ def test_each_failed_bag_has_its_reason_and_the_others_finish(fleet, first_run):
     assert len(names) == len(fleet["good"]) and all(n.startswith("part-") and n.endswith(".parquet") for n in names)
 
 
-def test_rerun_skips_what_is_done_and_redoes_a_bag_whose_record_changed(request, fleet, first_run, tmp_path):
+def test_rerun_skips_what_is_done_and_redoes_a_bag_whose_record_changed(request, fleet, first_run, tmp_path,
+                                                                       calibrate):
     out0, _ = first_run
     out = tmp_path / "out"
     shutil.copytree(out0, out)

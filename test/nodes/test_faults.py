@@ -299,8 +299,9 @@ def _bag_topics(path, topics):
 def fault_runs(tmp_path_factory):
     """Two launchers at once, both reserving their own domain:
 
-    A: calibration + 8-station survey; right after the coefficients are published its recorder
-       and its correction node are killed (SIGKILL), and a third launcher asks for A's domain;
+    A: calibration + 14-station survey (time for the restarted nodes to start before it ends); right
+       after the coefficients are published its recorder and its correction node are killed
+       (SIGKILL), and a third launcher asks for A's domain;
     B: the calibration node runs but the probe has no calibration session (never solves).
     """
     pytest.importorskip("mcap_ros2")
@@ -308,7 +309,7 @@ def fault_runs(tmp_path_factory):
     env = _free_env()
     t0 = time.monotonic()
     common = ("--speed", 4.0, "--reliable", "--timeout", 150, "--drain", 1.5)
-    a = Launch(env, "--out", root / "a", "--stations", 8, "--seed", 11, *common)
+    a = Launch(env, "--out", root / "a", "--stations", 14, "--seed", 11, *common)
     b = Launch(env, "--out", root / "b", "--stations", 18, "--seed", 12,
                "--param", "probe:calibration_session:=false", *common)
     try:

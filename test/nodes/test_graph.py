@@ -28,6 +28,7 @@ pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` an
 pytest.importorskip("mcap_ros2")
 
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from rig_clients import wits_client  # noqa: E402
 from inclinometer_calib.frames import wrap180  # noqa: E402
 
 N_STATIONS = 12
@@ -68,33 +69,6 @@ def launch(args, env, timeout):
     return proc, time.monotonic() - t0
 
 
-def _wits_client(port, got, stop):
-    """A rig's WITS0 client: connects to the graph's wits node as soon as it listens and reads
-    until the node closes the connection (the graph stopped)."""
-    s = None
-    while s is None and not stop.is_set():
-        try:
-            s = socket.create_connection(("127.0.0.1", port), timeout=1)
-        except OSError:
-            time.sleep(0.1)
-    if s is None:
-        return
-    s.settimeout(0.5)
-    while True:
-        try:
-            chunk = s.recv(65536)
-        except socket.timeout:
-            if stop.is_set():
-                break
-            continue
-        except OSError:
-            break
-        if not chunk:
-            break
-        got.append(chunk)
-    s.close()
-
-
 @pytest.fixture(scope="module")
 def sim_run(domain_env, tmp_path_factory):
     env, _ = domain_env
@@ -103,7 +77,7 @@ def sim_run(domain_env, tmp_path_factory):
         probe_port.bind(("127.0.0.1", 0))
         port = probe_port.getsockname()[1]
     got, stop = [], threading.Event()
-    client = threading.Thread(target=_wits_client, args=(port, got, stop), daemon=True)
+    client = threading.Thread(target=wits_client, args=(port, got, stop), daemon=True)
     client.start()
     # --reliable: lossless raw streams, so that what the correction node saw live is exactly what
     # the recorder stored, and the replay regression below is deterministic on a loaded machine

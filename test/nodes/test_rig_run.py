@@ -22,6 +22,7 @@ pytest.importorskip("foxglove", reason="the live node needs foxglove-sdk (requir
 ws_client = pytest.importorskip("websockets.sync.client", reason="the test client needs websockets (test.txt)")
 
 from inclinometer_calib import liveview as lv  # noqa: E402
+from rig_clients import wits_client  # noqa: E402
 from inclinometer_calib.cli import load_site  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -33,31 +34,6 @@ def _free_port():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _wits_client(port, got, stop):
-    s = None
-    while s is None and not stop.is_set():
-        try:
-            s = socket.create_connection(("127.0.0.1", port), timeout=1)
-        except OSError:
-            time.sleep(0.1)
-    if s is None:
-        return
-    s.settimeout(0.5)
-    while True:
-        try:
-            chunk = s.recv(65536)
-        except socket.timeout:
-            if stop.is_set():
-                break
-            continue
-        except OSError:
-            break
-        if not chunk:
-            break
-        got.append(chunk)
-    s.close()
 
 
 def _foxglove_client(port, got, stop):
@@ -102,7 +78,7 @@ def rig_run(domain_env, tmp_path_factory):
     out = tmp_path_factory.mktemp("rig") / "run"
     wits_port, fox_port = _free_port(), _free_port()
     wits, fox, stop = [], [], threading.Event()
-    threads = [threading.Thread(target=_wits_client, args=(wits_port, wits, stop), daemon=True),
+    threads = [threading.Thread(target=wits_client, args=(wits_port, wits, stop), daemon=True),
                threading.Thread(target=_foxglove_client, args=(fox_port, fox, stop), daemon=True)]
     for t in threads:
         t.start()

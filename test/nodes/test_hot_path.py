@@ -1,0 +1,207 @@
+"""common.HotPathExecutor, the executor the correction node runs on as a process: its sample streams
+on a wait set of their own, drained in batches, everything else as rclpy serves it.
+
+Over real DDS in the test's own domain (rclpy in-process): the node spun by it gives the same
+stations and the same corrected samples as the node's callbacks called directly, message by
+message; the timer (the idle flush closes the last station) and the parameter services go on;
+an error in a sample callback ends the spin with that error; shutdown stops its thread."""
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
+
+from rcl_interfaces.srv import SetParameters  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from sensor_msgs.msg import Imu, MagneticField, Temperature  # noqa: E402
+from std_msgs.msg import String  # noqa: E402
+
+from inclinometer_calib import simulate as sim  # noqa: E402
+from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.frames import Site  # noqa: E402
+from inclinometer_calib.msg import SurveyStation  # noqa: E402
+from inclinometer_calib.nodes import common as c  # noqa: E402
+from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
+from inclinometer_calib.station import Station  # noqa: E402
+
+
+class _Collect:
+    def __init__(self):
+        self.msgs = []
+
+    def publish(self, msg):
+        self.msgs.append(msg)
+
+
+def _spin_in_thread(executor):
+    """``executor.spin()`` in a thread; returns (thread, box) where box['error'] is what it raised."""
+    box = {"error": None}
+
+    def run():
+        try:
+            executor.spin()
+        except BaseException as exc:  # noqa: B036 — handed to the test thread
+            box["error"] = exc
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th, box
+
+
+def _wait(cond, timeout=20.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and not cond():
+        time.sleep(0.02)
+    return cond()
+
+
+def _messages(log):
+    """The probe's messages of a log, as the probe publishes them (imu, mag, temperature per sample)."""
+    out = []
+    for k, (t, f, m) in enumerate(zip(log.t_s.tolist(), log.acc.tolist(), (log.mag * 1e-9).tolist())):
+        mi, mm, mt = Imu(), MagneticField(), Temperature()
+        c.set_stamp(mi.header.stamp, t)
+        mm.header.stamp = mt.header.stamp = mi.header.stamp
+        mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
+        mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = m
+        mt.temperature = 25.0 + 0.01 * k
+        out.append((mi, mm, mt))
+    return out
+
+
+def _fields(msg):
+    return {k: getattr(msg, k) for k in msg.get_fields_and_field_types() if k != "header"}
+
+
+def _same(a, b):
+    if isinstance(a, float):
+        return (math.isnan(a) and math.isnan(b)) or a == b
+    if hasattr(a, "__len__") and not isinstance(a, str):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tmp_path):
+    site = Site()
+    cal = Calibration(acc=sim.build_probe(3).acc, mag=sim.build_probe(3).mag, probe_id="hot", site=site)
+    path = tmp_path / "coeffs.yaml"
+    cal.save(path)
+    refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 90.0), (50.0, 200.0, 120.0)]
+    stations = [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs]
+    log = sim.run_session(sim.build_probe(3), site, stations, np.random.default_rng(1), rate_hz=100.0, move_s=0.5,
+                          survey=True)
+    msgs = _messages(log)
+    params = [Parameter("coeffs_file", value=str(path)), Parameter("use_topic", value=False),
+              Parameter("publish_corrected", value=True), Parameter("qos.reliability", value="reliable"),
+              Parameter("qos.depth", value=5000), Parameter("idle_flush_s", value=0.5)]
+
+    # the reference: the node's callbacks called one message at a time, as rclpy's executors call them
+    direct = CorrectionNode(parameter_overrides=params, cli_args=["--ros-args", "-r", "__node:=correction_direct"])
+    ros.append(direct)
+    direct.pub_station, direct.pub_diag, direct.pub_imu, direct.pub_mag = _Collect(), _Collect(), _Collect(), _Collect()
+    for mi, mm, mt in _messages(log):   # its own copies: the node corrects a message in place
+        direct._on_imu(mi)
+        direct._on_mag(mm)
+        direct._on_temp(mt)
+    for seg in direct.detector.flush():   # what the idle flush does at the end of the stream
+        direct._station(seg)
+    direct._release(force=True, end=True)
+    assert len(direct.pub_station.msgs) == 3 and len(direct.pub_imu.msgs) == len(msgs)
+
+    node = CorrectionNode(parameter_overrides=params)
+    ros.append(node)
+    executor = c.HotPathExecutor(node.hot_subscriptions)
+    executor.add_node(node)
+    # the sample streams and their QoS events are out of the spinning thread's wait set, the rest in it
+    hot = {id(s) for s in node.hot_subscriptions} | {id(e) for s in node.hot_subscriptions for e in s.event_handlers}
+    assert {s.topic_name for s in node.hot_subscriptions} == {c.TOPIC_IMU, c.TOPIC_MAG, c.TOPIC_TEMPERATURE}
+    for entity in (*node.subscriptions, *node.waitables, *node.timers, *node.services):
+        assert executor.can_execute(entity) == (id(entity) not in hot)
+    spin_thread, box = _spin_in_thread(executor)
+
+    feeder = rclpy.create_node("hot_path_feeder")
+    ros.append(feeder)
+    feed_exec = SingleThreadedExecutor()
+    feed_exec.add_node(feeder)
+    stop = threading.Event()
+    feed_thread = threading.Thread(target=lambda: [feed_exec.spin_once(timeout_sec=0.05)
+                                                   for _ in iter(stop.is_set, True)], daemon=True)
+    feed_thread.start()
+    try:
+        qos = c.sensor_qos(5000, "reliable")
+        pubs = [feeder.create_publisher(t, topic, qos) for t, topic in
+                ((Imu, c.TOPIC_IMU), (MagneticField, c.TOPIC_MAG), (Temperature, c.TOPIC_TEMPERATURE))]
+        got = {"imu": [], "mag": [], "station": []}
+        feeder.create_subscription(Imu, c.TOPIC_IMU_CORRECTED, got["imu"].append, qos)
+        feeder.create_subscription(MagneticField, c.TOPIC_MAG_CORRECTED, got["mag"].append, qos)
+        feeder.create_subscription(SurveyStation, c.TOPIC_STATION, got["station"].append, c.reliable_qos(100))
+        assert _wait(lambda: all(p.get_subscription_count() >= 1 for p in pubs)
+                     and feeder.count_publishers(c.TOPIC_STATION) >= 1
+                     and feeder.count_publishers(c.TOPIC_IMU_CORRECTED) >= 1), "no discovery"
+        time.sleep(0.5)
+        # the parameter services are served (by the spinning thread), while the samples flow
+        client = feeder.create_client(SetParameters, "/correction/set_parameters")
+        assert client.wait_for_service(timeout_sec=10.0)
+        for k, (mi, mm, mt) in enumerate(msgs):
+            for pub, msg in zip(pubs, (mi, mm, mt)):
+                pub.publish(msg)
+            if k == 10:
+                fut = client.call_async(SetParameters.Request(parameters=[
+                    Parameter("publish_short", value=False).to_parameter_msg()]))
+            if k % 50 == 49:
+                time.sleep(0.01)   # bursts of 50 samples: each wake-up finds a batch to drain
+        assert _wait(lambda: len(got["station"]) == 3 and len(got["imu"]) == len(got["mag"]) == len(msgs)), \
+            (len(got["station"]), len(got["imu"]), len(got["mag"]))
+        assert fut.done() and fut.result().results[0].successful
+        assert box["error"] is None and spin_thread.is_alive()
+    finally:
+        stop.set()
+        feed_thread.join(2.0)
+        feed_exec.shutdown()
+    executor.shutdown()
+    spin_thread.join(5.0)
+    assert not spin_thread.is_alive() and not executor._hot_thread.is_alive()
+    assert box["error"] is None
+
+    # the last station came from the idle flush (the timer, in the spinning thread); all as the callbacks gave
+    for a, b in zip(got["station"], direct.pub_station.msgs):
+        fa, fb = _fields(a), _fields(b)
+        bad = [k for k in fa if not _same(fa[k], fb[k])]
+        assert not bad, {k: (fa[k], fb[k]) for k in bad}
+    # every corrected sample, bit for bit, in order
+    for a, b in zip(got["imu"], direct.pub_imu.msgs):
+        assert (a.header.stamp, a.linear_acceleration) == (b.header.stamp, b.linear_acceleration)
+    for a, b in zip(got["mag"], direct.pub_mag.msgs):
+        assert (a.header.stamp, a.magnetic_field) == (b.header.stamp, b.magnetic_field)
+    assert direct.pub_imu.msgs[0].linear_acceleration.x != log.acc[0, 0]   # corrected, not passed through
+
+
+def test_an_error_in_a_sample_callback_ends_the_spin_with_that_error(ros):
+    node = rclpy.create_node("hot_path_failing")
+    ros.append(node)
+    seen = []
+
+    def on_msg(msg):
+        seen.append(msg.data)
+        if msg.data == "boom":
+            raise RuntimeError("sample callback failed on 'boom'")
+
+    sub = node.create_subscription(String, "/hot_path_test", on_msg, c.reliable_qos(10))
+    executor = c.HotPathExecutor([sub])
+    executor.add_node(node)
+    spin_thread, box = _spin_in_thread(executor)
+    pub = node.create_publisher(String, "/hot_path_test", c.reliable_qos(10))
+    assert _wait(lambda: pub.get_subscription_count() >= 1)
+    pub.publish(String(data="fine"))
+    assert _wait(lambda: seen == ["fine"])
+    assert spin_thread.is_alive()
+    pub.publish(String(data="boom"))
+    spin_thread.join(10.0)
+    assert not spin_thread.is_alive(), "the spin did not end"
+    assert isinstance(box["error"], RuntimeError) and "failed on 'boom'" in str(box["error"])
+    executor.shutdown()
+    assert not executor._hot_thread.is_alive()
