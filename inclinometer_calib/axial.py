@@ -104,13 +104,18 @@ def evaluate_with_axial(g, b, site: Site, tol=None, ref=None, settings: AxialSet
     (status at least warn).  Adds ``axial_field_nt``, ``axial_field_sigma_nt``,
     ``azimuth_sigma_deg`` and ``azimuth_method`` ('short_collar' or 'standard').
     """
+    from .geomag import azimuths
     from .survey import Tolerances, evaluate
 
     tol = tol or Tolerances()
     res = evaluate(g, b, site, tol, ref=ref)
     ax = correct(g, b, site, settings)
     use = ~ax["degenerate"] & ~res["azimuth_undefined"]
-    res["azimuth_deg"] = np.where(use, ax["azimuth_deg"], res["azimuth_deg"])
+    # the azimuth reported, in each of its references (survey.evaluate gave the uncorrected one's)
+    refs = azimuths(np.where(use, ax["azimuth_deg"], res["azimuth_deg"]), site.declination_deg,
+                    site.grid_convergence_deg)
+    res["azimuth_deg"] = refs["true"]
+    res["azimuth_magnetic_deg"], res["azimuth_grid_deg"] = refs["magnetic"], refs["grid"]
     res["axial_field_nt"] = ax["axial_field_nt"]
     res["axial_field_sigma_nt"] = ax["axial_field_sigma_nt"]
     res["azimuth_sigma_deg"] = ax["azimuth_sigma_deg"]

@@ -60,3 +60,16 @@ def test_declination_is_added():
     g, b = tool_vectors(site, 30.0, 100.0, 0.0)
     out = axial.correct(g, b, site)
     assert out["azimuth_deg"][0] == pytest.approx(100.0, abs=1e-6)
+
+
+def test_the_short_collar_azimuth_is_reported_in_every_reference():
+    # magnetic and grid are the corrected azimuth's too, not the measured field's
+    site = Site(total_field_nt=50000.0, dip_deg=60.0, declination_deg=-4.0,
+                reference={"grid_convergence_deg": 1.5, "crs": "EPSG:23031"})
+    g, b = tool_vectors(site, 30.0, 100.0, 0.0)
+    b = b + 400.0 * np.array([0.0, 0.0, 1.0])          # axial drill-string field
+    res = axial.evaluate_with_axial(g[None], b[None], site)
+    assert res["azimuth_method"][0] == "short_collar"
+    assert res["azimuth_deg"][0] == pytest.approx(100.0, abs=1e-4)          # the simulated truth
+    assert res["azimuth_magnetic_deg"][0] == pytest.approx(104.0, abs=1e-4)
+    assert res["azimuth_grid_deg"][0] == pytest.approx(98.5, abs=1e-4)
