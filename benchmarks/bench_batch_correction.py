@@ -3,10 +3,12 @@
 Both triads corrected, drift/azimuth/toolface, |G|, |B|, dip, QC flags and status per sample.
 Baseline, measured in the same run: a numpy loop that only reads the same input arrays and writes
 the same output arrays (one add per float output, block by block) — the memory-bound limit of any
-implementation that has to move these bytes.  Target: the fused numba kernel ≥ 0.7× it.
-Variants: the kernel (one thread), the numpy fallback (``survey.correct_samples``, blocked),
-and ``survey.evaluate`` after ``Calibration.correct`` on the whole arrays (the station path
-applied to every sample).
+implementation that has to move these bytes — on one thread and on the kernel's threads (the
+same slices on the same pool); the faster of the two is the limit.  Target: the fused numba
+kernel (its default threads: the CPUs this process may use) ≥ 0.7× it.
+Variants: the kernel (default threads, and one thread), the numpy fallback
+(``survey.correct_samples``, blocked), and ``survey.evaluate`` after ``Calibration.correct`` on the
+whole arrays (the station path applied to every sample).
 The kernel's first-call time is measured apart, in fresh processes: compiling into an empty
 cache directory, then loading from it.
 
@@ -71,6 +73,17 @@ def baseline(f, m, out, block=4096):
     return out
 
 
+def baseline_threads(f, m, out, threads):
+    """:func:`baseline` on the kernel's slices, on the kernel's thread pool (numpy's ufuncs release
+    the GIL): the memory-bound limit with the kernel's threads."""
+    parts = batchkernel._slices(len(f), threads)
+    futs = [batchkernel._pool(threads).submit(baseline, f[s:e], m[s:e], {k: v[s:e] for k, v in out.items()})
+            for s, e in parts]
+    for fut in futs:
+        fut.result()
+    return out
+
+
 def first_call_times():
     """Seconds of the kernel's first call in a new process: compiling into an empty cache
     directory, then loading from that cache (numba import included)."""
@@ -111,16 +124,21 @@ def main(argv=None):
     for n in sizes:
         f, m, cal, site = make_data(n)
         out = alloc(n)
+        nt = batchkernel.resolve_threads()
         fns = {"baseline": lambda: baseline(f, m, out),
-               "numba": lambda: correct_samples(f, m, cal, site, tol, out=out, backend="numba")}
+               "baseline_mt": lambda: baseline_threads(f, m, out, nt),
+               "numba": lambda: correct_samples(f, m, cal, site, tol, out=out, backend="numba"),
+               "numba1": lambda: correct_samples(f, m, cal, site, tol, out=out, backend="numba", threads=1)}
         fns["numpy"] = lambda: correct_samples(f, m, cal, site, tol, block=args.block, out=out, backend="numpy")
         best = interleaved(fns, repeat)
-        tb = best["baseline"]
-        names = {"baseline": "baseline: read inputs + write outputs", "numba": "fused kernel (numba, 1 thread)",
+        tb = min(best["baseline"], best["baseline_mt"])
+        names = {"baseline": "baseline: read inputs + write outputs, 1 thread",
+                 "baseline_mt": f"baseline on {nt} threads ({len(batchkernel._slices(n, nt))} slices)",
+                 "numba": f"fused kernel (numba, {nt} threads)", "numba1": "fused kernel (numba, 1 thread)",
                  "numpy": f"numpy fallback survey.correct_samples (block {args.block})"}
         for key, tk in best.items():
             ratio = tb / tk
-            mark = "" if key in ("baseline", "numpy") else (" ✓" if ratio >= TARGET else " ✗")
+            mark = " ✓" if key == "numba" and ratio >= TARGET else (" ✗" if key == "numba" else "")
             rows.append([f"{n:.0e}", names[key], f"{tk:.4f}", f"{n / tk / 1e6:.1f}",
                          f"{n * BYTES_PER_SAMPLE / tk / 1e9:.2f}", f"{ratio:.2f}{mark}"])
         if n <= 2_000_000:
@@ -133,8 +151,8 @@ def main(argv=None):
             rows.append([f"{n:.0e}", "evaluate(Calibration.correct(...)) whole-array", f"{te:.4f}",
                          f"{n / te / 1e6:.1f}", f"{n * BYTES_PER_SAMPLE / te / 1e9:.2f}", f"{tb2 / te:.2f}"])
             ref = station_path()
-            fused = batchkernel.correct_samples(f, m, cal, site, tol, backend="numba")
-            fb = correct_samples(f, m, cal, site, tol, block=args.block)
+            fused = correct_samples(f, m, cal, site, tol, backend="numba")
+            fb = correct_samples(f, m, cal, site, tol, block=args.block, backend="numpy")
             same = all(np.array_equal(fb[k], ref[k], equal_nan=True) for k in BATCH_KEYS) and \
                 np.array_equal(fb["status"], ref["status"])
             flags = np.array_equal(fused["flags"], fb["flags"]) and np.array_equal(fused["status"], fb["status"])
@@ -143,7 +161,7 @@ def main(argv=None):
         del f, m, out
     print(table(rows, ["N", "variant", "best s", "Msamples/s", "GB/s moved", "× baseline"]))
     print(f"(GB/s counts the {BYTES_PER_SAMPLE} bytes each sample must move: inputs read + outputs written; "
-          f"target: fused kernel ≥ {TARGET}× baseline)")
+          f"× baseline is against the faster baseline of each size; target: fused kernel ≥ {TARGET}×)")
 
 
 if __name__ == "__main__":

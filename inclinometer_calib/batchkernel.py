@@ -28,14 +28,22 @@ numba's on-disk cache (well under a second); :func:`warm_up` does it up front an
 it took.  The cache is ``$NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/inclinometer_calib/numba``
 (``~/.cache/...``): the user's cache, not the installed package's directory.
 
-One thread: a ``prange`` version on numba's OpenMP threads was measured on the 2-core machine of
-``docs/benchmarks.md`` and was 3–4× *slower* while other work shared the cores (the threads wait
-for each other and spin), so it is not offered.
+Threads: ``threads`` (None: ``$INCLINOMETER_CALIB_BATCH_THREADS``, else the CPUs this process may
+run on) splits the samples into contiguous slices, a few per thread, each corrected by the
+kernel on a thread of a pool (the kernel releases the GIL; the threads block when idle, they do
+not spin).  Every sample's numbers are the same whatever the split (``test/test_batch_kernel.py``
+pins the bits).  Fewer than :data:`MIN_SLICE` samples per slice run on the calling thread.  One
+thread corrects ≈ 75 M samples/s on the machine of ``docs/benchmarks.md``, about half of what its
+memory can move; two reach the memory's limit.  (numba's own ``prange`` on OpenMP threads was
+tried first: its threads spin while they wait, and with other work on the 2 cores it was 3–4×
+slower than one thread.)
 """
 from __future__ import annotations
 
 import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -44,7 +52,14 @@ from .survey import BATCH_KEYS, Tolerances
 
 BACKEND_ENV = "INCLINOMETER_CALIB_BATCH_BACKEND"
 BACKENDS = ("auto", "numba", "numpy")
+THREADS_ENV = "INCLINOMETER_CALIB_BATCH_THREADS"
+#: fewest samples in a slice of its own: below this a thread's hand-off (tens of µs) is not paid back
+MIN_SLICE = 65536
+#: slices per thread: a thread that the OS shares with other work takes fewer of them
+SLICES_PER_THREAD = 4
 _kernel_module = None
+_pools: dict = {}
+_pools_lock = threading.Lock()
 
 
 def cache_dir() -> str:
@@ -109,18 +124,64 @@ def _alloc(n):
     return out
 
 
-def _run(f_flat, m_flat, negate, linear, cal_a, cal_m, site, tol, out):
-    """One kernel call on flat (3N,) inputs into ``out``; ``cal_a``/``cal_m``: (C, B) or None."""
+def resolve_threads(threads: int | None = None) -> int:
+    """Threads for the kernel: ``threads``; None: ``$INCLINOMETER_CALIB_BATCH_THREADS``, else the
+    CPUs this process may run on.  Not a whole number ≥ 1: an error naming where it came from."""
+    src = "threads"
+    if threads is None:
+        env = os.environ.get(THREADS_ENV, "").strip()
+        if not env:
+            cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else range(os.cpu_count() or 1)
+            return max(1, len(cpus))
+        src, threads = f"${THREADS_ENV}", env
+    if isinstance(threads, str):
+        ok = threads.strip().isdigit()
+    else:
+        ok = isinstance(threads, (int, np.integer)) and not isinstance(threads, bool)
+    value = int(threads) if ok else 0
+    if value < 1:
+        raise ValueError(f"correct_samples: {src} must be a whole number of threads ≥ 1, got {threads!r}")
+    return value
+
+
+def _pool(threads: int) -> ThreadPoolExecutor:
+    with _pools_lock:
+        if threads not in _pools:
+            _pools[threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="batchkernel")
+        return _pools[threads]
+
+
+def _slices(n: int, threads: int) -> list[tuple[int, int]]:
+    """Contiguous [s, e) slices of n samples: up to SLICES_PER_THREAD per thread, none shorter than
+    MIN_SLICE (one slice when n is small or one thread)."""
+    k = min(threads * SLICES_PER_THREAD, n // MIN_SLICE) if threads > 1 else 1
+    k = max(1, k)
+    edges = [n * j // k for j in range(k + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def _run(f_flat, m_flat, negate, linear, cal_a, cal_m, site, tol, out, threads: int = 1):
+    """The kernel on flat (3N,) inputs into ``out``; ``cal_a``/``cal_m``: (C, B) or None;
+    ``threads`` > 1: slices on the pool (:func:`_slices`)."""
     k = _kernels()
     eye, zero = np.eye(3), np.zeros(3)
     ca, ba = cal_a if cal_a is not None else (eye, zero)
     cm, bm = cal_m if cal_m is not None else (eye, zero)
-    args = (f_flat, m_flat, bool(negate), bool(linear), ca, ba, cm, bm,
-            float(site.declination_deg), float(tol.gravity_toolface_min_drift_deg), float(tol.min_drift_deg),
-            float(site.total_field_nt), float(site.dip_deg), float(site.gravity_mps2),
-            float(tol.field_nt), float(tol.dip_deg), float(tol.gravity_mps2),
-            *(out[key] for key in BATCH_KEYS), out["flags"], out["status"])
-    k.fused(*args)
+    scalars = (float(site.declination_deg), float(tol.gravity_toolface_min_drift_deg), float(tol.min_drift_deg),
+               float(site.total_field_nt), float(site.dip_deg), float(site.gravity_mps2),
+               float(tol.field_nt), float(tol.dip_deg), float(tol.gravity_mps2))
+    outs = [out[key] for key in BATCH_KEYS] + [out["flags"], out["status"]]
+
+    def piece(s, e):
+        k.fused(f_flat[3 * s:3 * e], m_flat[3 * s:3 * e], bool(negate), bool(linear), ca, ba, cm, bm, *scalars,
+                *(a[s:e] for a in outs))
+
+    parts = _slices(len(f_flat) // 3, threads)
+    if len(parts) == 1:
+        piece(*parts[0])
+        return
+    for fut in [_pool(threads).submit(piece, s, e) for s, e in parts]:
+        fut.result()
 
 
 def _linear(calibration, sensor):
@@ -130,22 +191,25 @@ def _linear(calibration, sensor):
     return c, np.ascontiguousarray(np.asarray(plan.triads[sensor].bias, dtype=np.float64))
 
 
-def fused(f, m, calibration, site, tol, temp, tim, block: int, out: dict, correct_block) -> dict:
+def fused(f, m, calibration, site, tol, temp, tim, block: int, out: dict, correct_block,
+          threads: int | None = None) -> dict:
     """The kernel's part of :func:`survey.correct_samples` (which checks the inputs and calls it
     when the backend resolves to ``numba``): ``f`` (N, 3) REP-145 specific force, m/s²; ``m``
     (N, 3) nT; ``out`` the outputs (checked here).  A record with effects beyond the base model is
     corrected block by block by ``correct_block(g, b, temp, time)`` (the caller's: the one
-    correction path), and the kernel then does the angles and QC of each block."""
+    correction path), and the kernel then does the angles and QC of each block (on the calling
+    thread).  ``threads``: see :func:`resolve_threads`."""
     n = len(f)
     _check_out(out, n)
+    nt = resolve_threads(threads)
     if n == 0:
         return out
     if calibration is None:
         _run(np.ascontiguousarray(f).reshape(-1), np.ascontiguousarray(m).reshape(-1), True, False, None, None,
-             site, tol, out)
+             site, tol, out, nt)
     elif not any(calibration.plan.extra.values()):
         _run(np.ascontiguousarray(f).reshape(-1), np.ascontiguousarray(m).reshape(-1), True, True,
-             _linear(calibration, "acc"), _linear(calibration, "mag"), site, tol, out)
+             _linear(calibration, "acc"), _linear(calibration, "mag"), site, tol, out, nt)
     else:   # effects beyond the base model: the one correction path per block, then the kernel
         blk = max(1, min(int(block), n))
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):

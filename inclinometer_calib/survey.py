@@ -207,7 +207,7 @@ BATCH_KEYS = ("drift_deg", "azimuth_deg", "toolface_deg", "total_gravity", "tota
 
 def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
                     temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None,
-                    backend: str | None = None) -> dict:
+                    backend: str | None = None, threads: int | None = None) -> dict:
     """Correct and evaluate raw samples in bulk: both triads, angles and QC per sample.
 
     Parameters
@@ -227,6 +227,9 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
     out : optional dict of preallocated output arrays (keys as returned) to write into.
     backend : ``numba`` (the fused kernel, :mod:`batchkernel`), ``numpy`` (the blocked body below)
         or ``auto`` (numba when importable); None: ``$INCLINOMETER_CALIB_BATCH_BACKEND``, else auto.
+    threads : threads of the numba kernel (:func:`batchkernel.resolve_threads`; None:
+        ``$INCLINOMETER_CALIB_BATCH_THREADS``, else the CPUs this process may use).  The numbers
+        do not depend on it; the numpy backend runs on the calling thread.
 
     Returns
     -------
@@ -261,7 +264,7 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
         out["status"] = np.empty(n, dtype=np.uint8)
     if kernel:
         return batchkernel.fused(f, m, calibration, site, tol, temp, tim, block, out,
-                                 lambda g, b, tc, ts: calibration.correct(g, b, tc, ts))
+                                 lambda g, b, tc, ts: calibration.correct(g, b, tc, ts), threads)
     blk = max(1, min(int(block), n)) if n else 1
     gt = np.empty((3, blk))
     bt = np.empty((3, blk))

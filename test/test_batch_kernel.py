@@ -82,6 +82,49 @@ def test_kernel_atan2_is_within_an_ulp_of_numpy_with_its_special_values():
 
 
 @has_numba
+def test_the_fast_arc_tangent_is_the_careful_one_bit_for_bit_or_nan_where_a_special_value_decides():
+    from inclinometer_calib._batch_numba import _atan2_core
+
+    rng = np.random.default_rng(4)
+    y = rng.normal(size=3000) * 10.0 ** rng.uniform(-6, 6, 3000)
+    x = rng.normal(size=3000) * 10.0 ** rng.uniform(-6, 6, 3000)
+    y[:40], x[40:80] = 0.0, -0.0                                  # on an axis: the signs decide
+    for a, b in zip(y, x):
+        fast, careful = _atan2_core(a, b, False), _atan2_core(a, b, True)
+        assert fast == careful and math.copysign(1, fast) == math.copysign(1, careful), (a, b)
+    inf, nan = math.inf, math.nan
+    for a, b in [(1.0, inf), (-2.0, -inf), (inf, 3.0)]:           # finite against infinite: still exact
+        assert _atan2_core(a, b, False) == math.atan2(a, b), (a, b)
+    for a, b in [(0.0, 0.0), (-0.0, -0.0), (inf, inf), (-inf, inf), (nan, 1.0), (1.0, nan)]:
+        assert math.isnan(_atan2_core(a, b, False)), (a, b)        # the kernel redoes these samples
+
+
+@has_numba
+def test_threads_split_the_samples_without_changing_a_bit(monkeypatch):
+    site = Site(declination_deg=-3.0)
+    n = 5 * batchkernel.MIN_SLICE + 17                               # five slices on two threads
+    f, m = _samples(site, n=n, seed=5)
+    f[n - 3] = np.nan                                                # special values in a later slice too
+    f[batchkernel.MIN_SLICE + 1] = m[batchkernel.MIN_SLICE + 1] = 0.0
+    assert len(batchkernel._slices(n, 2)) == 5 and len(batchkernel._slices(n, 1)) == 1
+    one = survey.correct_samples(f, m, CAL, site, backend="numba", threads=1)
+    two = survey.correct_samples(f, m, CAL, site, backend="numba", threads=2)
+    for k in BATCH_KEYS + ("flags", "status"):
+        np.testing.assert_array_equal(two[k], one[k], err_msg=k)
+    _assert_same(two, _station_path(f, m, CAL, site, Tolerances()), "two threads")
+    monkeypatch.setenv(batchkernel.THREADS_ENV, "3")
+    assert batchkernel.resolve_threads() == 3 and batchkernel.resolve_threads(1) == 1
+    monkeypatch.delenv(batchkernel.THREADS_ENV)
+    assert batchkernel.resolve_threads() >= 1
+    for bad in (0, -1, 1.5, True, "two"):
+        with pytest.raises(ValueError, match="threads must be a whole number of threads"):
+            batchkernel.resolve_threads(bad)
+    monkeypatch.setenv(batchkernel.THREADS_ENV, "0")
+    with pytest.raises(ValueError, match=r"\$INCLINOMETER_CALIB_BATCH_THREADS must be a whole number"):
+        survey.correct_samples(f[:10], m[:10], CAL, site, backend="numba")
+
+
+@has_numba
 @pytest.mark.parametrize("declination", [0.0, -7.3, 12.0, 400.0])
 @pytest.mark.parametrize("calibrated", [False, True])
 def test_kernel_and_fallback_equal_the_station_path(declination, calibrated):
