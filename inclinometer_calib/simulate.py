@@ -20,7 +20,6 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
@@ -256,6 +255,8 @@ class SessionPlan:
         for st in stations:
             r = st.rotation
             if probe.stand_pose_error_deg > 0:
+                from scipy.spatial.transform import Rotation   # lazily: 0.16 s of every process start
+
                 err = Rotation.from_rotvec(np.radians(rng.normal(0, probe.stand_pose_error_deg, 3))).as_matrix()
                 r = r @ err
             actual.append(r)
@@ -288,6 +289,8 @@ class SessionPlan:
         key_t = np.array(key_t)
         # Nudge duplicate key times (zero-length moves) so the slerp stays well defined.
         self._key_t = key_t + np.arange(len(key_t)) * 1e-9
+        from scipy.spatial.transform import Rotation, Slerp   # lazily: 0.16 s of every process start
+
         self._slerp = Slerp(self._key_t, Rotation.from_matrix(np.array(key_r)))
         self._actual = np.array(actual)
         # the measured depth: a station's own while held, between two stations running from one to the next
