@@ -29,6 +29,8 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["inclinometer_calib", "inclinometer_calib.*"]),
     install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0", "allantools>=2019.9",
+                      # one BLAS thread around the lab's small fits (inclinometer_calib/lab/blas.py)
+                      "threadpoolctl>=3.1",
                       "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6",
                       # WITSML 2.1 out (inclinometer_calib/witsml.py): building/reading, schema validation
                       "lxml>=6.1", "xmlschema>=4.3",

@@ -34,7 +34,6 @@ from functools import lru_cache
 import numpy as np
 # imported here, not on first use: the import takes a good part of a second, and on first use it
 # would stall a live node's sample callback while its (best-effort) queue overflows
-from scipy.stats import chi2
 
 AXES6 = ("acc x", "acc y", "acc z", "mag x", "mag y", "mag z")
 UNITS6 = ("m/s^2",) * 3 + ("nT",) * 3
@@ -51,6 +50,8 @@ def chi_quantile(n: int, q: float = LOW_QUANTILE) -> float:
     """Quantile ``q`` of ``s/σ`` for the sample std ``s`` of ``n`` white-noise samples:
     ``sqrt(χ²_q(n-1) / (n-1))``."""
     dof = max(int(n) - 1, 1)
+    from scipy.stats import chi2   # here, not at import: scipy.stats costs every CLI and node process 0.3 s
+
     return math.sqrt(chi2.ppf(q, dof) / dof)
 
 
@@ -188,9 +189,20 @@ class NoiseEstimator:
         """A break in the stream (non-finite sample, time jump): the open block is discarded."""
         self._reset_block()
 
+    @property
+    def block_open(self) -> int:
+        """Samples in the open block (0: the last sample closed one, or a gap discarded it)."""
+        return self._bn
+
     def _close_block(self):
         n = self._bn
         std = [math.sqrt(max(s2 - s1 * s1 / n, 0.0) / (n - 1)) for s1, s2 in zip(self._b1, self._b2)]
+        self.add_block(n, std)
+
+    def add_block(self, n: int, std) -> None:
+        """A block closed: its ``n`` samples' per-axis standard deviation ``std`` (6).  What
+        :meth:`add` does when a block closes; a batch path (``StaticDetector.run``) that computes
+        the blocks at once calls it in their order."""
         i = self._count % self._cap
         self._std[i] = std
         self._nb[i] = n
@@ -198,11 +210,18 @@ class NoiseEstimator:
         self._samples += n
         self._reset_block()
         m = min(self._count, self._cap)
-        # once the estimate stands, refreshing it every fourth block (about once a second) is enough
-        if (m >= self.ready_blocks and self._samples >= self.ready_samples
-                and (m <= 4 * self.ready_blocks or self._count % 4 == 0)):
+        if self.estimate_due():
             self._sigma = fill_flat_axes(float(v) for v in estimate_from_blocks(self._std[:m],
                                                                                  float(np.median(self._nb[:m]))))
+
+    def estimate_due(self, blocks: int = 0, samples: int = 0) -> bool:
+        """Whether the estimate is recomputed at the close of the block that brings the closed ones
+        ``blocks`` more, with ``samples`` more samples (0, 0: the last one closed): once it
+        stands, every fourth block (about once a second) is enough."""
+        count = self._count + blocks
+        m = min(count, self._cap)
+        return (m >= self.ready_blocks and self._samples + samples >= self.ready_samples
+                and (m <= 4 * self.ready_blocks or count % 4 == 0))
 
     def force(self) -> None:
         """Estimate from the blocks there are, even fewer than ``ready_blocks`` (a short stream)."""

@@ -774,18 +774,29 @@ def label_runs(log: ProbeLog):
     ``ref`` (3,) degrees (NaN where not given) — indices into the log, not file rows (``log.row``).
     What the log *says* its stations are — used to
     report labelled holds the detector did not find, and for a simulator's truth."""
+    return [(k, j, key[0], log.ref[k].copy()) for k, j, key in _key_runs(log)
+            if key[0] or any(v is not None for v in key[1])]
+
+
+def _key_runs(log: ProbeLog) -> list:
+    """Runs of consecutive rows with the same label key ``(pose, _ref_key(ref))``, all of them:
+    ``[(first_row, last_row, key), ...]``.  Rows whose pose and reference equal the previous row's
+    (NaN as NaN) share its key; the key is computed only where they do not (about 10⁶ rows:
+    a per-row key was 2 s of ``lab diagnose``)."""
     n = len(log)
+    if not n:
+        return []
+    pose, ref = log.pose, log.ref
+    same = (pose[1:] == pose[:-1]) & np.all((ref[1:] == ref[:-1]) | (np.isnan(ref[1:]) & np.isnan(ref[:-1])), axis=1)
     out = []
     k = 0
-    keys = [(int(p), _ref_key(r)) for p, r in zip(log.pose.tolist(), log.ref.tolist())] if n else []
-    while k < n:
-        j = k
-        while j + 1 < n and keys[j + 1] == keys[k]:
-            j += 1
-        pose, ref = keys[k]
-        if pose or any(v is not None for v in ref):
-            out.append((k, j, pose, log.ref[k].copy()))
-        k = j + 1
+    key = (int(pose[0]), _ref_key(ref[0].tolist()))
+    for r in (np.flatnonzero(~same) + 1).tolist():
+        new = (int(pose[r]), _ref_key(ref[r].tolist()))
+        if new != key:
+            out.append((k, r - 1, key))
+            k, key = r, new
+    out.append((k, n - 1, key))
     return out
 
 
@@ -806,18 +817,22 @@ def segment_stations(log: ProbeLog, detector=None, use_labels: bool = True):
     det = detector if detector is not None else StaticDetector()
     found = []
     t, acc, mag, temp = log.t_s, log.acc, log.mag, log.temp_c
-    for i in range(len(log)):
-        found.extend(det.update(t[i], acc[i], mag[i], temp[i]))
+    found.extend(det.run(t, acc, mag, temp))    # = det.update row by row, in bulk (test_streaming pins it)
     found.extend(det.flush())
     problems = list(det.pop_events())
     stations = []
     starts = np.searchsorted(t, [st.t_start for st in found])
     ends = np.searchsorted(t, [st.t_end for st in found])
+    runs = _key_runs(log) if use_labels else []
+    run_first = np.array([r[0] for r in runs], dtype=np.int64)
     for st, i0, i1 in zip(found, starts, ends):
         st.first_row, st.last_row = int(log.row[i0]), int(log.row[min(i1, len(log) - 1)])   # the file's rows
         if use_labels:
-            keys = Counter((int(p), _ref_key(r)) for p, r in zip(log.pose[i0:i1 + 1].tolist(),
-                                                                 log.ref[i0:i1 + 1].tolist()))
+            keys = Counter()       # rows per key, in the order the keys appear (as a per-row count)
+            for a, b, key in runs[max(int(np.searchsorted(run_first, i0, side="right")) - 1, 0):]:
+                if a > i1:
+                    break
+                keys[key] += min(b, i1) - max(a, i0) + 1
             labelled = [k for k in keys if k[0] or any(v is not None for v in k[1])]
             n_rows = sum(keys.values())
             n_lab = sum(keys[k] for k in labelled)

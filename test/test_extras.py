@@ -29,7 +29,7 @@ from inclinometer_calib.reprocess import write_probe_bag
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = os.path.join(ROOT, "inclinometer_calib")
 CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj", "lxml", "xmlschema",
-        "foxglove-sdk", "dask", "distributed", "pyarrow", "tqdm", "sqlalchemy", "alembic", "psycopg", "numba"}
+        "foxglove-sdk", "dask", "distributed", "pyarrow", "tqdm", "sqlalchemy", "alembic", "psycopg", "numba", "threadpoolctl"}
 OPTIONAL_MODULES = ("matplotlib", "mcap", "zstandard", "lz4", "rosbags")
 #: import name -> PyPI distribution, where they differ
 DISTRIBUTION = {"yaml": "PyYAML", "foxglove": "foxglove-sdk"}

@@ -4,6 +4,7 @@ import pytest
 
 from inclinometer_calib import simulate as sim
 from inclinometer_calib.frames import Site
+from inclinometer_calib.probelog import ProbeLog
 from inclinometer_calib.streaming import StaticDetector
 
 
@@ -150,3 +151,88 @@ def test_a_consumer_that_holds_stations_back_still_finds_their_temperatures():
         temps = [det.temps.mean(s.t_start, s.t_end) for s in held if not s.short]
         assert len(temps) == 12
         assert all(np.isfinite(temps)) == expect_all
+
+
+# ---- the batch path (StaticDetector.run) against the per-sample one ----------------------------------
+def _same(a, b) -> bool:
+    if isinstance(a, np.ndarray):
+        return a.shape == b.shape and np.array_equal(a, b, equal_nan=True)
+    if isinstance(a, float):
+        return a == b or (a != a and b != b)
+    return a == b
+
+
+def _assert_same_detectors(da, db, sa, sb):
+    """Same stations (every field, bit for bit), messages and detector state after them."""
+    assert len(sa) == len(sb)
+    for p, q in zip(sa, sb):
+        diff = [k for k, v in vars(p).items() if not _same(v, vars(q)[k])]
+        assert not diff, (p.where, diff)
+    assert da.events == db.events
+    for k in ("too_short", "gaps", "samples_missing", "_dt", "_t_prev", "t_first", "_n", "_s1", "_s2", "_tol"):
+        assert _same(getattr(da, k), getattr(db, k)), k
+    na, nb = da.noise, db.noise
+    assert na.level == nb.level and na.measured == nb.measured and na.blocks == nb.blocks
+    assert np.array_equal(na._std, nb._std, equal_nan=True) and (na._b1, na._b2, na._bn) == (nb._b1, nb._b2, nb._bn)
+    assert (da.temps._t, da.temps._v) == (db.temps._t, db.temps._v)
+
+
+def _both_ways(log, split=None, **kw):
+    """The log row by row through update(), and through run() (up to ``split``, then row by row)."""
+    temp = log.temp_c
+    a, sa = StaticDetector(**kw), []
+    for i in range(len(log)):
+        sa.extend(a.update(log.t_s[i], log.acc[i], log.mag[i], temp[i]))
+    sa.extend(a.flush())
+    b = StaticDetector(**kw)
+    k = len(log) if split is None else split
+    sb = list(b.run(log.t_s[:k], log.acc[:k], log.mag[:k], temp[:k]))
+    for i in range(k, len(log)):
+        sb.extend(b.update(log.t_s[i], log.acc[i], log.mag[i], temp[i]))
+    sb.extend(b.flush())
+    _assert_same_detectors(a, b, sa, sb)
+    return sa, a
+
+
+def _long_hold_log():
+    probe = sim.build_probe(3)
+    stations = sim.stand_grid_session(drifts=(10, 40), azimuths=(0,), toolfaces=(0,), duration_s=70.0)
+    return sim.run_session(probe, Site(), stations, np.random.default_rng(4), rate_hz=200.0)
+
+
+def test_the_batch_path_gives_the_per_sample_stations_on_a_clean_session_at_two_rates():
+    for rate in (100.0, 1000.0):
+        segs, _ = _both_ways(_twelve(rate_hz=rate))
+        assert len([s for s in segs if not s.short]) == 12
+
+
+def test_the_batch_path_gives_the_per_sample_stations_on_a_long_hold_cut_by_max_duration():
+    segs, _ = _both_ways(_long_hold_log())
+    assert sum(s.ended_by == "max_duration" for s in segs) >= 4       # 70 s holds, 30 s pieces
+
+
+def test_the_batch_path_gives_the_per_sample_stations_on_noisy_spiky_data_with_gaps_and_nans():
+    log = _twelve(noise_scale=3.0, rate_hz=400.0, seed=5)
+    rng = np.random.default_rng(11)
+    # spikes: single ones (outliers), pairs, and bursts of break_samples (they end a hold)
+    for start in rng.choice(len(log) - 5, size=120, replace=False):
+        width = int(rng.choice([1, 1, 2, 3]))
+        log.acc[start:start + width, int(rng.integers(3))] += rng.choice([-1, 1]) * 0.08
+    log.mag[rng.choice(len(log), size=40, replace=False), 2] += 2000.0
+    log.acc[1500, 1] = np.nan                                 # a non-finite sample
+    log.temp_c[rng.choice(len(log), size=300, replace=False)] = np.nan
+    keep = np.ones(len(log), bool)
+    keep[3000:3150] = False                                   # samples lost: a time gap
+    keep[int(0.7 * len(log)):int(0.7 * len(log)) + 40] = False
+    sub = ProbeLog(**{k: getattr(log, k)[keep] for k in ProbeLog.__dataclass_fields__})
+    segs, det = _both_ways(sub)
+    assert det.gaps >= 2 and any(s.outliers for s in segs) and any(s.ended_by == "gap" for s in segs)
+    assert any("cut" in e for e in det.events) or det.too_short
+
+
+def test_the_batch_path_continues_exactly_where_the_per_sample_path_takes_over_and_with_given_noise():
+    log = _twelve(noise_scale=1.5, rate_hz=500.0, seed=2)
+    _both_ways(log, split=len(log) // 3)
+    _both_ways(log, noise_acc=0.002, noise_mag=20.0)          # no warm-up: the noise is given
+    segs, det = _both_ways(log, k_sigma=2.5)                  # too tight: holds cut into pieces, said so
+    assert det.events

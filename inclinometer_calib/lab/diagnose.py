@@ -38,6 +38,7 @@ from scipy.stats import ttest_1samp
 
 from .. import effects as fx
 from ..station import Stations
+from .blas import one_thread
 from .fit import fit, physical_hints, residual_groups, residual_vector
 from .model import N_POSES, POSES_LABEL, LabModel
 from .noise import noise_json, noise_model, walk_axes
@@ -469,6 +470,7 @@ def _walk_untestable(eff, noise) -> dict:
                                          "sequence): nothing to smooth"}
 
 
+@one_thread
 def diagnose(data, model: LabModel | None = None, site=None, candidates=None, progress=None,
              alpha: float | None = None) -> Diagnosis:
     """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
@@ -843,6 +845,7 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
     return "\n".join(lines)
 
 
+@one_thread
 def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start=None):
     """Add the recommended effect repeatedly: the 'effect ladder' of falling validation error.
 

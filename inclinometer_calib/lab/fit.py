@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 from scipy.special import chdtrc
 
 from .. import effects as fx
+from .blas import one_thread
 from .model import LabModel
 from .wander import clear_paths, edf_total, smooth, stochastic_terms
 
@@ -37,19 +38,40 @@ def _free_sigmas(data, model):
     return sg, sb, sdip
 
 
-def residual_vector(model: LabModel, data, theta=None, prior=True) -> np.ndarray:
-    """Noise-normalised residuals of ``model`` (with parameters ``theta`` if given) on ``data``."""
+def split_oriented(data) -> tuple:
+    """``data``'s oriented stations and its free ones (None where there are none), in the order
+    :func:`residual_vector` takes them."""
+    ori = data.oriented
+    return (data.subset(ori) if ori.any() else None), (data.subset(~ori) if (~ori).any() else None)
+
+
+class Fixed:
+    """What the residuals take from the data and from the model's structure, neither of which a
+    fit changes: :func:`fit` computes it once for its hundreds of evaluations (recomputed at each,
+    the two subsets and the prior rows' scales took a fifth of it: 0.62 against 0.49 ms on the
+    simulator's 210 stations)."""
+
+    __slots__ = ("split", "prior_mask", "prior_den")
+
+    def __init__(self, model: LabModel, data):
+        self.split = split_oriented(data)
+        self.prior_mask, self.prior_den = _prior_scales(model)
+
+
+def residual_vector(model: LabModel, data, theta=None, prior=True, fixed: Fixed | None = None) -> np.ndarray:
+    """Noise-normalised residuals of ``model`` (with parameters ``theta`` if given) on ``data``
+    (``fixed``: :class:`Fixed` of this model and data, when the caller has it)."""
     if theta is not None:
         model.set_vector(theta)
     parts = []
-    ori = data.oriented
-    if ori.any():
-        d = data.subset(ori)
+    d_ori, d_free = split_oriented(data) if fixed is None else fixed.split
+    if d_ori is not None:
+        d = d_ori
         g_t, b_t = model.true_vectors(d)
         h_g, h_b = model.forward(d, g_t, b_t)
         parts += [((d.g - h_g) / d.g_sigma).ravel(), ((d.b - h_b) / d.b_sigma).ravel()]
-    if (~ori).any():
-        d = data.subset(~ori)
+    if d_free is not None:
+        d = d_free
         g, b = model.correct(d)
         sg, sb, sdip = _free_sigmas(d, model)
         gn, bn = np.linalg.norm(g, axis=1), np.linalg.norm(b, axis=1)
@@ -57,7 +79,7 @@ def residual_vector(model: LabModel, data, theta=None, prior=True) -> np.ndarray
         parts += [(gn - model.site.gravity_mps2) / sg, (bn - model.site.total_field_nt) / sb,
                   (dip - model.dip_deg) / sdip]
     if prior:
-        parts.append(_prior_residual(model))
+        parts.append(_prior_residual(model, fixed))
     return np.concatenate(parts)
 
 
@@ -75,12 +97,17 @@ def residual_groups(data) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, dtype=str)
 
 
-def _prior_residual(model: LabModel) -> np.ndarray:
+def _prior_residual(model: LabModel, fixed: Fixed | None = None) -> np.ndarray:
     """The weak prior rows (extra parameters over 100× their typical size), then the gauge rows
     (:meth:`LabModel.gauge_residual`)."""
+    mask, den = _prior_scales(model) if fixed is None else (fixed.prior_mask, fixed.prior_den)
+    return np.concatenate([model.get_vector()[mask] / den, model.gauge_residual()])
+
+
+def _prior_scales(model: LabModel) -> tuple:
+    """The parameters under the weak prior (mask) and the prior's σ of each (100× typical)."""
     mask = model.prior_mask()
-    return np.concatenate([model.get_vector()[mask] / (PRIOR_FACTOR * model.param_scale()[mask]),
-                           model.gauge_residual()])
+    return mask, PRIOR_FACTOR * model.param_scale()[mask]
 
 
 @dataclass
@@ -158,6 +185,7 @@ class FitResult:
         return out
 
 
+@one_thread
 def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: bool = True,
         fixed=None) -> FitResult:
     """Fit ``model`` (in place, starting from its current parameters) to ``data``.
@@ -172,7 +200,8 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     free = np.ones(len(x_all), bool) if fixed is None else ~np.asarray(fixed, bool)
     scale_all = model.param_scale()
     x0, scale = x_all[free], scale_all[free]
-    n_data = len(residual_vector(model, data, x_all, prior=False))
+    fixed_rows = Fixed(model, data)
+    n_data = len(residual_vector(model, data, x_all, prior=False, fixed=fixed_rows))
     calls = [0]
 
     def full(x):
@@ -184,7 +213,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
         calls[0] += 1
         if progress and calls[0] % 500 == 0:
             progress(f"fit: {calls[0]} evaluations")
-        return residual_vector(model, data, full(x))
+        return residual_vector(model, data, full(x), fixed=fixed_rows)
 
     def solve(x_start):
         """Levenberg–Marquardt from ``x_start`` (with the stand's pose errors, the poses found off
@@ -215,7 +244,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
             smooth(model, data)
         x, jac, ok, msg, nfev = x0, np.zeros((0, 0)), True, "nothing to fit", 0
     model.set_vector(full(x))
-    r_data = residual_vector(model, data, prior=False)
+    r_data = residual_vector(model, data, prior=False, fixed=fixed_rows)
     chi2 = float(r_data @ r_data)
     # a stochastic effect's path counts with its effective degrees of freedom
     p = int(free.sum())

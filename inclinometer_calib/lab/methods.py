@@ -9,6 +9,8 @@ corrects the same validation log; with the truth (a simulated probe) the paramet
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 #: What each method cannot see, in plain words.
@@ -73,12 +75,14 @@ def lab_record(cal_path, turntable_path, site):
     return model.record(method="lab: twelve positions + turntable (invariants)", not_identifiable=res.not_identifiable)
 
 
-def survey_errors(cal, val_path) -> dict:
-    """Drift and azimuth RMS (deg) of ``cal`` on a validation log's stations with a reference."""
+def survey_errors(cal, val) -> dict:
+    """Drift and azimuth RMS (deg) of ``cal`` on a validation log's stations with a reference
+    (``val``: the log's path, or its stations from :func:`_stations` when several records are
+    compared on it — read and segmented once)."""
     from ..pipeline import correct_stations
     from ..survey import evaluate, summarize
 
-    _, stations = _stations(val_path)
+    stations = _stations(val)[1] if isinstance(val, (str, bytes, os.PathLike)) else val
     ref = np.array([s.ref for s in stations], float)
     keep = np.isfinite(ref[:, 0])
     g, b = correct_stations([s for s, k in zip(stations, keep) if k], cal)
@@ -124,9 +128,10 @@ def compare(cal_path, turntable_path, val_path, site, truth=None) -> list:
     tt_cal, _ = turntable_record(turntable_path, site, tp)
     both = lab_record(cal_path, turntable_path, site)
     rows = []
+    _, val = _stations(val_path)
     for name, cal in (("twelve-position", tp), ("turntable", tt_cal), ("lab, both logs", both)) + \
             ((("truth", truth),) if truth is not None else ()):
-        s = survey_errors(cal, val_path)
+        s = survey_errors(cal, val)
         row = {"method": name, "drift_rms_deg": s["drift_rms_deg"], "azimuth_rms_deg": s["azimuth_rms_deg"],
                "blind": BLIND.get(name, "")}
         if truth is not None and name != "truth":

@@ -41,13 +41,15 @@ def write_report(path, data, site, effects_text: str | None = None, max_steps: i
 
     Raises :class:`deps.MissingDependency` before any fitting if matplotlib is not installed."""
     from ..deps import require
-    from .diagnose import field_fit, ladder
+    from .diagnose import ladder
     from .report import render
 
     require("matplotlib", "report", "lab report")  # the plots; checked before the minutes of fitting
     steps = ladder(data, site, max_steps=max_steps, progress=progress, candidates=candidates,
                    start=build_model(site, effects_text))
-    final_fit = field_fit(steps[-1].model, data)
+    # the last rung's diagnosis field-fitted its model already (Diagnosis.base_fit; its model is
+    # that fit's, unchanged since): fitting it again from its own optimum only repeated the work
+    final_fit = steps[-1].base_fit
     html = render(steps, data, uncorrected_metrics(data, site), final_fit, methods=methods)
     atomic_write_text(path, html)
     return steps
