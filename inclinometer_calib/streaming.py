@@ -557,7 +557,7 @@ class _BatchRun:
     def _rows(self, a, b, out):
         """Rows ``a`` to ``b`` (excluded): finite, no gap, no noise block closing (the thresholds
         fixed)."""
-        det, t, x = self.det, self.t, self.x
+        det, t = self.det, self.t
         i = a
         while i < b:
             if det._n == 0:
