@@ -32,8 +32,6 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-# imported here, not on first use: the import takes a good part of a second, and on first use it
-# would stall a live node's sample callback while its (best-effort) queue overflows
 
 AXES6 = ("acc x", "acc y", "acc z", "mag x", "mag y", "mag z")
 UNITS6 = ("m/s^2",) * 3 + ("nT",) * 3
@@ -50,9 +48,18 @@ def chi_quantile(n: int, q: float = LOW_QUANTILE) -> float:
     """Quantile ``q`` of ``s/σ`` for the sample std ``s`` of ``n`` white-noise samples:
     ``sqrt(χ²_q(n-1) / (n-1))``."""
     dof = max(int(n) - 1, 1)
-    from scipy.stats import chi2   # here, not at import: scipy.stats costs every CLI and node process 0.3 s
+    return math.sqrt(_chi2().ppf(q, dof) / dof)
 
-    return math.sqrt(chi2.ppf(q, dof) / dof)
+
+def _chi2():
+    """scipy.stats' χ² distribution, imported on the first call: scipy.stats takes about 0.3 s, which
+    every process importing this package (the CLI's, a node's) would pay at start.
+    :class:`NoiseEstimator` calls it when it is made, so that a live node imports it while it
+    starts: on the first closed block it would stall the node's sample callback while its
+    best-effort queue overflows."""
+    from scipy.stats import chi2
+
+    return chi2
 
 
 def estimate_from_blocks(block_std: np.ndarray, block_n: float) -> np.ndarray:
@@ -158,6 +165,7 @@ class NoiseEstimator:
         self.prior = (math.nan, math.nan)   # stated σ (from message covariance), per sensor
         self._sigma = (math.nan,) * 6
         self._reset_block()
+        _chi2()     # now, not on the first closed block (see _chi2)
 
     def _reset_block(self):
         self._bn = 0

@@ -14,30 +14,24 @@ from __future__ import annotations
 import math
 import re
 import sys
-import threading
 import time
-from contextlib import ExitStack
 
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidHandle, ParameterException
-from rclpy.executors import (ConditionReachedException, Executor, ExternalShutdownException, ShutdownException,
-                             TimeoutException)
-from rclpy.guard_condition import GuardCondition
-from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerGuardCondition
-from rclpy.task import Task
 
 from ..coeffs import Calibration, message_fields
 from ..frames import NT_PER_TESLA, STANDARD_GRAVITY, Site
 from ..probelog import Limits, check_sample
 from ..survey import Tolerances
 from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-free, shared with reprocess)
+from .executor import HotPathExecutor  # noqa: F401  (re-exported: c.HotPathExecutor)
 
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
@@ -82,154 +76,6 @@ def run(node_factory, args=None) -> int:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-
-
-class HotPathExecutor(Executor):
-    """A single-threaded executor that gives a node's high-rate subscriptions a wait set of their own.
-
-    rclpy's executors rebuild their wait set from every entity of the node — subscriptions,
-    timers, services and parameter services, the QoS event handlers of every publisher and
-    subscription: 22 for the correction node — on every wake-up, and take one message per ready
-    subscription per wake-up; at 1 kHz that is most of a node's CPU (docs/benchmarks.md, section
-    5).  Here the ``hot`` subscriptions (a node's sample streams, message-only callbacks) are
-    served by a thread of their own, on a wait set built once that holds only them, their QoS
-    event handlers (incompatible QoS or type: said as rclpy says them), a stop guard and the SIGINT
-    guard: each wake-up takes every message there is, one per subscription in turn (the order in
-    which rclpy's executors deliver them, so that streams paired by stamp arrive interleaved, not
-    one stream's backlog before the other's), and calls their callbacks.  Every other entity is
-    served as :class:`rclpy.executors.SingleThreadedExecutor` serves it, in the thread that spins,
-    from a wait set without the hot subscriptions and their event handlers (:meth:`can_execute`).
-    The event handlers must go with their subscription: with Fast DDS an event waits on the
-    reader's status condition, which every arriving message sets, so left in the other wait set
-    they would wake it for every message and find nothing to do (measured: 5 000 empty wake-ups
-    in 3 s at 1 kHz, more CPU than before).
-
-    One lock serialises the callbacks of both threads: the node sees one callback at a time, as
-    under a single-threaded executor.  An exception in a hot callback ends the spin with that
-    exception, raised in the spinning thread, as rclpy's executors raise a callback's.
-    ``wait_timeout_s`` bounds each hot wait, so that the thread also notices a shutdown of the
-    context that no guard announced.
-    """
-
-    def __init__(self, hot, *, context=None, wait_timeout_s: float = 0.5):
-        super().__init__(context=context)
-        self._hot = list(hot)
-        self._hot_events = [eh for sub in self._hot for eh in sub.event_handlers]
-        # the objects stay referenced: their ids stay theirs
-        self._hot_ids = {id(entity) for entity in (*self._hot, *self._hot_events)}
-        self._lock = threading.Lock()
-        self._hot_error = None
-        self._hot_thread = None
-        self._hot_stop = False
-        self._hot_timeout_ns = int(wait_timeout_s * 1e9)
-        self._hot_gc = GuardCondition(callback=None, callback_group=None, context=self._context)
-        self._hot_sigint = SignalHandlerGuardCondition(self._context)
-        self._context.on_shutdown(self._wake_hot)
-
-    # ---- the spinning thread: everything but the hot subscriptions ---------------------------
-    def can_execute(self, entity) -> bool:
-        """False for the hot subscriptions: they stay out of this executor's wait set."""
-        return id(entity) not in self._hot_ids and super().can_execute(entity)
-
-    def spin_once(self, timeout_sec=None) -> None:
-        self._spin_once(timeout_sec, self._hot_failed)
-
-    def spin_once_until_future_complete(self, future, timeout_sec=None) -> None:
-        future.add_done_callback(lambda _: self.wake())
-        self._spin_once(timeout_sec, lambda: future.done() or self._hot_failed())
-
-    def _hot_failed(self) -> bool:
-        return self._hot_error is not None
-
-    def _spin_once(self, timeout_sec, condition) -> None:
-        if self._hot_thread is None and self._hot and not self._is_shutdown:
-            self._hot_thread = threading.Thread(target=self._run_hot, name="hot-path", daemon=True)
-            self._hot_thread.start()
-        try:
-            handler, _, _ = self.wait_for_ready_callbacks(timeout_sec, None, condition)
-        except (ShutdownException, TimeoutException, ConditionReachedException):
-            pass
-        else:
-            with self._lock:
-                handler()
-            if handler.exception() is not None:
-                raise handler.exception()
-            handler.result()
-        if self._hot_error is not None:
-            error, self._hot_error = self._hot_error, None
-            raise error
-
-    def shutdown(self, timeout_sec=None) -> bool:
-        """Stop the hot-path thread (after the callback it may be in), then as rclpy's executors."""
-        self._hot_stop = True
-        self._wake_hot()
-        thread = self._hot_thread
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(timeout_sec)
-        done = super().shutdown(timeout_sec)
-        for gc in (self._hot_gc, self._hot_sigint):
-            try:
-                gc.destroy()
-            except (InvalidHandle, ValueError):   # destroyed already / not registered
-                pass
-        return done
-
-    # ---- the hot-path thread -----------------------------------------------------------------
-    def _wake_hot(self) -> None:
-        try:
-            self._hot_gc.trigger()
-        except InvalidHandle:
-            pass
-
-    def _run_hot(self) -> None:
-        try:
-            self._serve_hot()
-        except BaseException as exc:  # noqa: B036 — not handled here: re-raised in the spinning thread
-            self._hot_error = exc
-            self.wake()
-
-    def _serve_hot(self) -> None:
-        ctx, subs, lock = self._context, self._hot, self._lock
-        guards, events = (self._hot_gc, self._hot_sigint), self._hot_events
-        with ExitStack() as held:   # no handle is destroyed while this thread may use it
-            for entity in (*subs, *guards):
-                held.enter_context(entity.handle)
-            for eh in events:
-                held.enter_context(eh)
-            held.enter_context(ctx.handle)
-            n_events = sum(eh.get_num_entities().num_events for eh in events)
-            wait_set = _rclpy.WaitSet(len(subs), len(guards), 0, 0, 0, n_events, ctx.handle)
-            handles = [sub.handle for sub in subs]
-            guard_handles = [gc.handle for gc in guards]
-            streams = [(sub.handle.take_message, sub.msg_type, sub.raw, sub.callback) for sub in subs]
-            while not self._hot_stop and ctx.ok():
-                wait_set.clear_entities()
-                for h in handles:
-                    wait_set.add_subscription(h)
-                for h in guard_handles:
-                    wait_set.add_guard_condition(h)
-                for eh in events:
-                    eh.add_to_wait_set(wait_set)
-                wait_set.wait(self._hot_timeout_ns)
-                if self._hot_stop or not ctx.ok():
-                    break
-                for eh in events:   # rare: a publisher with incompatible QoS or type appeared
-                    if eh.is_ready(wait_set):
-                        task = Task(eh.execute, (eh.take_data(),))
-                        with lock:
-                            task()
-                        task.result()   # raises what the callback raised
-                ready = streams
-                while ready:   # one message of each stream per round, until all are empty
-                    more = []
-                    with lock:
-                        for stream in ready:
-                            take, msg_type, raw, callback = stream
-                            got = take(msg_type, raw)
-                            if got is not None:
-                                callback(got[0])
-                                more.append(stream)
-                    ready = more
 
 
 # --------------------------------------------------------------------------------------------

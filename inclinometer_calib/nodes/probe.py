@@ -83,6 +83,12 @@ INPUT_DAMAGED = 3
 #: Shortest wall-clock interval between two /clock messages, s: enough for the other nodes'
 #: stamps (10 ms of wall time), a fraction of the sample rate's message load.
 CLOCK_PERIOD_S = 0.01
+#: Shortest period of the publishing timer, s (wall time): at higher sample rates each tick sends
+#: every sample due.  Each tick costs rclpy's executor a walk of the node's whole wait set (about
+#: 0.1 ms of CPU); a 2 ms floor made that most of the node's CPU at 1-2 kHz (replay at speed 10-20).
+#: 10 ms is the clock's own granularity (CLOCK_PERIOD_S); the readers' queues hold far more than
+#: one tick's samples.
+MIN_TICK_S = 0.01
 KNOWN_BAG_TOPICS = PROBE_TOPICS   # what a replay publishes again, with the type each must have
 #: Samples prepared (simulated, converted to messages' floats) at a time by default (the
 #: ``chunk_samples`` parameter): 10 s at 1 kHz, a few MB.
@@ -282,7 +288,7 @@ class ProbeNode(Node):
         self._created = time.monotonic()
         self._wall0 = self._log0 = 0.0
         self._stamp0 = 0.0
-        period = min(max(1.0 / (self.rate_hz * self.speed), 0.002), 0.02)
+        period = min(max(1.0 / (self.rate_hz * self.speed), MIN_TICK_S), 0.02)
         self._timer = c.steady_timer(self, period, self._tick)
         dur = self.script.t_last - self.script.t_first
         self.get_logger().info(

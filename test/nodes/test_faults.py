@@ -308,7 +308,9 @@ def fault_runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("faults")
     env = _free_env()
     t0 = time.monotonic()
-    common = ("--speed", 4.0, "--reliable", "--timeout", 150, "--drain", 1.5)
+    # --no-loop: these runs check recovery and the summary's bag parts; the summary's model loop (the
+    # lab on the recorded bag, seconds of CPU) is test_graph.py's subject
+    common = ("--speed", 4.0, "--reliable", "--timeout", 150, "--drain", 1.5, "--no-loop")
     a = Launch(env, "--out", root / "a", "--stations", 14, "--seed", 11, *common)
     b = Launch(env, "--out", root / "b", "--stations", 18, "--seed", 12,
                "--param", "probe:calibration_session:=false", *common)
