@@ -2,11 +2,14 @@
 # Set up everything (idempotent) and run the whole test suite.  Extra arguments go to pytest (then
 # one pytest run of what they name, e.g. ./scripts/test.sh test/test_turntable.py -x).
 #
-# Without arguments: one pytest run on pytest-xdist workers (TEST_WORKERS, default: twice the
-# cores), --dist loadgroup.  Each ROS 2 graph module (test/nodes, test/ros: real node processes
-# over real DDS, a ROS_DOMAIN_ID per test, discovery on this machine only) is one group that a
-# worker runs whole, and the groups start first (test/conftest.py); they spend much of their time
-# waiting on the graph, so the other workers' CPU-bound numerics fill the cores meanwhile.
+# Without arguments, two pytest runs at once:
+# - the ROS 2 graph tests (test/nodes, test/ros: real node processes over real DDS, a
+#   ROS_DOMAIN_ID per test, discovery on this machine only), two at a time, a module per worker
+#   (--dist loadscope: a module's graph fixture runs once).  Their nodes keep up with a replay in
+#   real time or faster, so they get the cores first;
+# - every other test (CPU-bound numerics that share no state) on every core, at nice 10: they take
+#   what the graph tests leave, which is most of it, as those mostly wait on the graph.
+# The graph tests' output comes first, then the others'.  The exit status is the first failure's.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$here/scripts/setup.sh"
@@ -16,10 +19,23 @@ cd "$here"
 # the suite starts hundreds of Python processes (CLI commands, nodes, workers): let them share
 # compiled bytecode instead of compiling the package again in each (some shells set this)
 unset PYTHONDONTWRITEBYTECODE
-# the workers already outnumber the cores: BLAS threads on top would only wait for each other
+# the workers already use every core: BLAS threads on top would only wait for each other
 export OPENBLAS_NUM_THREADS="${OPENBLAS_NUM_THREADS:-1}"
+# a process that crashes (a node, a worker) prints every thread's Python stack
+export PYTHONFAULTHANDLER=1
 if [ "$#" -gt 0 ]; then
     exec python -m pytest -q "$@"
 fi
-cores="$(nproc 2>/dev/null || echo 2)"
-exec python -m pytest test -q -n "${TEST_WORKERS:-$((2 * cores))}" --dist loadgroup
+numerics_log="$(mktemp "${TMPDIR:-/tmp}/inclinometer_calib_tests.XXXXXX")"
+trap 'rm -f "$numerics_log"' EXIT
+nice -n 10 python -m pytest test -q -n auto --ignore=test/nodes --ignore=test/ros >"$numerics_log" 2>&1 &
+numerics=$!
+rc=0
+python -m pytest test/nodes test/ros -q -n 2 --dist loadscope || rc=$?
+r=0
+wait "$numerics" || r=$?
+echo
+echo "---- tests without a ROS graph ----"
+cat "$numerics_log"
+[ "$rc" -eq 0 ] && rc=$r
+exit "$rc"
