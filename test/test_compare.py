@@ -10,6 +10,10 @@ from inclinometer_calib.coeffs import Calibration
 from inclinometer_calib.probelog import read_csv
 from inclinometer_calib.reprocess import write_probe_bag
 
+# one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
+# fixtures, which build the data every test reads, run once, not once per worker
+pytestmark = pytest.mark.xdist_group("compare")
+
 pytest.importorskip("matplotlib")
 
 

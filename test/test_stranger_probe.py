@@ -17,6 +17,10 @@ from inclinometer_calib.coeffs import Calibration
 from inclinometer_calib.probelog import read_csv, segment_stations
 from inclinometer_calib.survey import evaluate, summarize
 
+# one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
+# fixtures, which build the data every test reads, run once, not once per worker
+pytestmark = pytest.mark.xdist_group("stranger-probe")
+
 
 def _run(capsys, argv):
     capsys.readouterr()

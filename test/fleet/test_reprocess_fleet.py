@@ -27,6 +27,10 @@ from inclinometer_calib.frames import Site
 from inclinometer_calib.launcher import read_bag
 from inclinometer_calib.reprocess import reprocess, write_probe_bag
 
+# one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
+# fixtures, which build the data every test reads, run once, not once per worker
+pytestmark = pytest.mark.xdist_group("fleet-reprocess")
+
 UTC = dt.timezone.utc
 T0 = dt.datetime(2026, 3, 2, 8, 0, tzinfo=UTC)      # first calibration of every probe
 T1 = T0 + dt.timedelta(days=30)                     # second
