@@ -6,15 +6,20 @@ core (the recorder) can use it without importing numpy and scipy (``common`` re-
 from __future__ import annotations
 
 import threading
+import time
 from contextlib import ExitStack
 
 from rclpy.exceptions import InvalidHandle
-from rclpy.executors import ConditionReachedException, Executor, ShutdownException, TimeoutException
+from rclpy.executors import (ConditionReachedException, Executor, ExternalShutdownException, ShutdownException,
+                             TimeoutException)
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.signals import SignalHandlerGuardCondition
+from rclpy.signals import SignalHandlerGuardCondition, SignalHandlerOptions
 from rclpy.subscription import Subscription
 from rclpy.task import Task
+
+
+_RCLPY_HANDLES_SIGINT = (SignalHandlerOptions.ALL, SignalHandlerOptions.SIGINT)
 
 
 class HotPathExecutor(Executor):
@@ -46,10 +51,26 @@ class HotPathExecutor(Executor):
     exception, raised in the spinning thread, as rclpy's executors raise a callback's.
     ``wait_timeout_s`` bounds each hot wait, so that the thread also notices a shutdown of the
     context that no guard announced.
+
+    :meth:`shutdown` unregisters the two SIGINT guards (rclpy's and the hot thread's) only once
+    no signal can be walking them: rclpy handles SIGINT/SIGTERM in a C++ thread of its own,
+    without the GIL or a lock, which triggers every registered SIGINT guard from a global array
+    and then shuts the contexts down; unregistering a guard frees that array and destroying it
+    frees the guard, so doing either while that thread walks them (right after a Ctrl-C, when
+    the node's ``main`` calls :meth:`shutdown`) writes into freed memory — a segfault later,
+    anywhere.  After a Ctrl-C in :meth:`spin_once` it waits (at most ``signal_wait_s``) for the
+    context to be shut down, that thread's last step; otherwise the guards stay registered
+    until the context shuts down (or the executor is collected).  A context that thread shuts
+    down just before the spinning thread builds its wait set ends the spin with
+    :class:`~rclpy.executors.ExternalShutdownException`, as rclpy's executors end it when that
+    happens during the wait (rclpy's wait set would raise ``RCLError``).
     """
 
-    def __init__(self, hot=(), *, context=None, wait_timeout_s: float = 0.5):
+    def __init__(self, hot=(), *, context=None, wait_timeout_s: float = 0.5, signal_wait_s: float = 2.0):
         super().__init__(context=context)
+        self._interrupted = False   # a KeyboardInterrupt left spin_once: rclpy's signal thread is at work
+        self._signal_wait_s = signal_wait_s
+        self._sigint_guards = []    # unregistered by _release_sigint_guards, when no signal walks them
         self._hot = []
         self._hot_events = []
         self._hot_ids = set()   # the objects stay referenced (in the lists): their ids stay theirs
@@ -102,9 +123,22 @@ class HotPathExecutor(Executor):
             handler, _, _ = self.wait_for_ready_callbacks(timeout_sec, None, condition)
         except (ShutdownException, TimeoutException, ConditionReachedException):
             pass
+        except _rclpy.RCLError:   # rclpy's wait set refuses a context that is down
+            if self._context.ok():
+                raise
+            # rclpy's signal thread shut it down between rclpy's check and its wait set: say so
+            # as rclpy says it when that happens during the wait
+            raise ExternalShutdownException() from None
+        except KeyboardInterrupt:
+            self._interrupted = True   # Ctrl-C: shutdown() lets rclpy's signal thread finish first
+            raise
         else:
-            with self._lock:
-                handler()
+            try:
+                with self._lock:
+                    handler()
+            except KeyboardInterrupt:
+                self._interrupted = True
+                raise
             if handler.exception() is not None:
                 raise handler.exception()
             handler.result()
@@ -113,19 +147,39 @@ class HotPathExecutor(Executor):
             raise error
 
     def shutdown(self, timeout_sec=None) -> bool:
-        """Stop the hot-path thread (after the callback it may be in), then as rclpy's executors."""
+        """Stop the hot-path thread (after the callback it may be in), then as rclpy's executors,
+        but the SIGINT guards go only when no signal can be walking them (see the class)."""
         self._hot_stop = True
         self._wake_hot()
         thread = self._hot_thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(timeout_sec)
+        with self._shutdown_lock:   # the base's: it would destroy rclpy's SIGINT guard now
+            self._is_shutdown = True   # first, as the base does: the spinning thread waits no more
+            if self._sigint_gc is not None:
+                self._sigint_guards += [self._sigint_gc, self._hot_sigint]
+                self._sigint_gc = None
+        self.wake()
         done = super().shutdown(timeout_sec)
-        for gc in (self._hot_gc, self._hot_sigint):
+        try:
+            self._hot_gc.destroy()   # an ordinary guard: no signal thread knows it
+        except InvalidHandle:
+            pass
+        if self._interrupted and _rclpy.get_current_signal_handlers_options() in _RCLPY_HANDLES_SIGINT:
+            # rclpy's signal thread shuts the context down once it has triggered every SIGINT guard
+            end = time.monotonic() + self._signal_wait_s
+            while self._context.ok() and time.monotonic() < end:
+                time.sleep(0.001)
+        self._context.on_shutdown(self._release_sigint_guards)   # now if the context is down already
+        return done
+
+    def _release_sigint_guards(self) -> None:
+        guards, self._sigint_guards = self._sigint_guards, []
+        for gc in guards:
             try:
                 gc.destroy()
             except (InvalidHandle, ValueError):   # destroyed already / not registered
                 pass
-        return done
 
     # ---- the hot-path thread -----------------------------------------------------------------
     def _wake_hot(self) -> None:
