@@ -140,9 +140,12 @@ class CalibrationNode(Node):
 
         self.pub_status = self.create_publisher(CalibrationStatus, c.TOPIC_STATUS, c.reliable_qos(10))
         self.pub_coeffs = self.create_publisher(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, c.latched_qos())
-        self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos)
-        self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos)
-        self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)
+        # the sample streams on a wait set of their own (c.HotPathExecutor, as the correction node's):
+        # on rclpy's stock executor each message walks the node's whole wait set, about twice the CPU
+        # per sample (docs/benchmarks.md, section 5)
+        self.hot_subscriptions = (self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
+                                  self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
+                                  self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos))
         self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(RecapturePose, "~/recapture", self._on_recapture)

@@ -10,7 +10,8 @@ that passes ``topics`` / ``exclude`` and has at least one publisher is subscribe
 every publisher is (so latched messages such as calibration coefficients published before the
 recorder started are still delivered). The callback hands the bytes straight to
 :class:`inclinometer_calib.bag.BagWriter` (log time = the wall-clock receive time, publish time =
-the publisher's source timestamp).  Log times stay wall-clock time even when the graph runs on the
+the publisher's source timestamp); as a process, the node serves these subscriptions on a wait set
+of their own (:class:`.executor.HotPathExecutor`: every message waiting is written per wake-up).  Log times stay wall-clock time even when the graph runs on the
 probe's ``/clock`` (header stamps in log time): what ``ros2 bag record`` does without
 ``--use-sim-time``; the header stamps inside the messages carry the run's time base.
 
@@ -41,6 +42,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..bag import BagWriter, UnknownTypeError, normalize_type
+from .executor import HotPathExecutor
 
 NODE_NAME = "recorder"
 DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
@@ -154,6 +156,8 @@ class Recorder(Node):
                              max_chunk_s=max_chunk_s - tick_s)
         self.output = str(self.bag.path)
         self._subs: Dict[str, object] = {}
+        #: called with each new recording subscription (main(): the executor's ``add_hot``)
+        self.on_subscribed = None
         self._skipped: Dict[str, str] = {}
         self._closed = False
         self.get_logger().info(
@@ -209,6 +213,8 @@ class Recorder(Node):
             qos = subscription_qos(offered)
             self._subs[topic] = self.create_subscription(
                 msg_type, topic, _make_callback(self.bag.write, cid), qos, raw=True)
+            if self.on_subscribed is not None:
+                self.on_subscribed(self._subs[topic])
             self.get_logger().info(
                 f"recording {topic} [{type_name}] ({qos.reliability.name.lower()}, "
                 f"{qos.durability.name.lower()})")
@@ -251,16 +257,25 @@ def main(args: Optional[List[str]] = None) -> int:
     # rclpy 7 (Jazzy) init() returns None, not a context manager: shut down in finally
     rclpy.init(args=args)
     node: Optional[Recorder] = None
+    executor: Optional[HotPathExecutor] = None
     try:
         try:
             node = Recorder()
         except (FileExistsError, ValueError, OSError) as exc:
             print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr, flush=True)
             return 1
-        rclpy.spin(node)
+        # every recording subscription on the hot path: each wake-up writes every message waiting,
+        # instead of rclpy's stock executor walking the node's whole wait set per message (the
+        # recorder takes every stream of the graph; measured on a 49 400-sample replay at 2 kHz:
+        # 12.6 -> 3.7 s of CPU); discovery, chunk closing and the parameter services stay here
+        executor = HotPathExecutor(node._subs.values())
+        node.on_subscribed = executor.add_hot
+        rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        if executor is not None:
+            executor.shutdown()   # no write from the hot path while the bag is finalized
         if node is not None:
             _finalize(node)
             node.destroy_node()
