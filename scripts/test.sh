@@ -7,10 +7,11 @@
 #   ROS_DOMAIN_ID per test, discovery on this machine only), two at a time, a module per worker
 #   (--dist loadscope: a module's graph fixture runs once).  Their nodes keep up with a replay in
 #   real time or faster, so they get the cores first;
-# - every other test (CPU-bound numerics) on every core, at nice 10: they take what the graph tests
-#   leave, which is most of it, as those mostly wait on the graph.  --dist loadgroup: a test runs
-#   wherever a worker is free, except the modules marked as one xdist_group (their costly module
-#   fixtures then run once, not once per worker).
+# - every other test (CPU-bound numerics) on every core, at nice 19: they take what the graph tests
+#   leave, which is most of it, as those mostly wait on the graph; a graph test's node that needs a
+#   core gets it at once (their replays and unstamped depth feed are timing-sensitive under load).
+#   --dist loadgroup: a test runs wherever a worker is free, except the modules marked as one
+#   xdist_group (their costly module fixtures then run once, not once per worker).
 # The graph tests' output comes first, then the others'.  The exit status is the first failure's.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -30,7 +31,7 @@ if [ "$#" -gt 0 ]; then
 fi
 numerics_log="$(mktemp "${TMPDIR:-/tmp}/inclinometer_calib_tests.XXXXXX")"
 trap 'rm -f "$numerics_log"' EXIT
-nice -n 10 python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros >"$numerics_log" 2>&1 &
+nice -n 19 python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros >"$numerics_log" 2>&1 &
 numerics=$!
 rc=0
 python -m pytest test/nodes test/ros -q -n 2 --dist loadscope || rc=$?
