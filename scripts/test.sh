@@ -2,17 +2,16 @@
 # Set up everything (idempotent) and run the whole test suite.  Extra arguments go to pytest (then
 # one pytest run of what they name, e.g. ./scripts/test.sh test/test_turntable.py -x).
 #
-# Without arguments, two pytest runs at once:
+# Without arguments, two pytest runs, one after the other:
+# - every test without a ROS graph (CPU-bound numerics) on every core, --dist loadgroup: a test
+#   runs wherever a worker is free, except the modules marked as one xdist_group (their costly
+#   module fixtures then run once, not once per worker);
 # - the ROS 2 graph tests (test/nodes, test/ros: real node processes over real DDS, a
 #   ROS_DOMAIN_ID per test, discovery on this machine only), two at a time, a module per worker
-#   (--dist loadscope: a module's graph fixture runs once).  Their nodes keep up with a replay in
-#   real time or faster, so they get the cores first;
-# - every other test (CPU-bound numerics) on every core, at nice 19: they take what the graph tests
-#   leave, which is most of it, as those mostly wait on the graph; a graph test's node that needs a
-#   core gets it at once (their replays and unstamped depth feed are timing-sensitive under load).
-#   --dist loadgroup: a test runs wherever a worker is free, except the modules marked as one
-#   xdist_group (their costly module fixtures then run once, not once per worker).
-# The graph tests' output comes first, then the others'.  The exit status is the first failure's.
+#   (--dist loadscope: a module's graph fixture runs once).  They run alone: run beside the
+#   numerics, even at nice 19, their nodes fell behind the replays (the unstamped depth and the
+#   order of coefficients and stations are timing-sensitive: docs/benchmarks.md, section 9).
+# The exit status is the first failure's.
 set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$here/scripts/setup.sh"
@@ -29,16 +28,7 @@ export PYTHONFAULTHANDLER=1
 if [ "$#" -gt 0 ]; then
     exec python -m pytest -q "$@"
 fi
-numerics_log="$(mktemp "${TMPDIR:-/tmp}/inclinometer_calib_tests.XXXXXX")"
-trap 'rm -f "$numerics_log"' EXIT
-nice -n 19 python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros >"$numerics_log" 2>&1 &
-numerics=$!
 rc=0
-python -m pytest test/nodes test/ros -q -n 2 --dist loadscope || rc=$?
-r=0
-wait "$numerics" || r=$?
-echo
-echo "---- tests without a ROS graph ----"
-cat "$numerics_log"
-[ "$rc" -eq 0 ] && rc=$r
+python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros || rc=$?
+python -m pytest test/nodes test/ros -q -n 2 --dist loadscope || { r=$?; [ "$rc" -eq 0 ] && rc=$r; }
 exit "$rc"
