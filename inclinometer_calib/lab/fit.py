@@ -45,7 +45,7 @@ def split_oriented(data) -> tuple:
     return (data.subset(ori) if ori.any() else None), (data.subset(~ori) if (~ori).any() else None)
 
 
-class Fixed:
+class ResidualCache:
     """What the residuals take from the data and from the model's structure, neither of which a
     fit changes: :func:`fit` computes it once for its hundreds of evaluations (recomputed at each,
     the two subsets and the prior rows' scales took a fifth of it: 0.62 against 0.49 ms on the
@@ -58,13 +58,13 @@ class Fixed:
         self.prior_mask, self.prior_den = _prior_scales(model)
 
 
-def residual_vector(model: LabModel, data, theta=None, prior=True, fixed: Fixed | None = None) -> np.ndarray:
+def residual_vector(model: LabModel, data, theta=None, prior=True, cache: ResidualCache | None = None) -> np.ndarray:
     """Noise-normalised residuals of ``model`` (with parameters ``theta`` if given) on ``data``
-    (``fixed``: :class:`Fixed` of this model and data, when the caller has it)."""
+    (``cache``: :class:`ResidualCache` of this model and data, when the caller has it)."""
     if theta is not None:
         model.set_vector(theta)
     parts = []
-    d_ori, d_free = split_oriented(data) if fixed is None else fixed.split
+    d_ori, d_free = split_oriented(data) if cache is None else cache.split
     if d_ori is not None:
         d = d_ori
         g_t, b_t = model.true_vectors(d)
@@ -79,7 +79,7 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, fixed: Fixed 
         parts += [(gn - model.site.gravity_mps2) / sg, (bn - model.site.total_field_nt) / sb,
                   (dip - model.dip_deg) / sdip]
     if prior:
-        parts.append(_prior_residual(model, fixed))
+        parts.append(_prior_residual(model, cache))
     return np.concatenate(parts)
 
 
@@ -97,10 +97,10 @@ def residual_groups(data) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, dtype=str)
 
 
-def _prior_residual(model: LabModel, fixed: Fixed | None = None) -> np.ndarray:
+def _prior_residual(model: LabModel, cache: ResidualCache | None = None) -> np.ndarray:
     """The weak prior rows (extra parameters over 100× their typical size), then the gauge rows
     (:meth:`LabModel.gauge_residual`)."""
-    mask, den = _prior_scales(model) if fixed is None else (fixed.prior_mask, fixed.prior_den)
+    mask, den = _prior_scales(model) if cache is None else (cache.prior_mask, cache.prior_den)
     return np.concatenate([model.get_vector()[mask] / den, model.gauge_residual()])
 
 
@@ -200,8 +200,8 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     free = np.ones(len(x_all), bool) if fixed is None else ~np.asarray(fixed, bool)
     scale_all = model.param_scale()
     x0, scale = x_all[free], scale_all[free]
-    fixed_rows = Fixed(model, data)
-    n_data = len(residual_vector(model, data, x_all, prior=False, fixed=fixed_rows))
+    cache = ResidualCache(model, data)
+    n_data = len(residual_vector(model, data, x_all, prior=False, cache=cache))
     calls = [0]
 
     def full(x):
@@ -213,7 +213,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
         calls[0] += 1
         if progress and calls[0] % 500 == 0:
             progress(f"fit: {calls[0]} evaluations")
-        return residual_vector(model, data, full(x), fixed=fixed_rows)
+        return residual_vector(model, data, full(x), cache=cache)
 
     def solve(x_start):
         """Levenberg–Marquardt from ``x_start`` (with the stand's pose errors, the poses found off
@@ -244,7 +244,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
             smooth(model, data)
         x, jac, ok, msg, nfev = x0, np.zeros((0, 0)), True, "nothing to fit", 0
     model.set_vector(full(x))
-    r_data = residual_vector(model, data, prior=False, fixed=fixed_rows)
+    r_data = residual_vector(model, data, prior=False, cache=cache)
     chi2 = float(r_data @ r_data)
     # a stochastic effect's path counts with its effective degrees of freedom
     p = int(free.sum())
