@@ -149,11 +149,15 @@ class CorrectionNode(Node):
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG_CORRECTED, qos)
         # the sample streams (the probe publishes a temperature with every sample): served on a wait set
         # of their own when the node runs as a process (common.HotPathExecutor, through common.run)
+        # the depth (unstamped) holds from the last sample before it: on the hot path with the samples,
+        # which delivers every stream in the order it arrived, a depth change is placed right even when
+        # the node runs behind the probe (on rclpy's executor, in the other thread, it was placed at the
+        # last sample *processed*, which under load was a station too early)
         self.hot_subscriptions = (self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
                                   self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
-                                  self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos))
+                                  self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos),
+                                  self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100)))
         self.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100))
-        self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))
         self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
         if self.use_topic:
             self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,

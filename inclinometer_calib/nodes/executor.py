@@ -22,6 +22,11 @@ from rclpy.task import Task
 _RCLPY_HANDLES_SIGINT = (SignalHandlerOptions.ALL, SignalHandlerOptions.SIGINT)
 
 
+def _arrival(item):
+    """Sort key of a taken message: (received ns, stream index, position taken)."""
+    return item[0], item[1], item[2]
+
+
 class HotPathExecutor(Executor):
     """A single-threaded executor that gives a node's high-rate subscriptions a wait set of their own.
 
@@ -32,10 +37,12 @@ class HotPathExecutor(Executor):
     5).  Here the ``hot`` subscriptions (a node's sample streams) are served by a thread of their
     own, on a wait set that holds only them, their QoS event handlers (incompatible QoS or type:
     said as rclpy says them), a stop guard and the SIGINT guard: each wake-up takes every message
-    there is, one per subscription in turn (the order in which rclpy's executors deliver them, so
-    that streams paired by stamp arrive interleaved, not one stream's backlog before the
-    other's), and calls their callbacks (with the message info when the callback takes two
-    arguments, as rclpy's executors do).  Every other entity is served as
+    there is and calls their callbacks in the order the middleware received them (the message
+    info's ``received_timestamp``; with the message info when the callback takes two arguments,
+    as rclpy's executors do).  So streams paired by stamp arrive interleaved, not one stream's
+    backlog before the other's, and an unstamped stream served here with them (the correction
+    node's depth) is seen between the samples that arrived before and after it,
+    however far behind the node is.  Every other entity is served as
     :class:`rclpy.executors.SingleThreadedExecutor` serves it, in the thread that spins, from a
     wait set without the hot subscriptions and their event handlers (:meth:`can_execute`).
     The event handlers must go with their subscription: with Fast DDS an event waits on the
@@ -232,17 +239,20 @@ class HotPathExecutor(Executor):
                         with lock:
                             task()
                         task.result()   # raises what the callback raised
-                ready = streams
-                while ready:   # one message of each stream per round, until all are empty
-                    more = []
-                    with lock:
-                        for stream in ready:
-                            take, msg_type, raw, callback, info = stream
-                            got = take(msg_type, raw)
-                            if got is not None:
-                                if info:
-                                    callback(*got)
-                                else:
-                                    callback(got[0])
-                                more.append(stream)
-                    ready = more
+                # every message waiting, then delivered in the order the middleware received them
+                # (the message info's received_timestamp; ties: stream, then arrival in it)
+                batch = []
+                for k, (take, msg_type, raw, callback, info) in enumerate(streams):
+                    got = take(msg_type, raw)
+                    while got is not None:
+                        batch.append((got[1]["received_timestamp"], k, len(batch), got, callback, info))
+                        got = take(msg_type, raw)
+                if not batch:
+                    continue
+                batch.sort(key=_arrival)
+                with lock:
+                    for _, _, _, got, callback, info in batch:
+                        if info:
+                            callback(*got)
+                        else:
+                            callback(got[0])
