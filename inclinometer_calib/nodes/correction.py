@@ -131,7 +131,7 @@ class CorrectionNode(Node):
         self._have_temp = False
         self._last_wall = None
         self.refs = ReferenceTrack()
-        # /probe/depth has no stamp: each value holds from the last sample before it arrived
+        # /probe/depth has no stamp: each value holds from the last sample that arrived before it
         self.depths = ReferenceTrack()
         self._t_sample = -math.inf
         self._pending = collections.deque()   # (station, monotonic time) waiting for the reference
@@ -149,19 +149,23 @@ class CorrectionNode(Node):
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG_CORRECTED, qos)
         # the sample streams (the probe publishes a temperature with every sample): served on a wait set
         # of their own when the node runs as a process (common.HotPathExecutor, through common.run)
-        # the depth (unstamped) holds from the last sample before it: on the hot path with the samples,
-        # which delivers every stream in the order it arrived, a depth change is placed right even when
-        # the node runs behind the probe (on rclpy's executor, in the other thread, it was placed at the
-        # last sample *processed*, which under load was a station too early)
-        self.hot_subscriptions = (self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
-                                  self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
-                                  self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos),
-                                  self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100)))
+        # The hot path delivers its streams in the order the middleware received them, so the node
+        # sees what the probe and the calibration node sent in the order they sent it, however far
+        # behind it runs (on rclpy's executor, in the other thread, a lagging node saw a depth change
+        # or a new record at the last sample it had *processed*: a station too early under load):
+        # * the depth (unstamped) holds from the last sample before it;
+        # * a record (latched) applies from the first station that closes after it arrived: the
+        #   calibration node publishes it once the last pose has ended, so that pose stays raw.
+        hot = [self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
+               self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
+               self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos),
+               self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))]
+        if self.use_topic:
+            hot.append(self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
+                                                c.latched_qos()))
+        self.hot_subscriptions = tuple(hot)
         self.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100))
         self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
-        if self.use_topic:
-            self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
-                                     c.latched_qos())
         c.steady_timer(self, 1.0, self._on_timer)  # keeps running when /clock (use_sim_time) stops
 
     # ---- coefficients ----------------------------------------------------------------------

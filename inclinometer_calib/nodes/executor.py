@@ -88,6 +88,8 @@ class HotPathExecutor(Executor):
         self._hot_thread = None
         self._hot_stop = False
         self._hot_timeout_ns = int(wait_timeout_s * 1e9)
+        self._hot_carry = []   # messages taken after a round's cut: the next round's (see _serve_hot)
+        self._hot_taken = 0    # messages taken so far: the position of the next
         self._hot_gc = GuardCondition(callback=None, callback_group=None, context=self._context)
         self._hot_sigint = SignalHandlerGuardCondition(self._context)
         self._context.on_shutdown(self._wake_hot)
@@ -230,7 +232,7 @@ class HotPathExecutor(Executor):
                     wait_set.add_guard_condition(h)
                 for eh in events:
                     eh.add_to_wait_set(wait_set)
-                wait_set.wait(self._hot_timeout_ns)
+                wait_set.wait(0 if self._hot_carry else self._hot_timeout_ns)
                 if self._hot_stop or not ctx.ok():
                     break
                 for eh in events:   # rare: a publisher with incompatible QoS or type appeared
@@ -239,17 +241,25 @@ class HotPathExecutor(Executor):
                         with lock:
                             task()
                         task.result()   # raises what the callback raised
-                # every message waiting, then delivered in the order the middleware received them
-                # (the message info's received_timestamp; ties: stream, then arrival in it)
-                batch = []
+                # every message received up to now, delivered in the order the middleware received
+                # them (the message info's received_timestamp, system time in ns; ties: stream, then
+                # arrival in it).  One received while the streams are being taken (after the cut) may
+                # be later than one still to be taken from another stream: it waits for the next round
+                # (once: a stamp from some other clock must not hold a message back for ever).
+                cut, first = time.time_ns(), self._hot_taken
+                batch, self._hot_carry = self._hot_carry, []
                 for k, (take, msg_type, raw, callback, info) in enumerate(streams):
                     got = take(msg_type, raw)
                     while got is not None:
-                        batch.append((got[1]["received_timestamp"], k, len(batch), got, callback, info))
+                        batch.append((got[1]["received_timestamp"], k, self._hot_taken, got, callback, info))
+                        self._hot_taken += 1
                         got = take(msg_type, raw)
                 if not batch:
                     continue
                 batch.sort(key=_arrival)
+                if batch[-1][0] > cut:
+                    self._hot_carry = [item for item in batch if item[0] > cut and item[2] >= first]
+                    batch = [item for item in batch if item[0] <= cut or item[2] < first]
                 with lock:
                     for _, _, _, got, callback, info in batch:
                         if info:

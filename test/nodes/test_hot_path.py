@@ -118,6 +118,7 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
     executor.add_node(node)
     # the sample streams and their QoS events are out of the spinning thread's wait set, the rest in it
     hot = {id(s) for s in node.hot_subscriptions} | {id(e) for s in node.hot_subscriptions for e in s.event_handlers}
+    # (the coefficients' topic too when it is used: use_topic is false here)
     assert {s.topic_name for s in node.hot_subscriptions} == {c.TOPIC_IMU, c.TOPIC_MAG, c.TOPIC_TEMPERATURE,
                                                                   c.TOPIC_DEPTH}
     for entity in (*node.subscriptions, *node.waitables, *node.timers, *node.services):

@@ -4,6 +4,7 @@ file, read back by the tests' own parser; raw and error stations are not sent.  
 rewrites a WITSML 2.1 Trajectory after every station: it validates against the Energistics schema
 and parses back to the numbers published (error stations as ``rejected``), and is marked inactive
 when the node stops."""
+import signal
 import socket
 import subprocess
 import sys
@@ -108,7 +109,12 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
             assert b["coefficients_id"] == "abc123" and b["azimuth_reference"] == "true"
     finally:
         proc.terminate()
-        log = proc.communicate(timeout=20)[0]
+        try:
+            log = proc.communicate(timeout=20)[0]
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)              # PYTHONFAULTHANDLER: every thread's stack
+            log = proc.communicate(timeout=20)[0]
+            pytest.fail(f"the node did not end within 20 s of SIGTERM; its log and stacks:\n{log[-8000:]}")
     assert "station 3: status error" in log and "Traceback" not in log, log
     final = traj.read_bytes()                                 # the node's last rewrite: the survey is over
     witsml.validate(final)
