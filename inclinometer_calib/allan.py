@@ -32,7 +32,6 @@ import math
 from dataclasses import dataclass, field
 from functools import partial
 
-import allantools
 import numpy as np
 from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.optimize import brentq, minimize_scalar, nnls
@@ -70,6 +69,8 @@ def allan_curve(segments, rate_hz: float | None = None) -> AllanCurve:
     a third of the longest segment, the Allan variance of every segment long enough
     (``n ≥ 3·m``) is averaged, weighted by its degrees of freedom.
     """
+    import allantools   # here, not at import: it brings scipy.signal to every process that imports the lab
+
     segs = [np.asarray(s, dtype=float) for s in segments if s is not None and len(s) >= 3]
     if not segs:
         return AllanCurve(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), float("nan"), 0)

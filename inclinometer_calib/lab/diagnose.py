@@ -34,7 +34,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.special import chdtrc
-from scipy.stats import ttest_1samp
 
 from .. import effects as fx
 from ..station import Stations
@@ -554,6 +553,8 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         if by_field:
             # and it must not make the field errors worse beyond their scatter (one-sided t-test of
             # the stations' squared pointing errors, candidate minus base)
+            from scipy.stats import ttest_1samp   # here: scipy.stats costs every process that imports the lab 0.3 s
+
             diff = pointing_errors(trial, data) ** 2 - pe_base ** 2
             p_field = float(ttest_1samp(diff, 0.0, alternative="greater").pvalue) if np.any(diff != 0) else 1.0
             if p_field < WORSE:
