@@ -68,7 +68,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 #: Mount -> (p, q, a): the two marked axes in the table plane in cyclic order, and the table axis.
 MOUNTS = {"xy": (0, 1, 2), "xz": (2, 0, 1), "yz": (1, 2, 0)}
@@ -496,6 +495,8 @@ def solve(steps, field_nt: float | None = None, free_angles: bool | None = None)
 
     ``field_nt``: the site's total field (absolute ``k``); None: relative ``k`` (mean 1).
     ``free_angles``: estimate every step's angle (default: when the log does not give them)."""
+    from scipy.optimize import least_squares   # here: scipy.optimize costs the calibration node's start 0.27 s
+
     check_steps(steps)
     given = np.all([np.isfinite(s.table_deg) for s in steps])
     free = (not given) if free_angles is None else bool(free_angles)
