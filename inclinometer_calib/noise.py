@@ -48,18 +48,18 @@ def chi_quantile(n: int, q: float = LOW_QUANTILE) -> float:
     """Quantile ``q`` of ``s/σ`` for the sample std ``s`` of ``n`` white-noise samples:
     ``sqrt(χ²_q(n-1) / (n-1))``."""
     dof = max(int(n) - 1, 1)
-    return math.sqrt(_chi2().ppf(q, dof) / dof)
+    return math.sqrt(2.0 * _gammaincinv()(0.5 * dof, q) / dof)   # χ²_q(k) = 2·P⁻¹(k/2, q), as scipy.stats' chi2.ppf
 
 
-def _chi2():
-    """scipy.stats' χ² distribution, imported on the first call: scipy.stats takes about 0.3 s, which
-    every process importing this package (the CLI's, a node's) would pay at start.
-    :class:`NoiseEstimator` calls it when it is made, so that a live node imports it while it
-    starts: on the first closed block it would stall the node's sample callback while its
-    best-effort queue overflows."""
-    from scipy.stats import chi2
+def _gammaincinv():
+    """scipy.special's inverse regularised lower incomplete gamma function P⁻¹(a, q), imported on
+    the first call (scipy.stats' chi2.ppf is this, behind 0.4 CPU-s more of imports that every
+    CLI command and node would pay).  :class:`NoiseEstimator` calls it when it is made, so that a
+    live node imports it while it starts: on the first closed block it would stall the node's
+    sample callback while its best-effort queue overflows."""
+    from scipy.special import gammaincinv
 
-    return chi2
+    return gammaincinv
 
 
 def estimate_from_blocks(block_std: np.ndarray, block_n: float) -> np.ndarray:
@@ -165,7 +165,7 @@ class NoiseEstimator:
         self.prior = (math.nan, math.nan)   # stated σ (from message covariance), per sensor
         self._sigma = (math.nan,) * 6
         self._reset_block()
-        _chi2()     # now, not on the first closed block (see _chi2)
+        _gammaincinv()     # now, not on the first closed block (see _gammaincinv)
 
     def _reset_block(self):
         self._bn = 0

@@ -29,6 +29,21 @@ if [ "$#" -gt 0 ]; then
     exec python -m pytest -q "$@"
 fi
 rc=0
-python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros || rc=$?
-python -m pytest test/nodes test/ros -q -n 2 --dist loadscope || { r=$?; [ "$rc" -eq 0 ] && rc=$r; }
+logs="$(mktemp -d)"
+trap 'rm -rf "$logs"' EXIT
+start=$SECONDS
+# the graph tests: bound by their replays' wall time, not by CPU; at normal priority, so that
+# their nodes keep up with the replays
+python -m pytest test/nodes test/ros -q -n 4 --dist loadscope >"$logs/graph" 2>&1 &
+graph=$!
+# the numerics: CPU-bound, every core, below the graph tests' priority
+nice -n 10 python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros \
+    >"$logs/numerics" 2>&1 &
+numerics=$!
+wait "$numerics" || rc=$?
+echo "== tests without a ROS graph ($((SECONDS - start)) s) =="
+cat "$logs/numerics"
+wait "$graph" || { r=$?; [ "$rc" -eq 0 ] && rc=$r; }
+echo "== ROS 2 graph tests ($((SECONDS - start)) s) =="
+cat "$logs/graph"
 exit "$rc"
