@@ -100,15 +100,17 @@ def test_restarted_correction_node_gets_latched_coefficients(ros_env, tmp_path):
         rcs = [_stop(p) for p in procs[::-1]]
     cal_text = open(tmp_path / "calibration.log").read()
     assert cal_text.count("published coefficients") == 1  # nothing was republished for the new node
-    # the new node numbers its stations from 0; stations of the killed node still in flight when it
-    # died may arrive after n_before was taken: they continue the killed node's numbering
-    new0 = max(i for i, s in enumerate(stations) if s.station_id == 0)
-    assert new0 >= n_before, [s.station_id for s in stations]
+    # the new node (no state file) numbers its stations from 0, as its log says
+    said = [int(x) for x in re.findall(r"station (\d+): drift", open(tmp_path / "correction2.log").read())]
+    assert said == list(range(len(said))) and len(said) >= 4, said
+    # what the watcher got after the kill: stations of the killed node still in flight when it died
+    # (they continue its numbering), then the new node's; the new node's first may be missed, published
+    # before the watcher discovered its publisher (volatile: a station before the match is not resent)
     prev = stations[n_before - 1].station_id if n_before else -1
-    late = [s.station_id for s in stations[n_before:new0]]
-    assert late == list(range(prev + 1, prev + 1 + len(late))), (prev, late)
-    after = stations[new0:]
-    assert [s.station_id for s in after] == list(range(len(after)))
+    got = [s.station_id for s in stations[n_before:]]
+    n_late = next((j for j, i in enumerate(got) if i != prev + 1 + j), len(got))
+    after = stations[n_before + n_late:]
+    assert [s.station_id for s in after] == said[len(said) - len(after):], (prev, got, said)
     ids = [s.coefficients_id for s in after]
     # A station the new node closes before the latched coefficients reach it (DDS discovery of the
     # calibration node can lag the probe's under load) is published uncorrected, marked by an empty
