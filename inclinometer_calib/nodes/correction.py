@@ -338,8 +338,15 @@ class CorrectionNode(Node):
             self._release(force=False)
 
     def _current_at(self, t: float) -> bool:
-        """The reference and the temperatures are in up to ``t``: a station ending then can go."""
-        return self.refs.current_at(t) and (not self._have_temp or self.detector.temps.latest >= t - TIME_EPS)
+        """The reference and the temperatures are in up to ``t``: a station ending then can go.
+        Before the first temperature, a record whose model needs one waits for it too (the
+        temperature topic may be matched after the samples' at start-up: its first messages come
+        late, and a station without them could not be corrected)."""
+        if self._have_temp:
+            temps_in = self.detector.temps.latest >= t - TIME_EPS
+        else:
+            temps_in = self.calibration is None or "temperature" not in self.calibration.needs
+        return self.refs.current_at(t) and temps_in
 
     def _on_depth(self, msg):
         self.depths.add(self._t_sample, (float(msg.data),))
@@ -359,6 +366,11 @@ class CorrectionNode(Node):
                     f"station closed at t={st.t_end:.2f} s: no {c.TOPIC_REFERENCE} up to its end after "
                     f"{time.monotonic() - since:.1f} s (delayed or lost): published with the reference "
                     "last received, which may be the previous station's")
+            if not end and not self._current_at(st.t_end) and self.refs.current_at(st.t_end):
+                self.get_logger().warning(
+                    f"station closed at t={st.t_end:.2f} s: no {c.TOPIC_TEMPERATURE} up to its end after "
+                    f"{time.monotonic() - since:.1f} s (delayed or lost): published with the temperatures "
+                    "received so far")
             self._publish_station(st)
 
     def _sample(self, t, f, m):

@@ -242,3 +242,34 @@ def test_streams_are_delivered_in_the_order_they_arrived_however_large_the_backl
         executor.shutdown()
         spin_thread.join(5.0)
     assert box["error"] is None
+
+
+def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_path):
+    """A record with a temperature effect, and the temperature topic matched after the samples'
+    (its first messages late): the stations closed before the first temperature wait for it, then
+    go out corrected with it, not uncorrectable (NaN) at once."""
+    from inclinometer_calib import effects as fx
+    from inclinometer_calib.model import ProbeModel
+
+    probe = sim.build_probe(3)
+    model = ProbeModel.base(probe.acc, probe.mag).with_effect(fx.make_effect("temperature_bias", "mag", "xyz"), "all")
+    path = tmp_path / "coeffs.yaml"
+    Calibration(model, probe_id="hot", site=Site()).save(path)
+    refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 90.0)]
+    log = sim.run_session(probe, Site(), [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs],
+                          np.random.default_rng(1), rate_hz=100.0, move_s=0.5, survey=True)
+    node = CorrectionNode(parameter_overrides=[Parameter("coeffs_file", value=str(path)),
+                                               Parameter("use_topic", value=False)])
+    ros.append(node)
+    node.pub_station, node.pub_diag = _Collect(), _Collect()
+    msgs = _messages(log)
+    for mi, mm, _ in msgs:                      # the samples, and no temperature yet
+        node._on_imu(mi)
+        node._on_mag(mm)
+    for seg in node.detector.flush():
+        node._station(seg)
+    assert node.pub_station.msgs == [] and len(node._pending) == 2
+    for _, _, mt in msgs:                       # the temperatures, late
+        node._on_temp(mt)
+    got = node.pub_station.msgs
+    assert len(got) == 2 and all(math.isfinite(s.azimuth_deg) and math.isfinite(s.temperature_c) for s in got)
