@@ -207,6 +207,15 @@ class ProbeModel:
         return (fx.apply_chain(g_true, self.chain("acc", role), ctx),
                 fx.apply_chain(b_true, self.chain("mag", role), ctx))
 
+    def forward_triad(self, sensor: str, v_true, temperature_c=None, time_s=None, role: str = "val",
+                      history=None):
+        """One triad's outputs of :meth:`forward` (``sensor`` ``acc``: gravity vector, m/s²;
+        ``mag``: nT), the same bits: the lab's finite differences over one triad's parameters
+        recompute that triad only."""
+        v_true = np.atleast_2d(np.asarray(v_true, dtype=float))
+        ctx = self.context(len(v_true), temperature_c, time_s, role, history=history)
+        return fx.apply_chain(v_true, self.chain(sensor, role), ctx)
+
     def correct(self, g, b, temperature_c=None, time_s=None, role: str = "val", history=None):
         """Corrected gravity vector (m/s², down positive) and field (nT) from raw outputs in the
         same conventions — the one correction path (see the module docstring).
@@ -215,6 +224,10 @@ class ProbeModel:
         the model has effects that depend on them); ``history`` for effects that depend on the
         sequence of holds.  Returns arrays of the input shapes."""
         return CorrectionPlan(self, role).correct(g, b, temperature_c, time_s, history=history)
+
+    def correct_triad(self, sensor: str, h, temperature_c=None, time_s=None, role: str = "val", history=None):
+        """One triad of :meth:`correct` (:meth:`CorrectionPlan.correct_triad`), the same bits."""
+        return CorrectionPlan(self, role, (sensor,)).correct_triad(sensor, h, temperature_c, time_s, history)
 
     # ---- record ---------------------------------------------------------------------------------
     def terms_record(self) -> list:
@@ -283,19 +296,20 @@ class CorrectionPlan:
     """:meth:`ProbeModel.correct` with everything that does not depend on the data worked out once
     (the base triads' correction matrices, the chains): what a node keeps for per-sample use."""
 
-    def __init__(self, model: ProbeModel, role: str = "val"):
+    def __init__(self, model: ProbeModel, role: str = "val", sensors=SENSORS):
+        """``sensors``: the triads to prepare (both by default; the lab's fits correct one at a time)."""
         self.model = model
         self.role = role
-        self.triads = {s: model.triad(s) for s in SENSORS}
-        self.matrix_t = {s: self.triads[s].correction_matrix.T.copy() for s in SENSORS}
-        self.chains = {s: model.chain(s, role) for s in SENSORS}
-        self.extra = {s: len(self.chains[s]) > len(fx.BASE) for s in SENSORS}
+        self.triads = {s: model.triad(s) for s in sensors}
+        self.matrix_t = {s: self.triads[s].correction_matrix.T.copy() for s in sensors}
+        self.chains = {s: model.chain(s, role) for s in sensors}
+        self.extra = {s: len(self.chains[s]) > len(fx.BASE) for s in sensors}
         self.needs = model.needs(role)
         # per-sample form of a base-only triad (correct_sample): C row by row, then B, as floats
         self._floats = {s: None if self.extra[s] else
                         (tuple(float(x) for x in self.matrix_t[s].T.ravel()),
                          tuple(float(x) for x in self.triads[s].bias))
-                        for s in SENSORS}
+                        for s in sensors}
 
     def correct(self, g, b, temperature_c=None, time_s=None, history=None):
         """Both triads (see :meth:`ProbeModel.correct`)."""

@@ -71,8 +71,9 @@ def test_only_the_model_inverts_a_triad_and_only_the_pipeline_feeds_it_stations(
     assert callers == ["model.py", "twelve_position.py"], callers
     # .correct(...): Calibration -> ProbeModel (coeffs, model), of stations (pipeline.correct_stations), of
     # samples (the batch path, survey.py), the lab's model, fit, wander smoother and predicted uncertainty
-    # (LabModel.correct -> ProbeModel.correct)
-    callers = sorted(m for m, t in MODULES.items() if _calls(t, "correct") and m != "axial.py")
+    # (LabModel.correct -> ProbeModel.correct; the fit one triad at a time, correct_triad)
+    callers = sorted(m for m, t in MODULES.items()
+                     if (_calls(t, "correct") or _calls(t, "correct_triad")) and m != "axial.py")
     assert callers == ["coeffs.py", "lab/fit.py", "lab/model.py", "lab/uncertainty.py", "lab/wander.py", "model.py",
                        "pipeline.py", "survey.py"], callers
 

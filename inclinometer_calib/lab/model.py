@@ -225,25 +225,32 @@ class LabModel:
 
     def forward(self, data, g_true, b_true):
         """Predicted outputs (gravity-vector m/s², nT) for true vectors, station by station."""
-        h_g = np.empty_like(g_true)
-        h_b = np.empty_like(b_true)
+        return self.forward_triad("acc", data, g_true), self.forward_triad("mag", data, b_true)
+
+    def forward_triad(self, sensor: str, data, v_true):
+        """One triad's predicted outputs (:meth:`forward`'s, the same bits)."""
+        out = np.empty_like(v_true)
         for role in ("cal", "val"):
             m = data.role == role
             if m.any():
-                h_g[m], h_b[m] = self.probe.forward(g_true[m], b_true[m], data.temp_c[m], data.time_s[m], role,
-                                                    history=self.history(data, m))
-        return h_g, h_b
+                out[m] = self.probe.forward_triad(sensor, v_true[m], data.temp_c[m], data.time_s[m], role,
+                                                  history=self.history(data, m))
+        return out
 
     def correct(self, data):
         """Corrected (true) vectors of the stations: :meth:`model.ProbeModel.correct`, role by role."""
-        g = np.empty_like(data.g)
-        b = np.empty_like(data.b)
+        return self.correct_triad("acc", data), self.correct_triad("mag", data)
+
+    def correct_triad(self, sensor: str, data):
+        """One triad's corrected vectors (:meth:`correct`'s, the same bits)."""
+        h = data.g if sensor == "acc" else data.b
+        out = np.empty_like(h)
         for role in ("cal", "val"):
             m = data.role == role
             if m.any():
-                g[m], b[m] = self.probe.correct(data.g[m], data.b[m], data.temp_c[m], data.time_s[m], role,
-                                                history=self.history(data, m))
-        return g, b
+                out[m] = self.probe.correct_triad(sensor, h[m], data.temp_c[m], data.time_s[m], role,
+                                                  history=self.history(data, m))
+        return out
 
     def angle_errors(self, data, tol=None):
         """Corrected angles of the stations and, for those with a reference, their errors."""
