@@ -8,6 +8,7 @@ import json
 import os
 import queue
 import re
+import signal
 import struct
 import subprocess
 import sys
@@ -130,6 +131,13 @@ def test_stations_reach_a_foxglove_client_over_loopback(ros, ros_env):
         proc.terminate()
         try:
             proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.send_signal(signal.SIGABRT)              # PYTHONFAULTHANDLER: every thread's stack
+            proc.wait(timeout=20)
+            time.sleep(0.5)
+            while not lines.empty():
+                log.append(lines.get())
+            pytest.fail("the node did not end within 20 s of SIGTERM; its log and stacks:\n" + "".join(log)[-8000:])
         finally:
             while not lines.empty():
                 log.append(lines.get())
