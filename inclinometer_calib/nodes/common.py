@@ -86,12 +86,11 @@ def _spin(node, executor, done=None) -> None:
     waiting for ever after SIGTERM, 2 in about 40 loaded stops); looking at the context again every
     half second ends the node whatever happened to the wake-up."""
     executor.add_node(node)
+    if done is not None:
+        done.add_done_callback(lambda _: executor.wake())
     try:
         while executor.context.ok() and not (done is not None and done.done()):
-            if done is None:
-                executor.spin_once(timeout_sec=WAKE_S)
-            else:
-                executor.spin_once_until_future_complete(done, timeout_sec=WAKE_S)
+            executor.spin_once(timeout_sec=WAKE_S)
     finally:
         executor.remove_node(node)
 

@@ -308,7 +308,9 @@ def _bag_topics(path, topics):
 def fault_runs(tmp_path_factory):
     """Two launchers at once, both reserving their own domain:
 
-    A: calibration + 14-station survey (time for the restarted nodes to start before it ends); right
+    A: calibration + 24-station survey (time for the restarted nodes to start before it ends, even
+       on a machine loaded by the rest of the suite: with 14 a fresh-clone CI run saw the new
+       correction node come up too late for any station); right
        after the coefficients are published its recorder and its correction node are killed
        (SIGKILL), and a third launcher asks for A's domain;
     B: the calibration node runs but the probe has no calibration session (never solves).
@@ -320,7 +322,7 @@ def fault_runs(tmp_path_factory):
     # --no-loop: these runs check recovery and the summary's bag parts; the summary's model loop (the
     # lab on the recorded bag, seconds of CPU) is test_graph.py's subject
     common = ("--speed", 4.0, "--reliable", "--timeout", 150, "--drain", 1.5, "--no-loop")
-    a = Launch(env, "--out", root / "a", "--stations", 14, "--seed", 11, *common)
+    a = Launch(env, "--out", root / "a", "--stations", 24, "--seed", 11, *common)
     b = Launch(env, "--out", root / "b", "--stations", 18, "--seed", 12,
                "--param", "probe:calibration_session:=false", *common)
     try:
@@ -340,6 +342,8 @@ def fault_runs(tmp_path_factory):
             if run.proc.poll() is None:
                 run.proc.kill()
     print(f"two launcher runs with faults, side by side: {time.monotonic() - t0:.1f} s")
+    for name, run in (("A", a), ("B", b)):       # shown with a failure (captured output of the setup)
+        print(f"---- launcher {name} ----\n{run.text}")
     return {"root": root, "a": (rc_a, a.text), "b": (rc_b, b.text), "c": refused, "a_domain": a_domain}
 
 
