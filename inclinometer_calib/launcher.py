@@ -70,6 +70,8 @@ STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder") 
 #: part; the coefficients from the latched topic or coeffs.yaml, station ids from the state file).
 #: The calibration node is not: its captured poses would be lost.
 RESTARTABLE = ("recorder", "correction")
+#: --reliable: the raw streams' history depth (keep last), messages: 20 s at 1 kHz
+RELIABLE_DEPTH = 20_000
 MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
 #: Exit status of the probe node when its MCAP input was damaged (it replayed the readable part).
 PROBE_INPUT_DAMAGED = 3
@@ -202,8 +204,11 @@ def build_params(args, out):
             raise SystemExit(f"--foxglove-port {args.foxglove_port}: a TCP port is 1..65535 (0: no live view)")
         p["live"]["port"] = int(args.foxglove_port)   # the live view in Foxglove (host: config/live.yaml, loopback)
     if args.reliable:
+        # lossless: reliable, and a history deep enough that a node running behind the replay on a
+        # loaded machine catches up instead of losing the oldest samples (keep-last 1000 is 1 s at 1 kHz)
         for n in ("probe", "calibration", "correction"):
             p[n]["qos.reliability"] = "reliable"
+            p[n].setdefault("qos.depth", RELIABLE_DEPTH)
     if args.site:
         # the site reference of the run (total field, dip, declination, gravity): the calibration
         # and correction nodes use it, the simulated probe lives in it
@@ -938,7 +943,8 @@ def parse_args(argv=None):
                          "rewritten after every station")
     ap.add_argument("--no-loop", action="store_true", help="no model loop in the summary (the lab's finding on the "
                     "recorded data and the field effect ladder)")
-    ap.add_argument("--reliable", action="store_true", help="reliable QoS for the raw streams (lossless replay)")
+    ap.add_argument("--reliable", action="store_true",
+                    help=f"reliable QoS for the raw streams, with a history of {RELIABLE_DEPTH} messages (lossless replay)")
     ap.add_argument("--param", action="append", default=[], metavar="NODE:NAME:=VALUE",
                     help="extra node parameter, e.g. correction:publish_corrected:=true")
     ap.add_argument("--config", help="directory with <node>.yaml parameter files (default: the package's config/)")

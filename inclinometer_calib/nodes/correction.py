@@ -37,6 +37,7 @@ stations (a few per minute) do the heavier evaluation.
 """
 from __future__ import annotations
 
+import bisect
 import collections
 import json
 import math
@@ -58,6 +59,9 @@ from ..probelog import atomic_write_text
 from ..streaming import TIME_EPS, ReferenceTrack, StaticDetector
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
+
+#: Imu messages whose source timestamps are kept to place a late depth (about 20 s at 1 kHz).
+SENT_KEPT = 20_000
 
 _LEVEL_NAMES = {DiagnosticStatus.OK: "OK", DiagnosticStatus.WARN: "WARN", DiagnosticStatus.ERROR: "ERROR",
                 DiagnosticStatus.STALE: "STALE"}
@@ -131,9 +135,12 @@ class CorrectionNode(Node):
         self._have_temp = False
         self._last_wall = None
         self.refs = ReferenceTrack()
-        # /probe/depth has no stamp: each value holds from the last sample that arrived before it
+        # /probe/depth has no stamp: each value holds from the last sample *sent* before it (by the
+        # DDS source timestamps of the depth and of the Imu messages: see _on_depth)
         self.depths = ReferenceTrack()
         self._t_sample = -math.inf
+        self._sent = collections.deque(maxlen=SENT_KEPT)   # (Imu source timestamp ns, its stamp s)
+        self._depths_waiting = []                          # (source timestamp ns, depth m)
         self._pending = collections.deque()   # (station, monotonic time) waiting for the reference
         self._last_diag = None
         self._last_verdict = None
@@ -153,13 +160,15 @@ class CorrectionNode(Node):
         # sees what the probe and the calibration node sent in the order they sent it, however far
         # behind it runs (on rclpy's executor, in the other thread, a lagging node saw a depth change
         # or a new record at the last sample it had *processed*: a station too early under load):
-        # * the depth (unstamped) holds from the last sample before it;
+        # * the depth (unstamped) holds from the last sample sent before it (with the message info:
+        #   the source timestamps say which, see _on_depth);
         # * a record (latched) applies from the first station that closes after it arrived: the
         #   calibration node publishes it once the last pose has ended, so that pose stays raw.
-        hot = [self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
+        hot = [self.create_subscription(Imu, c.TOPIC_IMU, lambda m, info: self._on_imu(m, info), qos),
                self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
                self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos),
-               self.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))]
+               self.create_subscription(Float64, c.TOPIC_DEPTH, lambda m, info: self._on_depth(m, info),
+                                       c.reliable_qos(100))]
         if self.use_topic:
             hot.append(self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
                                                 c.latched_qos()))
@@ -282,8 +291,10 @@ class CorrectionNode(Node):
                                     throttle_duration_sec=10.0)
 
     # ---- samples ---------------------------------------------------------------------------
-    def _on_imu(self, msg):
+    def _on_imu(self, msg, info=None):
         s = msg.header.stamp
+        if info is not None:
+            self._note_sent(info["source_timestamp"], c.stamp_to_sec(s))
         ooo = self.pairer.out_of_order
         f = c.specific_force(msg)
         if len(self._prior_seen) < 2:
@@ -348,8 +359,34 @@ class CorrectionNode(Node):
             temps_in = self.calibration is None or "temperature" not in self.calibration.needs
         return self.refs.current_at(t) and temps_in
 
-    def _on_depth(self, msg):
-        self.depths.add(self._t_sample, (float(msg.data),))
+    def _note_sent(self, src_ns: int, t: float) -> None:
+        """An Imu message sent at ``src_ns`` (DDS source timestamp) with stamp ``t``: the depths
+        waiting for a sample sent after them take effect at the last one sent before."""
+        self._sent.append((src_ns, t))
+        if self._depths_waiting and self._depths_waiting[0][0] < src_ns:
+            ready = [d for d in self._depths_waiting if d[0] < src_ns]
+            self._depths_waiting = [d for d in self._depths_waiting if d[0] >= src_ns]
+            for d_src, value in ready:
+                self._place_depth(d_src, value)
+
+    def _place_depth(self, d_src: int, value: float) -> None:
+        k = bisect.bisect_left(self._sent, (d_src, -math.inf)) - 1   # the last Imu sent before it
+        self.depths.add(self._sent[k][1] if k >= 0 else -math.inf, (value,))
+
+    def _on_depth(self, msg, info=None):
+        """The unstamped depth holds from the sample the probe sent next: placed by the DDS source
+        timestamps (the probe publishes it just before that sample), not by when it is taken here,
+        which under load can be before or after samples sent earlier (each topic has its reader);
+        it waits until a sample sent after it has arrived.  Without message info (a direct call),
+        after the last sample processed."""
+        value = float(msg.data)
+        src = info.get("source_timestamp", 0) if info is not None else 0
+        if not src:
+            self.depths.add(self._t_sample, (value,))
+        elif self._sent and self._sent[-1][0] > src:
+            self._place_depth(src, value)            # late: samples sent after it are in already
+        else:
+            self._depths_waiting.append((src, value))
 
     def _on_reference(self, msg):
         self.refs.add(c.stamp_to_sec(msg.header.stamp), (msg.vector.x, msg.vector.y, msg.vector.z))

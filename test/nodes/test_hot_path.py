@@ -273,3 +273,34 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
         node._on_temp(mt)
     got = node.pub_station.msgs
     assert len(got) == 2 and all(math.isfinite(s.azimuth_deg) and math.isfinite(s.temperature_c) for s in got)
+
+
+def test_an_unstamped_depth_holds_from_the_sample_sent_after_it_however_late_it_is_taken(ros, tmp_path):
+    """The probe publishes a depth change just before the first sample at the new depth; the
+    correction node places it by the DDS source timestamps, so a depth taken after later samples
+    (its reader behind the Imu reader's, a loaded machine) still gives each station its own."""
+    from std_msgs.msg import Float64
+
+    probe = sim.build_probe(3)
+    path = tmp_path / "coeffs.yaml"
+    Calibration(acc=probe.acc, mag=probe.mag, probe_id="hot", site=Site()).save(path)
+    refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 90.0)]
+    log = sim.run_session(probe, Site(), [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs],
+                          np.random.default_rng(1), rate_hz=100.0, move_s=0.5, survey=True)
+    node = CorrectionNode(parameter_overrides=[Parameter("coeffs_file", value=str(path)),
+                                               Parameter("use_topic", value=False)])
+    ros.append(node)
+    node.pub_station, node.pub_diag = _Collect(), _Collect()
+    msgs = _messages(log)
+    j = int(np.argmax(log.t_s > log.t_s[0] + 2.25))        # in the move between the stations
+    src = [1_000_000 * (k + 1) for k in range(len(msgs))]   # ns, the probe's publish order
+    node._on_depth(Float64(data=500.0), {"source_timestamp": 1})
+    for k, (mi, mm, mt) in enumerate(msgs):
+        node._on_imu(mi, {"source_timestamp": src[k]})
+        node._on_mag(mm)
+        node._on_temp(mt)
+    node._on_depth(Float64(data=530.0), {"source_timestamp": src[j] - 1})   # sent before sample j, taken last
+    for seg in node.detector.flush():
+        node._station(seg)
+    node._release(force=True, end=True)
+    assert [s.measured_depth_m for s in node.pub_station.msgs] == [500.0, 530.0]
