@@ -70,6 +70,8 @@ STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder") 
 #: part; the coefficients from the latched topic or coeffs.yaml, station ids from the state file).
 #: The calibration node is not: its captured poses would be lost.
 RESTARTABLE = ("recorder", "correction")
+#: The transports of a restarted node (Fast DDS): UDP only (see ``run``'s ``start``)
+RESTART_TRANSPORTS = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 #: --reliable: the raw streams' history depth (keep last), messages: 20 s at 1 kHz
 RELIABLE_DEPTH = 20_000
 MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
@@ -349,9 +351,18 @@ def run_graph(args, out, env) -> GraphResult:
             print(f"[launch] {text}", flush=True)
             log.write(f"[launch] {text}\n")
 
-    def start(name):
+    def start(name, restart=False):
         cmd = node_command(name, params[name], cfg)
-        children[name] = Child(name, cmd, env, lock, log)
+        child_env = env
+        if restart and env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") == "rmw_fastrtps_cpp" \
+                and "FASTDDS_BUILTIN_TRANSPORTS" not in env:
+            # Fast DDS 2.14's shared-memory transport can leave a subscriber restarted after its
+            # predecessor was killed matched but deaf (no sample ever arrives; eProsima/Fast-DDS
+            # #5053, #5469, seen here under load): the restarted node talks over UDP (loopback)
+            child_env = dict(env, **RESTART_TRANSPORTS)
+            say(f"{name}: restarted over UDP only (FASTDDS_BUILTIN_TRANSPORTS=UDPv4: a killed process's "
+                "shared-memory ports can leave its successor deaf)")
+        children[name] = Child(name, cmd, child_env, lock, log)
         say(f"starting {name} (pid {children[name].proc.pid}): {' '.join(cmd[1:])}")
 
     def on_signal(signum, _frame):
@@ -413,7 +424,7 @@ def run_graph(args, out, env) -> GraphResult:
                     else:
                         say(f"{died}: restarting it (restart {restarts[name]} of at most {MAX_RESTARTS}); "
                             "the run goes on")
-                    start(name)
+                    start(name, restart=True)
                     continue
                 reason = died + (f" after {restarts[name]} restarts" if restarts.get(name) else "")
                 result.problems.append(reason)

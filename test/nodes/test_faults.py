@@ -379,6 +379,7 @@ def test_a_correction_node_restarted_by_the_launcher_keeps_ids_and_coefficients(
     rc, text = fault_runs["a"]
     out = fault_runs["root"] / "a"
     assert "[launch] correction died unexpectedly (killed by SIGKILL): restarting it" in text
+    assert "correction: restarted over UDP only" in text     # Fast DDS shared memory: see launcher.start
     coeff_id = Calibration.load(out / "coeffs.yaml").id
     assert f"applying the last valid record on disk {out / 'coeffs.yaml'} (id {coeff_id}," in text
     assert f"record {coeff_id} received on /calibration/coefficients is the fallback record" in text  # latched

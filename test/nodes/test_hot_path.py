@@ -244,15 +244,16 @@ def test_streams_are_delivered_in_the_order_they_arrived_however_large_the_backl
     assert box["error"] is None
 
 
-def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_path):
-    """A record with a temperature effect, and the temperature topic matched after the samples'
-    (its first messages late): the stations closed before the first temperature wait for it, then
-    go out corrected with it, not uncorrectable (NaN) at once."""
+def _two_station_node(ros, tmp_path, with_temperature_effect=False):
+    """A correction node called directly (no executor), its record the simulated probe's (with a
+    temperature effect if asked), and the probe's messages of two stations: (node, log, messages)."""
     from inclinometer_calib import effects as fx
     from inclinometer_calib.model import ProbeModel
 
     probe = sim.build_probe(3)
-    model = ProbeModel.base(probe.acc, probe.mag).with_effect(fx.make_effect("temperature_bias", "mag", "xyz"), "all")
+    model = ProbeModel.base(probe.acc, probe.mag)
+    if with_temperature_effect:
+        model = model.with_effect(fx.make_effect("temperature_bias", "mag", "xyz"), "all")
     path = tmp_path / "coeffs.yaml"
     Calibration(model, probe_id="hot", site=Site()).save(path)
     refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 90.0)]
@@ -262,7 +263,14 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
                                                Parameter("use_topic", value=False)])
     ros.append(node)
     node.pub_station, node.pub_diag = _Collect(), _Collect()
-    msgs = _messages(log)
+    return node, log, _messages(log)
+
+
+def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_path):
+    """A record with a temperature effect, and the temperature topic matched after the samples'
+    (its first messages late): the stations closed before the first temperature wait for it, then
+    go out corrected with it, not uncorrectable (NaN) at once."""
+    node, _, msgs = _two_station_node(ros, tmp_path, with_temperature_effect=True)
     for mi, mm, _ in msgs:                      # the samples, and no temperature yet
         node._on_imu(mi)
         node._on_mag(mm)
@@ -281,17 +289,7 @@ def test_an_unstamped_depth_holds_from_the_sample_sent_after_it_however_late_it_
     (its reader behind the Imu reader's, a loaded machine) still gives each station its own."""
     from std_msgs.msg import Float64
 
-    probe = sim.build_probe(3)
-    path = tmp_path / "coeffs.yaml"
-    Calibration(acc=probe.acc, mag=probe.mag, probe_id="hot", site=Site()).save(path)
-    refs = [(30.0, 60.0, 0.0), (40.0, 120.0, 90.0)]
-    log = sim.run_session(probe, Site(), [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs],
-                          np.random.default_rng(1), rate_hz=100.0, move_s=0.5, survey=True)
-    node = CorrectionNode(parameter_overrides=[Parameter("coeffs_file", value=str(path)),
-                                               Parameter("use_topic", value=False)])
-    ros.append(node)
-    node.pub_station, node.pub_diag = _Collect(), _Collect()
-    msgs = _messages(log)
+    node, log, msgs = _two_station_node(ros, tmp_path)
     j = int(np.argmax(log.t_s > log.t_s[0] + 2.25))        # in the move between the stations
     src = [1_000_000 * (k + 1) for k in range(len(msgs))]   # ns, the probe's publish order
     node._on_depth(Float64(data=500.0), {"source_timestamp": 1})
