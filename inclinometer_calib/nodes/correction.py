@@ -156,14 +156,12 @@ class CorrectionNode(Node):
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG_CORRECTED, qos)
         # the sample streams (the probe publishes a temperature with every sample): served on a wait set
         # of their own when the node runs as a process (common.HotPathExecutor, through common.run)
-        # The hot path delivers its streams in the order the middleware received them, so the node
-        # sees what the probe and the calibration node sent in the order they sent it, however far
-        # behind it runs (on rclpy's executor, in the other thread, a lagging node saw a depth change
-        # or a new record at the last sample it had *processed*: a station too early under load):
+        # The depth and the record are on the hot path too, taken in turn with the samples:
         # * the depth (unstamped) holds from the last sample sent before it (with the message info:
-        #   the source timestamps say which, see _on_depth);
-        # * a record (latched) applies from the first station that closes after it arrived: the
-        #   calibration node publishes it once the last pose has ended, so that pose stays raw.
+        #   the DDS source timestamps say which, however late either is taken; see _on_depth);
+        # * a record (latched) applies from the first station that closes after it is taken: the
+        #   calibration node publishes it once the last pose has ended, so that pose stays raw
+        #   (on rclpy's executor, in the other thread, a lagging node applied it sooner).
         hot = [self.create_subscription(Imu, c.TOPIC_IMU, lambda m, info: self._on_imu(m, info), qos),
                self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
                self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos),

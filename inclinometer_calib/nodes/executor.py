@@ -22,11 +22,6 @@ from rclpy.task import Task
 _RCLPY_HANDLES_SIGINT = (SignalHandlerOptions.ALL, SignalHandlerOptions.SIGINT)
 
 
-def _arrival(item):
-    """Sort key of a taken message: (received ns, stream index, position taken)."""
-    return item[0], item[1], item[2]
-
-
 class HotPathExecutor(Executor):
     """A single-threaded executor that gives a node's high-rate subscriptions a wait set of their own.
 
@@ -37,12 +32,10 @@ class HotPathExecutor(Executor):
     5).  Here the ``hot`` subscriptions (a node's sample streams) are served by a thread of their
     own, on a wait set that holds only them, their QoS event handlers (incompatible QoS or type:
     said as rclpy says them), a stop guard and the SIGINT guard: each wake-up takes every message
-    there is and calls their callbacks in the order the middleware received them (the message
-    info's ``received_timestamp``; with the message info when the callback takes two arguments,
-    as rclpy's executors do).  So streams paired by stamp arrive interleaved, not one stream's
-    backlog before the other's, and an unstamped stream served here with them (the correction
-    node's depth) is seen between the samples that arrived before and after it,
-    however far behind the node is.  Every other entity is served as
+    there is, one per subscription in turn (the order in which rclpy's executors deliver them, so
+    that streams paired by stamp arrive interleaved, not one stream's backlog before the
+    other's), and calls their callbacks (with the message info when the callback takes two
+    arguments, as rclpy's executors do).  Every other entity is served as
     :class:`rclpy.executors.SingleThreadedExecutor` serves it, in the thread that spins, from a
     wait set without the hot subscriptions and their event handlers (:meth:`can_execute`).
     The event handlers must go with their subscription: with Fast DDS an event waits on the
@@ -88,8 +81,6 @@ class HotPathExecutor(Executor):
         self._hot_thread = None
         self._hot_stop = False
         self._hot_timeout_ns = int(wait_timeout_s * 1e9)
-        self._hot_carry = []   # messages taken after a round's cut: the next round's (see _serve_hot)
-        self._hot_taken = 0    # messages taken so far: the position of the next
         self._hot_gc = GuardCondition(callback=None, callback_group=None, context=self._context)
         self._hot_sigint = SignalHandlerGuardCondition(self._context)
         self._context.on_shutdown(self._wake_hot)
@@ -232,7 +223,7 @@ class HotPathExecutor(Executor):
                     wait_set.add_guard_condition(h)
                 for eh in events:
                     eh.add_to_wait_set(wait_set)
-                wait_set.wait(0 if self._hot_carry else self._hot_timeout_ns)
+                wait_set.wait(self._hot_timeout_ns)
                 if self._hot_stop or not ctx.ok():
                     break
                 for eh in events:   # rare: a publisher with incompatible QoS or type appeared
@@ -241,28 +232,17 @@ class HotPathExecutor(Executor):
                         with lock:
                             task()
                         task.result()   # raises what the callback raised
-                # every message received up to now, delivered in the order the middleware received
-                # them (the message info's received_timestamp, system time in ns; ties: stream, then
-                # arrival in it).  One received while the streams are being taken (after the cut) may
-                # be later than one still to be taken from another stream: it waits for the next round
-                # (once: a stamp from some other clock must not hold a message back for ever).
-                cut, first = time.time_ns(), self._hot_taken
-                batch, self._hot_carry = self._hot_carry, []
-                for k, (take, msg_type, raw, callback, info) in enumerate(streams):
-                    got = take(msg_type, raw)
-                    while got is not None:
-                        batch.append((got[1]["received_timestamp"], k, self._hot_taken, got, callback, info))
-                        self._hot_taken += 1
-                        got = take(msg_type, raw)
-                if not batch:
-                    continue
-                batch.sort(key=_arrival)
-                if batch[-1][0] > cut:
-                    self._hot_carry = [item for item in batch if item[0] > cut and item[2] >= first]
-                    batch = [item for item in batch if item[0] <= cut or item[2] < first]
-                with lock:
-                    for _, _, _, got, callback, info in batch:
-                        if info:
-                            callback(*got)
-                        else:
-                            callback(got[0])
+                ready = streams
+                while ready:   # one message of each stream per round, until all are empty
+                    more = []
+                    with lock:
+                        for stream in ready:
+                            take, msg_type, raw, callback, info = stream
+                            got = take(msg_type, raw)
+                            if got is not None:
+                                if info:
+                                    callback(*got)
+                                else:
+                                    callback(got[0])
+                                more.append(stream)
+                    ready = more

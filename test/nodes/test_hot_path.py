@@ -209,41 +209,6 @@ def test_an_error_in_a_sample_callback_ends_the_spin_with_that_error(ros):
     assert not executor._hot_thread.is_alive()
 
 
-def test_streams_are_delivered_in_the_order_they_arrived_however_large_the_backlog(ros):
-    """A depth value published between two runs of 60 samples, all waiting before the executor
-    spins, reaches its callback after the 60th sample and before the 61st (round-robin over the
-    streams would have delivered it after the first)."""
-    from std_msgs.msg import Float64
-
-    node = rclpy.create_node("hot_path_order")
-    ros.append(node)
-    seen = []
-    qos = c.reliable_qos(200)
-    subs = [node.create_subscription(String, "/hot_path_samples", lambda m: seen.append(m.data), qos),
-            node.create_subscription(Float64, "/hot_path_depth", lambda m: seen.append(m.data), qos)]
-    pub_s = node.create_publisher(String, "/hot_path_samples", qos)
-    pub_d = node.create_publisher(Float64, "/hot_path_depth", qos)
-    assert _wait(lambda: pub_s.get_subscription_count() >= 1 and pub_d.get_subscription_count() >= 1)
-    for k in range(60):
-        pub_s.publish(String(data=f"s{k}"))
-    time.sleep(0.05)                       # the depth arrives after these, by the middleware's clock
-    pub_d.publish(Float64(data=650.0))
-    time.sleep(0.05)
-    for k in range(60, 120):
-        pub_s.publish(String(data=f"s{k}"))
-    executor = c.HotPathExecutor(subs)
-    executor.add_node(node)
-    spin_thread, box = _spin_in_thread(executor)
-    try:
-        assert _wait(lambda: len(seen) == 121), len(seen)
-        assert seen.index(650.0) == 60, seen[:65]
-        assert [x for x in seen if x != 650.0] == [f"s{k}" for k in range(120)]
-    finally:
-        executor.shutdown()
-        spin_thread.join(5.0)
-    assert box["error"] is None
-
-
 def _two_station_node(ros, tmp_path, with_temperature_effect=False):
     """A correction node called directly (no executor), its record the simulated probe's (with a
     temperature effect if asked), and the probe's messages of two stations: (node, log, messages)."""
