@@ -31,7 +31,7 @@ from ..frames import NT_PER_TESLA, STANDARD_GRAVITY, Site
 from ..probelog import Limits, check_sample
 from ..survey import Tolerances
 from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-free, shared with reprocess)
-from .executor import HotPathExecutor  # noqa: F401  (re-exported: c.HotPathExecutor)
+from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
 
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
@@ -59,7 +59,7 @@ def run(node_factory, args=None) -> int:
         hot = getattr(node, "hot_subscriptions", ())
         executor = HotPathExecutor(hot) if hot else None
         done = getattr(node, "done", None)
-        _spin(node, executor or rclpy.get_global_executor(), done)
+        spin(node, executor or rclpy.get_global_executor(), done)
         return int(done.result() or 0) if done is not None and done.done() else 0
     except (KeyboardInterrupt, ExternalShutdownException):
         return 0
@@ -73,26 +73,6 @@ def run(node_factory, args=None) -> int:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-
-
-#: The longest a spinning node waits before it looks again whether its context is still up.
-WAKE_S = 0.5
-
-
-def _spin(node, executor, done=None) -> None:
-    """``rclpy.spin`` (or ``spin_until_future_complete`` with ``done``), but never waiting more
-    than :data:`WAKE_S` at a time: rclpy's signal handling shuts the context down on SIGINT or
-    SIGTERM and wakes the executor's wait, but under load the wake-up was seen lost (a node left
-    waiting for ever after SIGTERM, 2 in about 40 loaded stops); looking at the context again every
-    half second ends the node whatever happened to the wake-up."""
-    executor.add_node(node)
-    if done is not None:
-        done.add_done_callback(lambda _: executor.wake())
-    try:
-        while executor.context.ok() and not (done is not None and done.done()):
-            executor.spin_once(timeout_sec=WAKE_S)
-    finally:
-        executor.remove_node(node)
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,7 +11,8 @@ every publisher is (so latched messages such as calibration coefficients publish
 recorder started are still delivered). The callback hands the bytes straight to
 :class:`inclinometer_calib.bag.BagWriter` (log time = the wall-clock receive time, publish time =
 the publisher's source timestamp); as a process, the node serves these subscriptions on a wait set
-of their own (:class:`.executor.HotPathExecutor`: every message waiting is written per wake-up).  Log times stay wall-clock time even when the graph runs on the
+of their own (:class:`.executor.HotPathExecutor`: every message waiting is written per wake-up).
+Log times stay wall-clock time even when the graph runs on the
 probe's ``/clock`` (header stamps in log time): what ``ros2 bag record`` does without
 ``--use-sim-time``; the header stamps inside the messages carry the run's time base.
 
@@ -42,7 +43,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..bag import BagWriter, UnknownTypeError, normalize_type
-from .executor import HotPathExecutor
+from .executor import HotPathExecutor, spin
 
 NODE_NAME = "recorder"
 DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
@@ -270,7 +271,7 @@ def main(args: Optional[List[str]] = None) -> int:
         # 12.6 -> 3.7 s of CPU); discovery, chunk closing and the parameter services stay here
         executor = HotPathExecutor(node._subs.values())
         node.on_subscribed = executor.add_hot
-        rclpy.spin(node, executor)
+        spin(node, executor)   # waits of at most executor.WAKE_S: a lost SIGTERM wake-up cannot hang it
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
