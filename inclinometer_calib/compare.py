@@ -98,8 +98,9 @@ def compare(bag, models, outdir, *, site=None, tolerances=None, make_detector=No
     runs = []
     for name, cal in models:
         dst = os.path.join(outdir, f"{name}.mcap")
+        monitor = FieldMonitor(window=monitor_window, tolerances=tol) if monitor_window else None
         rep = reprocess(bag, dst, cal, site, tol, make_detector() if make_detector else None, warn=warn,
-                        copy_input=False, monitor=FieldMonitor(window=monitor_window, tolerances=tol) if monitor_window else None)
+                        copy_input=False, monitor=monitor)
         runs.append(ModelRun(name, cal, rep, metrics(rep.stations), dst))
     sites = {r.calibration.site.to_dict().__repr__() for r in runs if r.calibration is not None}
     if site is None and len(sites) > 1 and warn:

@@ -201,11 +201,8 @@ class ProbeModel:
 
     def forward(self, g_true, b_true, temperature_c=None, time_s=None, role: str = "val", history=None):
         """Sensor outputs (gravity-vector m/s², nT) for true tool-frame vectors (N, 3) each."""
-        g_true = np.atleast_2d(np.asarray(g_true, dtype=float))
-        b_true = np.atleast_2d(np.asarray(b_true, dtype=float))
-        ctx = self.context(len(g_true), temperature_c, time_s, role, history=history)
-        return (fx.apply_chain(g_true, self.chain("acc", role), ctx),
-                fx.apply_chain(b_true, self.chain("mag", role), ctx))
+        return (self.forward_triad("acc", g_true, temperature_c, time_s, role, history),
+                self.forward_triad("mag", b_true, temperature_c, time_s, role, history))
 
     def forward_triad(self, sensor: str, v_true, temperature_c=None, time_s=None, role: str = "val",
                       history=None):
