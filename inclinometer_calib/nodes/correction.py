@@ -351,11 +351,12 @@ class CorrectionNode(Node):
         Before the first temperature, a record whose model needs one waits for it too (the
         temperature topic may be matched after the samples' at start-up: its first messages come
         late, and a station without them could not be corrected)."""
+        return self.refs.current_at(t) and self._temps_in(t)
+
+    def _temps_in(self, t: float) -> bool:
         if self._have_temp:
-            temps_in = self.detector.temps.latest >= t - TIME_EPS
-        else:
-            temps_in = self.calibration is None or "temperature" not in self.calibration.needs
-        return self.refs.current_at(t) and temps_in
+            return self.detector.temps.latest >= t - TIME_EPS
+        return self.calibration is None or "temperature" not in self.calibration.needs
 
     def _note_sent(self, src_ns: int, t: float) -> None:
         """An Imu message sent at ``src_ns`` (DDS source timestamp) with stamp ``t``: the depths
@@ -401,7 +402,7 @@ class CorrectionNode(Node):
                     f"station closed at t={st.t_end:.2f} s: no {c.TOPIC_REFERENCE} up to its end after "
                     f"{time.monotonic() - since:.1f} s (delayed or lost): published with the reference "
                     "last received, which may be the previous station's")
-            if not end and not self._current_at(st.t_end) and self.refs.current_at(st.t_end):
+            if not end and not self._temps_in(st.t_end):
                 self.get_logger().warning(
                     f"station closed at t={st.t_end:.2f} s: no {c.TOPIC_TEMPERATURE} up to its end after "
                     f"{time.monotonic() - since:.1f} s (delayed or lost): published with the temperatures "
