@@ -47,6 +47,9 @@ from .executor import HotPathExecutor, spin
 
 NODE_NAME = "recorder"
 DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
+#: graph scan period, s: the probe waits for the recorder's subscriptions before its first sample,
+#: so a launcher run starts up to one period later (1 s made it 2 s; a scan costs about 10 us)
+DISCOVERY_PERIOD_S = 0.25
 SUBSCRIPTION_DEPTH = 1000  # keep-last depth of each recording subscription (absorbs stalls)
 
 
@@ -131,8 +134,9 @@ class Recorder(Node):
         self.declare_parameter("exclude", list(DEFAULT_EXCLUDE), ParameterDescriptor(
             description="Topics never recorded (exact names).",
             type=ParameterType.PARAMETER_STRING_ARRAY, **ro))
-        self.declare_parameter("discovery_period_s", 1.0, ParameterDescriptor(
-            description="Period of the graph scan for new topics, seconds (> 0).",
+        self.declare_parameter("discovery_period_s", DISCOVERY_PERIOD_S, ParameterDescriptor(
+            description="Period of the graph scan for new topics, seconds (> 0): a new topic's first "
+                        "messages may be missed for up to this long.",
             type=ParameterType.PARAMETER_DOUBLE, **ro))
         self.declare_parameter("max_chunk_s", 1.0, ParameterDescriptor(
             description="Longest time span of one MCAP chunk, seconds (> 0): a crash loses at "

@@ -82,8 +82,19 @@ def _check(offline, out, log):
     offline_survey = [s for s in re_stations if s["coefficients_id"] == cli.id and np.isfinite(s["reference_azimuth_deg"])
                       and s["reference_drift_deg"] < 89.5]
     assert len(survey) == len(offline_survey) == VAL_STATIONS
-    for key in ("drift_deg", "azimuth_deg", "toolface_deg"):   # 1e-12 when the coefficients are the same
-        np.testing.assert_allclose([s[key] for s in survey], [s[key] for s in offline_survey], atol=2e-3)
+    # A station of as many samples as reprocess's has its angles (1e-12 when the coefficients are
+    # the same); a sample lost in a move on the best-effort streams can shift a hold's boundary by
+    # a sample or two (seen under load: 288 and 290 samples for 287 and 291), which moves its mean
+    # by up to its noise: such stations are held to the stand's reference below, and stay few.
+    same_n = [a["samples_averaged"] == b["samples_averaged"] for a, b in zip(survey, offline_survey)]
+    shifted = [(i, a["samples_averaged"], b["samples_averaged"]) for i, (a, b, ok) in
+               enumerate(zip(survey, offline_survey, same_n)) if not ok]
+    print(f"stations whose hold lost or gained samples live (index, live, reprocess): {shifted}")
+    assert len(shifted) <= 4 and all(abs(n1 - n2) <= 3 for _, n1, n2 in shifted), shifted
+    for key in ("drift_deg", "azimuth_deg", "toolface_deg"):
+        live_v = [s[key] for s, ok in zip(survey, same_n) if ok]
+        np.testing.assert_allclose(live_v, [s[key] for s, ok in zip(offline_survey, same_n) if ok], atol=2e-3,
+                                   err_msg=key)
     for s in survey:        # against the stand's reference: the noise level
         assert abs(s["drift_deg"] - s["reference_drift_deg"]) < 0.01
         assert abs((s["azimuth_deg"] - s["reference_azimuth_deg"] + 180) % 360 - 180) < 0.3
