@@ -335,6 +335,9 @@ def run_graph(args, out, env) -> GraphResult:
     if station_readers and "correction" in consumers:
         # stations are reliable but volatile: a reader not yet subscribed would miss the first ones
         params["probe"].setdefault("wait_for_topic_subscribers", [f"{TOPIC_STATION}={station_readers}"])
+        # ... and a reader the probe sees in the graph may not be matched yet with the correction
+        # node's publisher (seen under load: the WITS node missed the first station)
+        params["correction"].setdefault("wait_for_station_readers", station_readers)
     if params["probe"].get("stamp", _config_value(cfg, "probe", "stamp", "log")) == "log":
         # one time base: the probe publishes /clock (log time), the others run on it
         for n in ("calibration", "correction"):

@@ -97,6 +97,11 @@ class CorrectionNode(Node):
                                         f"clock, s) for {c.TOPIC_REFERENCE} to be current up to its end (the reference "
                                         "is another topic and may come late); then it is published with the last "
                                         "reference received, with a warning", read_only=True, range=(0.0, 60.0))
+        self.wait_readers = p.declare("wait_for_station_readers", 0, f"A station waits (at most reference_wait_s, "
+                                      f"then said) until {c.TOPIC_STATION} has this many matched readers: stations are "
+                                      "reliable but volatile, and a reader the graph shows but DDS has not yet matched "
+                                      "misses what is published before (the launcher sets it to the readers it "
+                                      "starts)", read_only=True, range=(0, 100))
         self.idle_flush = p.declare("idle_flush_s", 1.0, "Close the current static interval when no sample "
                                     "arrived for this long (wall clock), s; 0 disables", read_only=True,
                                     range=(0.0, 60.0))
@@ -141,7 +146,7 @@ class CorrectionNode(Node):
         self._t_sample = -math.inf
         self._sent = collections.deque(maxlen=SENT_KEPT)   # (Imu source timestamp ns, its stamp s)
         self._depths_waiting = []                          # (source timestamp ns, depth m)
-        self._pending = collections.deque()   # (station, monotonic time) waiting for the reference
+        self._pending = collections.deque()   # (station, monotonic time) waiting: _current_at
         self._last_diag = None
         self._last_verdict = None
         self._no_site_said = False
@@ -351,7 +356,10 @@ class CorrectionNode(Node):
         Before the first temperature, a record whose model needs one waits for it too (the
         temperature topic may be matched after the samples' at start-up: its first messages come
         late, and a station without them could not be corrected)."""
-        return self.refs.current_at(t) and self._temps_in(t)
+        return self.refs.current_at(t) and self._temps_in(t) and self._readers_in()
+
+    def _readers_in(self) -> bool:
+        return self.wait_readers <= 0 or self.pub_station.get_subscription_count() >= self.wait_readers
 
     def _temps_in(self, t: float) -> bool:
         if self._have_temp:
@@ -407,6 +415,11 @@ class CorrectionNode(Node):
                     f"station closed at t={st.t_end:.2f} s: no {c.TOPIC_TEMPERATURE} up to its end after "
                     f"{time.monotonic() - since:.1f} s (delayed or lost): published with the temperatures "
                     "received so far")
+            if not self._readers_in():
+                self.get_logger().warning(
+                    f"station closed at t={st.t_end:.2f} s: {self.pub_station.get_subscription_count()} of "
+                    f"{self.wait_readers} {c.TOPIC_STATION} readers matched after {time.monotonic() - since:.1f} s: "
+                    "published, and the readers not matched yet miss it")
             self._publish_station(st)
 
     def _sample(self, t, f, m):
@@ -416,7 +429,8 @@ class CorrectionNode(Node):
     # ---- stations --------------------------------------------------------------------------
     def _station(self, seg):
         """A closed station: published at once, or when the reference is known to be current up to
-        its end (:class:`streaming.ReferenceTrack`; at most ``reference_wait_s`` later)."""
+        its end (:class:`streaming.ReferenceTrack`) and its readers are matched (at most
+        ``reference_wait_s`` later)."""
         if seg.short and not self.publish_short:
             return
         if not math.isfinite(seg.md_m):    # the depth it was held at (in effect at its middle)

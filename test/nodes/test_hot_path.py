@@ -32,9 +32,13 @@ from inclinometer_calib.station import Station  # noqa: E402
 class _Collect:
     def __init__(self):
         self.msgs = []
+        self.readers = 0        # matched subscriptions, as a publisher reports them
 
     def publish(self, msg):
         self.msgs.append(msg)
+
+    def get_subscription_count(self):
+        return self.readers
 
 
 def _spin_in_thread(executor):
@@ -209,7 +213,7 @@ def test_an_error_in_a_sample_callback_ends_the_spin_with_that_error(ros):
     assert not executor._hot_thread.is_alive()
 
 
-def _two_station_node(ros, tmp_path, with_temperature_effect=False):
+def _two_station_node(ros, tmp_path, with_temperature_effect=False, params=()):
     """A correction node called directly (no executor), its record the simulated probe's (with a
     temperature effect if asked), and the probe's messages of two stations: (node, log, messages)."""
     from inclinometer_calib import effects as fx
@@ -225,7 +229,7 @@ def _two_station_node(ros, tmp_path, with_temperature_effect=False):
     log = sim.run_session(probe, Site(), [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs],
                           np.random.default_rng(1), rate_hz=100.0, move_s=0.5, survey=True)
     node = CorrectionNode(parameter_overrides=[Parameter("coeffs_file", value=str(path)),
-                                               Parameter("use_topic", value=False)])
+                                               Parameter("use_topic", value=False), *params])
     ros.append(node)
     node.pub_station, node.pub_diag = _Collect(), _Collect()
     return node, log, _messages(log)
@@ -246,6 +250,31 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
         node._on_temp(mt)
     got = node.pub_station.msgs
     assert len(got) == 2 and all(math.isfinite(s.azimuth_deg) and math.isfinite(s.temperature_c) for s in got)
+
+
+def test_a_station_waits_until_its_readers_are_matched_then_goes_or_says_who_missed_it(ros, tmp_path, capfd):
+    """The launcher names the station readers it starts; a reader the probe already sees in the
+    graph may not be matched with the correction node's publisher yet (under load the WITS node
+    missed the first station): stations wait for the match, and after reference_wait_s go anyway,
+    saying how many readers were matched."""
+    node, _, msgs = _two_station_node(ros, tmp_path, params=[Parameter("wait_for_station_readers", value=2),
+                                                             Parameter("reference_wait_s", value=0.0)])
+    node.pub_station.readers = 1                # one reader short: the first station waits
+    for mi, mm, mt in msgs:
+        node._on_imu(mi)
+        node._on_mag(mm)
+        node._on_temp(mt)
+    assert node.pub_station.msgs == [] and len(node._pending) == 1
+    node.pub_station.readers = 2                # matched: it goes at the next message
+    node._on_temp(msgs[-1][2])
+    assert len(node.pub_station.msgs) == 1 and not node._pending
+    node.pub_station.readers = 1                # a reader gone: the last one waits, then goes, said
+    for seg in node.detector.flush():
+        node._station(seg)
+    assert len(node.pub_station.msgs) == 1 and len(node._pending) == 1
+    node._on_timer()                            # reference_wait_s (0 s) is over
+    assert len(node.pub_station.msgs) == 2 and not node._pending
+    assert "1 of 2 /survey/station readers matched" in capfd.readouterr().err
 
 
 def test_an_unstamped_depth_holds_from_the_sample_sent_after_it_however_late_it_is_taken(ros, tmp_path):
