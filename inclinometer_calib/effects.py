@@ -48,6 +48,8 @@ T_REF_C = 25.0
 #: Reference input magnitude per sensor (used to express nonlinearity in dimensionless form).
 FULL_SCALE = {"acc": 9.80665, "mag": 50000.0}
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+#: the two other axes of each axis, in index order (the paper's e-terms: e1 the first, e2 the second)
+OTHER_AXES = tuple(tuple(i for i in range(3) if i != b) for b in range(3))
 STAGES = ("tool", "axes", "gain", "output")
 #: Stage of whole-probe effects (not in a triad's signal chain).
 PROBE_STAGE = "probe"
@@ -216,6 +218,12 @@ class Effect(abc.ABC):
     def _idx(self):
         return [AXIS_INDEX[a] for a in self.axes]
 
+    def _cols(self):
+        """The acted-on columns for ``v[:, ...]``: all three as a slice (the arithmetic in place,
+        without the gather and scatter copies of a list index: the same elementwise operations,
+        so the same bits, in about half the time), else :meth:`_idx`."""
+        return slice(None) if self.axes == "xyz" else self._idx()
+
     def apply(self, v: np.ndarray, ctx: Context) -> np.ndarray:
         """Apply the effect to the (N, 3) signal ``v`` at this effect's stage; returns a new array."""
         out = np.array(v, dtype=float, copy=True)
@@ -298,7 +306,7 @@ class Bias(Effect):
     specs: ClassVar[tuple] = (_spec("b", "m/s^2", "nT", 0.004, 70.0, "zero bias"),)
 
     def _apply(self, v, ctx):
-        v[:, self._idx()] += self.values["b"]
+        v[:, self._cols()] += self.values["b"]
 
 
 @dataclass
@@ -313,7 +321,7 @@ class Scale(Effect):
     specs: ClassVar[tuple] = (_spec("k", "1", "1", 0.0005, 0.0016, "scale-factor error (K-1)"),)
 
     def _apply(self, v, ctx):
-        v[:, self._idx()] *= 1.0 + self.values["k"]
+        v[:, self._cols()] *= 1.0 + self.values["k"]
 
 
 @dataclass
@@ -334,11 +342,12 @@ class NonOrthogonality(Effect):
     )
 
     def _apply(self, v, ctx):
-        src = v.copy()
-        for j, a in enumerate(self.axes):
-            b = AXIS_INDEX[a]
-            others = [i for i in range(3) if i != b]
-            v[:, b] += self.values["e1"][j] * src[:, others[0]] + self.values["e2"][j] * src[:, others[1]]
+        # every output axis at once from the input as it was: per element the same two products
+        # and sums as axis by axis, so the same bits
+        b = self._idx()
+        first = [OTHER_AXES[i][0] for i in b]
+        second = [OTHER_AXES[i][1] for i in b]
+        v[:, self._cols()] += self.values["e1"] * v[:, first] + self.values["e2"] * v[:, second]
 
     @staticmethod
     def term_names(axis: str) -> tuple:
@@ -418,7 +427,7 @@ class AxialInterference(Effect):
     specs: ClassVar[tuple] = (_spec("field", "m/s^2", "nT", 0.0, 220.0, "field along the axis"),)
 
     def _apply(self, v, ctx):
-        v[:, self._idx()] += self.values["field"]
+        v[:, self._cols()] += self.values["field"]
 
     def identifiability(self, temperature_span_c, time_span_s, kinds=frozenset()) -> str:
         if kinds and set(kinds) <= {"pose"}:
@@ -444,7 +453,7 @@ class TemperatureScale(Effect):
 
     def _apply(self, v, ctx):
         dt = (ctx.temperature_c - T_REF_C)[:, None]
-        v[:, self._idx()] *= 1.0 + self.values["c"] * dt
+        v[:, self._cols()] *= 1.0 + self.values["c"] * dt
 
 
 @dataclass
@@ -459,7 +468,7 @@ class ScaleAsymmetry(Effect):
     specs: ClassVar[tuple] = (_spec("a", "1", "1", 5e-4, 1e-3, "half the difference of ± scales"),)
 
     def _apply(self, v, ctx):
-        idx = self._idx()
+        idx = self._cols()
         v[:, idx] *= 1.0 + self.values["a"] * np.sign(v[:, idx])
 
 
@@ -482,7 +491,7 @@ class Nonlinearity(Effect):
 
     def _apply(self, v, ctx):
         fs = FULL_SCALE[self.sensor]
-        idx = self._idx()
+        idx = self._cols()
         s = v[:, idx] / fs
         v[:, idx] += fs * (self.values["q"] * s ** 2 + self.values["c"] * s ** 3)
 
@@ -533,7 +542,7 @@ class TemperatureBias(Effect):
     specs: ClassVar[tuple] = (_spec("c", "m/s^2/degC", "nT/degC", 2e-4, 3.0, "bias temperature coefficient"),)
 
     def _apply(self, v, ctx):
-        v[:, self._idx()] += self.values["c"] * (ctx.temperature_c - T_REF_C)[:, None]
+        v[:, self._cols()] += self.values["c"] * (ctx.temperature_c - T_REF_C)[:, None]
 
 
 @dataclass
@@ -549,7 +558,7 @@ class BiasDrift(Effect):
     specs: ClassVar[tuple] = (_spec("rate", "m/s^2/h", "nT/h", 0.002, 30.0, "bias drift per hour"),)
 
     def _apply(self, v, ctx):
-        v[:, self._idx()] += self.values["rate"] * (ctx.time_s / 3600.0)[:, None]
+        v[:, self._cols()] += self.values["rate"] * (ctx.time_s / 3600.0)[:, None]
 
 
 @dataclass
