@@ -100,17 +100,20 @@ class TriadModel:
         """Sensor output ``H = K·E·M + B`` for true vectors ``m`` of shape (..., 3)."""
         return np.asarray(m, dtype=float) @ self.A.T + self.bias
 
-    def inverse(self, h) -> np.ndarray:
+    def inverse(self, h, c_t=None) -> np.ndarray:
         """The linear part of the correction, ``M = C·(H - B)``, for outputs ``h`` (N, 3).
 
         A building block of :meth:`model.ProbeModel.correct`, the one correction path (which
         adds the effects beyond the paper); the twelve-position solver also uses it on its own
         triad before any record exists.  Written out element by element (:func:`effects.rotate`)
-        so that every batch size gives the same bits."""
+        so that every batch size gives the same bits.  ``c_t``: ``C`` transposed, when the
+        caller keeps it (:class:`model.CorrectionPlan`: the lab's fits correct a triad thousands
+        of times, and inverting ``K·E`` again each time was 3% of their CPU)."""
         from .effects import rotate
 
         h = np.asarray(h, dtype=float)
-        return rotate(self.correction_matrix.T, h.reshape(-1, 3) - self.bias).reshape(h.shape)
+        c_t = self.correction_matrix.T if c_t is None else c_t
+        return rotate(c_t, h.reshape(-1, 3) - self.bias).reshape(h.shape)
 
     # ---- records ---------------------------------------------------------------------------
     def parameters(self) -> dict:

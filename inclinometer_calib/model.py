@@ -184,12 +184,13 @@ class ProbeModel:
 
     # ---- physics ------------------------------------------------------------------------------
     def context(self, n: int, temperature_c=None, time_s=None, role: str = "val", where: str = "",
-                history=None) -> fx.Context:
+                history=None, needs=None) -> fx.Context:
         """The per-sample context of ``n`` samples; a temperature, time or history
         (:class:`effects.History`) the model's effects need and that is not given raises
         :class:`ModelContextError` (never a silent default).  NaN entries stay NaN: those samples
-        come out NaN (the caller says why)."""
-        needs = self.needs(role)
+        come out NaN (the caller says why).  ``needs``: :meth:`needs` of ``role`` when the caller
+        has it (a :class:`CorrectionPlan`)."""
+        needs = self.needs(role) if needs is None else needs
         temp = _per_sample(temperature_c, n, fx.T_REF_C)
         tim = _per_sample(time_s, n, 0.0)
         for what, given in (("temperature", temperature_c), ("time", time_s), ("history", history)):
@@ -317,9 +318,9 @@ class CorrectionPlan:
         """One triad's corrected vectors (a node corrects each stream as its samples come)."""
         h = np.asarray(h, dtype=float)
         h2 = h.reshape(-1, 3)
-        x = self.triads[sensor].inverse(h2)
+        x = self.triads[sensor].inverse(h2, self.matrix_t[sensor])
         if self.extra[sensor]:
-            ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history)
+            ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history, needs=self.needs)
             m = self.matrix_t[sensor]
             chain = self.chains[sensor]
             for _ in range(CORRECTION_ITERATIONS):
