@@ -39,12 +39,17 @@ graph_log="$(mktemp -t test-graph.XXXXXX)"
 ( rc_g=0; python -m pytest test/nodes test/ros -q -n 2 --dist loadscope >"$graph_log" 2>&1 || rc_g=$?
   echo "graph tests: $(mmss $((SECONDS - t0))) wall" >>"$graph_log"; exit "$rc_g" ) &
 graph=$!
+# the background run ignores Ctrl-C (a script's background jobs do): stop it with the numerics
+stop_graph() { pkill -TERM -P "$graph" 2>/dev/null || kill "$graph" 2>/dev/null || true; rm -f "$graph_log"; }
+trap 'stop_graph; exit 130' INT
+trap 'stop_graph; exit 143' TERM
 rc=0
 echo "test.sh: the ROS 2 graph tests run beside these numerics; their report follows"
 nice -n 19 python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros || rc=$?
 t_num=$((SECONDS - t0))
 rc_g=0
 wait "$graph" || rc_g=$?
+trap - INT TERM
 cat "$graph_log"
 rm -f "$graph_log"
 [ "$rc" -eq 0 ] && rc=$rc_g
