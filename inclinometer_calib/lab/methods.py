@@ -96,10 +96,8 @@ def linear_triad(cal, sensor: str):
     from ..effects import FULL_SCALE
 
     fs = FULL_SCALE[sensor]
-    z = np.zeros((4, 3))
     v = np.vstack([np.zeros(3), fs * np.eye(3)])
-    g, b = (v, z) if sensor == "acc" else (z, v)
-    out = cal.model.forward(g, b, 25.0, 0.0, role="cal")[0 if sensor == "acc" else 1]
+    out = cal.model.forward_triad(sensor, v, 25.0, 0.0, role="cal")
     return (out[1:] - out[0]).T / fs, out[0]
 
 

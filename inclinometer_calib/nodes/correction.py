@@ -352,10 +352,11 @@ class CorrectionNode(Node):
             self._release(force=False)
 
     def _current_at(self, t: float) -> bool:
-        """The reference and the temperatures are in up to ``t``: a station ending then can go.
-        Before the first temperature, a record whose model needs one waits for it too (the
-        temperature topic may be matched after the samples' at start-up: its first messages come
-        late, and a station without them could not be corrected)."""
+        """The reference and the temperatures are in up to ``t`` and the station readers are
+        matched (``wait_for_station_readers``): a station ending then can go.  Before the first
+        temperature, a record whose model needs one waits for it too (the temperature topic may be
+        matched after the samples' at start-up: its first messages come late, and a station
+        without them could not be corrected)."""
         return self.refs.current_at(t) and self._temps_in(t) and self._readers_in()
 
     def _readers_in(self) -> bool:

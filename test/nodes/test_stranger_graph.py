@@ -28,6 +28,8 @@ SPEED = 10.0
 # best-effort streams, which shifts the noise estimator's blocks and can move a station boundary
 # by a sample: then they agree to within their own uncertainty, which these bounds are (a few σ
 # of the stranger's calibration: bias ~1e-4 m/s² and 1 nT, scale and e-terms ~1e-5).
+#: how far a station whose hold gained or lost a sample or two live may be from reprocess's, degrees
+SHIFTED = {"drift_deg": 2e-3, "azimuth_deg": 0.03, "toolface_deg": 0.1}
 SAME = {"acc": {"bias": 3e-4, "scale": 5e-5, "e": 5e-5}, "mag": {"bias": 3.0, "scale": 1e-4, "e": 1e-4}}
 # These runs check the live nodes' coefficients and stations (read from the bag); the summary's model
 # loop (the lab on the recorded bag: 3-5 s of CPU per run) is test_graph.py's subject, not theirs.
@@ -84,8 +86,9 @@ def _check(offline, out, log):
     assert len(survey) == len(offline_survey) == VAL_STATIONS
     # A station of as many samples as reprocess's has its angles (1e-12 when the coefficients are
     # the same); a sample lost in a move on the best-effort streams can shift a hold's boundary by
-    # a sample or two (seen under load: 288 and 290 samples for 287 and 291), which moves its mean
-    # by up to its noise: such stations are held to the stand's reference below, and stay few.
+    # a sample or two (seen under load: 288 and 290 samples for 287 and 291, azimuth 0.004° apart),
+    # which moves its mean by a fraction of its noise (at 2° drift about 0.05° of toolface and
+    # azimuth over ~290 samples): such stations stay few and within SHIFTED of reprocess's.
     same_n = [a["samples_averaged"] == b["samples_averaged"] for a, b in zip(survey, offline_survey)]
     shifted = [(i, a["samples_averaged"], b["samples_averaged"]) for i, (a, b, ok) in
                enumerate(zip(survey, offline_survey, same_n)) if not ok]
@@ -95,6 +98,9 @@ def _check(offline, out, log):
         live_v = [s[key] for s, ok in zip(survey, same_n) if ok]
         np.testing.assert_allclose(live_v, [s[key] for s, ok in zip(offline_survey, same_n) if ok], atol=2e-3,
                                    err_msg=key)
+        for i, _, _ in shifted:
+            d = (survey[i][key] - offline_survey[i][key] + 180.0) % 360.0 - 180.0
+            assert abs(d) <= SHIFTED[key], (i, key, d)
     for s in survey:        # against the stand's reference: the noise level
         assert abs(s["drift_deg"] - s["reference_drift_deg"]) < 0.01
         assert abs((s["azimuth_deg"] - s["reference_azimuth_deg"] + 180) % 360 - 180) < 0.3
