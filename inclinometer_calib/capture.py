@@ -15,9 +15,14 @@ the same detector.  The session
   retake, any other repeat is refused; after the first solve a new round must start at pose 1
   and follow Table 1's order, otherwise the statics are survey stations, not poses (labelled
   captures, from a stand's log, are used whatever their order);
-* **solves** when all twelve poses are in, again after every complete round, and at the end of
-  the data (:meth:`finish`) — screening out captures that do not fit and solving by least squares
-  when a pose is left without one (:func:`twelve_position.solve_captures`);
+* **solves** when all twelve poses are in, again after every complete round, when **the sequence
+  is over** with poses missing or refused — the probe has left the stand's poses for survey
+  stations (``end_after_stations`` statics in a row that are not poses of the sequence) or
+  ``end_after_s`` of data time passed without a capture — and at the end of the data
+  (:meth:`finish`); it screens out captures that do not fit and solves by least squares when a
+  pose is left without one (:func:`twelve_position.solve_captures`), and says which poses are
+  missing and why.  A sequence that is over is closed: only a new round from pose 1 in Table 1's
+  order (or a recapture) is taken after it, never a survey station near a pose that is missing;
 * with a **model** named (``effects``, the package's effect grammar, e.g.
   ``temperature_bias:mag``), fits the paper's model plus those effects to the captures with the
   lab's fit, starting from the twelve-position solution, and says which parameters the captures
@@ -73,8 +78,15 @@ class CaptureSession:
     pose_tolerance_deg : how far from a Table 1 pose the measured gravity may be (uncalibrated
         sensors may be several degrees off).
     rounds : after the first solve, accept further complete rounds in Table 1 order and solve
-        again with all of them (False: the first solve is final).
+        again with all of them (False: the first solve is final).  Before any solve, a pose
+        missing from the first round does not stop a second one: once the sequence has reached
+        its last pair, a pose of the first pair that reads as its earlier capture starts it.
     limits : the gates' limits (:class:`gates.GateLimits`).
+    end_after_stations : before any solve, this many statics in a row that are not poses of the
+        sequence (not a pose; a pose that does not read as its earlier capture; a repeat out of
+        order) end it: the probe has left the stand.
+    end_after_s : before any solve, a static that starts this long (data time, s) after the last
+        capture ends the sequence too.
     """
 
     site: Site | None = None
@@ -84,6 +96,8 @@ class CaptureSession:
     probe_id: str = "probe"
     limits: GateLimits = field(default_factory=GateLimits)
     effects: str = ""
+    end_after_stations: int = 2
+    end_after_s: float = 120.0
 
     captures: list = field(default_factory=list)      # accepted Stations (pose = the identified pose)
     warnings: list = field(default_factory=list)      # every message for the user, in order
@@ -110,6 +124,15 @@ class CaptureSession:
         self._heading_said = False
         self.solve_notes: list = []       # what the last solve said (left-out captures, residuals)
         self._solve_texts: set = set()    # everything any solve said
+        if self.end_after_stations < 1 or not self.end_after_s > 0:
+            raise ValueError("CaptureSession: end_after_stations must be >= 1 and end_after_s > 0")
+        self.ended = False                # the sequence is over (left the stand): closed to pending poses
+        self._strays = 0                  # statics in a row that are not poses of the sequence
+        self._refused: dict = {}          # pose -> why its last capture was refused
+        self._pre_round = False           # a second round under way before any solve
+        #: whether the last solve during :meth:`offer` used the station offered (False: the
+        #: sequence ended at it, so it is the first survey station, corrected by that solve)
+        self.last_offer_used = True
 
     # ---- views -----------------------------------------------------------------------------
     @property
@@ -185,17 +208,68 @@ class CaptureSession:
         return msg
 
     # ---- offering stations -----------------------------------------------------------------
+    @property
+    def _open(self) -> bool:
+        """The first sequence is under way: captures, no solve yet, not ended."""
+        return bool(self.captures) and self.solves == 0 and not self.ended and self.state != "done"
+
     def offer(self, st: Station) -> str:
         """Consider a closed station.  Returns 'accepted', 'merged', 'rejected', 'ignored' or 'solved'.
 
         Everything refused is said in :attr:`warnings`.  A station carrying a pose label (from a
         log) must agree with the pose its gravity shows; a station after the calibration that
         does not continue a new round in order is a survey station: 'ignored' without a warning.
+        Before any solve, a static long after the last capture, or ``end_after_stations`` statics
+        in a row that are not poses of the sequence, end it (:meth:`end_sequence`).
         """
+        if self._open:
+            gap = st.t_start - self.captures[-1].t_end
+            if gap > self.end_after_s:
+                self.end_sequence(f"{gap:.0f} s without a capture before the static at {st.where} (end_after_s "
+                                  f"{self.end_after_s:g})")
+        result = self._offer(st)
+        if self._open:
+            if result == "ignored":
+                self._strays += 1
+                if self._strays >= self.end_after_stations:
+                    self.end_sequence(f"{self._strays} statics in a row that are not poses of the sequence, the "
+                                      f"last at {st.where}: the probe has left the stand")
+            elif result != "rejected":
+                self._strays = 0
+        return result
+
+    def end_sequence(self, why: str = "the sequence is over"):
+        """The twelve-pose sequence is over (the probe left the stand, or the time ran out) with
+        poses missing or refused: solve with the captures there are (least squares), say which
+        poses are missing and why, and close the session to them (a new round from pose 1, or a
+        recapture, is still taken).  Returns the calibration or None."""
+        self.ended = True
+        self._strays = 0
+        self.last_offer_used = False
+        missing = self.pending
+        if not missing and self.state == "done":
+            return self.calibration
+        why_missing = "; ".join(f"pose {p}: " + (f"refused ({self._refused[p]})" if p in self._refused
+                                                    else "never captured") for p in missing)
+        self._warn(f"the twelve-pose sequence is over ({why}) with {len(self.captured)} of 12 poses: solving with "
+                   f"the {len(self.captures)} capture(s) there are — missing {why_missing}")
+        if not self.captures:
+            self.state, self.message = "error", "no twelve-position captures: nothing to calibrate"
+            return None
+        return self.solve(final=True)
+
+    def _reject(self, pose, why: str) -> str:
+        if pose is not None:
+            self._refused[pose] = why
+        return "rejected"
+
+    def _offer(self, st: Station) -> str:
         pose, _ = self.identify(st.g, st.b)
         # solved from every pose: later statics are new rounds or survey stations; solved without some
-        # poses (at the end of the data, least squares): those poses are still welcome
-        after_solve = self.state == "done" and not self.recapture and not self.pending
+        # poses (at the end of the data, least squares): those poses are still welcome — unless the
+        # sequence ended (the probe left the stand): then a survey station near a missing pose is not one
+        after_solve = (self.state == "done" and not self.recapture and not self.pending) or \
+            (self.ended and not self.recapture)
         self.current_pose = pose if pose is not None else -1
         where = f"pose {pose} at {st.where}" if pose is not None else f"static at {st.where}"
         if pose is None:
@@ -207,8 +281,9 @@ class CaptureSession:
             return "ignored"
         if st.short or st.duration_s < self.min_capture_s:
             self._warn(f"{where}: capture too short ({st.duration_s:.2f} s < {self.min_capture_s:g} s): rejected")
-            return "rejected"
-        findings = apply_gates(st, self.limits, self._solve_site.gravity_mps2)
+            return self._reject(pose, "capture too short")
+        apply_gates(st, self.limits, self._solve_site.gravity_mps2)   # a no-op when the caller gated it
+        findings = st.findings
         for f in findings:
             if f.code == "flat":   # the same stuck/clipped axis in every station: said twice, then counted
                 self._flat_seen[f.axis] = self._flat_seen.get(f.axis, 0) + 1
@@ -218,16 +293,16 @@ class CaptureSession:
         for msg in self._saturation.add(st, findings):
             self._warn(msg)
         if st.moved:
-            return "rejected"
+            return self._reject(pose, "the probe moved during the hold")
         if len(st.unusable) == 2:
             self._warn(f"{where}: neither sensor usable: rejected")
-            return "rejected"
+            return self._reject(pose, "neither sensor usable")
         if st.pose and st.pose != pose:
             cands = _gravity_candidates(st.g, self.pose_tolerance_deg)
             if st.pose not in cands:
                 self._warn(f"station at {st.where}: labelled pose {st.pose} but its gravity says pose "
                            f"{' or '.join(map(str, cands))}: refused (mislabelled pose)")
-                return "rejected"
+                return self._reject(st.pose, "mislabelled")
             pose = st.pose   # the label tells the pair's members apart where the heading guessed wrong
         labelled = bool(st.pose)
         st.pose = pose
@@ -338,7 +413,10 @@ class CaptureSession:
             elif self.state == "done":
                 self._info(f"{where}: pose {st.pose} again after a solve without pose(s) {self.pending}: not used")
                 return "ignored"
+            elif self._next_round(st, last):
+                pass
             else:
+                self._pre_round = False
                 self._warn(f"{where}: pose {st.pose} again, out of sequence (expected pose {self.expected_next}): "
                            "ignored — call recapture to replace a pose")
                 return "ignored"
@@ -352,8 +430,23 @@ class CaptureSession:
         # solve when this capture completes the twelve (later captures wait for a round or the end)
         return self._maybe_solve(had_pending and not self.pending and not self.recapture)
 
+    def _next_round(self, st, last) -> bool:
+        """Before any solve, with a pose still missing: does ``st`` start or continue a further
+        round?  It starts when the sequence has reached its last pair (11–12) and ``st`` is of the
+        first (1–2); it continues in Table 1's order (a missing pair skipped).  ``st`` already reads
+        as its earlier capture (:meth:`_same_as_before`)."""
+        if last is None:
+            return False
+        if position(st.pose) == 0 and position(last.pose) == position(POSES[-1]):
+            self._pre_round = True
+            self._info(f"pose {st.pose} at {st.where}: a further round before any solve (pose(s) {self.pending} "
+                       "missing): its captures are used")
+            return True
+        return self._pre_round and position(st.pose) >= position(last.pose)
+
     def _maybe_solve(self, now: bool) -> str:
         if now:
+            self.last_offer_used = True
             return "solved" if self.solve() is not None else "rejected"
         return "accepted"
 
@@ -376,6 +469,7 @@ class CaptureSession:
         self._flat_seen, self._flat_reported = {}, {}
         self._h2, self._heading, self._heading_said, self.solve_notes = [0.0, 0.0], 0.0, False, []
         self._solve_texts = set()
+        self.ended, self._strays, self._refused, self._pre_round = False, 0, {}, False
         self.result = self.calibration = None
         self.state, self.message, self.current_pose, self.solves = "collecting", "", -1, 0
 

@@ -182,12 +182,13 @@ class SaturationMonitor:
 
 def apply_gates(st, limits: GateLimits = GateLimits(), gravity_mps2: float | None = None) -> list:
     """Run the gates on a station once and record the outcome on it: ``warnings`` (messages),
-    ``unusable`` (sensors refused), ``moved`` (in-hold motion), ``gated``.  Returns the findings
+    ``unusable`` (sensors refused), ``moved`` (in-hold motion), ``gated``, ``findings``.  Returns the findings
     of this run (empty if the station was gated before: its messages were given then)."""
     if st.gated:
         return []
     found = station_findings(st, limits, gravity_mps2)
     st.gated = True
+    st.findings = tuple(found)
     st.warnings.extend(f.message for f in found)
     st.unusable = tuple(sorted(set(st.unusable) | {s for f in found if f.code in ("flat", "gravity") for s in f.sensors}))
     st.moved = st.moved or any(f.code in ("creep", "unsteady") for f in found)

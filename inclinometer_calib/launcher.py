@@ -75,6 +75,9 @@ RESTART_TRANSPORTS = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 #: --reliable: the raw streams' history depth (keep last), messages: 20 s at 1 kHz
 RELIABLE_DEPTH = 20_000
 MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
+#: A paced replay waits this long (s, wall) for a reader that left the graph (a restart takes a
+#: second or two) before it goes on without it.
+FLOW_GONE_S = 10.0
 #: Exit status of the probe node when its MCAP input was damaged (it replayed the readable part).
 PROBE_INPUT_DAMAGED = 3
 BAG = "survey.mcap"  # the first bag part; later parts survey_1.mcap, survey_2.mcap, ...
@@ -205,12 +208,20 @@ def build_params(args, out):
         if not 1 <= args.foxglove_port <= 65535:
             raise SystemExit(f"--foxglove-port {args.foxglove_port}: a TCP port is 1..65535 (0: no live view)")
         p["live"]["port"] = int(args.foxglove_port)   # the live view in Foxglove (host: config/live.yaml, loopback)
-    if args.reliable:
+    if not args.unpaced or args.reliable:
         # lossless: reliable, and a history deep enough that a node running behind the replay on a
         # loaded machine catches up instead of losing the oldest samples (keep-last 1000 is 1 s at 1 kHz)
         for n in ("probe", "calibration", "correction"):
             p[n]["qos.reliability"] = "reliable"
             p[n].setdefault("qos.depth", RELIABLE_DEPTH)
+    if not args.unpaced:
+        # a paced replay (flow control): the probe never runs more than its window ahead of the
+        # slowest reader; the readers' stations wait on the data's time alone (the source's
+        # announcement, the calibration node's progress): the stations are reprocess's
+        for n in ("calibration", "correction"):
+            p[n].setdefault("source.wait", True)
+        if not args.no_calibration:
+            p["correction"].setdefault("calibration.node", "calibration")
     if args.site:
         # the site reference of the run (total field, dip, declination, gravity): the calibration
         # and correction nodes use it, the simulated probe lives in it
@@ -327,6 +338,9 @@ def run_graph(args, out, env) -> GraphResult:
     if args.foxglove_port and "correction" in names:
         names.append("live")
     consumers = [n for n in names if n not in ("probe", "wits", "live")]
+    if not args.unpaced:
+        params["probe"].setdefault("flow.readers", list(consumers))
+        params["probe"].setdefault("flow.gone_s", FLOW_GONE_S)
     # every other node reads imu, mag and temperature; the reference goes to correction and recorder
     params["probe"].setdefault("wait_for_subscribers", len(consumers))
     params["probe"].setdefault("wait_for_reference_subscribers",
@@ -414,7 +428,9 @@ def run_graph(args, out, env) -> GraphResult:
                         reason = f"probe failed ({_exit_text(code)})"
                         result.problems.append(reason)
                         break
-                    drain_until = time.monotonic() + args.drain
+                    # a paced probe ends once every reader has taken the end (and the recorder
+                    # every station and record): a short drain is enough
+                    drain_until = time.monotonic() + (min(args.drain, 0.5) if not args.unpaced else args.drain)
                     continue
                 died = f"{name} died unexpectedly ({_exit_text(code)})"
                 if name in restarts and restarts[name] < MAX_RESTARTS:
@@ -468,7 +484,7 @@ def station_dict(msg) -> dict:
               "azimuth_magnetic_deg", "azimuth_grid_deg", "axial_field_nt"):
         d[k] = getattr(msg, k, float("nan"))
     # the azimuth's north and method ("" in a bag recorded before they existed)
-    for k in ("azimuth_reference", "azimuth_method", "probe_serial"):
+    for k in ("azimuth_reference", "azimuth_method", "probe_serial", "uncorrected_reason"):
         d[k] = getattr(msg, k, "")
     # the rest of the message, so that the dict has every field (the live view shows them all)
     for k, default in (("toolface_type", ""), ("azimuth_sigma_deg", float("nan")), ("axial_degenerate", False),
@@ -957,8 +973,12 @@ def parse_args(argv=None):
                          "rewritten after every station")
     ap.add_argument("--no-loop", action="store_true", help="no model loop in the summary (the lab's finding on the "
                     "recorded data and the field effect ladder)")
+    ap.add_argument("--unpaced", action="store_true",
+                    help="publish at --speed like a live source, without waiting for the readers (by default a replay "
+                         "is paced: it never runs ahead of the slowest reader, --speed is a ceiling); what a slow "
+                         "reader loses is counted in the summary")
     ap.add_argument("--reliable", action="store_true",
-                    help=f"reliable QoS for the raw streams, with a history of {RELIABLE_DEPTH} messages (lossless replay)")
+                    help=f"with --unpaced: reliable QoS for the raw streams, with a history of {RELIABLE_DEPTH} messages")
     ap.add_argument("--param", action="append", default=[], metavar="NODE:NAME:=VALUE",
                     help="extra node parameter, e.g. correction:publish_corrected:=true")
     ap.add_argument("--config", help="directory with <node>.yaml parameter files (default: the package's config/)")

@@ -45,10 +45,10 @@ from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, o
 from .capture import CaptureSession
 from .deps import require
 from .frames import NT_PER_TESLA, Site
-from .probelog import Limits, check_sample
 from .coeffs import message_fields
-from .pipeline import ProbeMismatch, SurveyProcessor
-from .streaming import ReferenceTrack, StaticDetector, StreamPairer
+from .engine import Expect, RecordOut, StationOut, StreamEngine
+from .pipeline import SurveyProcessor
+from .streaming import StaticDetector
 from .survey import Tolerances
 from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
                      STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG,
@@ -223,6 +223,7 @@ class ReprocessReport:
     raw_stations: List[object] = field(default_factory=list)   # each station.Station published, raw means, with
     #                                                            its reference in .ref (NaN: none): the lab's input
     captures: List[object] = field(default_factory=list)   # calibrate: the capture session's accepted poses
+    counts: Dict[str, int] = field(default_factory=dict)    # what came in and what became of it (engine.Counts)
 
     def _issue(self, kind: str, where: str, n: int = 1) -> None:
         self.issues.setdefault(kind, _Issue()).add(where, n)
@@ -300,14 +301,20 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     serial = bag_probe_serial(src) if probe_serial is None else str(probe_serial)
     report.probe_serial = serial or ""
     proc = SurveyProcessor(tolerances, site=site, monitor=monitor, probe_serial=serial or "", force_probe=force_probe)
-    if calibration is not None:
-        try:
-            report.notes.extend(proc.set_calibration(calibration))
-        except ProbeMismatch as exc:
-            raise ReprocessError(f"{src}: {exc} (--force-probe applies it anyway)") from None
     session = CaptureSession(site=site, probe_id=serial or probe_id, effects=effects) if calibrate else None
+    # the side streams a station waits for: those the bag has (offline, waiting changes when a
+    # station goes out, never what it is)
+    counts = {t: info.count for t, info in reader.topics.items()}
+    engine = StreamEngine(det, proc, session, expect=Expect(reference=counts.get(TOPIC_REFERENCE, 0) > 0,
+                                                               temperature=counts.get(TOPIC_TEMPERATURE, 0) > 0,
+                                                               depth=counts.get(TOPIC_DEPTH, 0) > 0),
+                          gravity_mps2=site.gravity_mps2 if site is not None else None)
+    engine.set_serial(serial or "")
+    if calibration is not None:
+        if not engine.record(calibration, None, "given"):
+            raise ReprocessError(f"{src}: {engine.refusal.split(': ', 1)[1]}: not applied (--force-probe applies it "
+                                 "anyway)")
     encoder = MessageEncoder()
-    limits = Limits()
 
     # FileExistsError before anything is read; no destination: the stations only (the lab's input)
     writer = BagWriter(dst, compression=compression) if dst is not None else _NoWriter()
@@ -316,62 +323,41 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     coeff_cid = writer.add_topic(TOPIC_COEFFICIENTS, COEFFICIENTS_TYPE, qos_profiles=[dict(
         DEFAULT_QOS_PROFILE, depth=1, durability="transient_local")]) if calibrate else None
     out_cid: Dict[str, Optional[int]] = {}     # input topic -> output channel, None = skipped
-    pairer = StreamPairer()  # the same pairing as the live nodes
-    have_temp = False
     prior = {}
-    refs = ReferenceTrack()
-    pending: List[tuple] = []                  # (station, log time) waiting for the reference
-    last_log = None
     t_first_pair = t_last_pair = None
-    stations = report.stations
     copied = report.copied
     issue = report._issue
-    n_warned = 0
+    where = [""]                                # the message being read (for what the engine says)
+    first_seen = {}                             # per-sample issue (index in _SAMPLE_ISSUES) -> where first
+    log_time = 0
 
-    # /probe/depth has no stamp: each value holds from the last pair before it (the bag's order)
-    depths = ReferenceTrack()
-    t_pair = [-math.inf]
-
-    def emit(st, log_time):
-        if st.short:
-            report.short_intervals += 1
-            return
-        if not math.isfinite(st.md_m):         # as the correction node: the depth at its middle
-            d = depths.at(st.t_mid)
-            st.md_m = d[0] if d is not None else NAN
-        # as the correction node: a station waits until the reference is current up to its end
-        if pending or not refs.current_at(st.t_end):
-            pending.append((st, log_time))
-        else:
-            publish_station(st, log_time)
-
-    def release(force):
-        while pending and (force or refs.current_at(pending[0][0].t_end)):
-            publish_station(*pending.pop(0))
-
-    def publish_station(st, log_time):
-        nonlocal n_warned
-        ref = refs.at(0.5 * (st.t_start + st.t_end))
-        fields = proc.process(st, ref=ref, have_temperature=have_temp)
-        if ref is not None:
-            st.ref = np.asarray(ref, dtype=float)
-        report.raw_stations.append(st)
-        writer.write(station_cid, encoder.encode(STATION_TYPE, int(round(st.t_end * 1e9)), frame_id, fields), log_time)
-        stations.append(fields)
-        if session is not None:
-            n_before = session.solves
-            session.offer(st)
-            for w in session.warnings[n_warned:]:
-                report.calibration_warnings.append(w)
-            n_warned = len(session.warnings)
-            if session.solves != n_before and session.calibration is not None:
-                publish(session.calibration, st.t_end, log_time)
-
-    def publish(cal, t_data, log_time):
-        report.notes.extend(n for n in proc.set_calibration(cal) if n not in report.notes)
-        report.calibrations.append(cal)
-        writer.write(coeff_cid, encoder.encode(COEFFICIENTS_TYPE, int(round(t_data * 1e9)), frame_id,
-                                               message_fields(cal)), log_time)
+    def drain():
+        """What the engine produced, written in the order it came (log time: the input message's
+        that completed it)."""
+        for ev in engine.pop():
+            if isinstance(ev, StationOut):
+                st, fields = ev.station, ev.fields
+                if ev.ref is not None:
+                    st.ref = np.asarray(ev.ref, dtype=float)
+                report.raw_stations.append(st)
+                writer.write(station_cid, encoder.encode(STATION_TYPE, int(round(st.t_end * 1e9)), frame_id, fields),
+                             log_time)
+                report.stations.append(fields)
+                for n in proc.notes:
+                    if n not in report.notes:
+                        report.notes.append(n)
+            elif isinstance(ev, RecordOut):
+                report.calibrations.append(ev.calibration)
+                stamp = ev.stamp if math.isfinite(ev.stamp) else (t_last_pair or 0.0)
+                writer.write(coeff_cid, encoder.encode(COEFFICIENTS_TYPE, int(round(stamp * 1e9)), frame_id,
+                                                       message_fields(ev.calibration)), log_time)
+            elif ev.level == "warning" and session is not None and _from_session(ev.text, session):
+                report.calibration_warnings.append(ev.text)
+            elif ev.text.startswith(_SAMPLE_ISSUES):
+                first_seen.setdefault(_SAMPLE_ISSUES.index(next(k for k in _SAMPLE_ISSUES if ev.text.startswith(k))),
+                                      where[0] + ": " + ev.text)
+            elif ev.level in ("warning", "error"):
+                report.events.append(ev.text)
 
     def register(m) -> Optional[int]:
         want = INPUT_TOPICS.get(m.topic)
@@ -409,96 +395,65 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
         for m in reader.messages(strict=False):
             report.messages_read += 1
             topic, log_time = m.topic, m.log_time
-            last_log = log_time
             cid = out_cid[topic] if topic in out_cid else register(m)
             if cid is None:
                 continue
             if cid >= 0:
                 writer.write(cid, m.data, log_time, m.publish_time)
                 copied[topic] += 1
+            where[0] = _where(topic, log_time)
             try:
-                if topic in (TOPIC_IMU, TOPIC_MAG):
-                    n_unpaired, n_order = pairer.unpaired, pairer.out_of_order
-                    if topic == TOPIC_IMU:
-                        key, f = decode_imu(m.data)
-                        if "acc" not in prior:
-                            prior["acc"] = decode_imu_covariance(m.data)
-                            det.set_prior(noise_acc=prior["acc"])
-                        got = pairer.add_imu(key, f)
-                    else:
-                        key, b = decode_vector3(m.data)
-                        if "mag" not in prior:
-                            prior["mag"] = decode_mag_covariance(m.data) * NT_PER_TESLA
-                            det.set_prior(noise_mag=prior["mag"])
-                        got = pairer.add_mag(key, (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA))
-                    if pairer.unpaired != n_unpaired:
-                        issue("unpaired sample (no partner on the other stream with the same stamp)",
-                              _where(topic, log_time))
-                    if got is None:
-                        if pairer.out_of_order != n_order:
-                            issue("non-monotonic timestamp (pair stamp not after the previous one), pair dropped",
-                                  _where(topic, log_time) + f", stamp {key[0] + 1e-9 * key[1]:.9f} s after "
-                                  f"{pairer.last_t:.9f} s")
-                        continue
-                    t, f, mm = got
-                    t_pair[0] = t
+                if topic == TOPIC_IMU:
+                    key, f = decode_imu(m.data)
+                    if "acc" not in prior:
+                        prior["acc"] = decode_imu_covariance(m.data)
+                    n_pairs = engine.counts.pairs
+                    engine.imu(key, f, m.publish_time, prior["acc"])
+                elif topic == TOPIC_MAG:
+                    key, b = decode_vector3(m.data)
+                    if "mag" not in prior:
+                        prior["mag"] = decode_mag_covariance(m.data) * NT_PER_TESLA
+                    n_pairs = engine.counts.pairs
+                    engine.mag(key, (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA), prior["mag"])
                 elif topic == TOPIC_DEPTH:
-                    depths.add(t_pair[0], (decode_float64(m.data),))
-                    continue
+                    engine.depth(decode_float64(m.data), m.publish_time)
                 elif topic == TOPIC_SERIAL:       # read before the loop (bag_probe_serial)
                     if decode_string(m.data) != report.probe_serial:
                         issue(f"a second probe serial in one bag ({decode_string(m.data)!r} after "
                               f"{report.probe_serial!r}), ignored", _where(topic, log_time))
-                    continue
                 elif topic == TOPIC_TEMPERATURE:
                     key, temp = decode_temperature(m.data)
-                    det.add_temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
-                    have_temp = True
-                    continue
+                    engine.temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
                 else:  # reference
                     key, v = decode_vector3(m.data)
-                    refs.add(key[0] + 1e-9 * key[1], v)
-                    release(False)
-                    continue
+                    engine.reference(key[0] + 1e-9 * key[1], v)
             except (struct.error, ValueError, IndexError) as exc:
                 issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
                 continue
-            # a complete imu/mag pair, in time order
-            if not (math.isfinite(f[0] + f[1] + f[2]) and math.isfinite(mm[0] + mm[1] + mm[2])):
-                issue("non-finite (NaN/inf) sample, pair dropped", _where(topic, log_time))
-                continue
-            reason = check_sample(f, mm, NAN, limits)   # the CSV reader's and the nodes' plausibility
-            if reason is not None:
-                bt = math.sqrt(mm[0] * mm[0] + mm[1] * mm[1] + mm[2] * mm[2]) / NT_PER_TESLA
-                if 1.0 < bt < 1e6:
-                    reason += (" — the field looks like nT written into a tesla field; MagneticField carries "
-                               "tesla (multiply nT by 1e-9)")
-                issue(f"implausible sample ({reason.split(' (')[0]}), pair dropped",
-                      _where(topic, log_time) + f": {reason}")
-                continue
-            report.pairs += 1
-            if t_first_pair is None:
-                t_first_pair = t
-            t_last_pair = t
-            for st in det.update(t, f, mm):
-                emit(st, log_time)
-        for st in det.flush():
-            emit(st, last_log or 0)
-        release(True)
-        if pairer.waiting:   # never paired: the other stream had no sample of that stamp
+            if topic in (TOPIC_IMU, TOPIC_MAG) and engine.counts.pairs != n_pairs:
+                t = engine.pairer.last_t
+                if t_first_pair is None:
+                    t_first_pair = t
+                t_last_pair = t
+            drain()
+        engine.end()
+        drain()
+        c = engine.counts
+        for k, (kind, n) in enumerate(((_ISSUE_KINDS[0], c.implausible), (_ISSUE_KINDS[1], c.nonfinite),
+                                       (_ISSUE_KINDS[2], c.out_of_order))):
+            if n:
+                issue(kind, first_seen.get(k, ""), n)
+        if c.unpaired:   # never paired: the other stream had no sample of that stamp
             issue("unpaired sample (no partner on the other stream with the same stamp)",
-                  f"{pairer.waiting} still waiting at the end of the bag", pairer.waiting)
+                  f"{engine.pairer.waiting} still waiting at the end of the bag", c.unpaired)
         if session is not None:
-            n_before = session.solves
-            session.finish()
-            report.calibration_warnings.extend(session.warnings[n_warned:])
-            if session.solves != n_before and session.calibration is not None:
-                publish(session.calibration, pairer.last_t, last_log or 0)   # stamped at the data's end
             report.calibration_state, report.calibration_message = session.state, session.message
             report.captures = list(session.captures)
     finally:
         writer.close()
-    report.events = det.pop_events()
+    report.pairs = engine.counts.used
+    report.short_intervals = engine.counts.short
+    report.counts = engine.counts.as_dict()
     report.noise = det.noise_level
     report.bag_errors = list(reader.errors)
     report.log_span_s = (t_last_pair - t_first_pair) if t_first_pair is not None else 0.0   # the data's own time
@@ -508,6 +463,17 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
         raise ReprocessError(f"{src}: no usable {TOPIC_IMU}/{TOPIC_MAG} sample pairs ({reasons}); "
                              f"{dst} holds the copied input only")
     return report
+
+
+#: How the engine's per-sample warnings begin, and the report's name for each kind.
+_SAMPLE_ISSUES = ("sample at t=", "non-finite sample", "a sample pair stamped")
+_ISSUE_KINDS = ("implausible sample, pair dropped", "non-finite (NaN/inf) sample, it ends the hold",
+                "non-monotonic timestamp (pair stamp not after the previous one), pair dropped")
+
+
+def _from_session(text: str, session) -> bool:
+    """Whether a warning the engine passed on is the capture session's (the report keeps those apart)."""
+    return text in session.warnings
 
 
 # ---------------------------------------------------------------------------------------------

@@ -56,7 +56,8 @@ class Station:
     time of the data's first sample (the probe's power-on: the origin of time-dependent effects).
     ``warnings`` collects what the acceptance gates (:mod:`gates`) found, as text; ``unusable``
     names the sensors (``"acc"``, ``"mag"``) whose data in this station a gate refused; ``moved``
-    says the probe moved during the hold (in-hold motion gates); ``gated``: the gates have run.
+    says the probe moved during the hold (in-hold motion gates); ``gated``: the gates have run,
+    ``findings``: what they found.
     """
 
     t_start: float
@@ -84,6 +85,8 @@ class Station:
     unusable: tuple = ()
     moved: bool = False
     gated: bool = False
+    #: the gates' findings (:class:`gates.Finding`) when they ran on this station
+    findings: tuple = ()
     rotation: np.ndarray = field(default_factory=lambda: np.full((3, 3), np.nan))
     t_origin: float = 0.0
     #: Measured depth of the station (m; NaN: not known): a log's ``md_m`` rows, a stream's
@@ -173,7 +176,7 @@ def merge_stations(a: Station, b: Station) -> Station:
         ended_by=b.ended_by, index=a.index, pose=a.pose or b.pose, ref=a.ref if a.has_partial_ref else b.ref,
         first_row=a.first_row, last_row=b.last_row, warnings=a.warnings + b.warnings,
         unusable=tuple(sorted(set(a.unusable) | set(b.unusable))), moved=a.moved or b.moved,
-        gated=a.gated and b.gated, rotation=a.rotation, t_origin=a.t_origin)
+        gated=a.gated and b.gated, findings=a.findings + b.findings, rotation=a.rotation, t_origin=a.t_origin)
 
 
 # ---------------------------------------------------------------------------------------------

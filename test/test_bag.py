@@ -65,7 +65,7 @@ def station_cdr(store, i: int) -> bytes:
         "station_id": i, "azimuth_reference": "true", "toolface_type": "gravity",
         "coefficients_id": "cal-1", "status": 0, "azimuth_method": "standard", "axial_degenerate": False,
         "moved_during_capture": False, "warnings": ["a hold cut into pieces"], "model_misfit": False,
-        "model_diagnosis": "", "probe_serial": "SN-1",
+        "model_diagnosis": "", "probe_serial": "SN-1", "uncorrected_reason": "",
     }
     for name in cls.__dataclass_fields__:
         if name in fields:

@@ -31,23 +31,21 @@ again (the coefficients are re-solved and re-published once it is).
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
-import time
 
 from rclpy.node import Node
-from sensor_msgs.msg import Imu, MagneticField, Temperature
-from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from ..capture import CaptureSession
 from ..effects import parse_effects
+from ..engine import RecordOut, StreamEngine
 from ..frames import gravity_from_specific_force
-from ..gates import GateLimits
-from ..streaming import StaticDetector
 from ..turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
 from ..twelve_position import POSES
 from . import common as c
+from .stream import StreamDriver, declare_stream_params, make_detector
 from inclinometer_calib.msg import CalibrationCoefficients, CalibrationStatus
 from inclinometer_calib.srv import RecapturePose
 
@@ -78,25 +76,22 @@ class CalibrationNode(Node):
         self.probe_id = p.declare("probe_id", "probe", "Id / serial number of the probe", read_only=True)
         self.status_rate = p.declare("status_rate_hz", 1.0, "Periodic status publication rate, Hz",
                                      read_only=True, range=(0.1, 100.0))
-        self.idle_flush = p.declare("idle_flush_s", 1.0, "End of the data: when no sample arrived for this long "
-                                    "(wall clock), s, close the current static interval and solve with what there "
-                                    "is (poses missing: least squares), or say why not; data arriving later continue "
-                                    "the session; 0 disables", read_only=True, range=(0.0, 60.0))
         self.max_warnings = p.declare("max_warnings", 10, "Most recent warnings carried in the status",
                                       range=(0, 50))
         min_capture = p.declare("min_capture_s", 0.5, "Shortest accepted capture, s (log time)",
                                 read_only=True, range=(0.05, 600.0))
-        max_creep = p.declare("gates.max_creep_deg", GateLimits.max_creep_deg, "Largest turn of the probe during a "
-                              "hold that is not motion (the trend must also be significant against the noise), deg",
-                              read_only=True, range=(0.0, 10.0))
-        max_ratio = p.declare("gates.max_scatter_ratio", GateLimits.max_scatter_ratio, "A hold whose scatter "
-                              "(after its trend) exceeds this multiple of the measured noise, significantly, is "
-                              "unsteady (vibration, motion): rejected", read_only=True, range=(1.0, 100.0))
         pose_tol = p.declare("pose_tolerance_deg", 15.0, "How far the measured gravity may be from a "
                              "Table 1 pose, deg", read_only=True, range=(1.0, 44.0))
         rounds = p.declare("rounds", True, "After the first solve, accept further complete rounds of the twelve "
                            "poses in Table 1 order (starting at pose 1) and solve again with all of them; "
                            "false: the first solve is final", read_only=True)
+        end_after_stations = p.declare("session.end_after_stations", 2, "Before any solve, this many statics in a "
+                                       "row that are not poses of the sequence end it (the probe left the stand): "
+                                       "solve with the poses there are (missing ones said)", read_only=True,
+                                       range=(1, 1000))
+        end_after_s = p.declare("session.end_after_s", 120.0, "Before any solve, a static that starts this long "
+                                "after the last capture (data time, s) ends the sequence too", read_only=True,
+                                range=(1.0, 1e6))
         site = c.declare_site(p, given_flag="true: the site.* values are the site reference of the record; "
                               "false: the record's site is what the stand measures (dip, the horizontal field's "
                               "direction; the total field in the scale of the assumed vertical component)")
@@ -111,12 +106,8 @@ class CalibrationNode(Node):
         acc_record = p.declare("turntable.acc_record", "", "turntable: a calibration record (e.g. the twelve "
                                "positions') whose accelerometer joins the turntable's magnetometer in the record",
                                read_only=True)
-        det = c.declare_detector(p, max_duration_s=600.0)
-        qos = c.declare_qos(p)
+        settings = declare_stream_params(p, calibration_sync=False)
 
-        self.detector = StaticDetector(**det)
-        self._prior_seen = set()     # sensors whose stated noise (covariance) was given to the detector
-        self.implausible_samples = 0
         if self.method == "turntable":
             acc_cal = None
             if acc_record:
@@ -130,23 +121,20 @@ class CalibrationNode(Node):
         else:
             self.session = CaptureSession(site=site, min_capture_s=min_capture, pose_tolerance_deg=pose_tol,
                                           rounds=rounds, probe_id=self.probe_id, effects=effects,
-                                          limits=GateLimits(max_creep_deg=max_creep, max_scatter_ratio=max_ratio))
-        self.pairer = c.StreamPairer()
-        self.bad_samples = 0         # non-finite samples seen (each closes the static interval)
-        self._last = None            # latest paired sample (t, f, m)
-        self._last_wall = None       # monotonic time of the latest sample
+                                          limits=settings["gates"], end_after_stations=end_after_stations,
+                                          end_after_s=end_after_s)
+        # the same engine as the correction node's and reprocess's, in the calibrate role
+        self.engine = StreamEngine(make_detector(settings), session=self.session, gate_limits=settings["gates"],
+                                   gravity_mps2=site.gravity_mps2 if site is not None else None)
+        self.detector = self.engine.det
         self._live_pose = -1
         self.coefficients = None     # latest published message
 
         self.pub_status = self.create_publisher(CalibrationStatus, c.TOPIC_STATUS, c.reliable_qos(10))
         self.pub_coeffs = self.create_publisher(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, c.latched_qos())
-        # the sample streams on a wait set of their own (c.HotPathExecutor, as the correction node's):
-        # on rclpy's stock executor each message walks the node's whole wait set, about twice the CPU
-        # per sample (docs/benchmarks.md, section 5)
-        self.hot_subscriptions = (self.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
-                                  self.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
-                                  self.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos))
-        self.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
+        # the sample streams on a wait set of their own (c.HotPathExecutor, as the correction node's)
+        self.stream = StreamDriver(self, settings, self.engine, self._on_events, side=False)
+        self.hot_subscriptions = tuple(self.stream.hot_subscriptions)
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(RecapturePose, "~/recapture", self._on_recapture)
         c.steady_timer(self, 1.0 / self.status_rate, self._on_timer)  # runs on when /clock stops
@@ -175,81 +163,21 @@ class CalibrationNode(Node):
                 self.session.mount = prm.value
                 self.get_logger().info(f"turntable mount set to {prm.value or '(recognised from gravity)'}")
 
-    # ---- samples ---------------------------------------------------------------------------
-    def _on_imu(self, msg):
-        s = msg.header.stamp
-        ooo = self.pairer.out_of_order
-        if len(self._prior_seen) < 2:
-            c.note_covariance(self, self.detector, imu_msg=msg)
-        got = self.pairer.add_imu((s.sec, s.nanosec), c.specific_force(msg))
-        if got is not None:
-            self._sample(*got)
-        elif self.pairer.out_of_order != ooo:
-            c.warn_out_of_order(self, c.TOPIC_IMU, s, self.pairer)
-
-    def _on_mag(self, msg):
-        s = msg.header.stamp
-        ooo = self.pairer.out_of_order
-        if len(self._prior_seen) < 2:
-            c.note_covariance(self, self.detector, mag_msg=msg)
-        got = self.pairer.add_mag((s.sec, s.nanosec), c.field_nt(msg))
-        if got is not None:
-            self._sample(*got)
-        elif self.pairer.out_of_order != ooo:
-            c.warn_out_of_order(self, c.TOPIC_MAG, s, self.pairer)
-
-    def _on_temp(self, msg):
-        self.detector.add_temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
-
-    def _on_serial(self, msg):
-        """The data's probe (latched): the records this node makes are that probe's."""
-        serial = str(msg.data)
-        if not serial or serial == self.session.probe_id:
+    # ---- what the engine produced ---------------------------------------------------------
+    def _on_events(self, events, msg=None, info=None):
+        """Records are published (and written), the status follows every change."""
+        if not events:
             return
-        if self.probe_id not in ("", "probe", serial):
-            self.get_logger().warning(f"probe_id {self.probe_id!r} is not the probe on {c.TOPIC_SERIAL} ({serial}): "
-                                      "the records are named for the data's probe")
-        self.session.probe_id = serial
-        self.get_logger().info(f"calibrating probe {serial}")
-
-    def _sample(self, t, f, m):
-        self._last = (t, f, m)
-        c.feed_sample(self, t, f, m, self._offer)
-
-    def _log_events(self):
-        for e in self.detector.pop_events():
-            self.get_logger().warning(e)
-
-    def _offer(self, seg):
-        """Offer a closed station to the session; every refusal is logged at WARNING, a failed solve
-        at ERROR (never at INFO), and a solve is published."""
-        self._report(lambda: self.session.offer(seg))
-
-    def _report(self, action):
-        s = self.session
-        n_warn, n_info, n_solves, before = len(s.warnings), len(s.infos), s.solves, (s.state, s.message)
-        result = action()
-        for w in s.warnings[n_warn:]:
-            if not (s.state == "error" and w == s.message):   # the failure itself: at ERROR, below
-                self.get_logger().warning(w)
-        for i in s.infos[n_info:]:
-            self.get_logger().info(i)
-        if result == "accepted" and not self.turntable:
-            self.get_logger().info(f"captured pose {s.current_pose}; pending {s.pending}")
-        if (s.solves != n_solves and s.calibration is not None
-                and (self.coefficients is None or self.coefficients.id != s.calibration.id)):
-            self._publish_coefficients()   # a solve that gives the same record again is not republished
-        elif s.state == "error" and s.message and (s.state, s.message) != before:
-            self.get_logger().error(s.message)   # once, when it happens
+        for ev in events:
+            if isinstance(ev, RecordOut):
+                self._publish_coefficients(ev.calibration, ev.stamp)
         self._publish_status()
 
-    def _finish(self):
-        self.session.finish()   # a failure is logged by _report, once
-        return "finished"
-
-    def _publish_coefficients(self):
-        cal = self.session.calibration
-        msg = c.coefficients_to_msg(cal, CalibrationCoefficients, self.get_clock().now().to_msg(), self.frame_id)
+    def _publish_coefficients(self, cal, stamp: float):
+        """Publish a record, stamped with the data time from which it applies (the correction node
+        and reprocess apply it to the stations that end after it), and write it to ``output``."""
+        msg = c.coefficients_to_msg(cal, CalibrationCoefficients, None, self.frame_id)
+        c.set_stamp(msg.header.stamp, max(stamp, 0.0) if math.isfinite(stamp) else max(self.engine.t_last, 0.0))
         self.pub_coeffs.publish(msg)
         self.coefficients = msg
         self.get_logger().info(f"solved: {self.session.message}; published coefficients {cal.id} "
@@ -270,25 +198,15 @@ class CalibrationNode(Node):
 
     # ---- status ----------------------------------------------------------------------------
     def _on_timer(self):
-        # End of stream: close a static interval nobody will close (no sample after it).
-        if (self.idle_flush > 0 and self._last_wall is not None
-                and time.monotonic() - self._last_wall > self.idle_flush):
-            self._last_wall = None
-            closed = self.detector.flush()
-            for st in closed:
-                self._offer(st)
-            self._log_events()
-            # the end of the data: solve with what there is (the last round, poses missing) or say why not
-            self._report(self._finish)
-            return
         # Live pose while static (the session only identifies closed segments).
-        if self._last is not None and self.detector.static_for_s > 0:
-            g = gravity_from_specific_force(tuple(self._last[1]))
+        last = self.engine.last_pair
+        if last is not None and self.detector.static_for_s > 0:
+            g = gravity_from_specific_force(tuple(last[1]))
             if self.turntable:
                 m = self.session.identify(g)
                 self._live_pose = MOUNT_NAMES_ORDER.index(m) + 1 if m else -1
             else:
-                pose, _ = self.session.identify(g, self._last[2])
+                pose, _ = self.session.identify(g, last[2])
                 self._live_pose = pose if pose is not None else -1
         else:
             self._live_pose = -1
@@ -340,7 +258,6 @@ class CalibrationNode(Node):
     def _on_reset(self, request, response):
         self.session.reset()
         self.detector.reset()
-        self.pairer.reset()
         self._live_pose = -1
         response.success = True
         response.message = "all captures discarded; collecting the twelve poses again"

@@ -36,7 +36,7 @@ from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-e
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
 
-from ..topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_DIAGNOSTICS, TOPIC_IMU,  # noqa: F401,E402
+from ..topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_DIAGNOSTICS, TOPIC_IMU, TOPIC_PROGRESS,  # noqa: F401,E402,E501
                       TOPIC_IMU_CORRECTED, TOPIC_MAG, TOPIC_MAG_CORRECTED, TOPIC_REFERENCE, TOPIC_SERIAL, TOPIC_STATION,
                       TOPIC_STATUS, TOPIC_TEMPERATURE)   # the graph's names, one place (re-exported)
 
@@ -309,9 +309,10 @@ def sensor_qos(depth: int = 1000, reliability: str = "best_effort") -> QoSProfil
         reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
 
 
-def latched_qos() -> QoSProfile:
-    """Transient-local, reliable, keep last 1: late joiners get the latest value (coefficients)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+def latched_qos(depth: int = 1) -> QoSProfile:
+    """Transient-local, reliable, keep last ``depth``: late joiners get the latest values (the
+    coefficients; each node's progress; the side streams a restarted reader needs)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                       reliability=ReliabilityPolicy.RELIABLE)
 
 

@@ -48,6 +48,7 @@ replayed) — ``on_end:=idle`` keeps the node alive.
 """
 from __future__ import annotations
 
+import collections
 import json
 import math
 import os
@@ -58,6 +59,7 @@ import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, MagneticField, Temperature
@@ -71,13 +73,16 @@ from ..probelog import MAG_UNITS, ProbeLog, atomic_write_text, label_runs, read_
 from ..streaming import depth_per_sample
 from ..topics import GRAPH_OUTPUTS, PROBE_TOPICS
 from . import common as c
+from inclinometer_calib.msg import StreamProgress
 
 SOURCES = ("simulate", "csv", "mcap")
 #: While the depth changes (the probe moving), it is published at most this often (log time, s).
 DEPTH_PERIOD_S = 0.5
-#: The reference in effect is published again after this much log time without a change, so that
-#: a reader knows its last reference is current (a station waits for that before it is published).
+#: The reference and the depth in effect are published again after this much log time without a
+#: change, so that a reader knows its last one is current (a station waits for that before it goes).
 REFERENCE_PERIOD_S = 1.0
+#: The progress (StreamProgress) goes out at most this often while publishing (wall time, s).
+PROGRESS_PERIOD_S = 0.02
 #: Exit status at the end of the script when the MCAP input was damaged (the launcher reports it).
 INPUT_DAMAGED = 3
 #: Shortest wall-clock interval between two /clock messages, s: enough for the other nodes'
@@ -252,6 +257,29 @@ class ProbeNode(Node):
         self.well_kickoff = p.declare("well.kickoff_deg", 0.0, "Drift of the first station, deg",
                                       read_only=True, range=(0.0, 180.0))
         qos = c.declare_qos(p)
+        self.flow_readers = list(p.declare(
+            "flow.readers", [], f"Pace the replay on these nodes' {c.TOPIC_PROGRESS} (e.g. calibration, correction, "
+            "recorder): never more than flow.window samples ahead of the slowest of them, so that no reader loses a "
+            "sample whatever the machine (speed is then a ceiling); empty: paced by speed alone, as a live source",
+            read_only=True, ptype=Parameter.Type.STRING_ARRAY))
+        self.window = p.declare("flow.window", 500, "Samples the replay may run ahead of its slowest reader (at most "
+                                "qos.depth: the readers' queues hold them)", read_only=True, range=(1, 100000))
+        self.gone_s = p.declare("flow.gone_s", 30.0, "A reader that is not in the graph for this long (wall clock, s: "
+                                "it died and was not restarted) is no longer waited for (said)", read_only=True,
+                                range=(0.1, 3600.0))
+        self.end_timeout = p.declare("flow.end_timeout_s", 120.0, "After the last sample, wait at most this long "
+                                     "(wall clock, s) for every reader to have taken the end (and the recorder every "
+                                     "station and record) before exiting", read_only=True, range=(0.0, 3600.0))
+        self.recorder_name = p.declare("flow.recorder", "recorder", "The reader that records the others' stations "
+                                       "and records: the end waits until it has every one of them", read_only=True)
+        if self.flow_readers and qos.reliability != ReliabilityPolicy.RELIABLE:
+            raise ValueError("flow.readers needs qos.reliability:=reliable (a paced replay loses nothing)")
+        if self.flow_readers and self.window > qos.depth:
+            raise ValueError(f"flow.window {self.window} exceeds qos.depth {qos.depth}: the readers' queues would "
+                             "drop what the window lets through")
+        if self.flow_readers:
+            # a reader restarted mid-run (the recorder) gets what the window still holds from the history
+            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
         self.add_post_set_parameters_callback(self._after_set)
 
         self.input_damaged = 0  # problems found in an MCAP input (exit status INPUT_DAMAGED at the end)
@@ -267,8 +295,25 @@ class ProbeNode(Node):
         self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU, qos)
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG, qos)
         self.pub_temp = self.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
-        self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, c.reliable_qos(100))
-        self.pub_depth = self.create_publisher(Float64, c.TOPIC_DEPTH, c.reliable_qos(100))
+        side_qos = c.latched_qos(depth=100) if self.flow_readers else c.reliable_qos(100)
+        self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, side_qos)
+        self.pub_depth = self.create_publisher(Float64, c.TOPIC_DEPTH, side_qos)
+        # the source's announcement, its pacing and what it sent (StreamProgress): the readers'
+        # stations wait on the data's time alone, and the run's accounting starts here
+        self.pub_progress = self.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos())
+        self.progress = StreamProgress(node=self.get_name(), settled=math.nan, window=self.window if self.flow_readers
+                                       else 0, **self._announcement)
+        self._acks = {}              # reader -> data time of the last sample it took
+        self._reader_ends = {}       # reader -> its last StreamProgress once it says end
+        self._reader_counts = {}     # reader -> (stations, records) it reports
+        self._gone = set()           # readers no longer waited for
+        self._absent_since = {}
+        self._in_flight = collections.deque()   # stamps of the samples sent and not yet taken by every reader
+        self._stall_said = 0.0
+        self._graph_check = 0.0
+        self._progress_wall = -math.inf
+        if self.flow_readers:
+            self.create_subscription(StreamProgress, c.TOPIC_PROGRESS, self._on_progress, c.latched_qos(depth=100))
         self.pub_serial = self.create_publisher(String, c.TOPIC_SERIAL, c.latched_qos())
         self._publish_serial()
         self.pub_clock = (self.create_publisher(ClockMsg, c.TOPIC_CLOCK, c.sensor_qos(10))
@@ -283,11 +328,15 @@ class ProbeNode(Node):
         self._next_depth = 0
         self._depth_sent = -math.inf
         self._ref_now = None          # the reference in effect (published), None before the first
+        self._depth_now = math.nan    # the depth in effect (published), NaN before the first
+        self._sent_t = -math.inf      # stamp of the last sample published
+        self._last_sent_wall = time.monotonic()
         self._ref_sent = -math.inf    # stamp of the last reference published
         self._state = "waiting"
         self._created = time.monotonic()
         self._wall0 = self._log0 = 0.0
         self._stamp0 = 0.0
+        self._publish_progress(force=True)   # the announcement, before the first sample
         period = min(max(1.0 / (self.rate_hz * self.speed), MIN_TICK_S), 0.02)
         self._timer = c.steady_timer(self, period, self._tick)
         dur = self.script.t_last - self.script.t_first
@@ -309,10 +358,19 @@ class ProbeNode(Node):
                 self.get_logger().warning(f"{self.path}: {len(rejections)} rows rejected")
             # tesla: a log's nT divided as reprocess and `bag from-csv` do, so that every path sees the
             # same numbers
+            self._announce(log.ref, log.temp_c, log.md_m)
             return _Script.whole(log, log.mag / c.NT_PER_TESLA, self.chunk_samples), self._covariance(log)
         log, cov = self._read_bag(self.path)
+        self._announce(log.ref, log.temp_c, log.md_m)
         # a bag's recorded values unchanged (bit for bit)
         return _Script.whole(log, self._recorded_tesla, self.chunk_samples), cov
+
+    def _announce(self, ref, temp_c, md_m):
+        """The side streams this script keeps current (published at least every
+        REFERENCE_PERIOD_S of log time while defined; the temperature with every sample)."""
+        self._announcement = dict(has_reference=bool(np.isfinite(np.asarray(ref, float)).any()),
+                                  has_temperature=bool(np.isfinite(np.asarray(temp_c, float)).any()),
+                                  has_depth=bool(np.isfinite(np.asarray(md_m, float)).any()))
 
     def _simulate(self):
         noise = {k: v for k, v in (("noise_acc", self.noise_acc), ("noise_mag", self.noise_mag)) if v > 0}
@@ -346,6 +404,8 @@ class ProbeNode(Node):
             pieces.append(plans[-1].chunks(self.chunk_samples))
         if not plans:
             raise ValueError("nothing to simulate: calibration_session is false and survey is none")
+        every = [st for plan in plans for st in plan.stations]
+        self._announce([st.ref for st in every], [st.temp_c for st in every], [st.md_m for st in every])
         if self.truth_file:
             self._write_truth(probe, plans)
         script = _Script(sum(p.n for p in plans), float(plans[0].labels(0, 1)[0][0]), plans[-1].t_last,
@@ -427,7 +487,7 @@ class ProbeNode(Node):
         log = self.get_logger()
         skipped, undecodable = {}, {}
         imu, mag, temp, ref = {}, {}, {}, []
-        depth, imu_log_time = [], {}     # the depth has no stamp: it holds in the bag's order
+        depth, imu_sent = [], {}     # the depth has no stamp: it holds from the sample sent before it
         cov_acc = cov_mag = None
         self._bag_serial = ""
         for m in reader.messages(strict=False):
@@ -452,14 +512,14 @@ class ProbeNode(Node):
                 undecodable[m.topic] = undecodable.get(m.topic, 0) + 1
                 continue
             if m.topic == c.TOPIC_DEPTH:
-                depth.append((m.log_time, msg.data))
+                depth.append((m.publish_time, msg.data))   # the send order (reprocess places it the same way)
                 continue
             if m.topic == c.TOPIC_SERIAL:          # latched, published once at the start (not replayed)
                 self._bag_serial = self._bag_serial or msg.data
                 continue
             key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
             if m.topic == c.TOPIC_IMU:
-                imu_log_time[key] = m.log_time
+                imu_sent[key] = m.publish_time
                 a = msg.linear_acceleration
                 imu[key] = (a.x, a.y, a.z)
                 cov_acc = msg.linear_acceleration_covariance
@@ -495,7 +555,7 @@ class ProbeNode(Node):
         self._recorded_tesla = np.array([mag[k] for k in keys])
         log = ProbeLog(t, np.array([imu[k] for k in keys]), self._recorded_tesla * c.NT_PER_TESLA,
                        np.array([temp.get(k, np.nan) for k in keys]), np.zeros(len(keys), dtype=int), refs,
-                       md_m=depth_per_sample(depth, [imu_log_time[k] for k in keys]))
+                       md_m=depth_per_sample(depth, [imu_sent[k] for k in keys]))
         self.get_logger().info(f"{path}: {len(keys)} samples, {len(ref)} reference changes")
         return log, self._covariance(log, (cov_acc, cov_mag))
 
@@ -547,6 +607,7 @@ class ProbeNode(Node):
         ref.vector.x, ref.vector.y, ref.vector.z = self._ref_now
         self.pub_ref.publish(ref)
         self._ref_sent = stamp_s
+        self.progress.reference += 1
 
     def _load_piece(self) -> bool:
         """Make the next piece of the script current (its samples as floats, the reference and
@@ -653,25 +714,126 @@ class ProbeNode(Node):
                 self.get_logger().warning(f"still waiting for subscribers after {self.wait_timeout:g} s on "
                                           f"{', '.join(missing)}: starting anyway")
                 self._start()
-        elif self._state == "ending" and time.monotonic() >= self._end_at:
-            self._state = "ended"
-            status = 0
-            if self.input_damaged:
-                status = INPUT_DAMAGED
-                self.get_logger().error(f"{self.path}: the input was damaged ({self.input_damaged} problem(s), "
-                                        f"see the warnings above): only its readable part was replayed; exit "
-                                        f"status {INPUT_DAMAGED}")
-            if self.on_end == "stop":
-                self.done.set_result(status)
-            else:
-                self.get_logger().info("script finished; idling (on_end:=idle)")
+        elif self._state == "ending":
+            self._publish_progress()
+            if self._drained() or time.monotonic() >= self._end_at:
+                self._finish()
+        if self.flow_readers:
+            self._watch_readers()
 
+    def _finish(self):
+        self._state = "ended"
+        if self.flow_readers and not self._drained():
+            self.get_logger().error(
+                f"the readers did not all take the end within flow.end_timeout_s ({self.end_timeout:g} s): "
+                + "; ".join(self._not_drained()) + " — the run's summary counts what they missed")
+        status = 0
+        if self.input_damaged:
+            status = INPUT_DAMAGED
+            self.get_logger().error(f"{self.path}: the input was damaged ({self.input_damaged} problem(s), "
+                                    f"see the warnings above): only its readable part was replayed; exit "
+                                    f"status {INPUT_DAMAGED}")
+        if self.on_end == "stop":
+            self.done.set_result(status)
+        else:
+            self.get_logger().info("script finished; idling (on_end:=idle)")
+
+    # ---- flow control ----------------------------------------------------------------------------
+    def _on_progress(self, msg):
+        name = msg.node
+        if name not in self.flow_readers:
+            return
+        t = c.stamp_to_sec(msg.header.stamp)
+        if t > self._acks.get(name, -math.inf):
+            self._acks[name] = t
+        self._reader_counts[name] = (int(msg.stations), int(msg.records))
+        if msg.end:
+            self._reader_ends[name] = msg
+        elif name in self._reader_ends:
+            del self._reader_ends[name]       # restarted: it has not taken the end yet
+        if name in self._gone:
+            self._gone.discard(name)
+            self.get_logger().info(f"reader {name} is back: the replay waits for it again")
+
+    def _slowest(self) -> float:
+        """The data time of the last sample every reader waited for has taken."""
+        acks = [self._acks.get(r, -math.inf) for r in self.flow_readers if r not in self._gone]
+        return min(acks) if acks else math.inf
+
+    def _allowance(self) -> int:
+        """How many more samples may go now: the window less those a reader has not taken."""
+        if not self.flow_readers:
+            return self.max_batch
+        slowest, inflight = self._slowest(), self._in_flight
+        while inflight and inflight[0] <= slowest:
+            inflight.popleft()
+        return self.window - len(inflight)
+
+    def _watch_readers(self):
+        """Readers that left the graph (died, not restarted) are waited for at most flow.gone_s; a
+        replay that stalls on a slow reader says so every 10 s."""
+        now = time.monotonic()
+        if now - self._graph_check < 0.5:
+            return
+        self._graph_check = now
+        present = {i.node_name for i in self.get_publishers_info_by_topic(c.TOPIC_PROGRESS)}
+        for r in self.flow_readers:
+            if r in present or r in self._gone:
+                self._absent_since.pop(r, None)
+                continue
+            since = self._absent_since.setdefault(r, now)
+            if now - since > self.gone_s and (r in self._acks or now - self._created > self.gone_s):
+                self._gone.add(r)
+                self.get_logger().error(f"reader {r} has not been in the graph for {self.gone_s:g} s: the replay no "
+                                        "longer waits for it (what it misses is lost to it, and counted)")
+        if self._state == "running" and self._allowance() <= 0 and now - self._stall_said > 10.0 \
+                and now - self._progress_wall < 1.0:
+            slow = [r for r in self.flow_readers if r not in self._gone and
+                    self._acks.get(r, -math.inf) <= self._slowest()]
+            if now - self._last_sent_wall > 10.0:
+                self._stall_said = now
+                self.get_logger().warning(f"the replay waits for {', '.join(slow)} (at t="
+                                          f"{self._slowest():.2f} s, {self.window} samples behind) for "
+                                          f"{now - self._last_sent_wall:.0f} s")
+
+    def _not_drained(self) -> list:
+        out = [f"{r} has not" for r in self.flow_readers if r not in self._gone and r not in self._reader_ends]
+        rec = self.recorder_name
+        if rec in self.flow_readers and rec not in self._gone and rec in self._reader_counts:
+            have = self._reader_counts[rec]
+            others = [v for r, v in self._reader_counts.items() if r != rec]
+            want = (max((v[0] for v in others), default=0), max((v[1] for v in others), default=0))
+            if have[0] < want[0] or have[1] < want[1]:
+                out.append(f"{rec} has recorded {have[0]} of {want[0]} stations and {have[1]} of {want[1]} records")
+        return out
+
+    def _drained(self) -> bool:
+        """Every reader has taken the end, and the recorder every station and record the others
+        published (their last counts, with the end)."""
+        if not self.flow_readers:
+            return True
+        return not self._not_drained()
+
+    def _publish_progress(self, force: bool = False, end: bool = False):
+        now = time.monotonic()
+        if not force and now - self._progress_wall < PROGRESS_PERIOD_S:
+            return
+        self._progress_wall = now
+        m = self.progress
+        if self._sent_t > -math.inf:
+            c.set_stamp(m.header.stamp, max(self._sent_t, 0.0))
+        m.end = m.end or end
+        self.pub_progress.publish(m)
+
+    # ---- publishing --------------------------------------------------------------------------
     def _publish_due(self):
         now = time.monotonic()
         target = self._log0 + (now - self._wall0) * self.speed
-        budget, last = self.max_batch, None
+        allowed = self._allowance()
+        budget, last = min(self.max_batch, allowed), None
         now_stamps = self.stamp_mode == "now"
         n = self.script.n
+        held = False
         while budget > 0:
             t, base = self._t, self._base
             i = self._i - base
@@ -692,31 +854,50 @@ class ProbeNode(Node):
             budget -= end - i
             self._i = base + end
             if end < len(t):
+                held = budget <= 0 and t[end] <= target   # due, but the window (or the batch) is full
                 break        # the samples due are out (or the batch is full)
         if self._i >= n and self._next_piece is None and self._i - self._base >= len(self._t):
             self._i = n
         if last is not None:
+            self._last_sent_wall = now
             self._publish_clock(last, force=self._i >= n)  # stamp:=log only
+        if held and allowed < self.max_batch and self.flow_readers and last is not None:
+            # the readers set the pace: --speed is a ceiling, never caught up in a burst afterwards
+            self._log0, self._wall0 = last, now
+            self._stamp0 = now if now_stamps else self._stamp0
         if self._i >= n:
             self._state = "ending"
-            self._end_at = time.monotonic() + 0.5  # let the last samples go out
-            self.get_logger().info(f"end of script: {n} samples published (on_end:={self.on_end})")
+            self._end_at = time.monotonic() + (self.end_timeout if self.flow_readers else 0.5)
+            self._publish_progress(force=True, end=True)
+            self.get_logger().info(f"end of script: {n} samples published (on_end:={self.on_end})"
+                                   + (f"; waiting for {', '.join(self.flow_readers)} to take it" if self.flow_readers
+                                      else ""))
+        else:
+            self._publish_progress()
 
     def _publish_sample(self, k, stamp_s):
         ch = self._depth_changes
+        pg = self.progress
         if self._next_depth < len(ch) and ch[self._next_depth][0] <= k:
             # a depth running (a move) goes out at most every DEPTH_PERIOD_S; one that holds at once
             _, value, held = ch[self._next_depth]
+            self._depth_now = value[0]
             if held or stamp_s - self._depth_sent >= DEPTH_PERIOD_S:
-                self.pub_depth.publish(Float64(data=float(value[0])))
-                self._depth_sent = stamp_s
+                self._publish_depth(stamp_s)
             self._next_depth += 1
+        elif self._depth_now == self._depth_now and stamp_s - self._depth_sent >= REFERENCE_PERIOD_S:
+            self._publish_depth(stamp_s)   # unchanged: repeated, so readers know it is current
         if self._next_ref < len(self._ref_changes) and self._ref_changes[self._next_ref][0] <= k:
             self._ref_now = self._ref_changes[self._next_ref][1]
             self._publish_reference(stamp_s)
             self._next_ref += 1
         elif self._ref_now is not None and stamp_s - self._ref_sent >= REFERENCE_PERIOD_S:
             self._publish_reference(stamp_s)   # unchanged: repeated, so readers know it is current
+        if self.flow_readers:
+            self._in_flight.append(stamp_s)
+        self._sent_t = stamp_s
+        pg.imu += 1
+        pg.mag += 1
         mi, mm, mt = self.m_imu, self.m_mag, self.m_temp
         c.set_stamp(mi.header.stamp, stamp_s)
         mm.header.stamp = mt.header.stamp = mi.header.stamp
@@ -733,6 +914,12 @@ class ProbeNode(Node):
         if tc == tc:  # not NaN
             mt.temperature = tc
             self.pub_temp.publish(mt)
+            pg.temperature += 1
+
+    def _publish_depth(self, stamp_s):
+        self.pub_depth.publish(Float64(data=float(self._depth_now)))
+        self._depth_sent = stamp_s
+        self.progress.depth += 1
 
 
 def main(args=None):

@@ -29,7 +29,9 @@ overwritten: the node refuses to start (exit status 1).
 from __future__ import annotations
 
 import importlib
+import math
 import signal
+import struct
 import sys
 import time
 from datetime import datetime, timezone
@@ -43,6 +45,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..bag import BagWriter, UnknownTypeError, normalize_type
+from ..topics import (TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE,
+                      TOPIC_STATION, TOPIC_TEMPERATURE)
 from .executor import HotPathExecutor, spin
 
 NODE_NAME = "recorder"
@@ -51,6 +55,16 @@ DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
 #: so a launcher run starts up to one period later (1 s made it 2 s; a scan costs about 10 us)
 DISCOVERY_PERIOD_S = 0.25
 SUBSCRIPTION_DEPTH = 1000  # keep-last depth of each recording subscription (absorbs stalls)
+#: What the recorder counts and reports (StreamProgress): the run's accounting, and the data time
+#: of the last sample written, on which a paced replay waits.
+COUNTED = {TOPIC_IMU: "imu", TOPIC_MAG: "mag", TOPIC_TEMPERATURE: "temperature", TOPIC_REFERENCE: "reference",
+           TOPIC_DEPTH: "depth", TOPIC_STATION: "stations", TOPIC_COEFFICIENTS: "records"}
+#: A chunk is closed (handed to the operating system) at least every this many samples, so that
+#: what a killed recorder loses is still in the probe's history (qos.depth, 20 000 in a paced
+#: replay) for the restarted one.
+FLUSH_SAMPLES = 4000
+#: The progress goes out at most this often (wall, s).
+PROGRESS_PERIOD_S = 0.05
 
 
 def default_output() -> str:
@@ -112,6 +126,15 @@ def _make_callback(write, channel_id: int, now=time.time_ns):
     return callback
 
 
+_STAMP = {0: struct.Struct(">iI"), 1: struct.Struct("<iI")}
+
+
+def cdr_stamp(data) -> float:
+    """The header stamp (s) of a message whose CDR bytes begin with a ``std_msgs/Header``."""
+    sec, nsec = _STAMP[data[1] & 1].unpack_from(data, 4)
+    return sec + 1e-9 * nsec
+
+
 def _topic_name(name: str) -> str:
     name = name.strip()
     return name if name.startswith("/") else "/" + name
@@ -146,7 +169,12 @@ class Recorder(Node):
             description="Chunk compression: zstd, lz4 or none.",
             type=ParameterType.PARAMETER_STRING, **ro))
 
+        self.declare_parameter("source.node", "probe", ParameterDescriptor(
+            description="The node whose /graph/progress announces the source (its end and what it sent): the "
+                        "recorder's own progress says end once it holds every sample sent.",
+            type=ParameterType.PARAMETER_STRING, **ro))
         gp = self.get_parameter
+        self.source_node = str(gp("source.node").value)
         output = gp("output").value or default_output()
         self.only: Set[str] = {_topic_name(t) for t in (gp("topics").value or []) if t.strip()}
         self.exclude: Set[str] = {_topic_name(t) for t in (gp("exclude").value or []) if t.strip()}
@@ -165,6 +193,25 @@ class Recorder(Node):
         self.on_subscribed = None
         self._skipped: Dict[str, str] = {}
         self._closed = False
+        # the run's accounting and the replay's pacing (StreamProgress on /graph/progress)
+        self.counts = {k: 0 for k in COUNTED.values()}
+        self._t_imu = -math.inf          # stamp of the last /probe/imu written
+        self._unflushed = 0
+        self._source = None              # the source's last StreamProgress
+        self._reported = None
+        self._progress_wall = 0.0
+        self._progress_type = None
+        try:
+            from inclinometer_calib.msg import StreamProgress
+        except ImportError:              # messages not built: a plain recorder, no progress
+            StreamProgress = None
+        if StreamProgress is not None:
+            def latched(depth):
+                return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                                  durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self._progress_type = StreamProgress
+            self.pub_progress = self.create_publisher(StreamProgress, TOPIC_PROGRESS, latched(1))
+            self.create_subscription(StreamProgress, TOPIC_PROGRESS, self._on_progress, latched(100))
         self.get_logger().info(
             f"recording to {self.output} (topics: {sorted(self.only) or 'all'}, "
             f"excluding {sorted(self.exclude)}, chunks <= {max_chunk_s:g} s, "
@@ -175,6 +222,8 @@ class Recorder(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(period, self._discover, clock=steady)
         self.create_timer(tick_s, self.bag.tick, clock=steady)
+        if self._progress_type is not None:
+            self.create_timer(PROGRESS_PERIOD_S, self._publish_progress, clock=steady)
 
     # -- discovery ---------------------------------------------------------------------------
     def _wanted(self, topic: str) -> bool:
@@ -216,8 +265,9 @@ class Recorder(Node):
                     f"{topic}: type hash of the installed {type_name} ({recorded_hash or 'none'}) "
                     f"differs from the publisher's {sorted(live)}: definitions differ")
             qos = subscription_qos(offered)
-            self._subs[topic] = self.create_subscription(
-                msg_type, topic, _make_callback(self.bag.write, cid), qos, raw=True)
+            callback = (self._counting_callback(cid, COUNTED[topic]) if topic in COUNTED
+                        else _make_callback(self.bag.write, cid))
+            self._subs[topic] = self.create_subscription(msg_type, topic, callback, qos, raw=True)
             if self.on_subscribed is not None:
                 self.on_subscribed(self._subs[topic])
             self.get_logger().info(
@@ -227,6 +277,51 @@ class Recorder(Node):
         for topic in self.only:
             if topic not in self._subs and topic not in self._skipped and topic in self.exclude:
                 self._skip(topic, "listed in both topics and exclude")
+
+    # -- accounting and pacing --------------------------------------------------------------
+    def _counting_callback(self, channel_id: int, key: str, now=time.time_ns):
+        """The write callback of a topic the recorder counts (:data:`COUNTED`); for ``/probe/imu``
+        it keeps the last stamp written and closes a chunk every :data:`FLUSH_SAMPLES`."""
+        write, counts = self.bag.write, self.counts
+        if key != "imu":
+            def callback(data, info):
+                write(channel_id, data, now(), info["source_timestamp"])
+                counts[key] += 1
+            return callback
+
+        def imu_callback(data, info):
+            write(channel_id, data, now(), info["source_timestamp"])
+            counts["imu"] += 1
+            self._t_imu = cdr_stamp(data)
+            self._unflushed += 1
+            if self._unflushed >= FLUSH_SAMPLES:
+                self._unflushed = 0
+                self.bag.flush()
+        return imu_callback
+
+    def _on_progress(self, msg) -> None:
+        if msg.node == self.source_node:
+            self._source = msg
+
+    def _publish_progress(self) -> None:
+        """This recorder's StreamProgress: what it wrote per topic, the stamp of the last sample
+        written (a paced replay waits on it), and the end once it holds every sample the source
+        says it sent."""
+        if self._closed:
+            return
+        cnt, src = self.counts, self._source
+        end = bool(src is not None and src.end and cnt["imu"] >= src.imu and cnt["mag"] >= src.mag)
+        key = (tuple(cnt.values()), self._t_imu, end)
+        if key == self._reported:
+            return
+        self._reported = key
+        m = self._progress_type(node=self.get_name(), settled=math.nan, end=end)
+        if math.isfinite(self._t_imu):
+            sec = math.floor(self._t_imu)
+            m.header.stamp.sec, m.header.stamp.nanosec = int(sec), min(int(round((self._t_imu - sec) * 1e9)), 999999999)
+        for k in ("imu", "mag", "temperature", "reference", "depth", "stations", "records"):
+            setattr(m, k, cnt[k])
+        self.pub_progress.publish(m)
 
     def _skip(self, topic: str, reason: str) -> None:
         self._skipped[topic] = reason

@@ -76,7 +76,7 @@ def test_bad_parameter_values_are_rejected(ros, tmp_path):
     cal = _truth_calibration()
     cal.save(good)
     assert node.set_parameters([Parameter("coeffs_file", value=str(good))])[0].successful
-    assert node.processor.calibration.id == cal.id
+    assert node.calibration.id == cal.id
     assert node.set_parameters([Parameter("tolerances.field_nt", value=500.0)])[0].successful
 
 

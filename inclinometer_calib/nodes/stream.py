@@ -1,0 +1,326 @@
+"""The ROS adapter of the stream engine (:class:`engine.StreamEngine`), shared by the calibration
+and correction nodes: subscriptions, message → core conversions, the source's announcement and
+end, the step with a calibration node, the node's progress, and the wall-clock patience of a
+source that does not pace itself.
+
+What a station is, when it may go out and what it becomes is the engine's, as in ``reprocess``:
+this module only hands it the messages, in whatever order DDS delivers them.
+
+The source (the probe node) announces itself on ``/graph/progress`` (``StreamProgress``, transient
+local): the side streams it keeps current (a station then waits for them on the data's time
+alone), its flow-control window (a paced replay: no wall-clock patience at all — every message
+will come) and, at the end, how many messages it sent per topic; the stream ends here once all of
+them have arrived (or, after ``end_wait_s``, with what is missing said and counted).  A source
+that announces nothing (a live driver) is taken as it comes: the side streams are waited for once
+seen, for at most ``reference_wait_s``; ``idle_flush_s`` without samples closes the open hold.
+
+This node's own progress goes out on the same topic: the data time of the last sample it took
+(the probe paces its replay on it), how far its stations are handled (``settled``), and its
+counts — the run's accounting.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+from geometry_msgs.msg import Vector3Stamped
+from rclpy.parameter import Parameter  # noqa: F401  (typed parameter declarations)
+from sensor_msgs.msg import Imu, MagneticField, Temperature
+from std_msgs.msg import Float64, String
+
+from ..engine import Expect, Say, StreamEngine
+from ..frames import NT_PER_TESLA
+from ..gates import GateLimits
+from ..streaming import StaticDetector
+from . import common as c
+from inclinometer_calib.msg import StreamProgress
+
+#: The progress goes out at least this often while something changed (wall time, s).
+PROGRESS_PERIOD_S = 0.05
+#: Without an announced window, progress goes out every this many samples taken (and on the timer).
+PROGRESS_STEP = 100
+#: The source's end, with messages it sent still missing here: wait this long (wall, s) for them.
+END_WAIT_S = 10.0
+#: A calibration node not in the graph for this long (wall, s) is gone: stations stop waiting for it.
+GONE_S = 5.0
+
+
+def declare_stream_params(p: c.Params, *, calibration_sync: bool):
+    """The parameters every engine-driven node shares (detector, QoS, gates, the source, patience).
+    Returns a dict of what the driver needs."""
+    out = {"detector": c.declare_detector(p), "qos": c.declare_qos(p)}
+    out["gates"] = GateLimits(
+        max_creep_deg=p.declare("gates.max_creep_deg", GateLimits.max_creep_deg, "Largest turn of the probe during a "
+                                "hold that is not motion (the trend must also be significant against the noise), deg",
+                                read_only=True, range=(0.0, 10.0)),
+        max_scatter_ratio=p.declare("gates.max_scatter_ratio", GateLimits.max_scatter_ratio, "A hold whose scatter "
+                                    "(after its trend) exceeds this multiple of the measured noise, significantly, is "
+                                    "unsteady (vibration, motion)", read_only=True, range=(1.0, 100.0)))
+    out["source_node"] = p.declare("source.node", "probe", f"The node whose {c.TOPIC_PROGRESS} messages announce the "
+                                   "source: the side streams it keeps current, its pacing, its end and what it sent",
+                                   read_only=True)
+    out["source_wait"] = p.declare("source.wait", False, "Stations wait until the source has announced itself (a "
+                                   "replay: what a station waits for then never depends on which topic's first "
+                                   "message came first; the launcher sets it)", read_only=True)
+    out["patience"] = p.declare("reference_wait_s", 2.0, "A source that does not pace itself (live): a closed "
+                                "station waits at most this long (wall clock, s) for the reference, temperatures and "
+                                "depth up to its end (they are other topics and may come late); then it goes out with "
+                                "what arrived, said and counted. A paced replay waits for them as long as it runs",
+                                read_only=True, range=(0.0, 600.0))
+    out["idle_flush"] = p.declare("idle_flush_s", 1.0, "A source that does not announce its end: when no sample "
+                                  "arrived for this long (wall clock, s), close the open hold (and solve with what "
+                                  "there is); data arriving later continue; 0 disables", read_only=True,
+                                  range=(0.0, 60.0))
+    out["end_wait"] = p.declare("end_wait_s", END_WAIT_S, "After the source's end, wait at most this long (wall "
+                                "clock, s) for the messages it says it sent and that have not arrived; then end with "
+                                "what came (the loss said and counted)", read_only=True, range=(0.0, 3600.0))
+    if calibration_sync:
+        out["calibration_node"] = p.declare("calibration.node", "", "The calibration node to keep step with (its "
+                                            "records apply from the data time they were solved at, and a station "
+                                            "waits until that node has taken it too: the stations of a replay are "
+                                            "then reprocess's whatever the timing); empty: a record applies from "
+                                            "the next station after it arrives", read_only=True)
+    return out
+
+
+class StreamDriver:
+    """Feeds a node's :class:`engine.StreamEngine` from the graph and publishes its progress.
+
+    ``on_events(events)`` (the node) gets what the engine produced after each message, in order
+    (:class:`engine.Say` lines are logged here first); ``side`` subscribes the reference and depth
+    too (the correction node)."""
+
+    def __init__(self, node, settings: dict, engine: StreamEngine, on_events, *, side: bool):
+        self.node = node
+        self.engine = engine
+        self.on_events = on_events
+        self.log = node.get_logger()
+        self.source = settings["source_node"]
+        self.patience = settings["patience"]
+        self.idle_flush = settings["idle_flush"]
+        self.end_wait = settings["end_wait"]
+        self.cal_node = settings.get("calibration_node", "")
+        self.side = side
+        self.announced = None          # the source's announcement (its first StreamProgress)
+        self.source_end = None         # the source's last StreamProgress, once it says end
+        self.window = 0
+        self._source_wait = settings["source_wait"]
+        if self._source_wait:
+            engine.hold("the source's announcement")
+        self._end_seen = None          # wall time the source's end came while messages were missing
+        self._last_wall = None         # wall time of the last sample (idle flush)
+        self._waiting = None           # (station, wall time) of the oldest waiting station
+        self._cal_seen = None          # wall time the calibration node was last seen in the graph
+        self._cal_check = 0.0
+        self._reported = (None,)
+        self._used_reported = 0
+        self._progress_wall = 0.0
+        self._t_started = time.monotonic()
+        qos = settings["qos"]
+        self.pub_progress = node.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos(depth=1))
+        self.msg = StreamProgress()
+        self.msg.node = node.get_name()
+        self.hot_subscriptions = [
+            node.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
+            node.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
+            node.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)]
+        if side:
+            # the reference and the depth on the hot path too, taken in turn with the samples
+            self.hot_subscriptions += [
+                node.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100)),
+                node.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))]
+        node.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
+        node.create_subscription(StreamProgress, c.TOPIC_PROGRESS, self._on_progress, c.latched_qos(depth=100))
+        c.steady_timer(node, PROGRESS_PERIOD_S, self._on_timer)
+        self._prior = [False, False]
+
+    # ---- messages ---------------------------------------------------------------------------
+    def _on_imu(self, msg, info):
+        s = msg.header.stamp
+        a = msg.linear_acceleration
+        sigma = math.nan
+        if not self._prior[0]:
+            self._prior[0] = True
+            var = msg.linear_acceleration_covariance[0]
+            sigma = math.sqrt(var) if var > 0 else math.nan
+        self._last_wall = time.monotonic()
+        self.engine.imu((s.sec, s.nanosec), (a.x, a.y, a.z), info["source_timestamp"], sigma)
+        self._after(msg, info)
+
+    def _on_mag(self, msg):
+        s = msg.header.stamp
+        f = msg.magnetic_field
+        sigma = math.nan
+        if not self._prior[1]:
+            self._prior[1] = True
+            var = msg.magnetic_field_covariance[0]
+            sigma = math.sqrt(var) * NT_PER_TESLA if var > 0 else math.nan
+        self._last_wall = time.monotonic()
+        self.engine.mag((s.sec, s.nanosec), (f.x * NT_PER_TESLA, f.y * NT_PER_TESLA, f.z * NT_PER_TESLA), sigma)
+        self._after(msg)
+
+    def _on_temp(self, msg):
+        self.engine.temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
+        self._after(msg)
+
+    def _on_reference(self, msg):
+        v = msg.vector
+        self.engine.reference(c.stamp_to_sec(msg.header.stamp), (v.x, v.y, v.z))
+        self._after()
+
+    def _on_depth(self, msg, info):
+        self.engine.depth(msg.data, info.get("source_timestamp", 0))
+        self._after()
+
+    def _on_serial(self, msg):
+        self.engine.set_serial(msg.data)
+        self.log.info(f"the data are of probe {msg.data}")
+        self._after()
+
+    def _on_progress(self, msg):
+        if msg.node == self.source:
+            if self.announced is None:
+                self.announced = msg
+                self.window = int(msg.window)
+                side = self.side   # the calibration takes neither reference nor depth: it never waits for them
+                self.engine.set_expect(Expect(reference=msg.has_reference and side, temperature=msg.has_temperature,
+                                              depth=msg.has_depth and side))
+                self.log.info(f"source {self.source}: " + (f"a paced replay (window {self.window} samples)"
+                                                           if self.window else "not paced") +
+                              "; it keeps current: " + (", ".join(n for n, h in (
+                                  ("reference", msg.has_reference), ("temperature", msg.has_temperature),
+                                  ("depth", msg.has_depth)) if h) or "nothing besides the samples"))
+            if msg.end and self.source_end is None:
+                self.source_end = msg
+                self._check_end()
+        elif self.cal_node and msg.node == self.cal_node:
+            self.engine.calibration_progress(msg.settled, msg.records, msg.end)
+        self._after()
+
+    # ---- after each message --------------------------------------------------------------------
+    def _after(self, msg=None, info=None):
+        eng = self.engine
+        if eng._out:
+            events = eng.pop()
+            for ev in events:
+                if isinstance(ev, Say):
+                    self.say(ev.level, ev.text)
+            self.on_events(events, msg, info)
+        elif msg is not None:
+            self.on_events((), msg, info)
+        step = max(1, self.window // 4) if self.window else PROGRESS_STEP
+        if eng.counts.used - self._used_reported >= step:
+            self.publish_progress()
+        if self.source_end is not None and not eng.ended:
+            self._check_end()
+
+    def say(self, level: str, text: str) -> None:
+        """Log one line at ``level`` (rclpy ties a severity to its call site: one call per level)."""
+        if level == "error":
+            self.log.error(text)
+        elif level == "warning":
+            self.log.warning(text)
+        elif level == "info":
+            self.log.info(text)
+        else:
+            self.log.debug(text)
+
+    def _missing_at_end(self) -> dict:
+        """Messages the source says it sent that have not arrived here, per topic."""
+        e, s = self.engine.counts, self.source_end
+        mine = [("imu", e.imu, s.imu), ("mag", e.mag, s.mag), ("temperature", e.temperature, s.temperature)]
+        if self.side:
+            mine += [("reference", e.reference, s.reference), ("depth", e.depth, s.depth)]
+        return {n: sent - got for n, got, sent in mine if got < sent}
+
+    def _check_end(self, give_up: bool = False):
+        missing = self._missing_at_end()
+        if missing and not give_up:
+            if self._end_seen is None:
+                self._end_seen = time.monotonic()
+            return
+        if missing:
+            text = ", ".join(f"{n} {k}" for n, k in missing.items())
+            self.log.error(f"the source's end came {self.end_wait:g} s ago and messages it sent never arrived here "
+                           f"({text}): the data end with what came; stations that needed them may be missing or cut")
+            self.engine.counts.lost = dict(missing)
+        self._end_seen = None
+        self.engine.end()
+        self._after()
+        self.publish_progress(force=True)
+
+    def publish_progress(self, force: bool = False):
+        """This node's :class:`StreamProgress` (when something changed, or ``force``)."""
+        eng, m = self.engine, self.msg
+        cnt = eng.counts
+        key = (cnt.imu, cnt.mag, cnt.temperature, cnt.reference, cnt.depth, cnt.used, cnt.published,
+               cnt.records, cnt.forced, eng.settled, eng.done)
+        if key == self._reported and not force:
+            return
+        self._reported = key
+        self._used_reported = cnt.used
+        self._progress_wall = time.monotonic()
+        t = eng.t_last if math.isfinite(eng.t_last) else 0.0
+        c.set_stamp(m.header.stamp, max(t, 0.0))
+        m.settled = float(eng.settled) if math.isfinite(eng.settled) else (math.inf if eng.settled > 0 else -1.0)
+        m.imu, m.mag, m.temperature, m.reference, m.depth = cnt.imu, cnt.mag, cnt.temperature, cnt.reference, cnt.depth
+        m.pairs_used = cnt.used
+        m.pairs_dropped = cnt.nonfinite + cnt.implausible + cnt.out_of_order
+        m.stations = self.stations_count()
+        m.stations_uncorrected = cnt.uncorrected
+        m.records = cnt.records
+        m.forced = cnt.forced
+        m.end = eng.done
+        self.pub_progress.publish(m)
+
+    def stations_count(self) -> int:
+        eng = self.engine
+        return eng.counts.published if eng.proc is not None else eng.counts.stations
+
+    # ---- the timer ---------------------------------------------------------------------------------
+    def _on_timer(self):
+        eng = self.engine
+        now = time.monotonic()
+        if self.source_end is not None and not eng.ended and self._end_seen is not None \
+                and now - self._end_seen > self.end_wait:
+            self._check_end(give_up=True)
+        if eng.ended and not eng.done:       # the end came; stations still wait for the calibration node
+            if self._end_seen is None:
+                self._end_seen = now
+            elif now - self._end_seen > self.end_wait:
+                eng.release(force=True, why=f"{self.end_wait:g} s after the end of the data")
+                self._after()
+        paced = self.announced is not None and self.window > 0
+        if self.announced is None and self.idle_flush > 0 and self._last_wall is not None \
+                and now - self._last_wall > self.idle_flush:
+            self._last_wall = None      # a source that does not announce its end: the data paused or ended
+            eng.idle()
+            self._after()
+        if eng._pending and not paced:
+            oldest = eng._pending[0].station
+            if self._waiting is None or self._waiting[0] is not oldest:
+                self._waiting = (oldest, now)
+            elif now - self._waiting[1] > self.patience:
+                eng.release(force=True, why=f"after {now - self._waiting[1]:.1f} s")
+                self._waiting = None
+                self._after()
+        if self.cal_node and now - self._cal_check > 1.0:
+            self._cal_check = now
+            present = any(i.node_name == self.cal_node for i in self.node.get_publishers_info_by_topic(c.TOPIC_PROGRESS))
+            if present:
+                if eng.cal_gone:
+                    self.log.info(f"calibration node {self.cal_node} is back: stations keep step with it again")
+                    eng.calibration_gone(False)
+                self._cal_seen = now
+            elif not eng.cal_gone and not eng.cal_ended and now - (self._cal_seen or self._t_started) > \
+                    (GONE_S if self._cal_seen else 30.0):
+                self.log.warning(f"calibration node {self.cal_node} is not in the graph (for {GONE_S:g} s): stations "
+                                 "no longer wait for it; the records it published stay in force")
+                eng.calibration_gone(True)
+                self._after()
+        if now - self._progress_wall > PROGRESS_PERIOD_S:
+            self.publish_progress()
+
+
+def make_detector(settings: dict) -> StaticDetector:
+    return StaticDetector(**settings["detector"])
