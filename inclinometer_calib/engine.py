@@ -624,14 +624,18 @@ class StreamEngine:
             self._say("error", s.message)
 
     # ---- the end ---------------------------------------------------------------------------------
-    def idle(self) -> None:
-        """The data paused (a live source said nothing for a while): close the open hold, send
-        every station out with what arrived, and let the session solve with what it has — data
-        that come later continue."""
+    def close_hold(self) -> None:
+        """Close the open hold now (its station waits or goes out as any other)."""
         for st in self.det.flush():
             self._closed(st, self.t_last)
         for e in self.det.pop_events():
             self._say("warning", e)
+
+    def idle(self) -> None:
+        """The data paused (a live source said nothing for a while): close the open hold, send
+        every station out with what arrived, and let the session solve with what it has — data
+        that come later continue."""
+        self.close_hold()
         self.release(force=True, why="no sample for a while")
         self._finish_session()
 

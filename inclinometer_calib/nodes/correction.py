@@ -128,10 +128,6 @@ class CorrectionNode(Node):
         self._last_diag = None
         self._last_verdict = None
         self._no_site_said = False
-        if coeffs_file:
-            self._apply(Calibration.load(coeffs_file), f"file {coeffs_file}")
-        elif fallback:
-            self._apply_fallback(fallback)
 
         # reliable, and transient local (keep last 1000): a reader restarted mid-run (the recorder) gets
         # the stations it missed meanwhile
@@ -148,6 +144,10 @@ class CorrectionNode(Node):
             hot.append(self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_coefficients,
                                                 c.latched_qos()))
         self.hot_subscriptions = tuple(hot)
+        if coeffs_file:
+            self._apply(Calibration.load(coeffs_file), f"file {coeffs_file}")
+        elif fallback:
+            self._apply_fallback(fallback)
         c.steady_timer(self, 1.0, self._on_timer)  # keeps running when /clock (use_sim_time) stops
         c.steady_timer(self, 0.1, self._flush_outbox)
 

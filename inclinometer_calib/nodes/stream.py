@@ -135,7 +135,7 @@ class StreamDriver:
         self._prior = [False, False]
 
     # ---- messages ---------------------------------------------------------------------------
-    def _on_imu(self, msg, info):
+    def _on_imu(self, msg, info=None):
         s = msg.header.stamp
         a = msg.linear_acceleration
         sigma = math.nan
@@ -144,7 +144,7 @@ class StreamDriver:
             var = msg.linear_acceleration_covariance[0]
             sigma = math.sqrt(var) if var > 0 else math.nan
         self._last_wall = time.monotonic()
-        self.engine.imu((s.sec, s.nanosec), (a.x, a.y, a.z), info["source_timestamp"], sigma)
+        self.engine.imu((s.sec, s.nanosec), (a.x, a.y, a.z), info["source_timestamp"] if info else 0, sigma)
         self._after(msg, info)
 
     def _on_mag(self, msg):
@@ -168,8 +168,8 @@ class StreamDriver:
         self.engine.reference(c.stamp_to_sec(msg.header.stamp), (v.x, v.y, v.z))
         self._after()
 
-    def _on_depth(self, msg, info):
-        self.engine.depth(msg.data, info.get("source_timestamp", 0))
+    def _on_depth(self, msg, info=None):
+        self.engine.depth(msg.data, info.get("source_timestamp", 0) if info else 0)
         self._after()
 
     def _on_serial(self, msg):
@@ -195,6 +195,25 @@ class StreamDriver:
                 self._check_end()
         elif self.cal_node and msg.node == self.cal_node:
             self.engine.calibration_progress(msg.settled, msg.records, msg.end)
+        self._after()
+
+    # ---- direct use (in-process: a test, another driver) -----------------------------------------
+    def feed(self, t: float, f, m) -> None:
+        """A paired sample (s, REP-145 specific force m/s², field nT) handed in directly."""
+        self.engine.counts.imu += 1
+        self.engine.counts.mag += 1
+        self._last_wall = time.monotonic()
+        self.engine._pair(float(t), tuple(f), tuple(m))
+        self._after()
+
+    def close_hold(self) -> None:
+        """Close the open hold now (a test's end of data without the source's end)."""
+        self.engine.close_hold()
+        self._after()
+
+    def idle(self) -> None:
+        """What the idle timer does for a source that does not announce its end (:meth:`engine.StreamEngine.idle`)."""
+        self.engine.idle()
         self._after()
 
     # ---- after each message --------------------------------------------------------------------
@@ -294,8 +313,7 @@ class StreamDriver:
         if self.announced is None and self.idle_flush > 0 and self._last_wall is not None \
                 and now - self._last_wall > self.idle_flush:
             self._last_wall = None      # a source that does not announce its end: the data paused or ended
-            eng.idle()
-            self._after()
+            self.idle()
         if eng._pending and not paced:
             oldest = eng._pending[0].station
             if self._waiting is None or self._waiting[0] is not oldest:

@@ -75,7 +75,7 @@ def _correction(ros, coeffs_file, *params):
 
 def _feed(node, log):
     for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node._sample(t, tuple(f), tuple(m))
+        node.stream.feed(t, tuple(f), tuple(m))
     for st in node.detector.flush():
         node._station(st) if hasattr(node, "_station") else node._offer(st)
 
@@ -129,9 +129,9 @@ def test_non_monotonic_stamps_and_absent_field_are_reported(ros, coeffs_file, ca
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = log.acc[k].tolist()
         mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (log.mag[k] * 1e-9).tolist()
         if imu:
-            node._on_imu(mi)
+            node.stream._on_imu(mi)
         if mag:
-            node._on_mag(mm)
+            node.stream._on_mag(mm)
 
     n = len(log)
     for k in range(n // 2):

@@ -159,7 +159,7 @@ def _correction_node(*params):
 def _feed(node, log):
     """Samples straight into the node's sample path, then the end-of-stream flush."""
     for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node._sample(t, tuple(f), tuple(m))
+        node.stream.feed(t, tuple(f), tuple(m))
     closed = node.detector.flush()  # the open interval, or the intervals it closes
     for seg in [closed] if hasattr(closed, "short") else list(closed or ()):
         node._station(seg)

@@ -108,8 +108,8 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
     ros.append(direct)
     direct.pub_station, direct.pub_diag, direct.pub_imu, direct.pub_mag = _Collect(), _Collect(), _Collect(), _Collect()
     for mi, mm, mt in _messages(log):   # its own copies: the node corrects a message in place
-        direct._on_imu(mi)
-        direct._on_mag(mm)
+        direct.stream._on_imu(mi)
+        direct.stream._on_mag(mm)
         direct._on_temp(mt)
     for seg in direct.detector.flush():   # what the idle flush does at the end of the stream
         direct._station(seg)
@@ -241,8 +241,8 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
     go out corrected with it, not uncorrectable (NaN) at once."""
     node, _, msgs = _two_station_node(ros, tmp_path, with_temperature_effect=True)
     for mi, mm, _ in msgs:                      # the samples, and no temperature yet
-        node._on_imu(mi)
-        node._on_mag(mm)
+        node.stream._on_imu(mi)
+        node.stream._on_mag(mm)
     for seg in node.detector.flush():
         node._station(seg)
     assert node.pub_station.msgs == [] and len(node._pending) == 2
@@ -261,8 +261,8 @@ def test_a_station_waits_until_its_readers_are_matched_then_goes_or_says_who_mis
                                                              Parameter("reference_wait_s", value=0.0)])
     node.pub_station.readers = 1                # one reader short: the first station waits
     for mi, mm, mt in msgs:
-        node._on_imu(mi)
-        node._on_mag(mm)
+        node.stream._on_imu(mi)
+        node.stream._on_mag(mm)
         node._on_temp(mt)
     assert node.pub_station.msgs == [] and len(node._pending) == 1
     node.pub_station.readers = 2                # matched: it goes at the next message
@@ -288,8 +288,8 @@ def test_an_unstamped_depth_holds_from_the_sample_sent_after_it_however_late_it_
     src = [1_000_000 * (k + 1) for k in range(len(msgs))]   # ns, the probe's publish order
     node._on_depth(Float64(data=500.0), {"source_timestamp": 1})
     for k, (mi, mm, mt) in enumerate(msgs):
-        node._on_imu(mi, {"source_timestamp": src[k]})
-        node._on_mag(mm)
+        node.stream._on_imu(mi, {"source_timestamp": src[k]})
+        node.stream._on_mag(mm)
         node._on_temp(mt)
     node._on_depth(Float64(data=530.0), {"source_timestamp": src[j] - 1})   # sent before sample j, taken last
     for seg in node.detector.flush():

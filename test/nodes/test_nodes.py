@@ -131,9 +131,8 @@ def test_recapture_and_reset_services(spinning):
     log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0)[:2],
                           np.random.default_rng(1), rate_hz=100.0)
     for t, f, m in zip(log.t_s, log.acc, log.mag):
-        cal_node._sample(float(t), tuple(f), tuple(m))
-    for st in cal_node.detector.flush():
-        cal_node._offer(st)
+        cal_node.stream.feed(float(t), tuple(f), tuple(m))
+    cal_node.stream.close_hold()
     assert cal_node.session.captured == [1, 2]
 
     res = _call(client_node, recapture, RecapturePose.Request(pose=13))
@@ -430,7 +429,7 @@ def test_periodic_work_runs_on_steady_time_when_the_sim_clock_stops(spinning, tm
     sub.create_subscription(SurveyStation, c.TOPIC_STATION, stations.append, c.reliable_qos(10))
     log = _noisy_log(0.002, 20.0)
     for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node._sample(t, tuple(f), tuple(m))
+        node.stream.feed(t, tuple(f), tuple(m))
     assert node.get_clock().ros_time_is_active and node.get_clock().now().nanoseconds == 0  # no /clock
     end = time.monotonic() + 6.0
     while time.monotonic() < end and len(stations) < 4:
@@ -455,8 +454,8 @@ def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
         mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (x * 1e-9 for x in m)
-        node._on_imu(mi)
-        node._on_mag(mm)
+        node.stream._on_imu(mi)
+        node.stream._on_mag(mm)
     assert node.detector.noise.prior == pytest.approx((0.002, 20.0))
     lvl = node.detector.noise_level
     assert lvl.acc_source == "data" and np.allclose(lvl.acc, 0.005, rtol=0.15)
@@ -498,10 +497,8 @@ def _feed_to_the_end(node, log):
     the idle timer does it)."""
     for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
         node.detector.add_temperature(float(t), float(tc))
-        node._sample(float(t), tuple(f), tuple(m))
-    for st in node.detector.flush():
-        node._offer(st)
-    node._report(node._finish)
+        node.stream.feed(float(t), tuple(f), tuple(m))
+    node.stream.idle()
 
 
 def test_a_model_the_captures_cannot_identify_is_said(spinning):
@@ -556,10 +553,10 @@ def test_the_correction_node_refuses_another_probes_record_and_says_so(spinning,
     pub = pub_node.create_publisher(String, c.TOPIC_SERIAL, c.latched_qos())
     pub.publish(String(data="SN-1"))
     t0 = time.monotonic()
-    while not node._mismatch and time.monotonic() - t0 < 10:
+    while not node.engine.refusal and time.monotonic() - t0 < 10:
         time.sleep(0.05)
     assert node.processor.probe_serial == "SN-1"
-    assert node.calibration is None and "probe SN-2, the data are of probe SN-1" in node._mismatch
+    assert node.calibration is None and "probe SN-2, the data are of probe SN-1" in node.engine.refusal
     # a record of the right probe is applied again
     node._apply(Calibration(acc=cal.acc, mag=cal.mag, probe_id="SN-1", site=Site()), "test")
-    assert node.calibration is not None and node._mismatch == ""
+    assert node.calibration is not None and node.engine.refusal == ""
