@@ -93,6 +93,30 @@ _OWN_PACKAGE = "inclinometer_calib"
 _ROSBAG2_VERSION = 9  # metadata.yaml / serialized_metadata version of Jazzy's rosbag2
 
 
+#: A run's recording: the first part; a recorder restarted mid-run writes survey_1.mcap, survey_2.mcap, …
+RUN_BAG = "survey.mcap"
+_PART_RE = re.compile(r"^survey(?:_(\d+))?\.mcap$")
+
+
+def run_parts(out) -> List[str]:
+    """The recorder's bag parts in the run directory ``out`` in the order they were written (= time
+    order): ``survey.mcap``, ``survey_1.mcap``, ``survey_2.mcap`` … (not ``*.recovered.mcap`` copies)."""
+    found = []
+    for name in os.listdir(out) if os.path.isdir(out) else ():
+        m = _PART_RE.match(name)
+        if m:
+            found.append((int(m.group(1) or 0), os.path.join(out, name)))
+    return [p for _, p in sorted(found)]
+
+
+def next_run_part(out) -> str:
+    """The first ``survey_<k>.mcap`` (k = 1, 2, …) that does not exist in ``out``."""
+    k = 1
+    while os.path.exists(os.path.join(out, f"survey_{k}.mcap")):
+        k += 1
+    return os.path.join(out, f"survey_{k}.mcap")
+
+
 class BagError(Exception):
     """A bag file is damaged or not a bag. ``path`` and byte ``offset`` say where."""
 

@@ -325,13 +325,13 @@ class StreamEngine:
         step with a calibration node (``sync_calibration``) that is the time it was solved at, its
         header; a record that simply arrives applies from the next station: :attr:`released_t`.
         A record of another probe than the data's is refused and said (False)."""
+        if any(r[2] is not None and r[2].id == cal.id for r in self._records):
+            return True                           # latched again (a restarted node): the same record
         self.counts.records += 1
         why = self._mismatch(cal)
         if why:
             self._refuse(cal, why)
             return False
-        if any(r[2] is not None and r[2].id == cal.id for r in self._records):
-            return True                           # latched again (a restarted reader): the same record
         self._add_record(cal, -INF if stamp is None else stamp, source)
         if self._pending:
             self.release()

@@ -61,15 +61,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts as bag_parts
 from .deps import MissingDependency, require
 from .topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
 STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder")  # the recorder last: it records the others
-#: Nodes restarted when they die mid-run: they carry no state the run cannot rebuild (a new bag
-#: part; the coefficients from the latched topic or coeffs.yaml, station ids from the state file).
-#: The calibration node is not: its captured poses would be lost.
-RESTARTABLE = ("recorder", "correction")
+#: Nodes restarted when they die mid-run: they carry no state the run cannot rebuild — the recorder
+#: writes a new part (the probe's and the correction node's history give it what it missed); the
+#: calibration and correction nodes rebuild theirs from the run's recording (``resume.bags``) and go
+#: on where the node that died left off (a paced replay waits for them meanwhile).
+RESTARTABLE = ("recorder", "correction", "calibration")
 #: The transports of a restarted node (Fast DDS): UDP only (see ``run``'s ``start``)
 RESTART_TRANSPORTS = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
 #: --reliable: the raw streams' history depth (keep last), messages: 20 s at 1 kHz
@@ -78,10 +80,10 @@ MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
 #: A paced replay waits this long (s, wall) for a reader that left the graph (a restart takes a
 #: second or two) before it goes on without it.
 FLOW_GONE_S = 10.0
+#: ... and waits at most this long (s, wall) after its last sample for every reader to take the end.
+FLOW_END_S = 30.0
 #: Exit status of the probe node when its MCAP input was damaged (it replayed the readable part).
 PROBE_INPUT_DAMAGED = 3
-BAG = "survey.mcap"  # the first bag part; later parts survey_1.mcap, survey_2.mcap, ...
-_PART_RE = re.compile(r"^survey(?:_(\d+))?\.mcap$")
 STATE_FILE = "correction_state.json"
 WITSML_FILE = "trajectory.xml"  # the wits node's WITSML 2.1 Trajectory (--witsml or --wits-port)
 
@@ -217,11 +219,16 @@ def build_params(args, out):
     if not args.unpaced:
         # a paced replay (flow control): the probe never runs more than its window ahead of the
         # slowest reader; the readers' stations wait on the data's time alone (the source's
-        # announcement, the calibration node's progress): the stations are reprocess's
+        # announcement, the calibration node's progress): the stations are reprocess's; the streams
+        # are transient local: a node restarted mid-run gets what it missed from the probe's history
         for n in ("calibration", "correction"):
             p[n].setdefault("source.wait", True)
-        if not args.no_calibration:
-            p["correction"].setdefault("calibration.node", "calibration")
+        for n in ("probe", "calibration", "correction"):
+            p[n].setdefault("qos.durability", "transient_local")
+    if not args.no_calibration:
+        # the records apply from the data time they were solved at; a station waits until the
+        # calibration node has taken it too (data time, not wall time)
+        p["correction"].setdefault("calibration.node", "calibration")
     if args.site:
         # the site reference of the run (total field, dip, declination, gravity): the calibration
         # and correction nodes use it, the simulated probe lives in it
@@ -273,6 +280,7 @@ class GraphResult:
     interrupted: bool = False
     problems: list = field(default_factory=list)  # why the run is not clean, one sentence each
     calibration_ran: bool = False
+    restarts: dict = field(default_factory=dict)  # node -> times it was restarted
 
 
 def _config_value(cfg, node, key, default):
@@ -301,25 +309,6 @@ def _exit_text(code) -> str:
     return f"exit status {code}"
 
 
-def bag_parts(out) -> list:
-    """The recorder's bag parts in ``out`` in the order they were written (= time order):
-    ``survey.mcap``, ``survey_1.mcap``, ``survey_2.mcap`` … (not the ``*.recovered.mcap`` copies)."""
-    found = []
-    for name in os.listdir(out) if os.path.isdir(out) else ():
-        m = _PART_RE.match(name)
-        if m:
-            found.append((int(m.group(1) or 0), os.path.join(out, name)))
-    return [p for _, p in sorted(found)]
-
-
-def next_bag_part(out) -> str:
-    """The first ``survey_<k>.mcap`` (k = 1, 2, …) that does not exist in ``out``."""
-    k = 1
-    while os.path.exists(os.path.join(out, f"survey_{k}.mcap")):
-        k += 1
-    return os.path.join(out, f"survey_{k}.mcap")
-
-
 def run_graph(args, out, env) -> GraphResult:
     """Start the nodes, watch them (restarting the :data:`RESTARTABLE` ones that die), drain and
     stop them; see the module docstring."""
@@ -341,6 +330,7 @@ def run_graph(args, out, env) -> GraphResult:
     if not args.unpaced:
         params["probe"].setdefault("flow.readers", list(consumers))
         params["probe"].setdefault("flow.gone_s", FLOW_GONE_S)
+        params["probe"].setdefault("flow.end_timeout_s", FLOW_END_S)
     # every other node reads imu, mag and temperature; the reference goes to correction and recorder
     params["probe"].setdefault("wait_for_subscribers", len(consumers))
     params["probe"].setdefault("wait_for_reference_subscribers",
@@ -435,14 +425,19 @@ def run_graph(args, out, env) -> GraphResult:
                 died = f"{name} died unexpectedly ({_exit_text(code)})"
                 if name in restarts and restarts[name] < MAX_RESTARTS:
                     restarts[name] += 1
+                    result.restarts[name] = restarts[name]
                     result.problems.append(f"{died}; restarted")
                     if name == "recorder":
                         params["recorder"]["output"] = next_bag_part(out)
                         say(f"{died}: restarting it into {os.path.basename(params['recorder']['output'])} "
                             f"(restart {restarts[name]} of at most {MAX_RESTARTS}); the run goes on")
                     else:
-                        say(f"{died}: restarting it (restart {restarts[name]} of at most {MAX_RESTARTS}); "
-                            "the run goes on")
+                        parts = bag_parts(out) if "recorder" in children else []
+                        if parts:
+                            params[name]["resume.bags"] = parts
+                        say(f"{died}: restarting it (restart {restarts[name]} of at most {MAX_RESTARTS})"
+                            + (f", resuming from the recording ({', '.join(os.path.basename(x) for x in parts)})"
+                               if parts else ", without a recording to resume from") + "; the run goes on")
                     start(name, restart=True)
                     continue
                 reason = died + (f" after {restarts[name]} restarts" if restarts.get(name) else "")
@@ -498,22 +493,36 @@ def station_dict(msg) -> dict:
     return {k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()}
 
 
-def read_bag(path):
+#: StreamProgress fields read into the accounting (accounting.account).
+PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_depth", "window", "imu", "mag",
+                   "temperature", "reference", "depth", "pairs_used", "pairs_dropped", "stations",
+                   "stations_uncorrected", "records", "forced", "end")
+
+
+def read_bag(path, progress=None):
     """Stations, coefficient messages and the last calibration status of a bag as plain dicts, read
-    with ``rosbags`` (in receive order)."""
+    with ``rosbags`` (in receive order); with a list ``progress``, the ``/graph/progress``
+    messages are appended to it (dicts of :data:`PROGRESS_FIELDS`)."""
     from pathlib import Path
 
     require("rosbags.highlevel", "bag", "the run summary")
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
+    from .topics import TOPIC_PROGRESS
+
     stations, coefficients, status = [], [], None
+    wanted = {"/survey/station", "/calibration/coefficients", "/calibration/status"}
+    if progress is not None:
+        wanted.add(TOPIC_PROGRESS)
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        conns = [x for x in reader.connections
-                 if x.topic in ("/survey/station", "/calibration/coefficients", "/calibration/status")]
-        for conn, _, raw in reader.messages(connections=conns):
+        conns = [x for x in reader.connections if x.topic in wanted]
+        # (rosbags reads every connection when given none: a bag without these topics has nothing to read)
+        for conn, _, raw in reader.messages(connections=conns) if conns else ():
             msg = reader.deserialize(raw, conn.msgtype)
-            if conn.topic == "/survey/station":
+            if conn.topic == TOPIC_PROGRESS:
+                progress.append({k: getattr(msg, k) for k in PROGRESS_FIELDS})
+            elif conn.topic == "/survey/station":
                 stations.append(station_dict(msg))
             elif conn.topic == "/calibration/status":
                 status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
@@ -641,7 +650,7 @@ def readable_parts(out, print_fn=print) -> list:
     return parts
 
 
-def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
+def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: bool = True) -> dict:
     """Build (and print) the run summary from the files in ``out``; writes summary.json and report.md,
     and with ``loop`` the model loop (:func:`model_loop`): lab_model.yaml, compare/ and report.html.
 
@@ -652,7 +661,7 @@ def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
     from .coeffs import Calibration, CoefficientError
 
     summary = {"out": out}
-    stations, coef_msgs, status = [], [], None
+    stations, coef_msgs, status, progress = [], [], None, []
     parts = readable_parts(out, print_fn) if bag_parts(out) else []
     if parts:
         require("rosbags.highlevel", "bag", "the run summary")
@@ -664,7 +673,7 @@ def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
             if part["read"] is None:
                 continue
             try:
-                st, co, stat = read_bag(part["read"])
+                st, co, stat = read_bag(part["read"], progress)
             except (AnyReaderError, ReaderError, SerdeError, OSError, ValueError) as exc:
                 part["error"] = f"{type(exc).__name__}: {exc}"
                 print_fn(f"[summary] cannot read {part['read']}: {part['error']}")
@@ -684,8 +693,13 @@ def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
     summary["coefficient_messages"] = len(coef_msgs)
     if status is not None:
         summary["calibration_status"] = status
-    ids = [s["station_id"] for s in stations]
-    summary["repeated_station_ids"] = sorted({i for i in ids if ids.count(i) > 1})
+    from .accounting import account, recorded_counts, unique_stations
+
+    summary["accounting"] = account(stations, progress, restarts=getattr(graph, "restarts", None),
+                                    calibration_ran=getattr(graph, "calibration_ran", True), paced=paced,
+                                    recorded=recorded_counts([p["read"] for p in parts if p["read"] is not None]))
+    stations, _ = unique_stations(stations)     # a restarted recorder received the latest ones again
+    summary["stations_recorded"] = len(stations)
     cal = None
     if coef_msgs:
         cal = Calibration.from_yaml(coef_msgs[-1]["coefficients_yaml"],
@@ -708,7 +722,7 @@ def summarize_run(out, print_fn=print, loop: bool = True) -> dict:
             truth = json.load(fh)
         summary["coefficient_errors"] = coefficient_errors(cal, truth)
     summary["survey"] = station_errors(stations, cal.id if cal is not None else None)
-    summary["raw_stations"] = sum(1 for s in stations if not s["coefficients_id"])
+    summary["raw_stations"] = summary["accounting"]["stations"]["uncorrected"]
     summary["trajectory"] = trajectory_summary(stations, cal.id if cal is not None else None)
     if os.path.exists(os.path.join(out, WITSML_FILE)):
         summary["witsml"] = witsml_summary(os.path.join(out, WITSML_FILE), stations)
@@ -821,7 +835,7 @@ def station_label(s) -> str:
     stand poses themselves) is labelled uncorrected, without QC flags — its |B| and dip are off
     the reference because it is uncorrected, not because of interference."""
     if not s["coefficients_id"]:
-        return "uncorrected (before calibration)"
+        return f"uncorrected ({(s.get('uncorrected_reason') or 'before calibration').split(':')[0]})"
     flags = [n for n in ("azimuth_undefined", "interference_suspected") if s.get(n)]
     return ["ok", "warn", "error"][min(int(s["status"]), 2)] + (f" ({', '.join(flags)})" if flags else "")
 
@@ -880,10 +894,13 @@ def format_summary(s) -> list:
     parts = s.get("bag_parts") or []
     if len(parts) > 1 or any("recovered_into" in p or "error" in p for p in parts):
         lines.append(f"bag parts ({len(parts)}, in time order): " + "; ".join(_part_text(p) for p in parts))
-    lines.append(f"bag: {s['stations_recorded']} survey stations ({s['raw_stations']} uncorrected, before "
-                 f"calibration), {s['coefficient_messages']} coefficient message(s)")
-    if s.get("repeated_station_ids"):
-        lines.append(f"station ids recorded more than once: {s['repeated_station_ids']}")
+    raw = s.get("raw_stations") or {}
+    lines.append(f"bag: {s['stations_recorded']} survey stations ("
+                 + (", ".join(f"{v} uncorrected: {k}" for k, v in raw.items()) or "all corrected")
+                 + f"), {s['coefficient_messages']} coefficient message(s)")
+    if s.get("accounting"):
+        from .accounting import format_account
+        lines.extend(format_account(s["accounting"]))
     if "coefficients_id" in s:
         lines.append(f"coefficients {s['coefficients_id']} (from {s.get('coefficients_source')}; "
                      f"coeffs.yaml matches: {s.get('coeffs_yaml_matches_bag', 'n/a')})")
@@ -1098,7 +1115,8 @@ def main(argv=None) -> int:
         summary = None
         if not args.no_recorder:
             try:
-                summary = summarize_run(out, loop=not args.no_loop)
+                summary = summarize_run(out, loop=not args.no_loop, graph=result, paced=not args.unpaced)
+                problems += summary.get("accounting", {}).get("problems", [])
             except (OSError, ValueError, KeyError, MissingDependency) as exc:
                 print(f"[summary] failed: {type(exc).__name__}: {exc}", flush=True)
                 problems.append(f"the summary failed ({type(exc).__name__}: {exc})")

@@ -50,10 +50,10 @@ from .engine import Expect, RecordOut, StationOut, StreamEngine
 from .pipeline import SurveyProcessor
 from .streaming import StaticDetector
 from .survey import Tolerances
-from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, REFERENCE_TYPE,
-                     STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG,
-                     TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL,
-                     TOPIC_STATION, TOPIC_TEMPERATURE)
+from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, PROGRESS_TYPE,
+                     REFERENCE_TYPE, STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU,
+                     TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL, TOPIC_STATION,
+                     TOPIC_TEMPERATURE)
 
 #: Input topics read (and copied through) and the type each must have.
 INPUT_TOPICS = PROBE_TOPICS
@@ -151,6 +151,89 @@ def decode_temperature(data):
     return (sec, nsec), s[2].unpack_from(data, pos)[0]
 
 
+class BagFeeder:
+    """Hands a bag's probe messages to a :class:`engine.StreamEngine` as the live nodes hand it
+    theirs (the same decoding boundary: MagneticField tesla → nT, the first covariance a prior;
+    a depth placed by its publish time, the send order the recorder keeps).  With
+    ``records=True`` the coefficient records in the bag go to the engine too, by their stamps,
+    (a restarted node resuming from its run's recording).  :attr:`last` keeps, per topic, the key
+    of the last message fed (the stamp, or the publish time of the unstamped depth); with
+    ``dedupe`` a message whose key is not after it is skipped (a bag part written by a restarted
+    recorder begins with what the last one ended with) — and what a resuming node skips live."""
+
+    _STAMPED = (TOPIC_IMU, TOPIC_MAG, TOPIC_TEMPERATURE, TOPIC_REFERENCE)
+
+    def __init__(self, engine, *, records: bool = False, dedupe: bool = False):
+        self.engine = engine
+        self.records = records
+        self.dedupe = dedupe
+        self.prior = {}
+        self.last: Dict[str, float] = {}
+        self.record_ids: List[str] = []        # ids of the coefficient records seen, in order
+        self.duplicates = 0
+
+    def seen(self, m) -> bool:
+        """Whether ``m`` was fed already (its key is not after the last one of its topic)."""
+        last = self.last.get(m.topic)
+        if last is None:
+            return False
+        if m.topic == TOPIC_DEPTH:
+            return m.publish_time <= last
+        if m.topic in self._STAMPED:
+            sec, nsec, _, _ = _header(m.data)
+            return sec + 1e-9 * nsec <= last
+        return False
+
+    def feed(self, m) -> str:
+        """Feed one bag message; returns "" or what is wrong with it (undecodable)."""
+        eng, topic = self.engine, m.topic
+        try:
+            if self.dedupe and self.seen(m):
+                self.duplicates += 1
+                return ""
+            if topic == TOPIC_IMU:
+                key, f = decode_imu(m.data)
+                if "acc" not in self.prior:
+                    self.prior["acc"] = decode_imu_covariance(m.data)
+                eng.imu(key, f, m.publish_time, self.prior["acc"])
+                self.last[topic] = key[0] + 1e-9 * key[1]
+            elif topic == TOPIC_MAG:
+                key, b = decode_vector3(m.data)
+                if "mag" not in self.prior:
+                    self.prior["mag"] = decode_mag_covariance(m.data) * NT_PER_TESLA
+                eng.mag(key, (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA), self.prior["mag"])
+                self.last[topic] = key[0] + 1e-9 * key[1]
+            elif topic == TOPIC_DEPTH:
+                eng.depth(decode_float64(m.data), m.publish_time)
+                self.last[topic] = m.publish_time
+            elif topic == TOPIC_TEMPERATURE:
+                key, temp = decode_temperature(m.data)
+                eng.temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
+                self.last[topic] = key[0] + 1e-9 * key[1]
+            elif topic == TOPIC_REFERENCE:
+                key, v = decode_vector3(m.data)
+                eng.reference(key[0] + 1e-9 * key[1], v)
+                self.last[topic] = key[0] + 1e-9 * key[1]
+            elif topic == TOPIC_SERIAL:
+                eng.set_serial(decode_string(m.data))
+            elif topic == TOPIC_COEFFICIENTS:
+                fields = self._decoder().decode(COEFFICIENTS_TYPE, m.data)
+                if fields["id"] not in self.record_ids:
+                    self.record_ids.append(fields["id"])
+                    if self.records:
+                        from .coeffs import Calibration
+                        cal = Calibration.from_yaml(fields["coefficients_yaml"], source=f"{topic} in {m.topic}")
+                        eng.record(cal, fields["stamp"] if eng.sync else eng.released_t, topic)
+        except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
+            return f"undecodable {topic} message ({exc})"
+        return ""
+
+    def _decoder(self):
+        if not hasattr(self, "_enc"):
+            self._enc = MessageEncoder()
+        return self._enc
+
+
 # ---------------------------------------------------------------------------------------------
 # Our messages' serialization (rosbags type store, our .msg registered)
 
@@ -164,7 +247,7 @@ class MessageEncoder:
 
         defs = definitions or MessageDefinitions()
         self.store = get_typestore(Stores.ROS2_JAZZY)
-        for name in (STATION_TYPE, COEFFICIENTS_TYPE):
+        for name in (STATION_TYPE, COEFFICIENTS_TYPE, PROGRESS_TYPE):
             self.store.register(get_types_from_msg(defs.text(name), name))
         self._header = self.store.types["std_msgs/msg/Header"]
         self._time = self.store.types["builtin_interfaces/msg/Time"]
@@ -178,6 +261,13 @@ class MessageEncoder:
                 for k, v in fields.items()}
         msg = cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id), **vals)
         return bytes(self.store.serialize_cdr(msg, type_name))
+
+    def decode(self, type_name: str, data) -> dict:
+        """The fields of one of our messages from its CDR bytes (``stamp``: the header's, s)."""
+        msg = self.store.deserialize_cdr(bytes(data), type_name)
+        out = {k: getattr(msg, k) for k in msg.__dataclass_fields__ if k != "header"}
+        out["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -323,7 +413,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     coeff_cid = writer.add_topic(TOPIC_COEFFICIENTS, COEFFICIENTS_TYPE, qos_profiles=[dict(
         DEFAULT_QOS_PROFILE, depth=1, durability="transient_local")]) if calibrate else None
     out_cid: Dict[str, Optional[int]] = {}     # input topic -> output channel, None = skipped
-    prior = {}
+    feeder = BagFeeder(engine)
     t_first_pair = t_last_pair = None
     copied = report.copied
     issue = report._issue
@@ -402,33 +492,18 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
                 writer.write(cid, m.data, log_time, m.publish_time)
                 copied[topic] += 1
             where[0] = _where(topic, log_time)
-            try:
-                if topic == TOPIC_IMU:
-                    key, f = decode_imu(m.data)
-                    if "acc" not in prior:
-                        prior["acc"] = decode_imu_covariance(m.data)
-                    n_pairs = engine.counts.pairs
-                    engine.imu(key, f, m.publish_time, prior["acc"])
-                elif topic == TOPIC_MAG:
-                    key, b = decode_vector3(m.data)
-                    if "mag" not in prior:
-                        prior["mag"] = decode_mag_covariance(m.data) * NT_PER_TESLA
-                    n_pairs = engine.counts.pairs
-                    engine.mag(key, (b[0] * NT_PER_TESLA, b[1] * NT_PER_TESLA, b[2] * NT_PER_TESLA), prior["mag"])
-                elif topic == TOPIC_DEPTH:
-                    engine.depth(decode_float64(m.data), m.publish_time)
-                elif topic == TOPIC_SERIAL:       # read before the loop (bag_probe_serial)
+            if topic == TOPIC_SERIAL:       # read before the loop (bag_probe_serial)
+                try:
                     if decode_string(m.data) != report.probe_serial:
                         issue(f"a second probe serial in one bag ({decode_string(m.data)!r} after "
                               f"{report.probe_serial!r}), ignored", _where(topic, log_time))
-                elif topic == TOPIC_TEMPERATURE:
-                    key, temp = decode_temperature(m.data)
-                    engine.temperature(key[0] + 1e-9 * key[1], temp)   # by stamp, as the nodes do
-                else:  # reference
-                    key, v = decode_vector3(m.data)
-                    engine.reference(key[0] + 1e-9 * key[1], v)
-            except (struct.error, ValueError, IndexError) as exc:
-                issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
+                except (struct.error, ValueError, UnicodeDecodeError) as exc:
+                    issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
+                continue
+            n_pairs = engine.counts.pairs
+            problem = feeder.feed(m)
+            if problem:
+                issue(problem, _where(topic, log_time))
                 continue
             if topic in (TOPIC_IMU, TOPIC_MAG) and engine.counts.pairs != n_pairs:
                 t = engine.pairer.last_t

@@ -35,7 +35,7 @@ def test_stations_before_the_calibration_are_labelled_uncorrected_without_qc_fla
 
 def test_missing_values_print_as_a_dash_not_nan():
     stations = [_station(0, "", reference_drift_deg=NAN, reference_azimuth_deg=NAN, azimuth_deg=NAN)]
-    summary = {"stations_recorded": 1, "raw_stations": 1, "coefficient_messages": 1, "coefficients_id": "abc123",
+    summary = {"stations_recorded": 1, "raw_stations": {"before calibration": 1}, "coefficient_messages": 1, "coefficients_id": "abc123",
                "survey": {"stations": 1, "drift_rms_deg": 0.001, "drift_max_abs_deg": 0.001,
                           "azimuth_rms_deg": NAN, "azimuth_max_abs_deg": NAN, "azimuth_stations": 0,
                           "toolface_rms_deg": NAN, "status_counts": {"0": 0, "1": 1, "2": 0},

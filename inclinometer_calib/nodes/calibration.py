@@ -135,6 +135,17 @@ class CalibrationNode(Node):
         # the sample streams on a wait set of their own (c.HotPathExecutor, as the correction node's)
         self.stream = StreamDriver(self, settings, self.engine, self._on_events, side=False)
         self.hot_subscriptions = tuple(self.stream.hot_subscriptions)
+        self._replayed = []          # records solved again while resuming (published after, if new)
+        if any(os.path.exists(b) for b in settings["resume"]):
+            # a restart: the session of the node that died, rebuilt from the run's recording
+            self.stream.resume(settings["resume"], records=False)
+            for ev in self._replayed:
+                if ev.calibration.id not in self.stream.recorded_records:
+                    self._publish_coefficients(ev.calibration, ev.stamp)
+            if self._replayed and self._replayed[-1].calibration.id in self.stream.recorded_records:
+                # published before: again, latched, for readers that join from now on
+                self._publish_coefficients(self._replayed[-1].calibration, self._replayed[-1].stamp, again=True)
+            self._replayed = []
         self.create_service(Trigger, "~/reset", self._on_reset)
         self.create_service(RecapturePose, "~/recapture", self._on_recapture)
         c.steady_timer(self, 1.0 / self.status_rate, self._on_timer)  # runs on when /clock stops
@@ -170,16 +181,23 @@ class CalibrationNode(Node):
             return
         for ev in events:
             if isinstance(ev, RecordOut):
-                self._publish_coefficients(ev.calibration, ev.stamp)
+                if self.stream.replaying:
+                    self._replayed.append(ev)
+                else:
+                    self._publish_coefficients(ev.calibration, ev.stamp)
         self._publish_status()
 
-    def _publish_coefficients(self, cal, stamp: float):
+    def _publish_coefficients(self, cal, stamp: float, again: bool = False):
         """Publish a record, stamped with the data time from which it applies (the correction node
-        and reprocess apply it to the stations that end after it), and write it to ``output``."""
+        and reprocess apply it to the stations that end after it), and write it to ``output``
+        (``again``: a restarted node's latest record, published again for late readers: only that)."""
         msg = c.coefficients_to_msg(cal, CalibrationCoefficients, None, self.frame_id)
         c.set_stamp(msg.header.stamp, max(stamp, 0.0) if math.isfinite(stamp) else max(self.engine.t_last, 0.0))
         self.pub_coeffs.publish(msg)
         self.coefficients = msg
+        if again:
+            self.get_logger().info(f"published again the record {cal.id} the node that died had published")
+            return
         self.get_logger().info(f"solved: {self.session.message}; published coefficients {cal.id} "
                                f"(model {cal.model.describe()})")
         if cal.site_source == "measured":

@@ -299,13 +299,18 @@ def declare_qos(params: Params, prefix: str = "qos", reliability: str = "best_ef
     dep = params.declare(f"{prefix}.depth", int(depth),
                          "History depth (keep last) of the raw sensor streams", read_only=True,
                          range=(1, 100000))
-    return sensor_qos(dep, rel)
+    dur = params.declare(f"{prefix}.durability", "volatile", "Durability of the raw sensor streams and the side "
+                         "streams (reference, depth): volatile, or transient_local (a paced replay's source keeps "
+                         "its last qos.depth samples: a node restarted mid-run gets what it missed)",
+                         read_only=True, choices=("volatile", "transient_local"))
+    return sensor_qos(dep, rel, dur)
 
 
-def sensor_qos(depth: int = 1000, reliability: str = "best_effort") -> QoSProfile:
-    """Sensor-data QoS (best effort, volatile, keep last ``depth``), or reliable if asked."""
+def sensor_qos(depth: int = 1000, reliability: str = "best_effort", durability: str = "volatile") -> QoSProfile:
+    """Sensor-data QoS (best effort, volatile, keep last ``depth``), or reliable / transient local if asked."""
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=depth, durability=DurabilityPolicy.VOLATILE,
+        history=HistoryPolicy.KEEP_LAST, depth=depth,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if durability == "transient_local" else DurabilityPolicy.VOLATILE,
         reliability=ReliabilityPolicy.RELIABLE if reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT)
 
 

@@ -112,7 +112,10 @@ class CorrectionNode(Node):
 
         monitor = FieldMonitor(window=window, materiality=materiality, tolerances=self.tol) if window else None
         self.processor = SurveyProcessor(self.tol, site=site, axial=axial, monitor=monitor, force_probe=force_probe)
-        self.processor._next_id = self._read_state()  # station ids continue across restarts
+        # station ids continue across restarts: from the state file, or rebuilt from the recording
+        self._published_next = self._read_state()
+        resuming = any(os.path.exists(b) for b in settings["resume"])
+        self.processor._next_id = 0 if resuming else self._published_next
         # the same engine as the calibration node's and reprocess's, in the survey role
         self.engine = StreamEngine(make_detector(settings), self.processor,
                                    sync_calibration=bool(settings["calibration_node"]),
@@ -146,8 +149,16 @@ class CorrectionNode(Node):
         self.hot_subscriptions = tuple(hot)
         if coeffs_file:
             self._apply(Calibration.load(coeffs_file), f"file {coeffs_file}")
-        elif fallback:
+        if resuming:
+            # a restart: the state of the node that died, rebuilt from the run's recording (the records
+            # in it too, each from the data time it applies); what it published already is held back
+            self.stream.resume(settings["resume"], records=self.use_topic)
+        elif not coeffs_file and fallback:
             self._apply_fallback(fallback)
+        elif self._published_next:
+            self.get_logger().warning(f"restarted without the run's recording (resume.bags): station ids continue at "
+                                      f"{self._published_next}, but the stations that closed while no node ran and "
+                                      "the state before (noise estimate, trajectory, field monitor) are not rebuilt")
         c.steady_timer(self, 1.0, self._on_timer)  # keeps running when /clock (use_sim_time) stops
         c.steady_timer(self, 0.1, self._flush_outbox)
 
@@ -263,6 +274,8 @@ class CorrectionNode(Node):
             self._publish_corrected(msg)
         for ev in events:
             if isinstance(ev, StationOut):
+                if ev.fields["station_id"] in self.stream.recorded_stations:
+                    continue      # rebuilt after a restart: the recording holds it (published by the node that died)
                 self._outbox.append((ev, time.monotonic()))
         if self._outbox:
             self._flush_outbox()
@@ -339,8 +352,11 @@ class CorrectionNode(Node):
                 self._last_verdict.misfit:
             self.get_logger().info(f"station {msg.station_id}: the model explains the survey again")
         self._last_verdict = verdict
-        self._write_state(msg.station_id + 1)  # before publishing: a crash in between skips an id, never repeats one
         self.pub_station.publish(msg)
+        # after publishing: a crash in between publishes it again after the restart (the same id and
+        # values, counted once), never loses it
+        self._published_next = msg.station_id + 1
+        self._write_state(self._published_next)
         self._last_diag = self._diagnostics(msg)
         self.pub_diag.publish(self._last_diag)
         text = (f"station {msg.station_id}: drift {msg.drift_deg:.3f} azimuth {msg.azimuth_deg:.3f} toolface "

@@ -277,9 +277,9 @@ class ProbeNode(Node):
         if self.flow_readers and self.window > qos.depth:
             raise ValueError(f"flow.window {self.window} exceeds qos.depth {qos.depth}: the readers' queues would "
                              "drop what the window lets through")
-        if self.flow_readers:
-            # a reader restarted mid-run (the recorder) gets what the window still holds from the history
-            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
+        if self.flow_readers and qos.durability != DurabilityPolicy.TRANSIENT_LOCAL:
+            raise ValueError("flow.readers needs qos.durability:=transient_local (a reader restarted mid-run gets "
+                             "what it missed from the history)")
         self.add_post_set_parameters_callback(self._after_set)
 
         self.input_damaged = 0  # problems found in an MCAP input (exit status INPUT_DAMAGED at the end)

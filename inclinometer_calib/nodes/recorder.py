@@ -106,14 +106,16 @@ def qos_to_dict(qos) -> dict:
 
 
 def subscription_qos(offered) -> QoSProfile:
-    """QoS compatible with all offered profiles, as strong as they all allow (rosbag2's rule)."""
+    """QoS compatible with all offered profiles, as strong as they all allow (rosbag2's rule), with a
+    history at least as deep as theirs: a recorder restarted mid-run takes all the history a
+    transient-local publisher keeps for it (a paced replay's last 20 000 samples)."""
     reliable = bool(offered) and all(
         q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
     latched = bool(offered) and all(
         q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
     return QoSProfile(
         history=HistoryPolicy.KEEP_LAST,
-        depth=SUBSCRIPTION_DEPTH,
+        depth=max([SUBSCRIPTION_DEPTH] + [int(q.depth) for q in offered]),
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
     )

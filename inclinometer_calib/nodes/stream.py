@@ -21,10 +21,11 @@ counts — the run's accounting.
 from __future__ import annotations
 
 import math
+import os
 import time
 
 from geometry_msgs.msg import Vector3Stamped
-from rclpy.parameter import Parameter  # noqa: F401  (typed parameter declarations)
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 
@@ -33,6 +34,7 @@ from ..frames import NT_PER_TESLA
 from ..gates import GateLimits
 from ..streaming import StaticDetector
 from . import common as c
+from ..topics import PROGRESS_TYPE, STATION_TYPE
 from inclinometer_calib.msg import StreamProgress
 
 #: The progress goes out at least this often while something changed (wall time, s).
@@ -74,6 +76,10 @@ def declare_stream_params(p: c.Params, *, calibration_sync: bool):
     out["end_wait"] = p.declare("end_wait_s", END_WAIT_S, "After the source's end, wait at most this long (wall "
                                 "clock, s) for the messages it says it sent and that have not arrived; then end with "
                                 "what came (the loss said and counted)", read_only=True, range=(0.0, 3600.0))
+    out["resume"] = list(p.declare("resume.bags", [], "The run's recording (the recorder's bag parts, in order) to "
+                                   "rebuild this node's state from at start-up: a node restarted mid-run takes up "
+                                   "where the one that died left off (the launcher sets it at a restart)",
+                                   read_only=True, ptype=Parameter.Type.STRING_ARRAY))
     if calibration_sync:
         out["calibration_node"] = p.declare("calibration.node", "", "The calibration node to keep step with (its "
                                             "records apply from the data time they were solved at, and a station "
@@ -116,6 +122,11 @@ class StreamDriver:
         self._used_reported = 0
         self._progress_wall = 0.0
         self._t_started = time.monotonic()
+        self.replaying = False         # resuming from the recording (resume)
+        self.recorded_stations = set() # station ids the recording holds (resume)
+        self.recorded_records = []     # record ids the recording holds (resume)
+        self._skip = {}                # topic -> key up to which live messages were in the recording
+        self.resent = 0
         qos = settings["qos"]
         self.pub_progress = node.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos(depth=1))
         self.msg = StreamProgress()
@@ -124,19 +135,24 @@ class StreamDriver:
             node.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
             node.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
             node.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)]
+        side_qos = c.reliable_qos(100)
+        side_qos.durability = qos.durability     # transient local in a paced replay: a restart misses nothing
         if side:
             # the reference and the depth on the hot path too, taken in turn with the samples
             self.hot_subscriptions += [
-                node.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, c.reliable_qos(100)),
-                node.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, c.reliable_qos(100))]
+                node.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, side_qos),
+                node.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, side_qos)]
         node.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
         node.create_subscription(StreamProgress, c.TOPIC_PROGRESS, self._on_progress, c.latched_qos(depth=100))
         c.steady_timer(node, PROGRESS_PERIOD_S, self._on_timer)
         self._prior = [False, False]
 
     # ---- messages ---------------------------------------------------------------------------
-    def _on_imu(self, msg, info=None):
+    def _on_imu(self, msg, info):
+        # (two parameters without a default: rclpy then passes the message info — its source timestamp)
         s = msg.header.stamp
+        if self._skip and self._resent(c.TOPIC_IMU, s.sec + 1e-9 * s.nanosec):
+            return
         a = msg.linear_acceleration
         sigma = math.nan
         if not self._prior[0]:
@@ -144,11 +160,13 @@ class StreamDriver:
             var = msg.linear_acceleration_covariance[0]
             sigma = math.sqrt(var) if var > 0 else math.nan
         self._last_wall = time.monotonic()
-        self.engine.imu((s.sec, s.nanosec), (a.x, a.y, a.z), info["source_timestamp"] if info else 0, sigma)
+        self.engine.imu((s.sec, s.nanosec), (a.x, a.y, a.z), info.get("source_timestamp", 0) if info else 0, sigma)
         self._after(msg, info)
 
     def _on_mag(self, msg):
         s = msg.header.stamp
+        if self._skip and self._resent(c.TOPIC_MAG, s.sec + 1e-9 * s.nanosec):
+            return
         f = msg.magnetic_field
         sigma = math.nan
         if not self._prior[1]:
@@ -160,16 +178,23 @@ class StreamDriver:
         self._after(msg)
 
     def _on_temp(self, msg):
+        if self._skip and self._resent(c.TOPIC_TEMPERATURE, c.stamp_to_sec(msg.header.stamp)):
+            return
         self.engine.temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
         self._after(msg)
 
     def _on_reference(self, msg):
+        if self._skip and self._resent(c.TOPIC_REFERENCE, c.stamp_to_sec(msg.header.stamp)):
+            return
         v = msg.vector
         self.engine.reference(c.stamp_to_sec(msg.header.stamp), (v.x, v.y, v.z))
         self._after()
 
-    def _on_depth(self, msg, info=None):
-        self.engine.depth(msg.data, info.get("source_timestamp", 0) if info else 0)
+    def _on_depth(self, msg, info):
+        order = info.get("source_timestamp", 0) if info else 0
+        if self._skip and self._resent(c.TOPIC_DEPTH, order):
+            return
+        self.engine.depth(msg.data, order)
         self._after()
 
     def _on_serial(self, msg):
@@ -196,6 +221,70 @@ class StreamDriver:
         elif self.cal_node and msg.node == self.cal_node:
             self.engine.calibration_progress(msg.settled, msg.records, msg.end)
         self._after()
+
+    # ---- a restart: resume from the run's recording ----------------------------------------------
+    def resume(self, paths, *, records: bool) -> bool:
+        """Rebuild the engine's state from the run's recording (the recorder's bag parts, in order):
+        every message recorded goes through the engine as it came live, so its detector, session,
+        field monitor and trajectory are those of the node that died; what the node had published
+        already is the node's to hold back (:attr:`replaying`: its ``on_events`` sees it).  Live
+        messages the recording holds already are skipped (transient-local history delivers the
+        probe's last qos.depth samples again).  ``records``: the coefficient records recorded go to
+        the engine too (the correction node).  Returns False when there is nothing to resume from."""
+        from types import SimpleNamespace
+
+        from ..bag import BagError, open_bag
+        from ..reprocess import BagFeeder
+
+        paths = [p for p in paths if os.path.exists(p)]
+        if not paths:
+            return False
+        feeder = BagFeeder(self.engine, records=records, dedupe=True)
+        self.replaying = True
+        t0 = time.monotonic()
+        n = 0
+        try:
+            for path in paths:
+                try:
+                    reader = open_bag(path)
+                except BagError as exc:
+                    self.log.error(f"resume: {exc}: that part is not read")
+                    continue
+                for m in reader.messages(strict=False):
+                    n += 1
+                    if m.topic == c.TOPIC_PROGRESS:
+                        fields = feeder._decoder().decode(PROGRESS_TYPE, m.data)
+                        if fields["node"] != self.node.get_name():      # its own earlier self: not
+                            self._on_progress(SimpleNamespace(**fields))
+                        continue
+                    if m.topic == c.TOPIC_STATION:
+                        self.recorded_stations.add(feeder._decoder().decode(STATION_TYPE, m.data)["station_id"])
+                        continue
+                    problem = feeder.feed(m)
+                    if problem:
+                        self.log.warning(f"resume: {path}: {problem}")
+                    self._after()
+        finally:
+            self.replaying = False
+        self.recorded_records = list(feeder.record_ids)
+        self._skip = dict(feeder.last)
+        cnt = self.engine.counts
+        self.log.warning(f"resumed from the run's recording ({', '.join(os.path.basename(p) for p in paths)}: {n} "
+                         f"messages, {cnt.used} samples, {cnt.stations} stations rebuilt, up to t="
+                         f"{self.engine.t_last:.3f} s) in {time.monotonic() - t0:.1f} s; continuing live")
+        self.publish_progress(force=True)
+        return True
+
+    def _resent(self, topic: str, key: float) -> bool:
+        """Live, after a resume: the message is one the recording held (skipped, counted)."""
+        last = self._skip.get(topic)
+        if last is None:
+            return False
+        if key <= last:
+            self.resent += 1
+            return True
+        del self._skip[topic]        # past the recording: from here on everything is new
+        return False
 
     # ---- direct use (in-process: a test, another driver) -----------------------------------------
     def feed(self, t: float, f, m) -> None:

@@ -389,7 +389,7 @@ def test_a_correction_node_restarted_by_the_launcher_keeps_ids_and_coefficients(
     late = [s for s in stations if s.station_id >= restarted_at]
     assert late and all(s.coefficients_id == coeff_id for s in late)  # corrected from the first one on
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["repeated_station_ids"] == []
+    assert summary["accounting"]["stations"]["conflicting_ids"] == []
 
 
 def test_a_calibration_that_never_solves_exits_1_and_two_runs_do_not_mix(fault_runs):

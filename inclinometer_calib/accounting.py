@@ -1,0 +1,203 @@
+"""The run's accounting: what came in, what went out, what was lost — ROS-free.
+
+Every node of the live graph says on ``/graph/progress`` (``StreamProgress``, recorded with the
+rest) what it sent or took per topic, how many stations and records it published, how many
+stations went out before what they waited for had arrived, and whether it saw the end.  From the
+recorded bag (all its parts) this module puts that together with the recorded stations:
+
+* **samples**: per reader and topic, taken against sent by the probe — a loss anywhere is named;
+* **stations**: published by the correction node against recorded (one per id: a restarted
+  recorder receives the latest stations again), the ids' gaps, an id recorded twice with
+  different values;
+* **corrections**: the recorded stations without a correction and why
+  (``SurveyStation.uncorrected_reason``): before the calibration solved (the stand's poses
+  themselves: expected), a record refused (another probe's), no record at all;
+* **patience**: stations that went out before their reference, temperatures, depth or the
+  calibration's step arrived (a live source's wall-clock patience ran out);
+* **restarts** the launcher made.
+
+:func:`account` returns a dict (for ``summary.json``) whose ``problems`` are the reasons the run
+is not clean, one sentence each; :func:`format_account` the summary's lines.
+"""
+from __future__ import annotations
+
+import math
+
+#: Topics a reader takes, by its role (what its counts are compared with the probe's).
+SAMPLE_TOPICS = ("imu", "mag", "temperature")
+SIDE_TOPICS = ("reference", "depth")
+ALL_TOPICS = SAMPLE_TOPICS + SIDE_TOPICS
+
+#: ``uncorrected_reason``'s first words (engine.BEFORE_CALIBRATION, NO_RECORD, RECORD_REFUSED).
+REASONS = ("before calibration", "record refused", "no calibration record")
+
+
+def last_progress(messages) -> dict:
+    """The last ``StreamProgress`` of each node (``messages``: dicts in the order recorded; a
+    restarted node's later messages win)."""
+    out = {}
+    for m in messages:
+        out[m["node"]] = m
+    return out
+
+
+def _same_station(a: dict, b: dict) -> bool:
+    keys = ("drift_deg", "azimuth_deg", "toolface_deg", "coefficients_id", "stamp")
+    for k in keys:
+        x, y = a.get(k), b.get(k)
+        if x != y and not (isinstance(x, float) and isinstance(y, float) and math.isnan(x) and math.isnan(y)):
+            return False
+    return True
+
+
+def unique_stations(stations) -> tuple:
+    """``(stations, conflicts)``: one per id in id order (the first recorded; a restarted recorder
+    receives the latest ones again), and the ids recorded twice with different values."""
+    by_id, conflicts = {}, []
+    for s in stations:
+        i = s["station_id"]
+        if i not in by_id:
+            by_id[i] = s
+        elif not _same_station(by_id[i], s) and i not in conflicts:
+            conflicts.append(i)
+    return [by_id[i] for i in sorted(by_id)], sorted(conflicts)
+
+
+def id_gaps(ids) -> list:
+    """Ranges ``(first, last)`` of ids missing between the lowest and the highest recorded."""
+    ids = sorted(set(ids))
+    gaps = []
+    for a, b in zip(ids, ids[1:]):
+        if b > a + 1:
+            gaps.append((a + 1, b - 1))
+    return gaps
+
+
+def _reason_kind(reason: str) -> str:
+    for k in REASONS:
+        if reason.startswith(k):
+            return k
+    return "unknown" if reason else "before calibration"   # a bag recorded before the field existed
+
+
+def recorded_counts(paths) -> dict:
+    """Messages per probe topic held by a recording's parts (``paths``), each counted once: a
+    recorder restarted mid-run receives the probe's latest samples again (their publish time, the
+    source's own timestamp, tells a repeat)."""
+    from .bag import BagError, open_bag
+    from .topics import TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_REFERENCE, TOPIC_TEMPERATURE
+
+    names = {TOPIC_IMU: "imu", TOPIC_MAG: "mag", TOPIC_TEMPERATURE: "temperature", TOPIC_REFERENCE: "reference",
+             TOPIC_DEPTH: "depth"}
+    seen = {k: set() for k in names.values()}
+    for path in paths:
+        try:
+            for m in open_bag(path).messages(list(names), strict=False):
+                seen[names[m.topic]].add(m.publish_time)
+        except BagError:
+            continue
+    return {k: len(v) for k, v in seen.items()}
+
+
+def account(stations, progress_messages, *, restarts=None, calibration_ran=True, paced=True,
+            station_node: str = "correction", source: str = "probe", recorder: str = "recorder",
+            recorded=None) -> dict:
+    """The run's accounting (see the module docstring).  ``stations``: the recorded station dicts
+    (all parts); ``progress_messages``: the recorded ``StreamProgress`` dicts in order;
+    ``restarts``: node → count; ``calibration_ran``: stations before the calibration are then
+    expected to be raw."""
+    prog = last_progress(progress_messages)
+    out: dict = {"problems": [], "readers": {}}
+    problems = out["problems"]
+    src = prog.get(source)
+    if src is not None:
+        out["sent"] = {k: int(src[k]) for k in ALL_TOPICS}
+        out["source_ended"] = bool(src["end"])
+        out["window"] = int(src["window"])
+        if not src["end"]:
+            problems.append(f"the {source}'s end of the data is not in the recording (the recording stopped "
+                            "before it, or the source did not finish)")
+    lost_all = []
+    for name, m in sorted(prog.items()):
+        if name == source:
+            continue
+        topics = ALL_TOPICS if name not in ("calibration",) else SAMPLE_TOPICS
+        r = {"taken": {k: int(m[k]) for k in topics}, "stations": int(m["stations"]), "records": int(m["records"]),
+             "forced": int(m["forced"]), "ended": bool(m["end"]), "pairs_used": int(m["pairs_used"]),
+             "pairs_dropped": int(m["pairs_dropped"])}
+        if name == recorder and recorded is not None:
+            r["taken"] = {k: int(recorded[k]) for k in topics}     # what the recording holds, each once
+        if src is not None:
+            lost = {k: int(src[k]) - r["taken"][k] for k in topics if r["taken"][k] < int(src[k])}
+            if lost:
+                r["lost"] = lost
+                lost_all.append(f"{name} " + ", ".join(f"{v} {k}" for k, v in lost.items()))
+        if r["forced"]:
+            problems.append(f"{name}: {r['forced']} station(s) went out before what they waited for had arrived "
+                            "(their reference, temperatures, depth or the calibration's step: see its warnings)")
+        if src is not None and src["end"] and not r["ended"]:
+            problems.append(f"{name} did not take the end of the data")
+        out["readers"][name] = r
+    if lost_all:
+        problems.append("samples lost: " + "; ".join(lost_all) + (" (an unpaced replay or a live source: a slow "
+                                                                   "reader loses what its queue cannot hold)"
+                                                                   if not paced else ""))
+    uniq, conflicts = unique_stations(stations)
+    ids = [s["station_id"] for s in uniq]
+    st = {"recorded": len(uniq), "messages": len(stations), "conflicting_ids": conflicts, "id_gaps": id_gaps(ids)}
+    pub = prog.get(station_node)
+    if pub is not None:
+        st["published"] = int(pub["stations"])
+        # ids continue across restarts: the ids the publisher gave are first..first+published-1 at most
+        if st["published"] > len(uniq):
+            problems.append(f"{st['published'] - len(uniq)} of the {st['published']} stations {station_node} "
+                            "published were not recorded")
+    if conflicts:
+        problems.append(f"station id(s) {conflicts} recorded twice with different values: a restarted node "
+                        "numbered stations again")
+    if st["id_gaps"]:
+        text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in st["id_gaps"])
+        problems.append(f"station ids missing from the record: {text}")
+    raw = {}
+    for s in uniq:
+        if not s["coefficients_id"]:
+            k = _reason_kind(s.get("uncorrected_reason", ""))
+            raw[k] = raw.get(k, 0) + 1
+    st["uncorrected"] = raw
+    out["stations"] = st
+    bad = {k: v for k, v in raw.items() if k != "before calibration" or not calibration_ran}
+    for k, v in bad.items():
+        example = next((s.get("uncorrected_reason") for s in uniq if not s["coefficients_id"]
+                        and _reason_kind(s.get("uncorrected_reason", "")) == k), "")
+        problems.append(f"{v} station(s) uncorrected: {example or k}")
+    out["restarts"] = dict(restarts or {})
+    return out
+
+
+def format_account(a: dict) -> list:
+    """The summary's lines for an :func:`account`."""
+    lines = []
+    if "sent" in a:
+        sent = a["sent"]
+        lines.append("samples: the probe sent " + ", ".join(f"{sent[k]} {k}" for k in ALL_TOPICS if sent[k]) +
+                     (f" (paced: at most {a['window']} ahead of its slowest reader)" if a.get("window") else
+                      " (not paced)"))
+        for name, r in a["readers"].items():
+            if "lost" in r:
+                lines.append(f"  {name} LOST " + ", ".join(f"{v} {k}" for k, v in r["lost"].items()))
+            else:
+                lines.append(f"  {name} took every one" + (f"; {r['forced']} station(s) did not wait for their data"
+                                                           if r["forced"] else ""))
+    st = a.get("stations", {})
+    if st:
+        pub = st.get("published")
+        line = f"stations: {st['recorded']} recorded" + (f" of {pub} published" if pub is not None else "")
+        raw = st.get("uncorrected") or {}
+        if raw:
+            line += "; uncorrected: " + ", ".join(f"{v} {k}" for k, v in raw.items())
+        if st["id_gaps"]:
+            line += "; ids missing: " + ", ".join(f"{x}" if x == y else f"{x}-{y}" for x, y in st["id_gaps"])
+        lines.append(line)
+    if a.get("restarts"):
+        lines.append("restarts: " + ", ".join(f"{n} ×{k}" for n, k in a["restarts"].items() if k))
+    return lines
