@@ -36,6 +36,7 @@ import sys
 import time
 
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
@@ -44,6 +45,7 @@ from ..capture import CaptureSession
 from ..effects import parse_effects
 from ..frames import gravity_from_specific_force
 from ..gates import GateLimits
+from ..plugins import NODE_PARAMETER, name_plugins
 from ..streaming import StaticDetector
 from ..turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
 from ..twelve_position import POSES
@@ -111,6 +113,8 @@ class CalibrationNode(Node):
         acc_record = p.declare("turntable.acc_record", "", "turntable: a calibration record (e.g. the twelve "
                                "positions') whose accelerometer joins the turntable's magnetometer in the record",
                                read_only=True)
+        # for the acc_record's plug-in effects (a bad one ends the node, exit 2)
+        name_plugins(p.declare("plugins", [], NODE_PARAMETER, read_only=True, ptype=Parameter.Type.STRING_ARRAY))
         det = c.declare_detector(p, max_duration_s=600.0)
         qos = c.declare_qos(p)
 
