@@ -324,7 +324,7 @@ def plugin_record(simdir, tmp_path, monkeypatch):
     from inclinometer_calib import plugins
     from inclinometer_calib.coeffs import Calibration
 
-    monkeypatch.setattr(plugins, "_NAMED", {})
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
     plug = tmp_path / "plug" / "cube.py"
     plug.parent.mkdir()
     plug.write_text(MARKED_PLUGIN)

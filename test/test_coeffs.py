@@ -155,7 +155,7 @@ def test_a_plugin_effect_travels_with_its_file_and_hash_and_loads_only_from_the_
     from inclinometer_calib import effects as fx
     from inclinometer_calib import plugins
 
-    monkeypatch.setattr(plugins, "_NAMED", {})     # this test's own named plug-ins
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)     # this test's own named plug-ins
 
     def new_process():
         """The effect not registered, its module not imported, nothing named."""
@@ -210,7 +210,7 @@ def test_a_record_given_as_text_never_runs_the_plugin_it_names_even_from_the_wor
     from inclinometer_calib import effects as fx
     from inclinometer_calib import plugins
 
-    monkeypatch.setattr(plugins, "_NAMED", {})
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
     monkeypatch.chdir(tmp_path)
     plug = tmp_path / "cube.py"
     plug.write_text("open(__file__ + '.ran', 'w').close()\n" + PLUGIN.format(tag="text"))

@@ -75,7 +75,7 @@ def fresh(monkeypatch):
     """This test's own registry of named plug-ins; its effects leave the catalogue afterwards."""
     from inclinometer_calib import plugins
 
-    monkeypatch.setattr(plugins, "_NAMED", {})
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
     before = set(fx.CATALOGUE)
     yield plugins
     for name in set(fx.CATALOGUE) - before:

@@ -253,7 +253,7 @@ def plugin_record(coeffs_file, tmp_path, monkeypatch):
     from inclinometer_calib import effects as fx
     from inclinometer_calib import plugins
 
-    monkeypatch.setattr(plugins, "_NAMED", {})
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
     plug = tmp_path / "cube.py"
     plug.write_text(MARKED_PLUGIN)
     assert plugins.load_plugin(plug) == ["cube_bias_node"]
