@@ -90,16 +90,22 @@ def load_calibration(spec):
 
 
 # --------------------------------------------------------------------------------------------
-def load_plugins(specs, quiet=True):
-    """Load the ``--plugin`` files/modules (their effects can then be named anywhere)."""
-    from .plugins import PluginError, load_plugin
+def load_plugins(specs, quiet=True, run=True):
+    """The ``--plugin`` files/modules the user named (:mod:`plugins`: only these are ever executed).
+
+    ``run``: the command needs their effects (simulate, fit, diagnose): executed now, their effects
+    can then be named anywhere.  Otherwise (a command that reads records): named only, each executed
+    when a record needs an effect from it and its SHA-256 is the record's."""
+    from .plugins import PluginError, load_plugin, name_plugin
 
     for plug in specs or ():
         try:
-            names = load_plugin(plug)
+            names = load_plugin(plug) if run else ()
+            if not run:
+                name_plugin(plug)
         except PluginError as exc:
             raise UserError(str(exc)) from None
-        if not quiet:
+        if names and not quiet:
             print(f"plug-in {plug}: {', '.join(names)}", file=sys.stderr)
 
 
@@ -166,6 +172,7 @@ def cmd_turntable(args):
     """The patent's turntable calibration of the magnetometer (:mod:`turntable`)."""
     from . import turntable as tt
 
+    load_plugins(args.plugin, run=False)
     site = load_site(args.site) if args.site else None
     acc_rec = None
     if args.acc:
@@ -458,7 +465,7 @@ def site_for(args, cal, tol, where):
 
 
 def cmd_correct(args):
-    load_plugins(args.plugin)
+    load_plugins(args.plugin, run=False)
     cal = load_calibration(args.coeffs)
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
     site = site_for(args, cal, tol, args.log)
@@ -590,7 +597,7 @@ def cmd_reprocess(args):
     if args.coeffs is None and not args.calibrate:
         raise UserError("give --coeffs FILE (or 'none' for uncorrected figures), or --calibrate to calibrate "
                         "from the bag's twelve poses as the live graph does")
-    load_plugins(args.plugin)
+    load_plugins(args.plugin, run=bool(args.calibrate and args.effects))   # fitting plug-in effects: run them
     cal = load_calibration(args.coeffs)
     tol = Tolerances(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol)
     if args.site:
@@ -669,7 +676,7 @@ def cmd_compare(args):
     if args.coeffs or args.calibrate:
         raise UserError("--compare replays the bag through each record given: not with --coeffs or --calibrate")
     require("matplotlib", "report", "reprocess --compare")   # the HTML's plots, before minutes of replay
-    load_plugins(args.plugin)
+    load_plugins(args.plugin, run=False)
     models, names = [], set()
     for spec in args.compare:
         cal = load_calibration(spec)
@@ -996,6 +1003,7 @@ def cmd_fleet_add(args):
 
     from .fleet.registry import RegistryError
 
+    load_plugins(args.plugin, run=False)
     cal = load_calibration(args.record)
     if cal is None:
         raise UserError("fleet add: give a calibration record file")
@@ -1068,6 +1076,8 @@ def _fleet_registry_parser(fsub):
     a.add_argument("--date", required=True, help="when the probe was calibrated, ISO 8601 (UTC unless a zone is given)")
     a.add_argument("--note", help="the operator's note")
     a.add_argument("--raw-log", metavar="FILE", help="the raw calibration log (its SHA-256 is stored)")
+    a.add_argument("--plugin", action="append", help="Python file (or module) defining plug-in effects the record "
+                   "uses: loaded only from these, after its SHA-256 matches (repeatable)")
     db(a)
     a.set_defaults(func=cmd_fleet_add)
     h = fsub.add_parser("history", help="a probe's parameters over time with 1σ; flags calibrations that moved beyond "
@@ -1282,6 +1292,8 @@ def build_parser():
     tt.add_argument("--acc", help="a record (e.g. the twelve positions') whose accelerometer calibration joins "
                                   "this one in the record written")
     tt.add_argument("--probe-id", default="probe")
+    tt.add_argument("--plugin", action="append", help="Python file (or module) defining plug-in effects the --acc "
+                    "record uses: loaded only from these, after its SHA-256 matches (repeatable)")
     tt.add_argument("--json", action="store_true")
     _detector_options(tt)
     tt.set_defaults(func=cmd_turntable)
@@ -1308,8 +1320,8 @@ def build_parser():
     c.add_argument("-o", "--output", help="station CSV to write")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--site", help="site reference YAML overriding the calibration record's (which owns one)")
-    c.add_argument("--plugin", action="append", help="Python file (or module) defining effects the record uses, "
-                   "when it is not where the record says (repeatable)")
+    c.add_argument("--plugin", action="append", help="Python file (or module) defining plug-in effects the record "
+                   "uses: a record's plug-in is loaded only from these, after its SHA-256 matches (repeatable)")
     c.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     c.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
     c.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
@@ -1348,7 +1360,8 @@ def build_parser():
                         "station and this output then say so")
     r.add_argument("--effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
                    help="with --calibrate: effects to fit beyond the paper's model on the captured poses")
-    r.add_argument("--plugin", action="append", help="Python file (or module) defining effects (repeatable)")
+    r.add_argument("--plugin", action="append", help="Python file (or module) defining effects: run for --calibrate "
+                   "--effects; a record's plug-in is loaded only from these, after its SHA-256 matches (repeatable)")
     r.add_argument("--monitor-window", type=int, default=30, metavar="N",
                    help="the field monitor's window: the model check over the last N stations (0: off)")
     r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist); "

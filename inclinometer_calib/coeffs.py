@@ -5,7 +5,8 @@ The *calibrators* (``twelve_position``, the lab's fit, the calibration node) pro
 lab effects, plug-ins included) and the site reference it owns; the record is what travels to the
 correction node, ``correct``, ``reprocess`` and files.  Format version 2 carries any model
 (``model.effects``: name, sensor, axes, scope, parameters with units, and for a plug-in effect
-its file or module and SHA-256); version 1 files (the base model only) still load.  Loading checks the version,
+its file or module and SHA-256 — loading never executes it: the user names plug-ins, see
+:mod:`plugins`); version 1 files (the base model only) still load.  Loading checks the version,
 shapes, units and the consistency of the correction matrix with the parameters, so a hand-edited
 file that no longer makes sense is refused with a message that says which field is wrong.
 
@@ -205,8 +206,10 @@ class Calibration:
 
     @classmethod
     def from_record(cls, rec, source: str = "<record>", base_dir: str = ".") -> "Calibration":
-        """Check and load a record of any readable version; ``base_dir``: where a plug-in file the
-        record names by a relative path is looked for (the record's folder)."""
+        """Check and load a record of any readable version.  A plug-in effect is accepted only from
+        a source the user named whose SHA-256 is the record's (:func:`plugins.require_plugin`);
+        ``base_dir`` (the record's folder) resolves a plug-in file the record names by a relative
+        path, only to say whether a named file is that one."""
         def fail(msg):
             raise CoefficientError(f"{source}: {msg}")
 

@@ -197,6 +197,14 @@ def build_params(args, out):
         p["calibration"]["model.effects"] = args.model_effects
     if args.coeffs:
         p["correction"]["coeffs_file"] = os.path.abspath(args.coeffs)
+    if args.plugin:
+        # the nodes' plug-in sources, named here too (the summary reads the run's records)
+        from .plugins import PluginError, name_plugins
+        try:
+            specs = [ref.get("file") or ref["module"] for ref in name_plugins(args.plugin)]
+        except PluginError as exc:
+            raise SystemExit(f"--plugin: {exc}") from None
+        p["calibration"]["plugins"] = p["correction"]["plugins"] = specs
     if not args.no_calibration:
         # a restarted correction node applies what the calibration node wrote until the topic speaks
         p["correction"]["fallback_coeffs_file"] = os.path.join(out, "coeffs.yaml")
@@ -973,6 +981,8 @@ def parse_args(argv=None):
     ap.add_argument("--model-effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
                     help="effects the calibration node fits beyond the paper's model on the captured poses, e.g. "
                          "temperature_bias:mag")
+    ap.add_argument("--plugin", action="append", help="Python file (or module) defining plug-in effects that records "
+                    "may use: the calibration and correction nodes' plugins parameter (repeatable)")
     ap.add_argument("--site", help="site reference YAML for the calibration and correction nodes (and the simulated "
                                    "probe): values (total_field_nt, dip_deg, declination_deg, gravity_mps2) and/or a "
                                    "location (latitude_deg, longitude_deg, altitude_m, date, model WMM2025|IGRF-14, crs) "

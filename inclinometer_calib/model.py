@@ -251,7 +251,8 @@ class ProbeModel:
     def from_record(cls, acc: TriadModel, mag: TriadModel, items, base_dir: str = ".",
                     source: str = "<record>") -> "ProbeModel":
         """The model of a record: base triads plus ``model.effects`` items (:meth:`terms_record`);
-        plug-in effects are loaded and checked (:func:`plugins.require_plugin`)."""
+        a plug-in effect must come from a source the user named with the record's SHA-256
+        (:func:`plugins.require_plugin`: the record itself never makes anything execute)."""
         from .plugins import require_plugin
 
         model = cls.base(acc, mag)

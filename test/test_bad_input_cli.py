@@ -296,6 +296,91 @@ def test_coefficient_file_that_is_not_yaml_is_refused(simdir, tmp_path, capsys):
     assert code == 2 and f"{p}: not valid YAML" in err
 
 
+MARKED_PLUGIN = """import pathlib
+
+pathlib.Path(__file__).with_name("executed.marker").write_text("this plug-in ran")
+
+from inclinometer_calib.effects import T_REF_C, Effect, ParamSpec
+
+
+class CliCubeBias(Effect):
+    name = "cube_bias_cli"
+    stage = "output"
+    specs = (ParamSpec("c3", {"acc": "m/s^2/degC^3", "mag": "nT/degC^3"}, {"acc": 1e-6, "mag": 0.01}),)
+
+    def _apply(self, v, ctx):
+        v[:, self._idx()] += self.values["c3"] * ((ctx.temperature_c - T_REF_C) ** 3)[:, None]
+"""
+
+
+@pytest.fixture
+def plugin_record(simdir, tmp_path, monkeypatch):
+    """(record, plug-in file, the record's --json summary while its plug-in was loaded): the
+    simulated probe's record plus a plug-in effect; then, as for a new process, the effect
+    unregistered, its module gone, nothing named, no marker."""
+    import sys
+
+    from inclinometer_calib import effects as fx
+    from inclinometer_calib import plugins
+    from inclinometer_calib.coeffs import Calibration
+
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
+    plug = tmp_path / "plug" / "cube.py"
+    plug.parent.mkdir()
+    plug.write_text(MARKED_PLUGIN)
+    assert plugins.load_plugin(plug) == ["cube_bias_cli"]
+    truth = Calibration.load(simdir / "truth_coeffs.yaml")
+    eff = fx.make_effect("cube_bias_cli", "mag", c3=[2e-3, -1e-3, 1e-3])
+    rec = tmp_path / "rec.yaml"
+    Calibration(truth.model.with_effect(eff), probe_id=truth.probe_id, site=truth.site).save(rec)
+    code, before, err = _correct_json_with(rec, simdir)
+    assert code == 0, err
+    fx.CATALOGUE.pop("cube_bias_cli")
+    for m in [m for m, mod in list(sys.modules.items()) if getattr(mod, "__file__", None) == str(plug)]:
+        del sys.modules[m]
+    plugins._NAMED.clear()
+    plug.with_name("executed.marker").unlink()
+    yield rec, plug, before
+    fx.CATALOGUE.pop("cube_bias_cli", None)
+
+
+def _correct_json_with(rec, simdir, *extra):
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["correct", str(simdir / "val.csv"), "--coeffs", str(rec), "--json", *extra])
+    return code, (json.loads(out.getvalue()) if code == 0 else out.getvalue()), err.getvalue()
+
+
+def test_correct_refuses_a_record_whose_plugin_was_not_named_in_one_line_without_running_it(plugin_record, simdir):
+    rec, plug, _ = plugin_record
+    code, stdout, err = _correct_json_with(rec, simdir)
+    assert code == 2 and stdout == ""
+    assert err.count("\n") == 1 and err.startswith(f"error: {rec}: effect 'cube_bias_cli' comes from the plug-in "
+                                                     f"file '{plug}' (sha256 ")
+    assert "which is not named" in err and "--plugin PATH" in err
+    assert not plug.with_name("executed.marker").exists()
+
+
+def test_correct_refuses_a_named_plugin_that_changed_since_the_record_without_running_it(plugin_record, simdir):
+    rec, plug, _ = plugin_record
+    plug.write_text(plug.read_text() + "\n# edited\n")
+    code, stdout, err = _correct_json_with(rec, simdir, "--plugin", str(plug))
+    assert code == 2 and stdout == ""
+    assert err.count("\n") == 1 and "changed since the record was written" in err and "cube_bias_cli" in err
+    assert not plug.with_name("executed.marker").exists()
+
+
+def test_correct_with_the_named_matching_plugin_corrects_as_before(plugin_record, simdir):
+    rec, plug, before = plugin_record
+    code, after, err = _correct_json_with(rec, simdir, "--plugin", str(plug))
+    assert code == 0, err
+    assert plug.with_name("executed.marker").exists()
+    assert after == before
+
+
 # ---- bags --------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def bag(simdir, tmp_path_factory):

@@ -147,34 +147,90 @@ class CubeTemperatureBias(Effect):
 """
 
 
-def test_a_plugin_effect_travels_with_its_file_and_hash_and_a_missing_or_changed_one_is_refused(tmp_path):
+def test_a_plugin_effect_travels_with_its_file_and_hash_and_loads_only_from_the_named_matching_source(
+        tmp_path, monkeypatch):
+    import re
+    import sys
+
     from inclinometer_calib import effects as fx
-    from inclinometer_calib.plugins import load_plugin
+    from inclinometer_calib import plugins
+
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)     # this test's own named plug-ins
+
+    def new_process():
+        """The effect not registered, its module not imported, nothing named."""
+        del fx.CATALOGUE[name]
+        for m in [m for m, mod in list(sys.modules.items()) if getattr(mod, "__file__", None) == str(plug)]:
+            del sys.modules[m]
+        plugins._NAMED.clear()
 
     plug = tmp_path / "plug" / "cube.py"
     plug.parent.mkdir()
     plug.write_text(PLUGIN.format(tag="a"))
-    (name,) = load_plugin(plug)
+    (name,) = plugins.load_plugin(plug)
     model = sim.ProbeModel.base().with_effect(fx.make_effect(name, "mag", c3=[0.01, 0.02, 0.03]))
     cal = Calibration(model, probe_id="P")
     cal.save(tmp_path / "rec.yaml")
     item = yaml.safe_load((tmp_path / "rec.yaml").read_text())["model"]["effects"][0]
     assert item["plugin"]["file"] == str(plug) and len(item["plugin"]["sha256"]) == 64
     assert Calibration.load(tmp_path / "rec.yaml").id == cal.id     # registered, same source: fine
-    # another process, so to speak: the effect is not registered, the record loads its plug-in
-    del fx.CATALOGUE[name]
+    # another process: the record alone does not load its plug-in ...
+    new_process()
+    refusal = f"effect '{name}' comes from the plug-in file '{plug}' (sha256 {item['plugin']['sha256'][:12]}…)"
+    with pytest.raises(CoefficientError, match=re.escape(refusal + ", which is not named")):
+        Calibration.load(tmp_path / "rec.yaml")
+    assert name not in fx.CATALOGUE
+    # ... the user names it, and the record loads it
+    plugins.name_plugin(plug)
     back = Calibration.load(tmp_path / "rec.yaml")
-    assert back.model.labels() == [f"{name}:mag:xyz"] and name in fx.CATALOGUE
+    assert back.model.labels() == [f"{name}:mag:xyz"] and name in fx.CATALOGUE and back.id == cal.id
     # changed since: refused, naming the plug-in and both hashes
-    del fx.CATALOGUE[name]
-    import sys
-    sys.modules.pop(next(m for m in sys.modules if m.startswith("inclinometer_calib_plugin_")
-                         and getattr(sys.modules[m], "__file__", "") == str(plug)), None)
+    new_process()
     plug.write_text(PLUGIN.format(tag="a") + "\n# edited\n")
+    plugins.name_plugin(plug)
     with pytest.raises(CoefficientError, match="changed since the record was written"):
         Calibration.load(tmp_path / "rec.yaml")
-    # missing: refused, saying how to fix it
-    del fx.CATALOGUE[name]
-    plug.unlink()
-    with pytest.raises(CoefficientError, match="does not exist here"):
+    assert name not in fx.CATALOGUE
+    # loaded from the edited source (e.g. for a fit): the record is refused too
+    plugins.load_plugin(plug)
+    with pytest.raises(CoefficientError, match="changed since the record was written"):
         Calibration.load(tmp_path / "rec.yaml")
+    # missing, nothing named: refused, saying how to allow it
+    new_process()
+    plug.unlink()
+    with pytest.raises(CoefficientError, match="which is not named.*--plugin PATH"):
+        Calibration.load(tmp_path / "rec.yaml")
+
+
+def test_a_record_given_as_text_never_runs_the_plugin_it_names_even_from_the_working_folder(tmp_path, monkeypatch):
+    """A record from the topic or a registry (``from_yaml``, no folder of its own): the plug-in it
+    names relative to the working folder is not executed; named, with the record's hash, it is."""
+    import sys
+
+    from inclinometer_calib import effects as fx
+    from inclinometer_calib import plugins
+
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
+    monkeypatch.chdir(tmp_path)
+    plug = tmp_path / "cube.py"
+    plug.write_text("open(__file__ + '.ran', 'w').close()\n" + PLUGIN.format(tag="text"))
+    (name,) = plugins.load_plugin(plug)
+    cal = Calibration(sim.ProbeModel.base().with_effect(fx.make_effect(name, "acc", c3=[1e-6, 0, 0])), probe_id="T")
+    rec = cal.to_record()
+    rec["model"]["effects"][0]["plugin"]["file"] = "cube.py"
+    del rec["id"]
+    text = yaml.safe_dump(rec)
+    del fx.CATALOGUE[name]
+    for m in [m for m, mod in list(sys.modules.items()) if getattr(mod, "__file__", None) == str(plug)]:
+        del sys.modules[m]
+    plugins._NAMED.clear()
+    (tmp_path / "cube.py.ran").unlink()
+    with pytest.raises(CoefficientError, match=f"<yaml>: effect '{name}' comes from the plug-in file 'cube.py'"):
+        Calibration.from_yaml(text)
+    assert not (tmp_path / "cube.py.ran").exists() and name not in fx.CATALOGUE
+    plugins.name_plugin("cube.py")
+    try:
+        assert Calibration.from_yaml(text).model.labels() == [f"{name}:acc:xyz"]
+        assert (tmp_path / "cube.py.ran").exists()
+    finally:
+        fx.CATALOGUE.pop(name, None)

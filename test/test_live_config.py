@@ -241,6 +241,20 @@ def test_launcher_foxglove_port_starts_the_live_node_on_loopback():
         launcher.build_params(launcher.parse_args(["--foxglove-port", "70000"]), "/tmp/run")
 
 
+def test_launcher_plugin_is_the_nodes_plugins_parameter_and_is_not_executed(tmp_path, monkeypatch):
+    from inclinometer_calib import plugins
+
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
+    plug = tmp_path / "p.py"
+    plug.write_text("open(__file__ + '.ran', 'w').close()\n")
+    monkeypatch.chdir(tmp_path)
+    params = launcher.build_params(launcher.parse_args(["--plugin", "p.py"]), "/tmp/run")
+    assert params["correction"]["plugins"] == params["calibration"]["plugins"] == [str(plug)]
+    assert not (tmp_path / "p.py.ran").exists()
+    with pytest.raises(SystemExit, match="--plugin: plug-in file .*nope.py does not exist"):
+        launcher.build_params(launcher.parse_args(["--plugin", "nope.py"]), "/tmp/run")
+
+
 def test_table_status_is_the_run_reports_wording():
     s = {"coefficients_id": "", "status": 0}
     assert lv.status_text(s) == launcher.station_label(s)

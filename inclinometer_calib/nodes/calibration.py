@@ -36,12 +36,14 @@ import os
 import sys
 
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from ..capture import CaptureSession
 from ..effects import parse_effects
 from ..engine import RecordOut, StreamEngine
 from ..frames import gravity_from_specific_force
+from ..plugins import NODE_PARAMETER, name_plugins
 from ..turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
 from ..twelve_position import POSES
 from . import common as c
@@ -106,6 +108,8 @@ class CalibrationNode(Node):
         acc_record = p.declare("turntable.acc_record", "", "turntable: a calibration record (e.g. the twelve "
                                "positions') whose accelerometer joins the turntable's magnetometer in the record",
                                read_only=True)
+        # for the acc_record's plug-in effects (a bad one ends the node, exit 2)
+        name_plugins(p.declare("plugins", [], NODE_PARAMETER, read_only=True, ptype=Parameter.Type.STRING_ARRAY))
         settings = declare_stream_params(p, calibration_sync=False)
 
         if self.method == "turntable":

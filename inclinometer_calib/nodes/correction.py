@@ -46,6 +46,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..coeffs import Calibration, CoefficientError
@@ -53,6 +54,7 @@ from ..engine import StationOut, StreamEngine
 from ..frames import gravity_from_specific_force, specific_force_from_gravity
 from ..lab.field import FieldMonitor
 from ..pipeline import NO_SITE, SurveyProcessor
+from ..plugins import NODE_PARAMETER, name_plugins
 from ..probelog import atomic_write_text
 from . import common as c
 from .stream import StreamDriver, declare_stream_params, make_detector
@@ -68,6 +70,8 @@ class CorrectionNode(Node):
         p = c.Params(self)
         self.frame_id = p.declare("frame_id", "probe", "frame_id of the published messages", read_only=True)
         self.probe_id = p.declare("probe_id", "probe", "Hardware id in the diagnostics", read_only=True)
+        # named before any record is read (a bad one ends the node, exit 2)
+        name_plugins(p.declare("plugins", [], NODE_PARAMETER, read_only=True, ptype=Parameter.Type.STRING_ARRAY))
         coeffs_file = p.declare("coeffs_file", "", "Coefficient record (YAML) to apply; empty: wait for "
                                 "the topic. May be changed while running (checked first)",
                                 check=self._check_coeffs_file)

@@ -228,6 +228,75 @@ def test_malformed_coefficient_yaml_exits_2(ros_env, coeffs_file, tmp_path):
     assert "error:" in last and "format_version 99" in last and str(bad) in last
 
 
+# ---- a record's plug-in: loaded only from the node's plugins parameter ---------------------
+MARKED_PLUGIN = """import pathlib
+
+pathlib.Path(__file__).with_name("executed.marker").write_text("this plug-in ran")
+
+from inclinometer_calib.effects import T_REF_C, Effect, ParamSpec
+
+
+class NodeCubeBias(Effect):
+    name = "cube_bias_node"
+    stage = "output"
+    specs = (ParamSpec("c3", {"acc": "m/s^2/degC^3", "mag": "nT/degC^3"}, {"acc": 1e-6, "mag": 0.01}),)
+
+    def _apply(self, v, ctx):
+        v[:, self._idx()] += self.values["c3"] * ((ctx.temperature_c - T_REF_C) ** 3)[:, None]
+"""
+
+
+@pytest.fixture
+def plugin_record(coeffs_file, tmp_path, monkeypatch):
+    """(record file, its Calibration, plug-in file): the test probe's record plus a plug-in effect;
+    then, as in a new process, nothing registered, imported or named, no marker."""
+    from inclinometer_calib import effects as fx
+    from inclinometer_calib import plugins
+
+    monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
+    plug = tmp_path / "cube.py"
+    plug.write_text(MARKED_PLUGIN)
+    assert plugins.load_plugin(plug) == ["cube_bias_node"]
+    base = Calibration.load(coeffs_file)
+    cal = Calibration(base.model.with_effect(fx.make_effect("cube_bias_node", "mag", c3=[1e-3, 0, 0])),
+                      probe_id=base.probe_id, site=base.site)
+    rec = tmp_path / "rec.yaml"
+    cal.save(rec)
+    fx.CATALOGUE.pop("cube_bias_node")
+    for m in [m for m, mod in list(sys.modules.items()) if getattr(mod, "__file__", None) == str(plug)]:
+        del sys.modules[m]
+    plugins._NAMED.clear()
+    plug.with_name("executed.marker").unlink()
+    yield rec, cal, plug
+    fx.CATALOGUE.pop("cube_bias_node", None)
+
+
+def test_a_record_whose_plugin_the_node_was_not_given_is_refused_from_file_and_topic_without_running_it(
+        ros, coeffs_file, plugin_record, capfd):
+    from inclinometer_calib.msg import CalibrationCoefficients
+
+    rec, cal, plug = plugin_record
+    with pytest.raises(InvalidParameterValueException, match="cannot use") as info:
+        CorrectionNode(parameter_overrides=[Parameter("coeffs_file", value=str(rec))])
+    assert "effect 'cube_bias_node' comes from the plug-in" in str(info.value) and "plugins" in str(info.value)
+    # on the topic: reported as any record that fails its checks, the node keeps the record it had
+    node = _correction(ros, coeffs_file)
+    before = node.processor.calibration.id
+    capfd.readouterr()
+    node._on_coefficients(c.coefficients_to_msg(cal, CalibrationCoefficients))
+    err = capfd.readouterr().err
+    assert "coefficients rejected, keeping the previous ones" in err and "which is not named" in err
+    assert node.processor.calibration.id == before
+    assert not plug.with_name("executed.marker").exists()
+
+
+def test_a_record_whose_plugin_the_node_was_given_with_its_hash_is_applied(ros, plugin_record):
+    rec, cal, plug = plugin_record
+    node = _correction(ros, rec, Parameter("plugins", value=[str(plug)]))
+    assert node.processor.calibration.id == cal.id
+    assert plug.with_name("executed.marker").exists()
+
+
 # ---- calibration node, in-process -----------------------------------------------------------
 def _cal_log(pieces, rate_hz=100.0):
     """pieces: (pose or (drift, azimuth, toolface), duration_s, wobble_mps2)"""
