@@ -25,15 +25,34 @@ for a directory output). A crash or SIGKILL leaves a file whose complete chunks 
 (``inclinometer_calib.bag.open_bag`` / ``recover``); chunks are closed at least every
 ``max_chunk_s`` seconds, so at most that much data is lost. An existing output is never
 overwritten: the node refuses to start (exit status 1).
+
+A write the disk refuses (any ``OSError``: full ``ENOSPC``, quota ``EDQUOT``, ``EFBIG``, ``EIO``)
+does not end the node. It says so once, at ERROR: the file, the error in words, when, and what the
+file holds (its messages, the receive time and header stamp of the last one). The file is left as
+the bag writer leaves it (cut back to its last complete chunk, not finalized: readable as the file
+of a killed recorder). From then on the messages are counted per topic, not recorded. Every
+``retry_s`` seconds, once the disk has :data:`RETRY_MIN_FREE_BYTES` free again, the node starts a
+NEW part beside the first (``survey_1.mcap`` after ``survey.mcap``, the launcher's naming),
+never appending after a torn chunk, and says so once at WARNING. An output that cannot even be
+created for want of space (``ENOSPC``, ``EDQUOT``) starts the node in that state: it keeps
+trying under the output's own name. The shutdown report's last line counts the messages not
+recorded per topic (``recording incomplete: 1520 messages on /probe/imu, ... not recorded: disk
+full``) and the node exits with :data:`RECORDING_INCOMPLETE` (4): a part not finalized or a
+message not recorded.
 """
 from __future__ import annotations
 
+import errno
 import importlib
+import os
+import re
 import signal
+import struct
 import sys
 import time
 from datetime import datetime, timezone
-from typing import Dict, List, Optional, Set
+from pathlib import Path
+from typing import Dict, List, Optional, Set, Tuple
 
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor, ParameterType
@@ -42,7 +61,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..bag import BagWriter, UnknownTypeError, normalize_type
+from ..bag import BagWriter, UnknownTypeError, normalize_type, refused_write_words, type_hash
 from .executor import HotPathExecutor, spin
 
 NODE_NAME = "recorder"
@@ -51,6 +70,19 @@ DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
 #: so a launcher run starts up to one period later (1 s made it 2 s; a scan costs about 10 us)
 DISCOVERY_PERIOD_S = 0.25
 SUBSCRIPTION_DEPTH = 1000  # keep-last depth of each recording subscription (absorbs stalls)
+#: Exit status when the recording is incomplete: a write the disk refused (messages not recorded,
+#: a part left unfinalized) or no bag at all for want of space.  The launcher reads it as a
+#: problem of the run, not as a node to restart.
+RECORDING_INCOMPLETE = 4
+#: Free bytes the output's file system must have before a recorder stopped by a refused write
+#: tries a new part (a chunk is at most about 1 MiB): less would fill again within a chunk
+RETRY_MIN_FREE_BYTES = 1 << 20
+#: Errors that mean "no space" when the output is created: the node starts and waits for space
+#: (any other error creating it, e.g. a read-only or forbidden path, refuses to start: exit 1)
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+#: Types whose CDR payload starts with a stamp (sec int32, nanosec uint32): the header stamp of
+#: the last recorded message can be named without deserializing it
+_STAMP_FIRST = ("std_msgs/Header", "builtin_interfaces/Time")
 
 
 def default_output() -> str:
@@ -117,8 +149,33 @@ def _topic_name(name: str) -> str:
     return name if name.startswith("/") else "/" + name
 
 
+def _utc(seconds: float) -> str:
+    return datetime.fromtimestamp(seconds, timezone.utc).strftime("%Y-%m-%d %H:%M:%S.%f")[:-4] + " UTC"
+
+
+def _stamp_s(data: bytes) -> Optional[float]:
+    """The stamp at the start of a CDR payload (after the 4-byte encapsulation), seconds."""
+    if len(data) < 12:
+        return None
+    sec, nsec = struct.unpack_from("<iI" if data[1] & 1 else ">iI", data, 4)
+    return sec + 1e-9 * nsec
+
+
+def next_part_path(path: Path) -> Path:
+    """The first ``<base>_<k>`` beside ``path`` that does not exist: ``survey.mcap`` ->
+    ``survey_1.mcap``, ``survey_1.mcap`` -> ``survey_2.mcap`` (the launcher's part naming)."""
+    suffix = path.suffix if path.suffix == ".mcap" else ""
+    stem = path.name[:-len(suffix)] if suffix else path.name
+    m = re.match(r"^(.*)_(\d+)$", stem)
+    base, k = (m.group(1), int(m.group(2)) + 1) if m else (stem, 1)
+    while (path.parent / f"{base}_{k}{suffix}").exists():
+        k += 1
+    return path.parent / f"{base}_{k}{suffix}"
+
+
 class Recorder(Node):
-    """Records the chosen topics to one bag; :meth:`close` finalizes it."""
+    """Records the chosen topics to one bag (further parts after a full disk: the module
+    docstring); :meth:`close` finalizes it."""
 
     def __init__(self, **kwargs):
         super().__init__(NODE_NAME, **kwargs)
@@ -145,6 +202,10 @@ class Recorder(Node):
         self.declare_parameter("compression", "zstd", ParameterDescriptor(
             description="Chunk compression: zstd, lz4 or none.",
             type=ParameterType.PARAMETER_STRING, **ro))
+        self.declare_parameter("retry_s", 5.0, ParameterDescriptor(
+            description="After a write the disk refused (full disk): how often, seconds (> 0), the "
+                        "node looks for space again to go on recording into a new part.",
+            type=ParameterType.PARAMETER_DOUBLE, **ro))
 
         gp = self.get_parameter
         output = gp("output").value or default_output()
@@ -152,29 +213,148 @@ class Recorder(Node):
         self.exclude: Set[str] = {_topic_name(t) for t in (gp("exclude").value or []) if t.strip()}
         period = float(gp("discovery_period_s").value)
         max_chunk_s = float(gp("max_chunk_s").value)
-        if period <= 0 or max_chunk_s <= 0:
-            raise ValueError("discovery_period_s and max_chunk_s must be > 0")
+        self.retry_s = float(gp("retry_s").value)
+        if period <= 0 or max_chunk_s <= 0 or self.retry_s <= 0:
+            raise ValueError("discovery_period_s, max_chunk_s and retry_s must be > 0")
         # the tick timer closes a chunk at most tick_s after its deadline: split the budget so
         # the oldest unflushed message is never older than max_chunk_s
         tick_s = min(0.1, max_chunk_s / 10.0)
-        self.bag = BagWriter(output, compression=str(gp("compression").value),
-                             max_chunk_s=max_chunk_s - tick_s)
-        self.output = str(self.bag.path)
+        self._bag_args = dict(compression=str(gp("compression").value), max_chunk_s=max_chunk_s - tick_s)
+        self.output = str(Path(output))
+        # recording state: the part being written (None after a refused write), every part
+        # written, each topic's channel in the current part, and the messages received per topic
+        # (received - what the parts hold = not recorded)
+        self.bag: Optional[BagWriter] = None
+        self.parts: List[BagWriter] = []
+        self._channels: Dict[str, int] = {}
+        self._received: Dict[str, int] = {}
+        self._specs: Dict[str, Tuple[str, list]] = {}   # topic -> (type, offered QoS): for a new part
+        self._stamped: Set[str] = set()
+        self.error: Optional[OSError] = None      # the first refused write
+        self._stopped_at: Optional[float] = None  # wall time recording stopped (None: recording)
+        self._next_try = 0.0
         self._subs: Dict[str, object] = {}
         #: called with each new recording subscription (main(): the executor's ``add_hot``)
         self.on_subscribed = None
         self._skipped: Dict[str, str] = {}
         self._closed = False
-        self.get_logger().info(
-            f"recording to {self.output} (topics: {sorted(self.only) or 'all'}, "
-            f"excluding {sorted(self.exclude)}, chunks <= {max_chunk_s:g} s, "
-            f"compression {self.bag.compression or 'none'})")
+        try:
+            self._start_part(Path(self.output))
+        except OSError as exc:
+            if isinstance(exc, FileExistsError) or exc.errno not in NO_SPACE:
+                raise
+            self._stopped(exc, f"cannot create {self.output}", "nothing recorded yet")
+        else:
+            self.get_logger().info(
+                f"recording to {self.output} (topics: {sorted(self.only) or 'all'}, "
+                f"excluding {sorted(self.exclude)}, chunks <= {max_chunk_s:g} s, "
+                f"compression {self._bag_args['compression'] or 'none'})")
         self._discover()
         # steady clock: discovery and chunk closing go on whatever the ROS clock does (a node
         # started with use_sim_time would otherwise stall when /clock stops)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(period, self._discover, clock=steady)
-        self.create_timer(tick_s, self.bag.tick, clock=steady)
+        self.create_timer(tick_s, self._tick, clock=steady)
+
+    # -- writing and a disk that refuses it ----------------------------------------------------
+    def _start_part(self, path: Path) -> None:
+        """Open a part and register every topic seen so far on it (raises its ``OSError``)."""
+        bag = BagWriter(path, **self._bag_args)
+        channels = {}
+        for topic, (type_name, qos) in self._specs.items():
+            try:
+                channels[topic] = bag.add_topic(topic, type_name, qos_profiles=qos)
+            except OSError:
+                bag.mcap_path.unlink(missing_ok=True)   # ours, holding no message: no empty part left
+                raise
+        self.bag, self._channels = bag, channels
+        self.parts.append(bag)
+
+    def _write(self, topic: str, data: bytes, log_time: int, publish_time: int) -> None:
+        """The subscriptions' callback (hot path): count the message, write it to the current
+        part if there is one."""
+        self._received[topic] += 1
+        cid = self._channels.get(topic)
+        if cid is None:
+            return   # not recording: counted as not recorded
+        try:
+            self.bag.write(cid, data, log_time, publish_time)
+        except OSError as exc:
+            self._stopped(exc, f"cannot write {self.bag.path}", None)
+
+    def _tick(self) -> None:
+        """Steady timer: close an old chunk; while stopped by a refused write, look for space."""
+        if self._closed:
+            return
+        if self.bag is not None:
+            try:
+                self.bag.tick()
+            except OSError as exc:
+                self._stopped(exc, f"cannot write {self.bag.path}", None)
+        elif time.monotonic() >= self._next_try:
+            self._try_again()
+
+    def _holds(self, bag: BagWriter) -> str:
+        """What a part holds, in words: messages, and the receive time and header stamp of its last."""
+        n = sum(bag.committed_counts().values())
+        last = bag.last_committed()
+        if not n or last is None:
+            return f"{bag.path.name} holds no message"
+        topic, data, log_ns = last
+        stamp = _stamp_s(data) if topic in self._stamped else None
+        return (f"{bag.path.name} holds {n} messages, the last one received at {_utc(log_ns * 1e-9)}"
+                + (f" (header stamp {stamp:.3f} s, on {topic})" if stamp is not None else f" (on {topic})"))
+
+    def _stopped(self, exc: OSError, what: str, holds: Optional[str]) -> None:
+        """A write the disk refused: stop recording, say it once at ERROR, try again later."""
+        bag, self.bag, self._channels = self.bag, None, {}
+        self.error = self.error or exc
+        self._stopped_at = time.time()
+        self._next_try = time.monotonic() + self.retry_s
+        if holds is None and bag is not None:
+            holds = self._holds(bag) + ", its complete chunks readable (not finalized)"
+        self.get_logger().error(
+            f"{what}: {refused_write_words(exc)[1]}; not recording from {_utc(self._stopped_at)} on; {holds}. "
+            f"Messages from now on are counted per topic, not recorded; looking for space every "
+            f"{self.retry_s:g} s to go on in a new part")
+
+    def _try_again(self) -> None:
+        """While stopped: with room on the disk again, go on in a new part (said once at WARNING)."""
+        self._next_try = time.monotonic() + self.retry_s
+        path = Path(self.output)
+        target = path if not self.parts and not path.exists() else next_part_path(path)
+        try:
+            st = os.statvfs(target.parent)
+            if st.f_bavail * st.f_frsize < RETRY_MIN_FREE_BYTES:
+                return
+        except OSError:
+            pass   # no statistics: let the write itself tell
+        try:
+            self._start_part(target)
+        except OSError:
+            return   # still no room (the writer left no file behind): try again later
+        lost = sum(self._not_recorded().values())
+        self.get_logger().warning(
+            f"the disk takes writes again: recording goes on in {target} (a new part) after "
+            f"{time.time() - self._stopped_at:.1f} s; {lost} messages were not recorded meanwhile")
+        self._stopped_at = None
+
+    def _recorded(self) -> Dict[str, int]:
+        """Messages per topic in the parts (what a reader finds in them)."""
+        counts: Dict[str, int] = {t: 0 for t in self._received}
+        for bag in self.parts:
+            for t, n in bag.committed_counts().items():
+                counts[t] = counts.get(t, 0) + n
+        return counts
+
+    def _not_recorded(self) -> Dict[str, int]:
+        rec = self._recorded()
+        return {t: n - rec.get(t, 0) for t, n in self._received.items() if n > rec.get(t, 0)}
+
+    @property
+    def incomplete(self) -> bool:
+        """True when the recording misses something: a refused write (or no part at all)."""
+        return self.error is not None
 
     # -- discovery ---------------------------------------------------------------------------
     def _wanted(self, topic: str) -> bool:
@@ -203,13 +383,22 @@ class Recorder(Node):
                 continue  # only subscribers so far: QoS unknown, look again later
             offered = [p.qos_profile for p in publishers]
             hashes = {str(getattr(p, "topic_type_hash", "") or "") for p in publishers}
-            try:
-                cid = self.bag.add_topic(topic, type_name,
-                                         qos_profiles=[qos_to_dict(q) for q in offered])
-            except (UnknownTypeError, ValueError) as exc:
-                self._skip(topic, str(exc))
-                continue
-            recorded_hash = self.bag.topics[topic].type_hash
+            qos_dicts = [qos_to_dict(q) for q in offered]
+            if self.bag is not None:
+                try:
+                    self._channels[topic] = self.bag.add_topic(topic, type_name, qos_profiles=qos_dicts)
+                except (UnknownTypeError, ValueError) as exc:
+                    self._skip(topic, str(exc))
+                    continue
+                except OSError as exc:   # a full chunk went to disk on the way
+                    self._stopped(exc, f"cannot write {self.bag.path}", None)
+            self._specs[topic] = (type_name, qos_dicts)
+            self._received[topic] = 0
+            fields = getattr(msg_type, "get_fields_and_field_types", dict)()
+            if next(iter(fields.values()), "") in _STAMP_FIRST:
+                self._stamped.add(topic)
+            recorded_hash = (self.parts[-1].topics[topic].type_hash if self.parts and topic in self.parts[-1].topics
+                             else type_hash(type_name))
             live = {h for h in hashes if h.startswith("RIHS01_")}
             if live and recorded_hash not in live:
                 self.get_logger().warning(
@@ -217,12 +406,12 @@ class Recorder(Node):
                     f"differs from the publisher's {sorted(live)}: definitions differ")
             qos = subscription_qos(offered)
             self._subs[topic] = self.create_subscription(
-                msg_type, topic, _make_callback(self.bag.write, cid), qos, raw=True)
+                msg_type, topic, _make_callback(self._write, topic), qos, raw=True)
             if self.on_subscribed is not None:
                 self.on_subscribed(self._subs[topic])
             self.get_logger().info(
-                f"recording {topic} [{type_name}] ({qos.reliability.name.lower()}, "
-                f"{qos.durability.name.lower()})")
+                f"{'recording' if self.bag is not None else 'counting (not recording, see the error above)'} "
+                f"{topic} [{type_name}] ({qos.reliability.name.lower()}, {qos.durability.name.lower()})")
 
         for topic in self.only:
             if topic not in self._subs and topic not in self._skipped and topic in self.exclude:
@@ -234,28 +423,61 @@ class Recorder(Node):
 
     # -- shutdown ----------------------------------------------------------------------------
     def close(self) -> Dict[str, int]:
-        """Finalize the bag (idempotent); returns messages per recorded topic."""
+        """Finalize the bag (idempotent); returns messages per recorded topic (all parts)."""
         if self._closed:
-            return self.bag.message_counts()
+            return self._recorded()
         self._closed = True
         for sub in list(self._subs.values()):
             try:
                 self.destroy_subscription(sub)
             except Exception:  # noqa: BLE001 - context may already be shut down
                 pass
-        self.bag.close()
-        counts = self.bag.message_counts()
+        if self.bag is not None:
+            try:
+                self.bag.close()
+            except OSError as exc:
+                self._stopped_words(exc)
+        counts = self._recorded()
         lines = [f"  {t}: {n}" for t, n in sorted(counts.items())]
-        missing = [t for t in sorted(self.only) if t not in counts and t not in self._skipped]
-        text = (f"bag {self.output} finalized: {sum(counts.values())} messages on "
-                f"{len(counts)} topic(s)\n" + "\n".join(lines))
+        missing = [t for t in sorted(self.only) if t not in self._specs and t not in self._skipped]
+        if len(self.parts) == 1 and self.error is None:
+            text = (f"bag {self.output} finalized: {sum(counts.values())} messages on "
+                    f"{len(counts)} topic(s)\n" + "\n".join(lines))
+        else:
+            said = [f"{b.path} " + ("NOT finalized (a write was refused): " + self._holds(b) + ", its complete "
+                                    "chunks readable (inclinometer_calib.bag.open_bag / recover)"
+                                    if b.error is not None else
+                                    f"finalized: {sum(b.committed_counts().values())} messages") for b in self.parts]
+            text = (f"bag parts ({len(self.parts)}): " + ("; ".join(said) or f"none: {self.output} never created")
+                    + f"\nrecorded in all: {sum(counts.values())} messages on {len(counts)} topic(s)\n"
+                    + "\n".join(lines))
         if self._skipped:
             text += "\nnot recorded:\n" + "\n".join(
                 f"  {t}: {r}" for t, r in sorted(self._skipped.items()))
         if missing:
             text += "\nrequested but never seen: " + ", ".join(missing)
+        if self.error is not None:
+            # the last line: what the recording misses, for the operator and the launcher
+            lost = sorted(self._not_recorded().items(), key=lambda kv: (-kv[1], kv[0]))
+            named = ", ".join(f"{n} messages on {t}" if i == 0 else f"{n} on {t}"
+                              for i, (t, n) in enumerate(lost))
+            unfinal = [b.path.name for b in self.parts if b.error is not None]
+            reason = refused_write_words(self.error)[0]
+            text += ("\nrecording incomplete: " + (f"{named} not recorded: {reason}" if named else
+                                                   f"every message received was recorded ({reason})")
+                     + (f"; not finalized: {', '.join(unfinal)}" if unfinal else "")
+                     + ("" if self.parts else f"; no bag written, {self.output} could not be created"))
         print(f"[{NODE_NAME}] {text}", file=sys.stderr, flush=True)
         return counts
+
+    def _stopped_words(self, exc: OSError) -> None:
+        """A refused write while finalizing: said once at ERROR (rcutils logging outlives the
+        context that a signal shut down)."""
+        bag, self.bag, self._channels = self.bag, None, {}
+        self.error = self.error or exc
+        self.get_logger().error(
+            f"cannot finalize {bag.path}: {refused_write_words(exc)[1]}; {self._holds(bag)}, its complete chunks "
+            "readable (not finalized)")
 
 
 def main(args: Optional[List[str]] = None) -> int:
@@ -285,7 +507,7 @@ def main(args: Optional[List[str]] = None) -> int:
             _finalize(node)
             node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return RECORDING_INCOMPLETE if node is not None and node.incomplete else 0
 
 
 def _finalize(node: Recorder) -> None:
