@@ -43,6 +43,17 @@ with ``O_EXCL`` and :class:`BagWriter` raises :class:`FileExistsError` if the pa
 good earlier recording can never be replaced by a half-written one. Choose a new name (the
 recorder's default name carries a UTC timestamp).
 
+A write the operating system refuses (``OSError``: a full disk ``ENOSPC``, a quota ``EDQUOT``,
+``EFBIG``, ``EIO``) ends the file: the writer raises the error, keeps it in
+:attr:`BagWriter.error`, cuts the file back to the end of the last record written whole (a chunk
+the disk took only part of is removed, which also gives its space back) and writes nothing more to
+it, not even at :meth:`BagWriter.close`: appending after a torn record, or a summary that points
+at data that is not there, would make the file unreadable past the tear. What is left is an
+unfinalized bag of complete chunks, read by :func:`open_bag` and :func:`recover` like the file of
+a killed recorder; :meth:`BagWriter.committed_counts` says how many messages per topic it holds. A
+bag whose header cannot be written is not left behind as an empty file: it is removed and the
+error raised.
+
 Reading damaged files (:class:`BagReader`)
 -----------------------------------------
 mcap's readers stop at the first damage and do not say where. ``make_reader`` looks for the
@@ -63,6 +74,7 @@ style directory ``<dir>/<dir-name>_0.mcap`` plus ``<dir>/metadata.yaml`` (writte
 """
 from __future__ import annotations
 
+import errno
 import io
 import mmap
 import os
@@ -83,7 +95,7 @@ __all__ = [
     "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
     "normalize_type", "qos_profiles_yaml", "parse_qos_profiles", "DEFAULT_QOS_PROFILE",
     "BagWriter", "BagReader", "BagMessage", "TopicInfo", "RecoveryReport", "open_bag", "recover",
-    "available_compressions",
+    "available_compressions", "refused_write_words",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -391,26 +403,61 @@ class _UnbufferedSink:
     def __init__(self, fileobj, fsync: bool):
         self._f = fileobj
         self._fsync = fsync
-        self._pos = 0
+        self._pos = 0   # bytes written whole: the end of the last record the OS took completely
+        #: called after every write the OS took completely (the writer's commit point)
+        self.on_written = None
+        self._refused: Optional[OSError] = None
 
     def write(self, data) -> int:
+        if self._refused is not None:
+            raise OSError(self._refused.errno, self._refused.strerror)
         view = memoryview(data)
         total = len(view)
         done = 0
         while done < total:
             done += self._f.write(view[done:])
         self._pos += total
+        if total and self.on_written is not None:   # (the mcap writer also writes b"")
+            self.on_written()
         return total
 
     def tell(self) -> int:
         return self._pos
 
     def flush(self) -> None:
-        if self._fsync:
+        if self._refused is None and self._fsync:
             os.fsync(self._f.fileno())
+
+    def abandon(self, error: OSError) -> None:
+        """After a failed write: cut the file back to the last whole write (a torn record would
+        hide nothing from a reader but leave garbage; removing it frees its space), close it, and
+        refuse every later write with ``error``'s errno."""
+        self._refused = OSError(error.errno, f"{error.strerror}; nothing more is written to this file "
+                                             "after an earlier failed write")
+        try:
+            os.ftruncate(self._f.fileno(), self._pos)
+        except (OSError, ValueError):
+            pass   # the file keeps its torn tail: the reader stops there all the same
+        try:
+            self._f.close()
+        except OSError:
+            pass   # the failed write has said it already
 
     def close(self) -> None:
         self._f.close()
+
+
+def refused_write_words(exc: OSError):
+    """(short reason, one-line description) of a write the OS refused, for people:
+    ``("disk full", "no space left on the device (ENOSPC)")``; others by strerror and errno name."""
+    name = errno.errorcode.get(exc.errno or 0, str(exc.errno))
+    known = {errno.ENOSPC: ("disk full", "no space left on the device"),
+             errno.EDQUOT: ("disk quota exceeded", "the disk quota is exceeded"),
+             errno.EFBIG: ("file too large", "the file is larger than the file system or a limit allows"),
+             errno.EIO: ("I/O error", "the disk reported an input/output error")}
+    text = exc.strerror or str(exc)
+    short, long = known.get(exc.errno, (text, text))
+    return short, f"{long} ({name})"
 
 
 def _library_string() -> str:
@@ -453,6 +500,11 @@ class BagWriter:
 
     Hot path: :meth:`write` (``channel_id, data, log_time, publish_time``) does one comparison
     and hands the bytes to the mcap writer.
+
+    A write the OS refuses raises its ``OSError`` (from :meth:`write`, :meth:`tick`,
+    :meth:`flush`, :meth:`add_topic` or :meth:`close`) and ends the file (module docstring):
+    :attr:`error` keeps it, the writer is closed, :meth:`committed_counts` are the messages the
+    file holds.  A header that cannot be written raises from the constructor, the file removed.
     """
 
     def __init__(self, path: PathLike, *, compression: str = "zstd", chunk_size: int = 1 << 20,
@@ -483,10 +535,25 @@ class BagWriter:
             self.bag_dir.mkdir(parents=True, exist_ok=False)
         else:
             self.mcap_path.parent.mkdir(parents=True, exist_ok=True)
-        raw = open(self.mcap_path, "xb", buffering=0)  # O_EXCL: never replace an existing file
-        self._sink = _UnbufferedSink(raw, fsync)
-        self._mcap = Writer(self._sink, chunk_size=chunk_size, compression=ctype)
-        self._mcap.start(profile="ros2", library=library or _library_string())
+        raw = None
+        try:
+            raw = open(self.mcap_path, "xb", buffering=0)  # O_EXCL: never replace an existing file
+            self._sink = _UnbufferedSink(raw, fsync)
+            self._mcap = Writer(self._sink, chunk_size=chunk_size, compression=ctype)
+            self._mcap.start(profile="ros2", library=library or _library_string())
+        except OSError:
+            # no room for the header (a full disk): leave no empty or torn file behind, it holds
+            # nothing and a reader refuses it; the caller may try again later under the same name
+            if raw is not None:
+                raw.close()
+                self.mcap_path.unlink(missing_ok=True)
+            if self.bag_dir is not None:
+                try:
+                    self.bag_dir.rmdir()
+                except OSError:
+                    pass   # not empty: not only ours
+            raise
+        self.error: Optional[OSError] = None
         self._add = self._mcap.add_message
         self._stats = getattr(self._mcap, "_Writer__statistics", None)
         self._own_counts: Optional[Dict[int, int]] = None
@@ -509,6 +576,11 @@ class BagWriter:
         self.topics: Dict[str, _TopicRecord] = {}
         self.closed = False
         self.chunks_flushed = 0
+        # what the file holds: messages per channel, end log time and the last message (channel,
+        # CDR bytes) as of the last write the OS took whole (the sink's commit point)
+        self._last_cid, self._last_data = 0, b""
+        self._committed = ({}, 0, None)
+        self._sink.on_written = self._commit
 
     # -- registration --------------------------------------------------------------------------
     def add_topic(self, topic: str, type_name: str, *, qos_profiles: Iterable[Mapping] = (),
@@ -521,6 +593,9 @@ class BagWriter:
         without a usable definition is still recorded (schema with empty encoding) with a
         warning: the CDR bytes are kept, readers then need the type from elsewhere.
         """
+        if self.error is not None:
+            raise OSError(self.error.errno, f"{self.path}: not written after an earlier failed write "
+                                            f"({self.error.strerror})")
         if self.closed:
             raise ValueError("bag is closed")
         if topic in self.topics:
@@ -535,9 +610,13 @@ class BagWriter:
                     warnings.warn(f"{topic}: {exc}; recording without a message definition",
                                   stacklevel=2)
                     definition, schema_encoding = "", ""
-            schema_id = self._mcap.register_schema(
-                name=full, encoding=schema_encoding if definition else "",
-                data=definition.encode("utf-8"))
+            try:
+                schema_id = self._mcap.register_schema(
+                    name=full, encoding=schema_encoding if definition else "",
+                    data=definition.encode("utf-8"))
+            except OSError as exc:   # a full chunk went to disk on the way
+                self._fail(exc)
+                raise
             self._schemas[full] = schema_id
         if type_hash is None:
             type_hash = self.definitions.type_hash(full) if definition != "" else ""
@@ -546,17 +625,28 @@ class BagWriter:
         metadata = {"offered_qos_profiles": qos_yaml, "topic_type_hash": type_hash}
         if extra_metadata:
             metadata.update({k: v for k, v in extra_metadata.items() if k not in metadata})
-        cid = self._mcap.register_channel(topic=topic, message_encoding="cdr",
-                                          schema_id=schema_id, metadata=metadata)
+        try:
+            cid = self._mcap.register_channel(topic=topic, message_encoding="cdr",
+                                              schema_id=schema_id, metadata=metadata)
+        except OSError as exc:
+            self._fail(exc)
+            raise
         self.topics[topic] = _TopicRecord(cid, topic, full, qos_yaml, type_hash)
         return cid
 
     # -- hot path ------------------------------------------------------------------------------
     def write(self, channel_id: int, data: bytes, log_time: int, publish_time: int = 0) -> None:
-        """Append one message (CDR bytes); times in ns since the epoch (publish_time 0 = log_time)."""
-        if log_time >= self._deadline:
-            self._roll(log_time)
-        self._add(channel_id, log_time, data, publish_time or log_time)
+        """Append one message (CDR bytes); times in ns since the epoch (publish_time 0 = log_time).
+        Raises the ``OSError`` of a write the OS refused (then the file is ended: class docstring)."""
+        try:
+            if log_time >= self._deadline:
+                self._roll(log_time)
+            # remembered before the add: a chunk full with this message is written by the add
+            self._last_cid, self._last_data = channel_id, data
+            self._add(channel_id, log_time, data, publish_time or log_time)
+        except OSError as exc:
+            self._fail(exc)
+            raise
 
     def _roll(self, log_time: int) -> None:
         if self._deadline:
@@ -566,22 +656,68 @@ class BagWriter:
 
     def tick(self, now_ns: Optional[int] = None) -> bool:
         """Close the open chunk if it is older than ``max_chunk_s`` (call periodically, e.g. from
-        a timer, so a quiet topic's last messages do not wait in memory). Returns True if it did."""
+        a timer, so a quiet topic's last messages do not wait in memory). Returns True if it did.
+        Raises the ``OSError`` of a write the OS refused."""
         if not self._deadline or self.closed:
             return False
         now = time.time_ns() if now_ns is None else now_ns
         if now >= self._deadline:
-            self._mcap.flush()
+            try:
+                self._mcap.flush()
+            except OSError as exc:
+                self._fail(exc)
+                raise
             self.chunks_flushed += 1
             self._deadline = 0
             return True
         return False
 
     def flush(self) -> None:
-        """Close the open chunk now and hand everything to the OS."""
+        """Close the open chunk now and hand everything to the OS (raises a refused write's
+        ``OSError``)."""
         if not self.closed:
-            self._mcap.flush()
+            try:
+                self._mcap.flush()
+            except OSError as exc:
+                self._fail(exc)
+                raise
             self._deadline = 0
+
+    # -- a write the OS refused ----------------------------------------------------------------
+    def _commit(self) -> None:
+        """The sink took a write whole: what the writer has counted is now in the file (the chunk
+        builder is empty at every write the writer makes: a write is a chunk, its message indexes,
+        the header, metadata or the summary)."""
+        counts = self._stats.channel_message_counts if self._stats is not None else self._own_counts
+        end = self._stats.message_end_time if self._stats is not None else self._own_times[1]
+        last = (self._last_cid, self._last_data) if self._last_data else None
+        self._committed = (dict(counts), end, last)
+
+    def _fail(self, exc: OSError) -> None:
+        """End the file after a refused write (module docstring: cut back, closed, nothing more)."""
+        if self.error is None:
+            self.error = exc
+        self.closed = True
+        self._sink.abandon(exc)
+        refused = self._sink._refused
+
+        def refuse(*_args):
+            raise OSError(refused.errno, refused.strerror)
+        self._add = refuse
+
+    def committed_counts(self) -> Dict[str, int]:
+        """Messages per topic the file holds: all of :meth:`message_counts` once finalized; after a
+        refused write, those in the chunks written whole before it."""
+        counts = self._committed[0]
+        return {t: int(counts.get(r.channel_id, 0)) for t, r in self.topics.items()}
+
+    def last_committed(self):
+        """``(topic, CDR bytes, log time ns)`` of the last message the file holds (None: none)."""
+        _counts, end, last = self._committed
+        if last is None:
+            return None
+        topic = next((t for t, r in self.topics.items() if r.channel_id == last[0]), "")
+        return topic, last[1], end
 
     # -- statistics ----------------------------------------------------------------------------
     def message_counts(self) -> Dict[str, int]:
@@ -623,8 +759,15 @@ class BagWriter:
             })
             self._mcap.finish()
             self._sink.flush()
-        finally:
             self._sink.close()
+        except OSError as exc:
+            # not finalized: cut back to the last whole record so that the file reads as the
+            # complete chunks of an unfinalized bag, not as a summary that is half there
+            self._fail(exc)
+            raise
+        except BaseException:
+            self._sink.close()
+            raise
         if self.bag_dir is not None:
             _write_metadata_yaml(self.bag_dir, info)
 
@@ -671,8 +814,12 @@ def _qos_for_yaml(qos_yaml: str):
 def _write_metadata_yaml(bag_dir: Path, info: dict) -> None:
     text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
     tmp = bag_dir / "metadata.yaml.tmp"
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, bag_dir / "metadata.yaml")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, bag_dir / "metadata.yaml")
+    except OSError:
+        tmp.unlink(missing_ok=True)   # no half-written metadata.yaml.tmp left beside the bag
+        raise
 
 
 # ---------------------------------------------------------------------------------------------

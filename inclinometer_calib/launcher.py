@@ -24,7 +24,10 @@ correction node is restarted the same way; it applies the calibration node's ``c
 ``correction_state.json`` (``state_file``).  At most :data:`MAX_RESTARTS` restarts per node; a
 probe or calibration node that dies ends the run.  The summary is built from all bag parts in
 time order; a part the killed recorder left without its summary is first recovered
-(:func:`bag.recover`) into ``<part>.recovered.mcap`` and the summary says so.
+(:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the temporary directory when ``--out``
+has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its
+recording incomplete: a write the disk refused), or dies while the disk holding ``--out`` has less
+than :data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.
 
 Domain.  Without ``--domain-id`` and without ``ROS_DOMAIN_ID`` in the environment the launcher
 reserves a free domain (:func:`rosenv.reserve_domain_id`) for the whole run and prints it; a
@@ -39,22 +42,27 @@ Exit status (the last line says why):
 * 1 — the run completed but is not clean: a node died (also when it was restarted), the
   calibration node ran but no coefficients were recorded (it did not solve), the probe's MCAP
   input was damaged (probe exit status 3; the readable part was replayed), the probe failed,
-  the run timed out, or the summary failed.  The graph is still drained and summarized;
+  the run timed out, the summary failed, the recording is incomplete (recorder exit status 4: a
+  write the disk refused; not a reason to restart it), or a file of the launcher's own could not
+  be written (``launch.log``, ``summary.json``, ``report.md``, … : said once each, in words; the
+  summary is still printed, and the last line says e.g. ``the disk is full: OUT: summary.json,
+  report.md not written``).  The graph is still drained and summarized;
 * 2 — usage error, ``--out`` in use, or the requested ROS_DOMAIN_ID is in use by another run;
 * 130 — interrupted (Ctrl-C / SIGTERM).
 """
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib.util
 import json
 import math
 import os
-import re
 import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -84,6 +92,15 @@ FLOW_GONE_S = 10.0
 FLOW_END_S = 30.0
 #: Exit status of the probe node when its MCAP input was damaged (it replayed the readable part).
 PROBE_INPUT_DAMAGED = 3
+#: Exit status of the recorder when its recording is incomplete (a write the disk refused:
+#: ``nodes.recorder.RECORDING_INCOMPLETE``); its last line, after this mark, says what is missing
+RECORDING_INCOMPLETE = 4
+INCOMPLETE_MARK = "recording incomplete: "
+#: Free bytes below which the disk holding --out counts as full: a recorder that dies then is not
+#: restarted into a new part (it would not get past its first chunk)
+RESTART_MIN_FREE_BYTES = 1 << 20
+#: errno of a write refused for want of room: a full disk, a quota, a file size limit
+REFUSED_WRITES = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 STATE_FILE = "correction_state.json"
 WITSML_FILE = "trajectory.xml"  # the wits node's WITSML 2.1 Trajectory (--witsml or --wits-port)
 
@@ -126,6 +143,7 @@ class Child:
         self.cmd = cmd
         self._lock = out_lock
         self._log = log_file
+        self.incomplete = ""   # the recorder's "recording incomplete: ..." words, if it said them
         self.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, text=True, bufsize=1, errors="replace",
                                      start_new_session=True)  # the launcher alone decides when to stop
@@ -135,6 +153,8 @@ class Child:
     def _pump(self):
         for line in self.proc.stdout:
             text = f"[{self.name}] {line.rstrip()}"
+            if INCOMPLETE_MARK in line:
+                self.incomplete = line.split(INCOMPLETE_MARK, 1)[1].strip()
             with self._lock:
                 print(text, flush=True)
                 if self._log:
@@ -161,6 +181,83 @@ class Child:
         rc = self.proc.wait()
         self._thread.join(2.0)
         return rc
+
+
+def refused_write(path, exc, print_fn=print, who="launch", name=None) -> dict:
+    """A write of the launcher's own that the OS refused, said once in words (``[summary] cannot
+    write OUT/summary.json: no space left on the device (ENOSPC)``); returns the entry for the
+    run's list of files not written (``name``: how the last line names it, default the file name)."""
+    from .bag import refused_write_words
+
+    short, words = refused_write_words(exc)
+    print_fn(f"[{who}] cannot write {path}: {words}")
+    return {"file": name or os.path.basename(os.path.normpath(path)), "reason": short, "errno": exc.errno}
+
+
+def not_written_text(out, entries) -> str:
+    """The last line's words for the files a refused write left out, by reason: ``the disk is full:
+    OUT: launch.log, summary.json, report.md not written``."""
+    said = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exceeded"}
+    by_reason = {}
+    for e in entries:
+        reason = said.get(e.get("errno")) or f"writes were refused ({e['reason']})"
+        by_reason.setdefault(reason, []).append(e["file"])
+    return "; ".join(f"{reason}: {out}: {', '.join(dict.fromkeys(files))} not written"
+                     for reason, files in by_reason.items())
+
+
+class RunLog:
+    """``launch.log``: every line the launcher prints, also on disk.  A write the disk refuses
+    (Python's buffer flushes every few kB) is said once on stdout and ends the file: the run and
+    its output on stdout go on.  :attr:`not_written` is then the entry for the final line."""
+
+    def __init__(self, path):
+        self.path = path
+        self.not_written = None
+        self._fh = None
+        try:
+            self._fh = open(path, "w", encoding="utf-8")
+        except OSError as exc:
+            self._refused(exc)
+
+    def write(self, text):
+        if self._fh is not None:
+            try:
+                self._fh.write(text)
+            except OSError as exc:
+                self._refused(exc)
+
+    def close(self):
+        if self._fh is not None:
+            fh, self._fh = self._fh, None
+            try:
+                fh.close()   # flushes what is buffered
+            except OSError as exc:
+                self._refused(exc)
+
+    def _refused(self, exc):
+        fh, self._fh = self._fh, None
+        if fh is not None:
+            try:
+                fh.close()   # releases the descriptor; its flush is refused again
+            except OSError:
+                pass
+        self.not_written = refused_write(self.path, exc, lambda text: print(
+            f"{text}: the launch log stops here, the output goes on on stdout", flush=True))
+        self.not_written["file"] += " (from then on)"
+
+
+def disk_full(out):
+    """Why the disk holding ``out`` counts as full (less than :data:`RESTART_MIN_FREE_BYTES`
+    free), or None."""
+    try:
+        st = os.statvfs(out)
+    except OSError:
+        return None
+    free = st.f_bavail * st.f_frsize
+    if free >= RESTART_MIN_FREE_BYTES:
+        return None
+    return f"the disk holding {out} is full ({free} bytes free)"
 
 
 def node_command(name, params, cfg):
@@ -289,6 +386,8 @@ class GraphResult:
     problems: list = field(default_factory=list)  # why the run is not clean, one sentence each
     calibration_ran: bool = False
     restarts: dict = field(default_factory=dict)  # node -> times it was restarted
+    not_written: list = field(default_factory=list)  # the launcher's files a refused write left out
+    recording_incomplete: bool = False  # the recorder said so (exit status 4)
 
 
 def _config_value(cfg, node, key, default):
@@ -356,7 +455,7 @@ def run_graph(args, out, env) -> GraphResult:
             params[n].setdefault("use_sim_time", True)
     result = GraphResult(calibration_ran="calibration" in names)
     lock = threading.Lock()
-    log = open(os.path.join(out, "launch.log"), "w", encoding="utf-8")
+    log = RunLog(os.path.join(out, "launch.log"))
     children = {}
     restarts = {n: 0 for n in RESTARTABLE}
     stop = {"requested": 0}
@@ -431,6 +530,20 @@ def run_graph(args, out, env) -> GraphResult:
                     drain_until = time.monotonic() + (min(args.drain, 0.5) if not args.unpaced else args.drain)
                     continue
                 died = f"{name} died unexpectedly ({_exit_text(code)})"
+                if name == "recorder" and code == RECORDING_INCOMPLETE:
+                    # it ended by itself with a recording it says is incomplete: a new part would
+                    # not mend that (a disk that refuses writes), so no restart
+                    ch._thread.join(2.0)   # its last line, which says what is missing, read to the end
+                    reason = (f"the recorder ended early: the recording is incomplete: "
+                              f"{ch.incomplete or _exit_text(code)}")
+                    result.problems.append(reason)
+                    result.recording_incomplete = True
+                    break
+                full = disk_full(out) if name == "recorder" else None
+                if full is not None:
+                    reason = f"{died}; not restarted into a new part: {full}"
+                    result.problems.append(reason)
+                    break
                 if name in restarts and restarts[name] < MAX_RESTARTS:
                     restarts[name] += 1
                     result.restarts[name] = restarts[name]
@@ -456,7 +569,13 @@ def run_graph(args, out, env) -> GraphResult:
             if name in children:
                 code = children[name].stop()
                 say(f"{name} stopped ({_exit_text(code)})")
-                if name != "probe" and code not in (0, -signal.SIGINT) and not result.interrupted:
+                if name == "recorder" and code == RECORDING_INCOMPLETE:
+                    # what it did not record is a problem of the run, said in the recorder's words
+                    said = f"the recording is incomplete: {children[name].incomplete or _exit_text(code)}"
+                    if not result.recording_incomplete:
+                        result.problems.append(said)
+                    result.recording_incomplete = True
+                elif name != "probe" and code not in (0, -signal.SIGINT) and not result.interrupted:
                     result.problems.append(f"{name} did not stop cleanly ({_exit_text(code)})")
     finally:
         for ch in children.values():
@@ -465,6 +584,8 @@ def run_graph(args, out, env) -> GraphResult:
         for s, h in old.items():
             signal.signal(s, h)
         log.close()
+        if log.not_written is not None:
+            result.not_written.append(log.not_written)
     return result
 
 
@@ -525,7 +646,8 @@ def read_bag(path, progress=None):
         wanted.add(TOPIC_PROGRESS)
     with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = [x for x in reader.connections if x.topic in wanted]
-        # (rosbags reads every connection when given none: a bag without these topics has nothing to read)
+        # rosbags reads an empty connection list as "every connection": a bag without these
+        # topics (only /clock and /probe/*) has nothing to read here
         for conn, _, raw in reader.messages(connections=conns) if conns else ():
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == TOPIC_PROGRESS:
@@ -535,7 +657,7 @@ def read_bag(path, progress=None):
             elif conn.topic == "/calibration/status":
                 status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
                           "pending": [int(x) for x in msg.pending], "warnings": list(msg.warnings)}
-            else:
+            elif conn.topic == "/calibration/coefficients":
                 coefficients.append({"id": msg.id, "coefficients_yaml": msg.coefficients_yaml,
                                      "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
                                      "accel_correction_matrix": [float(x) for x in msg.accel_correction_matrix],
@@ -646,12 +768,22 @@ def readable_parts(out, print_fn=print) -> list:
             dst = path[:-len(".mcap")] + ".recovered.mcap"
             if os.path.exists(dst):
                 os.remove(dst)  # derived from the part, which is kept: rebuild it
-            report = recover(path, dst)
+            try:
+                report = recover(path, dst)
+            except OSError as exc:
+                # no room beside the part (a full disk): the copy goes to the temporary directory
+                if os.path.exists(dst):
+                    os.remove(dst)   # the writer cut it back to whole records: still only a part
+                info["not_written"] = refused_write(dst, exc, print_fn, who="summary")
+                dst = os.path.join(tempfile.mkdtemp(prefix="inclinometer_calib_"), os.path.basename(dst))
+                report = recover(path, dst)
+                print_fn(f"[summary] {info['file']} recovered into {dst} instead (kept there)")
         except (BagError, OSError) as exc:
             info.update(read=None, error=str(exc))
             print_fn(f"[summary] cannot read {path}: {exc}")
             continue
-        info.update(read=dst, recovered_into=os.path.basename(dst), messages_saved=report.saved,
+        info.update(read=dst, recovered_into=dst if "not_written" in info else os.path.basename(dst),
+                    messages_saved=report.saved,
                     problem=str(reader.errors[0]) if reader.errors else "not finalized")
         print_fn(f"[summary] {info['file']} was not finalized (its recorder died): recovered "
                  f"{report.saved} messages into {info['recovered_into']}")
@@ -738,21 +870,44 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
     summary["model_misfit_stations"] = len(misfit)
     if misfit:
         summary["model_diagnosis"] = misfit[-1]["model_diagnosis"]
+    # the launcher's files a refused write left out (a full disk): said as they fail, the summary
+    # is printed all the same, and the launcher's last line names them
+    not_written = [p.pop("not_written") for p in summary["bag_parts"] if "not_written" in p]
     want_loop, loop = loop, None
     if want_loop and stations and cal is not None and readable:
-        loop = model_loop(out, readable, cal, print_fn)
+        loop = model_loop(out, readable, cal, print_fn, not_written=not_written)
         if loop is not None:
             summary["model_loop"] = loop_summary(loop)
-    from .probelog import atomic_write_text
-    atomic_write_text(os.path.join(out, "summary.json"), json.dumps(summary, indent=1, default=float) + "\n")
+    if not_written:
+        summary["not_written"] = not_written
+    write_text(os.path.join(out, "summary.json"), json.dumps(summary, indent=1, default=float) + "\n",
+               not_written, print_fn)
     lines = format_summary(summary) + (loop.lines if loop is not None else [])
-    atomic_write_text(os.path.join(out, "report.md"), format_report(summary, lines, cal, stations, loop))
-    page = write_html_report(out, summary, cal, loop, print_fn)
+    report = os.path.join(out, "report.md")
+    if not write_text(report, format_report(summary, lines, cal, stations, loop), not_written, print_fn):
+        report = None
+    page = write_html_report(out, summary, cal, loop, print_fn, not_written=not_written)
+    if not_written:
+        summary["not_written"] = not_written   # for the launcher's last line (summary.json has what it knew)
     for line in lines:
         print_fn(line)
     bags = ", ".join(p["file"] for p in parts) or "none"
-    print_fn(f"report: {os.path.join(out, 'report.md')}" + (f" and {page}" if page else "") + f"; bag: {bags}")
+    written = [f for f in (report, page) if f]
+    print_fn(f"report: {' and '.join(written) or 'none written'}; bag: {bags}")
     return summary
+
+
+def write_text(path, text, not_written, print_fn=print) -> bool:
+    """``atomic_write_text``; a write the OS refuses is said once in words (:func:`refused_write`)
+    and added to ``not_written``.  True if written."""
+    from .probelog import atomic_write_text
+
+    try:
+        atomic_write_text(path, text)
+        return True
+    except OSError as exc:
+        not_written.append(refused_write(path, exc, print_fn, who="summary"))
+        return False
 
 
 def witsml_summary(path, stations) -> dict:
@@ -774,10 +929,11 @@ def witsml_summary(path, stations) -> dict:
     return res
 
 
-def model_loop(out, readable, cal, print_fn):
+def model_loop(out, readable, cal, print_fn, not_written=None):
     """The model loop of the run (:func:`lab.loop.run_loop`) on its bag: the lab's finding on the
     captured data and the field effect ladder.  With several bag parts (a recorder restarted) the
-    largest is used, and said.  None (said) when it cannot run."""
+    largest is used, and said.  None (said) when it cannot run; a write the disk refused
+    (``lab_model.yaml``, ``compare/``) is said in words and added to ``not_written``."""
     from .coeffs import Calibration, CoefficientError
     from .lab.loop import run_loop
 
@@ -794,7 +950,17 @@ def model_loop(out, readable, cal, print_fn):
     try:
         require("matplotlib", "report", "the run report's plots")
         return run_loop(bag, cal, out, truth=truth, warn=lambda m: None)
-    except (MissingDependency, OSError, ValueError) as exc:
+    except OSError as exc:
+        if exc.errno not in REFUSED_WRITES:
+            print_fn(f"[summary] the model loop did not run: {type(exc).__name__}: {exc}")
+            return None
+        entry = refused_write(f"the model loop's files ({os.path.join(out, 'lab_model.yaml')}, "
+                              f"{os.path.join(out, 'compare')}/)", exc, print_fn, who="summary",
+                              name="lab_model.yaml, compare/ (the model loop)")
+        if not_written is not None:
+            not_written.append(entry)
+        return None
+    except (MissingDependency, ValueError) as exc:
         print_fn(f"[summary] the model loop did not run: {type(exc).__name__}: {exc}")
         return None
 
@@ -815,13 +981,13 @@ def loop_summary(loop) -> dict:
     return out
 
 
-def write_html_report(out, summary, cal, loop, print_fn):
+def write_html_report(out, summary, cal, loop, print_fn, not_written=None):
     """``report.html``: the run's figures with plots (the field effect ladder, residuals model by
-    model).  None (said) without matplotlib or a loop."""
+    model).  None (said) without matplotlib or a loop, or when the disk refuses it (said, and added
+    to ``not_written``)."""
     if loop is None or not loop.runs:
         return None
     from . import compare
-    from .probelog import atomic_write_text
 
     try:
         page = compare.to_html(loop.runs, os.path.basename(bag_parts(out)[0]) if bag_parts(out) else "",
@@ -833,8 +999,8 @@ def write_html_report(out, summary, cal, loop, print_fn):
         print_fn(f"[summary] report.html not written: {exc}")
         return None
     path = os.path.join(out, "report.html")
-    atomic_write_text(path, page)
-    return path
+    written = write_text(path, page, not_written if not_written is not None else [], print_fn)
+    return path if written else None
 
 
 def station_label(s) -> str:
@@ -903,9 +1069,10 @@ def format_summary(s) -> list:
     if len(parts) > 1 or any("recovered_into" in p or "error" in p for p in parts):
         lines.append(f"bag parts ({len(parts)}, in time order): " + "; ".join(_part_text(p) for p in parts))
     raw = s.get("raw_stations") or {}
-    lines.append(f"bag: {s['stations_recorded']} survey stations ("
-                 + (", ".join(f"{v} uncorrected: {k}" for k, v in raw.items()) or "all corrected")
-                 + f"), {s['coefficient_messages']} coefficient message(s)")
+    said = (" (" + (", ".join(f"{v} uncorrected: {k}" for k, v in raw.items()) or "all corrected") + ")"
+            if s["stations_recorded"] else "")
+    lines.append(f"bag: {s['stations_recorded']} survey stations{said}, {s['coefficient_messages']} coefficient "
+                 "message(s)")
     if s.get("accounting"):
         from .accounting import format_account
         lines.extend(format_account(s["accounting"]))
@@ -1092,8 +1259,16 @@ def main(argv=None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     out = os.path.abspath(args.out)
-    os.makedirs(out, exist_ok=True)
-    out_lock = _lock_out_dir(out)
+    try:
+        os.makedirs(out, exist_ok=True)
+        out_lock = _lock_out_dir(out)
+    except OSError as exc:   # e.g. a full disk: the lock file takes our pid
+        from .bag import refused_write_words
+
+        if domain_lock is not None:
+            domain_lock.close()
+        print(f"[launch] exit status 1: cannot start the run in {out}: {refused_write_words(exc)[1]}", flush=True)
+        return 1
     try:
         if out_lock is None:
             print(f"error: another inclinometer-calib-launch is writing to {out}: choose another --out",
@@ -1131,7 +1306,16 @@ def main(argv=None) -> int:
                 print(f"[summary] failed: {type(exc).__name__}: {exc}", flush=True)
                 problems.append(f"the summary failed ({type(exc).__name__}: {exc})")
         if result.calibration_ran and not result.interrupted:
-            problems += calibration_problems(out, summary)
+            unsolved = calibration_problems(out, summary)
+            if unsolved and result.recording_incomplete and not os.path.exists(os.path.join(out, "coeffs.yaml")):
+                # the record may have been refused by the disk on both ways out (the bag, coeffs.yaml):
+                # that is not evidence that the calibration did not solve
+                unsolved = ["no coefficients were recorded and no coeffs.yaml was written: whether the calibration "
+                            "solved is not on disk (the recording is incomplete; see the [calibration] lines)"]
+            problems += unsolved
+        not_written = result.not_written + list((summary or {}).get("not_written", []))
+        if not_written:   # first: the reason the rest (an incomplete recording, …) follows from
+            problems.insert(0, not_written_text(out, not_written))
     finally:
         if out_lock is not None:
             out_lock.close()

@@ -52,7 +52,7 @@ from .streaming import StaticDetector
 from .survey import Tolerances
 from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, PROGRESS_TYPE,
                      REFERENCE_TYPE, STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU,
-                     TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL, TOPIC_STATION,
+                     TOPIC_MAG, TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL, TOPIC_STATION,
                      TOPIC_TEMPERATURE)
 
 #: Input topics read (and copied through) and the type each must have.

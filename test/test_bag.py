@@ -527,3 +527,94 @@ def test_not_an_mcap(tmp_path):
     empty.write_bytes(b"")
     with pytest.raises(bag.BagError):
         bag.open_bag(empty)
+
+
+# ---------------------------------------------------------------------------------------------
+# a write the operating system refuses (a full disk)
+
+
+def _refusing_writes_past(limit):
+    """Context: the kernel refuses every write of this process past ``limit`` bytes of a file
+    (RLIMIT_FSIZE: EFBIG, after writing what fits — a torn write, as a disk that fills leaves it)."""
+    import contextlib
+    import resource
+    import signal
+
+    @contextlib.contextmanager
+    def ctx():
+        old_sig = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)   # EFBIG instead of the signal
+        soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, hard))
+        try:
+            yield
+        finally:   # nothing else of this process writes in between (no output, no logging)
+            resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+            signal.signal(signal.SIGXFSZ, old_sig)
+    return ctx()
+
+
+def test_a_refused_write_ends_the_file_where_readers_read_it_whole(tmp_path):
+    """A write refused at any byte of the file (the header, a chunk, its message indexes, the
+    summary while finalizing): the writer raises the OSError, keeps it, cuts the file back to its
+    last whole record and writes nothing more; the file then reads as an unfinalized bag holding
+    exactly ``committed_counts()``, and ``recover`` rewrites it.  A header that does not fit leaves
+    no file at all."""
+    import errno
+
+    n, dt = 120, 10_000_000
+    data = [imu_cdr(i) for i in range(n)]
+
+    def record(path):
+        w = bag.BagWriter(path, compression="none", max_chunk_s=0.1)   # a chunk every 10 messages
+        cid = w.add_topic("/probe/imu", IMU)
+        for i in range(n):
+            w.write(cid, data[i], T0 + i * dt)
+        w.close()
+        return w
+
+    size = os.path.getsize(record(tmp_path / "whole.mcap").path)
+    cases = {"header": 0, "chunk": 0, "finalizing": 0}
+    for limit in range(0, size, 37):
+        path = tmp_path / f"cut{limit}.mcap"
+        refused = None
+        with _refusing_writes_past(limit):
+            try:
+                record(path)
+            except OSError as exc:
+                refused = exc
+        assert refused is not None and refused.errno == errno.EFBIG, limit
+        if not path.exists():      # the header did not fit: nothing left behind
+            cases["header"] += 1
+            continue
+        rd = bag.open_bag(path)
+        got = list(rd.messages(strict=False))
+        assert len(rd.errors) == 1, (limit, rd.errors)
+        reason = rd.errors[0].reason
+        assert reason.startswith(("file ends without a data-end record", "summary section or footer")), reason
+        cases["finalizing" if len(got) == n else "chunk"] += 1
+        assert [TS.deserialize_cdr(m.data, IMU).angular_velocity.z for m in got] == \
+            [float(i) for i in range(len(got))]
+        assert len(got) % 10 == 0 or len(got) == n          # whole chunks only
+        assert bag.recover(path, tmp_path / f"rec{limit}.mcap").saved == len(got)
+    assert all(cases.values()), cases
+
+    # the writer's account of what the file holds, and nothing written after a refusal
+    path = tmp_path / "account.mcap"
+    w = bag.BagWriter(path, compression="none", max_chunk_s=0.1)
+    cid = w.add_topic("/probe/imu", IMU)
+    for i in range(35):
+        w.write(cid, data[i], T0 + i * dt)
+    with _refusing_writes_past(os.path.getsize(path) + 100):   # less than the next chunk
+        with pytest.raises(OSError) as exc:
+            for i in range(35, n):
+                w.write(cid, data[i], T0 + i * dt)
+    assert w.error is exc.value and w.closed
+    held = len(list(bag.open_bag(path).messages(strict=False)))
+    assert w.committed_counts() == {"/probe/imu": held} and held == 30   # the chunk that tore is not counted
+    topic, last, log_time = w.last_committed()
+    assert topic == "/probe/imu" and last == data[held - 1] and log_time == T0 + (held - 1) * dt
+    size = os.path.getsize(path)
+    with pytest.raises(OSError, match="nothing more is written"):
+        w.write(cid, data[0], T0 + n * dt)
+    w.close()                                                 # no finalizing after a refusal
+    assert os.path.getsize(path) == size

@@ -87,3 +87,40 @@ def test_an_explicit_domain_held_by_another_run_is_refused_with_status_2(no_doma
         lock.close()
     free_again = rosenv.reserve_this_domain_id(domain_id)  # released with its holder
     free_again.close()
+
+
+def test_a_bag_without_stations_coefficients_or_status_gives_an_empty_summary(tmp_path):
+    """Only /probe/* topics (a replayed probe log) and /clock: nothing for the summary to read —
+    rosbags reads an empty connection list as every connection, which made it decode a Clock or an
+    Imu as a coefficient record."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("mcap")
+    import numpy as np
+    from rosbags.typesys import Stores, get_typestore
+
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.bag import BagWriter
+    from inclinometer_calib.frames import Site
+    from inclinometer_calib.reprocess import write_probe_bag
+
+    out = tmp_path / "run"
+    out.mkdir()
+    log = sim.run_session(sim.build_probe(1), Site(), sim.stand_grid_session(duration_s=1.0),
+                          np.random.default_rng(0), rate_hz=50)
+    write_probe_bag(log, out / "survey.mcap")                          # /probe/imu, mag, temperature, reference
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    Clock, Time = ts.types["rosgraph_msgs/msg/Clock"], ts.types["builtin_interfaces/msg/Time"]
+    with BagWriter(out / "survey_1.mcap") as w:                        # a second part with only /clock
+        cid = w.add_topic("/clock", "rosgraph_msgs/msg/Clock")
+        for k in range(5):
+            w.write(cid, bytes(ts.serialize_cdr(Clock(clock=Time(sec=k, nanosec=0)), "rosgraph_msgs/msg/Clock")),
+                    1_700_000_000_000_000_000 + k)
+    assert launcher.read_bag(out / "survey.mcap") == ([], [], None)
+    assert launcher.read_bag(out / "survey_1.mcap") == ([], [], None)
+    said = []
+    summary = launcher.summarize_run(str(out), print_fn=said.append, loop=False)
+    assert summary["stations_recorded"] == 0 and summary["coefficient_messages"] == 0
+    assert "calibration_status" not in summary and "coefficients_id" not in summary
+    assert [p["file"] for p in summary["bag_parts"]] == ["survey.mcap", "survey_1.mcap"]
+    assert "bag: 0 survey stations, 0 coefficient message(s)" in said
+    assert (out / "summary.json").is_file() and (out / "report.md").is_file()

@@ -130,7 +130,8 @@ def test_record_sigint_finalizes_and_both_readers_decode(tmp_path, ros_env):
     msgs = list(rd.messages())  # strict: raises if anything is wrong
     assert rd.finalized and rd.profile == "ros2"
     topics = rd.topics
-    assert set(topics) == {"/probe/imu", "/calibration/coefficients", "/calibration/status"}
+    # every topic of the graph, the recorder's own progress (its place in the stream) among them
+    assert set(topics) == {"/probe/imu", "/calibration/coefficients", "/calibration/status", "/graph/progress"}
     assert topics["/calibration/coefficients"].count == 1
     assert "durability: transient_local" in topics["/calibration/coefficients"].qos_yaml
     assert "reliability: best_effort" in topics["/probe/imu"].qos_yaml
