@@ -82,8 +82,8 @@ def _reason_kind(reason: str) -> str:
 
 def recorded_counts(paths) -> dict:
     """Messages per probe topic held by a recording's parts (``paths``), each counted once: a
-    recorder restarted mid-run receives the probe's latest samples again (their publish time, the
-    source's own timestamp, tells a repeat)."""
+    recorder restarted mid-run receives the probe's latest samples again (a stamped message is told
+    by its header stamp, the unstamped depth by its publish time — the source's own — and value)."""
     from .bag import BagError, open_bag
     from .topics import TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_REFERENCE, TOPIC_TEMPERATURE
 
@@ -93,7 +93,8 @@ def recorded_counts(paths) -> dict:
     for path in paths:
         try:
             for m in open_bag(path).messages(list(names), strict=False):
-                seen[names[m.topic]].add(m.publish_time)
+                key = (m.publish_time, bytes(m.data)) if m.topic == TOPIC_DEPTH else bytes(m.data[4:12])
+                seen[names[m.topic]].add(key)
         except BagError:
             continue
     return {k: len(v) for k, v in seen.items()}

@@ -1373,6 +1373,29 @@ def build_parser():
     r.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
     _detector_options(r, mag_unit=False)
     r.set_defaults(func=cmd_reprocess)
+    rt = sub.add_parser("replay-test", help="replay a recorded bag through the live ROS 2 graph and compare its "
+                        "stations with an expected set (reprocess's, or another bag's): a regression test for CI")
+    rt.add_argument("bag", help="the recorded bag (MCAP) to replay")
+    rt.add_argument("--expect", required=True, metavar="reprocess|FILE.mcap",
+                    help="the expected stations: 'reprocess' (what reprocess makes of the same bag with the same "
+                         "options) or a bag holding /survey/station (an earlier run, a golden reprocessed bag)")
+    rt.add_argument("--calibrate", action="store_true", help="calibrate from the bag's twelve poses (the calibration "
+                    "node; reprocess --calibrate), else correct with --coeffs")
+    rt.add_argument("--coeffs", help="a calibration record to correct with (with --calibrate: for the stations before "
+                    "the first solve)")
+    rt.add_argument("--site", help="site reference YAML (overrides the record's; with --calibrate, the record's)")
+    rt.add_argument("--effects", default="", help="with --calibrate: the model to fit beyond the paper's")
+    rt.add_argument("--plugin", action="append", help="Python file (or module) defining effects the records use")
+    rt.add_argument("--param", action="append", metavar="NODE:NAME:=VALUE", help="extra node parameter (launcher)")
+    rt.add_argument("--speed", type=float, default=50.0, help="the replay's speed ceiling (it is paced: never "
+                    "faster than its slowest reader; default 50)")
+    rt.add_argument("--tolerance", type=float, default=1e-6, help="angles in degrees (default 1e-6); |G| 1e-2, |B| "
+                    "and positions 1e2 times it in their units")
+    rt.add_argument("--out", help="the run's directory (default: BAG without .mcap + .replay)")
+    rt.add_argument("--overwrite", action="store_true", help="replace a run in --out")
+    rt.add_argument("--junit", metavar="FILE.xml", help="also write a JUnit report (one test case per station)")
+    rt.add_argument("--timeout", type=float, default=0.0, help="stop the replay after this many seconds (0: none)")
+    rt.set_defaults(func=cmd_replay_test)
     b = sub.add_parser("bag", help="bag tools: recover a damaged recording, write probe-log CSVs as a bag")
     bsub = b.add_subparsers(dest="bag_command", required=True)
     br = bsub.add_parser("recover", help="rewrite the readable part of a damaged bag (e.g. a killed recorder's) "
@@ -1392,6 +1415,13 @@ def build_parser():
     _lab_parser(sub)
     _fleet_parser(sub)
     return p
+
+
+def cmd_replay_test(args):
+    """``replay-test``: a bag through the live graph, compared with an expected set (:mod:`replaytest`)."""
+    from .replaytest import run
+
+    return run(args)
 
 
 def main(argv=None):

@@ -72,7 +72,11 @@ DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
 #: graph scan period, s: the probe waits for the recorder's subscriptions before its first sample,
 #: so a launcher run starts up to one period later (1 s made it 2 s; a scan costs about 10 us)
 DISCOVERY_PERIOD_S = 0.25
-SUBSCRIPTION_DEPTH = 1000  # keep-last depth of each recording subscription (absorbs stalls)
+#: Keep-last depth of each recording subscription: a backlog this deep is held, not dropped.  DDS
+#: does not tell a subscriber the depth a remote publisher keeps (rmw reports 0), so it is not
+#: taken from the publishers: 1000 lost samples of a reliable topic whose delivery stalled for a
+#: moment (a repair) at 5 000 samples/s; 20 000 is a paced replay's history (its qos.depth).
+SUBSCRIPTION_DEPTH = 20_000
 #: What the recorder counts in its progress (StreamProgress on /graph/progress): the run's
 #: accounting, and the data time of the last sample written, on which a paced replay waits.
 COUNTED = {TOPIC_IMU: "imu", TOPIC_MAG: "mag", TOPIC_TEMPERATURE: "temperature", TOPIC_REFERENCE: "reference",
@@ -138,8 +142,8 @@ def qos_to_dict(qos) -> dict:
 
 def subscription_qos(offered) -> QoSProfile:
     """QoS compatible with all offered profiles, as strong as they all allow (rosbag2's rule), with a
-    history at least as deep as theirs: a recorder restarted mid-run takes all the history a
-    transient-local publisher keeps for it (a paced replay's last 20 000 samples)."""
+    history of :data:`SUBSCRIPTION_DEPTH` (or deeper, where a publisher says so): a recorder
+    restarted mid-run takes all the history a transient-local publisher keeps for it."""
     reliable = bool(offered) and all(
         q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
     latched = bool(offered) and all(
