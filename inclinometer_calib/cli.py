@@ -22,7 +22,8 @@ from .capture import CaptureSession
 from .gates import apply_gates
 from .probelog import MAG_UNITS, Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
 from .model import ModelContextError
-from .pipeline import NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note
+from .pipeline import (NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note,
+                       station_status, usable)
 from .survey import Tolerances, format_table4, format_table5, summarize, table4, table5
 from .twelve_position import format_table2, format_table3
 
@@ -411,9 +412,20 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
             res, fit = evaluate_with_msa(g, b, site, tol, ref_used if has_ref.any() else None, msa, use=use)
         except ValueError as exc:
             raise UserError(f"{log_path}: {exc}") from None
-        return stations, res, {**summarize(res), "msa": fit}
+        return stations, res, {**_finish(stations, res), "msa": fit}
     res = evaluate_stations(g, b, site, tol, ref_used if has_ref.any() else None, axial)
-    return stations, res, summarize(res)
+    return stations, res, _finish(stations, res)
+
+
+def _finish(stations, res) -> dict:
+    """The one status rule on every station (:func:`pipeline.station_status`), and the summary of
+    the usable ones only: a station that is not to be used has no error figures."""
+    res["status"] = np.array([station_status(st, q) for st, q in zip(stations, res["status"])], dtype=int)
+    bad = ~usable(res["status"])
+    for k in ("drift_err", "azimuth_err", "toolface_err"):
+        if k in res:
+            res[k] = np.where(bad, np.nan, res[k])
+    return summarize(res)
 
 
 STATION_COLUMNS = ["station", "pose", "t_start_s", "t_end_s", "samples", "temp_c", "drift_deg", "azimuth_deg",

@@ -116,6 +116,19 @@ def evaluate_stations(g, b, site, tol: Tolerances = Tolerances(), ref=None, axia
     return evaluate(g, b, site, tol, ref=ref)
 
 
+def station_status(st: Station, qc_status: int) -> int:
+    """A station's status, the one rule for every path: 2 (error, not to be used) when the probe
+    moved during the hold or a gate refused a sensor's data (a flat or clipped axis, an implausible
+    |g|: :mod:`gates`), else the QC's verdict (0 ok, 1 warn, 2 error: :func:`survey.evaluate`).
+    What is 2 never counts in a summary figure as good (:func:`usable`)."""
+    return 2 if (st.moved or st.unusable) else int(qc_status)
+
+
+def usable(status) -> np.ndarray:
+    """The stations a summary figure (an RMS, a maximum) may count: status below 2."""
+    return np.asarray(status) < 2
+
+
 def context_warnings(st: Station, cal) -> list:
     """What the model needs of a station and does not get (said in the station's warnings)."""
     if cal is not None and "temperature" in cal.needs and not math.isfinite(st.temp_c):
@@ -316,7 +329,7 @@ def station_fields(station_id: int, seg: Station, v: dict, coefficients_id: str,
         delta_g_mps2=_finite_or_nan(v["delta_g"]),
         delta_b_nt=_finite_or_nan(v["delta_b"]),
         delta_dip_deg=_finite_or_nan(v["delta_dip"]),
-        status=2 if seg.moved else int(v["status"]),
+        status=station_status(seg, v["status"]),
         is_static=not seg.short,
         interference_suspected=bool(v["interference_suspected"]),
         azimuth_undefined=bool(v["azimuth_undefined"]),
