@@ -36,6 +36,7 @@ from __future__ import annotations
 import bisect
 import collections
 import math
+import re
 from dataclasses import dataclass, field
 
 from .frames import STANDARD_GRAVITY, Site
@@ -43,9 +44,11 @@ from .gates import GateLimits, apply_gates
 from .pipeline import UNNAMED_PROBE, probe_mismatch
 from .probelog import Limits, check_sample
 from .streaming import TIME_EPS, ReferenceTrack, StaticDetector, StreamPairer
+from .topics import TOPIC_IMU, TOPIC_MAG
 
 NAN = float("nan")
 INF = math.inf
+_NUMBER = re.compile(r"[-+]?\d+(?:\.\d*)?(?:e[-+]?\d+)?")
 #: Samples whose order keys are kept to place a depth that arrives late (about 20 s at 1 kHz).
 SENT_KEPT = 20_000
 
@@ -208,6 +211,7 @@ class StreamEngine:
         self.settled = -INF                     # every station closed at or before this has gone out
         self.ended = False
         self._out: list = []
+        self._implausible_kinds: set = set()    # kinds of implausible sample said (each said when first seen)
         self._pending: collections.deque = collections.deque()
         self._prior = [False, False]
         self._sent: collections.deque = collections.deque(maxlen=SENT_KEPT)   # (order, stamp) of samples
@@ -387,7 +391,7 @@ class StreamEngine:
             self._note_sent(order, key[0] + 1e-9 * key[1])
         got = self.pairer.add_imu(key, f)
         if got is None:
-            return self._dropped()
+            return self._dropped(TOPIC_IMU, key)
         return self._pair(*got)
 
     def mag(self, key, b, sigma: float = NAN) -> tuple:
@@ -399,14 +403,20 @@ class StreamEngine:
                 self.det.set_prior(noise_mag=sigma)
         got = self.pairer.add_mag(key, b)
         if got is None:
-            return self._dropped()
+            return self._dropped(TOPIC_MAG, key)
         return self._pair(*got)
 
-    def _dropped(self) -> tuple:
-        if self.pairer.out_of_order != self.counts.out_of_order:
-            self.counts.out_of_order = self.pairer.out_of_order
-            self._say("warning", f"a sample pair stamped not after the previous one (t={self.pairer.last_t:.3f} s): "
-                                 f"non-monotonic timestamps, dropped; {self.counts.out_of_order} so far")
+    def _dropped(self, topic: str, key) -> tuple:
+        """No pair came of a sample on ``topic`` stamped ``key``: it waits for its partner, or it
+        completed a pair stamped not after the previous one (dropped, counted; said at the 1st, 2nd,
+        4th ... one: bounded)."""
+        n = self.pairer.out_of_order
+        if n != self.counts.out_of_order:
+            self.counts.out_of_order = n
+            if n & (n - 1) == 0:
+                self._say("warning", f"a sample pair stamped not after the previous one ({topic}: sample stamped "
+                                     f"t={key[0] + 1e-9 * key[1]:.3f} s, the previous pair t={self.pairer.last_t:.3f} "
+                                     f"s): non-monotonic timestamps, dropped; {n} so far")
         return ()
 
     def _pair(self, t, f, m) -> tuple:
@@ -419,14 +429,17 @@ class StreamEngine:
         if not math.isfinite(f[0] + f[1] + f[2] + m[0] + m[1] + m[2]):
             c.nonfinite += 1
             if c.nonfinite & (c.nonfinite - 1) == 0:   # said at the 1st, 2nd, 4th ... one: bounded
-                which = [n for n, v in (("imu", f), ("mag", m)) if not all(map(math.isfinite, v))]
-                self._say("warning", f"non-finite sample at t={t:.3f} s ({' and '.join(which)}): it ends the "
-                                     f"current static interval; {c.nonfinite} so far")
+                which = [n for n, v in ((TOPIC_IMU, f), (TOPIC_MAG, m)) if not all(map(math.isfinite, v))]
+                self._say("warning", f"non-finite sample at t={t:.3f} s on {' and '.join(which)} (acc {tuple(f)} "
+                                     f"m/s^2, mag {tuple(m)} nT): it ends the current static interval; "
+                                     f"{c.nonfinite} so far")
         elif implausible(f, m) is not None:
             c.implausible += 1
-            if c.implausible & (c.implausible - 1) == 0:
-                self._say("warning", f"sample at t={t:.3f} s dropped: {implausible(f, m)}; {c.implausible} "
-                                     "dropped so far")
+            reason = implausible(f, m)
+            kind = _NUMBER.sub("#", reason)       # the reason without its numbers: a few kinds at most
+            if c.implausible & (c.implausible - 1) == 0 or kind not in self._implausible_kinds:
+                self._implausible_kinds.add(kind)  # the first of each kind too: one does not hide another
+                self._say("warning", f"sample at t={t:.3f} s dropped: {reason}; {c.implausible} dropped so far")
             return ()
         c.used += 1
         self.t_last = t

@@ -118,6 +118,8 @@ class StreamDriver:
         self._waiting = None           # (station, wall time) of the oldest waiting station
         self._cal_seen = None          # wall time the calibration node was last seen in the graph
         self._cal_check = 0.0
+        self._pairing_checked = -math.inf   # monotonic time of the last pairing check (_check_pairing)
+        self._pairing_seen = (0, 0, 0)      # the pairer's (unpaired, paired, waiting) then
         self._reported = (None,)
         self._used_reported = 0
         self._progress_wall = 0.0
@@ -411,6 +413,9 @@ class StreamDriver:
                 eng.release(force=True, why=f"after {now - self._waiting[1]:.1f} s")
                 self._waiting = None
                 self._after()
+        if now - self._pairing_checked >= 1.0:
+            self._pairing_checked = now
+            self._check_pairing()
         if self.cal_node and now - self._cal_check > 1.0:
             self._cal_check = now
             present = any(i.node_name == self.cal_node for i in self.node.get_publishers_info_by_topic(c.TOPIC_PROGRESS))
@@ -427,6 +432,21 @@ class StreamDriver:
                 self._after()
         if now - self._progress_wall > PROGRESS_PERIOD_S:
             self.publish_progress()
+
+    def _check_pairing(self):
+        """Once a second (the timer): warn when samples of one stream find no partner of the other
+        (an absent field or imu): no pair completed since the last check while samples of one stream
+        wait (or were evicted)."""
+        pr = self.engine.pairer
+        waiting = pr.waiting
+        unpaired_seen, paired_seen, waiting_seen = self._pairing_seen
+        new = pr.unpaired - unpaired_seen + max(waiting - waiting_seen, 0)
+        if new > 0 and pr.paired == paired_seen:
+            lone, other = ((c.TOPIC_IMU, c.TOPIC_MAG) if len(pr._imu) >= len(pr._mag)
+                           else (c.TOPIC_MAG, c.TOPIC_IMU))
+            self.log.warning(f"{new} samples on {lone} without a {other} partner (same stamp) since the "
+                             f"last check: {other} absent or stamped differently; no stations from them")
+        self._pairing_seen = (pr.unpaired, pr.paired, waiting)
 
 
 def make_detector(settings: dict) -> StaticDetector:

@@ -76,8 +76,7 @@ def _correction(ros, coeffs_file, *params):
 def _feed(node, log):
     for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
         node.stream.feed(t, tuple(f), tuple(m))
-    for st in node.detector.flush():
-        node._station(st) if hasattr(node, "_station") else node._offer(st)
+    node.stream.close_hold()    # the end of the data: the open hold closes (no solve with what there is)
 
 
 # ---- correction node, in-process ------------------------------------------------------------
@@ -96,7 +95,7 @@ def test_saturated_and_zero_field_samples_are_dropped_and_named_off_tolerance_st
     _feed(node, log)
     st = node.pub_station.msgs
     assert len(st) == 4, [s.drift_deg for s in st]   # no station from the dropped samples
-    assert node.implausible_samples == len(sat) + len(zero)
+    assert node.engine.counts.implausible == len(sat) + len(zero)
     err = capfd.readouterr().err
     assert "dropped: ax=19.6133 m/s² is saturated (full scale ±19.6133)" in err
     assert "dropped: total field 0 nT is implausible" in err
@@ -140,9 +139,8 @@ def test_non_monotonic_stamps_and_absent_field_are_reported(ros, coeffs_file, ca
         send(k)
     for k in range(n // 2, n):
         send(k)
-    assert node.pairer.out_of_order == 10
-    for seg in node.detector.flush():
-        node._station(seg)
+    assert node.engine.pairer.out_of_order == 10 and node.engine.counts.out_of_order == 10
+    node.stream.close_hold()
     st = node.pub_station.msgs
     assert len(st) == 2 and all(s.status == 0 for s in st)
     assert [round(s.drift_deg) for s in st] == [30, 45]
@@ -150,12 +148,16 @@ def test_non_monotonic_stamps_and_absent_field_are_reported(ros, coeffs_file, ca
     assert "non-monotonic timestamps, dropped" in err and "/probe/mag: sample stamped t=0.100 s" in err
 
     # absent field: imu keeps coming, no magnetometer sample pairs with it
-    node._on_timer()  # the 1 Hz check: pairs have been coming
-    waiting = node.pairer.waiting
+    node.stream._on_timer()  # the 1 Hz check (on the stream driver's timer): pairs have been coming
+    assert "without a /probe/mag partner" not in capfd.readouterr().err
+    waiting = node.engine.pairer.waiting
     for k in range(200):
         send(0, mag=False, t=log.t_s[-1] + 1.0 + 0.01 * k)
-    node._on_timer()
-    assert node.pairer.waiting == waiting + 200      # said within a second, not after the buffer fills
+    node.stream._on_timer()          # within the second: not checked again yet
+    assert "without a /probe/mag partner" not in capfd.readouterr().err
+    node.stream._pairing_checked -= 1.0   # a second later
+    node.stream._on_timer()
+    assert node.engine.pairer.waiting == waiting + 200      # said within a second, not after the buffer fills
     err = capfd.readouterr().err
     assert "without a /probe/mag partner" in err
     assert len(node.pub_station.msgs) == 2  # nothing made up from the imu alone
@@ -169,7 +171,7 @@ def test_nan_samples_counted_and_named(ros, coeffs_file, capfd):
     log.mag[rows[151], 0] = np.inf
     node = _correction(ros, coeffs_file)
     _feed(node, log)
-    assert node.bad_samples == 2
+    assert node.engine.counts.nonfinite == 2
     err = capfd.readouterr().err
     assert "non-finite sample at t=" in err and "/probe/imu" in err
     st = node.pub_station.msgs
@@ -213,10 +215,10 @@ def test_malformed_coefficient_yaml_is_refused(ros, coeffs_file, tmp_path, case)
     assert needle in str(info.value) and str(bad) in str(info.value)
     # a running node refuses it too, and keeps its coefficients
     node = _correction(ros, coeffs_file)
-    before = node.processor.calibration.id
+    before = node.calibration.id
     res = node.set_parameters([Parameter("coeffs_file", value=str(bad))])[0]
     assert not res.successful and needle in res.reason
-    assert node.processor.calibration.id == before
+    assert node.calibration.id == before and node.engine.counts.records == 1   # nothing else was taken
 
 
 def test_malformed_coefficient_yaml_exits_2(ros_env, coeffs_file, tmp_path):

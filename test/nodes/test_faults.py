@@ -160,9 +160,7 @@ def _feed(node, log):
     """Samples straight into the node's sample path, then the end-of-stream flush."""
     for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
         node.stream.feed(t, tuple(f), tuple(m))
-    closed = node.detector.flush()  # the open interval, or the intervals it closes
-    for seg in [closed] if hasattr(closed, "short") else list(closed or ()):
-        node._station(seg)
+    node.stream.close_hold()        # the open interval
     return node.pub_station.msgs
 
 
@@ -204,7 +202,7 @@ def test_a_different_record_on_the_topic_replaces_the_fallback_one(ros, truth_re
     ros.extend([same, node])
     same._on_coefficients(c.coefficients_to_msg(cal, CalibrationCoefficients))  # the same record: kept
     assert "is the fallback record already applied" in capfd.readouterr().err
-    assert same.processor.calibration.id == cal.id
+    assert same.calibration.id == cal.id and same.engine.counts.records == 1   # not taken again
     other = sim.build_probe(4)
     newer = Calibration(acc=other.acc, mag=other.mag, probe_id="newer", site=Site())
     node._on_coefficients(c.coefficients_to_msg(newer, CalibrationCoefficients))
@@ -212,7 +210,7 @@ def test_a_different_record_on_the_topic_replaces_the_fallback_one(ros, truth_re
     line = next(x for x in err.splitlines() if "replaces the fallback record" in x)
     assert "[INFO]" in line and f"record {newer.id} received on /calibration/coefficients replaces the " \
         f"fallback record {cal.id} from disk" in line
-    assert node.processor.calibration.id == newer.id
+    assert node.calibration.id == newer.id
 
 
 def test_an_invalid_fallback_record_is_reported_and_not_used(ros, tmp_path, capfd):
@@ -223,10 +221,10 @@ def test_an_invalid_fallback_record_is_reported_and_not_used(ros, tmp_path, capf
     err = capfd.readouterr().err
     line = next(x for x in err.splitlines() if "fallback record" in x)
     assert "[ERROR]" in line and f"fallback record {bad} is not valid, not used" in line
-    assert node.processor.calibration is None
+    assert node.calibration is None
     missing = _correction_node(("fallback_coeffs_file", str(tmp_path / "none.yaml")))
     ros.append(missing)
-    assert missing.processor.calibration is None
+    assert missing.calibration is None
     assert "no fallback record at" in capfd.readouterr().err
 
 

@@ -110,10 +110,8 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
     for mi, mm, mt in _messages(log):   # its own copies: the node corrects a message in place
         direct.stream._on_imu(mi)
         direct.stream._on_mag(mm)
-        direct._on_temp(mt)
-    for seg in direct.detector.flush():   # what the idle flush does at the end of the stream
-        direct._station(seg)
-    direct._release(force=True, end=True)
+        direct.stream._on_temp(mt)
+    direct.stream.idle()                  # what the idle flush does at the end of the stream
     assert len(direct.pub_station.msgs) == 3 and len(direct.pub_imu.msgs) == len(msgs)
 
     node = CorrectionNode(parameter_overrides=params)
@@ -122,9 +120,10 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
     executor.add_node(node)
     # the sample streams and their QoS events are out of the spinning thread's wait set, the rest in it
     hot = {id(s) for s in node.hot_subscriptions} | {id(e) for s in node.hot_subscriptions for e in s.event_handlers}
-    # (the coefficients' topic too when it is used: use_topic is false here)
+    # (the coefficients' topic too when it is used: use_topic is false here); the reference is taken in
+    # turn with the samples too (the stream driver's side streams)
     assert {s.topic_name for s in node.hot_subscriptions} == {c.TOPIC_IMU, c.TOPIC_MAG, c.TOPIC_TEMPERATURE,
-                                                                  c.TOPIC_DEPTH}
+                                                                  c.TOPIC_REFERENCE, c.TOPIC_DEPTH}
     for entity in (*node.subscriptions, *node.waitables, *node.timers, *node.services):
         assert executor.can_execute(entity) == (id(entity) not in hot)
     spin_thread, box = _spin_in_thread(executor)
@@ -155,9 +154,9 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
         for k, (mi, mm, mt) in enumerate(msgs):
             for pub, msg in zip(pubs, (mi, mm, mt)):
                 pub.publish(msg)
-            if k == 10:
+            if k == 10:   # (publish_short is read-only now: the engine takes it at start-up)
                 fut = client.call_async(SetParameters.Request(parameters=[
-                    Parameter("publish_short", value=False).to_parameter_msg()]))
+                    Parameter("publish_corrected", value=True).to_parameter_msg()]))
             if k % 50 == 49:
                 time.sleep(0.01)   # bursts of 50 samples: each wake-up finds a batch to drain
         assert _wait(lambda: len(got["station"]) == 3 and len(got["imu"]) == len(got["mag"]) == len(msgs)), \
@@ -243,11 +242,11 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
     for mi, mm, _ in msgs:                      # the samples, and no temperature yet
         node.stream._on_imu(mi)
         node.stream._on_mag(mm)
-    for seg in node.detector.flush():
-        node._station(seg)
-    assert node.pub_station.msgs == [] and len(node._pending) == 2
+    node.stream.close_hold()
+    assert node.pub_station.msgs == [] and len(node.engine._pending) == 2
+    assert [w for _, _, w in node.engine.waiting()] == [["temperature"], ["temperature"]]
     for _, _, mt in msgs:                       # the temperatures, late
-        node._on_temp(mt)
+        node.stream._on_temp(mt)
     got = node.pub_station.msgs
     assert len(got) == 2 and all(math.isfinite(s.azimuth_deg) and math.isfinite(s.temperature_c) for s in got)
 
@@ -256,24 +255,29 @@ def test_a_station_waits_until_its_readers_are_matched_then_goes_or_says_who_mis
     """The launcher names the station readers it starts; a reader the probe already sees in the
     graph may not be matched with the correction node's publisher yet (under load the WITS node
     missed the first station): stations wait for the match, and after reference_wait_s go anyway,
-    saying how many readers were matched."""
+    saying how many readers were matched.  (The engine has let them out: they wait in the node's
+    outbox, in order, for their readers.)"""
+    wait_s = 1.0
     node, _, msgs = _two_station_node(ros, tmp_path, params=[Parameter("wait_for_station_readers", value=2),
-                                                             Parameter("reference_wait_s", value=0.0)])
+                                                             Parameter("reference_wait_s", value=wait_s)])
     node.pub_station.readers = 1                # one reader short: the first station waits
     for mi, mm, mt in msgs:
         node.stream._on_imu(mi)
         node.stream._on_mag(mm)
-        node._on_temp(mt)
-    assert node.pub_station.msgs == [] and len(node._pending) == 1
+        node.stream._on_temp(mt)
+    assert node.pub_station.msgs == [] and len(node._outbox) == 1 and not node.engine._pending
     node.pub_station.readers = 2                # matched: it goes at the next message
-    node._on_temp(msgs[-1][2])
-    assert len(node.pub_station.msgs) == 1 and not node._pending
+    node.stream._on_temp(msgs[-1][2])
+    assert len(node.pub_station.msgs) == 1 and not node._outbox
     node.pub_station.readers = 1                # a reader gone: the last one waits, then goes, said
-    for seg in node.detector.flush():
-        node._station(seg)
-    assert len(node.pub_station.msgs) == 1 and len(node._pending) == 1
-    node._on_timer()                            # reference_wait_s (0 s) is over
-    assert len(node.pub_station.msgs) == 2 and not node._pending
+    node.stream.close_hold()
+    assert len(node.pub_station.msgs) == 1 and len(node._outbox) == 1
+    node._flush_outbox()                        # the node's outbox timer, before reference_wait_s: it waits
+    assert len(node.pub_station.msgs) == 1 and len(node._outbox) == 1
+    assert "/survey/station readers matched" not in capfd.readouterr().err
+    time.sleep(wait_s + 0.05)
+    node._flush_outbox()                        # reference_wait_s is over
+    assert len(node.pub_station.msgs) == 2 and not node._outbox
     assert "1 of 2 /survey/station readers matched" in capfd.readouterr().err
 
 
@@ -286,13 +290,12 @@ def test_an_unstamped_depth_holds_from_the_sample_sent_after_it_however_late_it_
     node, log, msgs = _two_station_node(ros, tmp_path)
     j = int(np.argmax(log.t_s > log.t_s[0] + 2.25))        # in the move between the stations
     src = [1_000_000 * (k + 1) for k in range(len(msgs))]   # ns, the probe's publish order
-    node._on_depth(Float64(data=500.0), {"source_timestamp": 1})
+    node.stream._on_depth(Float64(data=500.0), {"source_timestamp": 1})
     for k, (mi, mm, mt) in enumerate(msgs):
         node.stream._on_imu(mi, {"source_timestamp": src[k]})
         node.stream._on_mag(mm)
-        node._on_temp(mt)
-    node._on_depth(Float64(data=530.0), {"source_timestamp": src[j] - 1})   # sent before sample j, taken last
-    for seg in node.detector.flush():
-        node._station(seg)
-    node._release(force=True, end=True)
+        node.stream._on_temp(mt)
+    node.stream._on_depth(Float64(data=530.0), {"source_timestamp": src[j] - 1})   # sent before sample j, taken last
+    node.engine.end()                           # the end of the data: what came is all there is
+    node.stream._after()
     assert [s.measured_depth_m for s in node.pub_station.msgs] == [500.0, 530.0]

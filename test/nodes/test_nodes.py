@@ -496,7 +496,7 @@ def _feed_to_the_end(node, log):
     """A log's samples and temperatures into the calibration node, then the end of the data (as
     the idle timer does it)."""
     for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
-        node.detector.add_temperature(float(t), float(tc))
+        node.engine.temperature(float(t), float(tc))   # what the driver's /probe/temperature callback does
         node.stream.feed(float(t), tuple(f), tuple(m))
     node.stream.idle()
 
