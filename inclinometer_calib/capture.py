@@ -55,6 +55,9 @@ ROUND_FIELD_TOL_DEG = 5.0
 #: Before any solve, a pose captured again must point like its earlier capture (raw gravity and
 #: raw field directions, deg): the same sensor errors in the same pose give the same readings.
 REPEAT_TOL_DEG = 3.0
+#: Before any solve, the two poses of a pair (turned 180° about the vertical from each other) read
+#: gravity alike in the tool frame: at least this close (deg), or 5 times what the other pairs show.
+PAIR_MIN_TOL_DEG = 0.5
 
 
 def position(pose: int) -> int:
@@ -234,7 +237,7 @@ class CaptureSession:
                 if self._strays >= self.end_after_stations:
                     self.end_sequence(f"{self._strays} statics in a row that are not poses of the sequence, the "
                                       f"last at {st.where}: the probe has left the stand")
-            elif result != "rejected":
+            else:   # a capture, or a pose the gates refused: the probe is still on the stand
                 self._strays = 0
         return result
 
@@ -315,12 +318,27 @@ class CaptureSession:
 
     def _same_as_before(self, st) -> bool:
         """Before any solve, a pose captured again must read as its first capture did (the same
-        sensor errors in the same pose): a survey station near a pose does not."""
+        sensor errors in the same pose): a survey station near a pose does not.  A pose whose pair
+        partner is captured must read gravity as the partner does (the two differ by a turn about
+        the vertical only, which leaves gravity in the tool frame as it is: they differ by twice
+        the stand's tilt) — within 5 times what the other complete pairs show, at least
+        :data:`PAIR_MIN_TOL_DEG`: a survey station a degree or two off a missing pose is not it."""
         if self.state == "done":
             return True     # calibrated: checked against the pose itself (_looks_like_pose)
         first = next((c for c in self.captures if c.pose == st.pose), None)
         if first is None:
-            return True
+            partner = st.pose + 1 if st.pose % 2 else st.pose - 1
+            mate = next((c for c in self.captures if c.pose == partner), None)
+            if mate is None:
+                return True
+            tol = self._pair_tolerance(exclude=position(st.pose))
+            dg = angle_between_deg(st.g, mate.g)
+            if dg <= tol:
+                return True
+            self._warn(f"pose {st.pose} at {st.where}: its gravity is {dg:.2f}° from its pair partner's (pose "
+                       f"{partner} at {mate.where}; the stand's other pairs agree within {tol / 5.0:.2g}°): not pose "
+                       f"{st.pose} (a survey station near it?) — ignored")
+            return False
         dg, db = angle_between_deg(st.g, first.g), angle_between_deg(st.b, first.b)
         if dg <= REPEAT_TOL_DEG and db <= REPEAT_TOL_DEG:
             return True
@@ -328,6 +346,18 @@ class CaptureSession:
                    f"{st.pose}'s earlier capture at {first.where}: not the same pose (a survey station, or the "
                    "stand moved?) — ignored")
         return False
+
+    def _pair_tolerance(self, exclude: int) -> float:
+        """How far a pose's gravity may be from its pair partner's: 5 times the largest difference
+        the other complete pairs show (at least PAIR_MIN_TOL_DEG); REPEAT_TOL_DEG until two are in."""
+        firsts = {}
+        for c in self.captures:
+            firsts.setdefault(c.pose, c)
+        diffs = [angle_between_deg(firsts[p].g, firsts[p + 1].g) for p in range(1, 13, 2)
+                 if p in firsts and p + 1 in firsts and position(p) != exclude]
+        if len(diffs) < 2:
+            return REPEAT_TOL_DEG
+        return max(PAIR_MIN_TOL_DEG, 5.0 * max(diffs))
 
     def _continues_round(self, pose, st) -> bool:
         """After the first solve: does this station start or continue a new round in order?

@@ -885,13 +885,16 @@ class ProbeNode(Node):
             if held or stamp_s - self._depth_sent >= DEPTH_PERIOD_S:
                 self._publish_depth(stamp_s)
             self._next_depth += 1
-        elif self._depth_now == self._depth_now and stamp_s - self._depth_sent >= REFERENCE_PERIOD_S:
-            self._publish_depth(stamp_s)   # unchanged: repeated, so readers know it is current
+        elif self.progress.has_depth and stamp_s - self._depth_sent >= REFERENCE_PERIOD_S:
+            # unchanged: repeated — NaN while there is none — so readers know it is current
+            self._publish_depth(stamp_s)
         if self._next_ref < len(self._ref_changes) and self._ref_changes[self._next_ref][0] <= k:
             self._ref_now = self._ref_changes[self._next_ref][1]
             self._publish_reference(stamp_s)
             self._next_ref += 1
-        elif self._ref_now is not None and stamp_s - self._ref_sent >= REFERENCE_PERIOD_S:
+        elif (self._ref_now is not None or self.progress.has_reference) and stamp_s - self._ref_sent >= REFERENCE_PERIOD_S:
+            if self._ref_now is None:
+                self._ref_now = (math.nan,) * 3   # none yet: said as NaN (not given), so readers know
             self._publish_reference(stamp_s)   # unchanged: repeated, so readers know it is current
         if self.flow_readers:
             self._in_flight.append(stamp_s)

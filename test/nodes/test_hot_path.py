@@ -108,7 +108,7 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
     ros.append(direct)
     direct.pub_station, direct.pub_diag, direct.pub_imu, direct.pub_mag = _Collect(), _Collect(), _Collect(), _Collect()
     for mi, mm, mt in _messages(log):   # its own copies: the node corrects a message in place
-        direct.stream._on_imu(mi)
+        direct.stream._on_imu(mi, None)
         direct.stream._on_mag(mm)
         direct.stream._on_temp(mt)
     direct.stream.idle()                  # what the idle flush does at the end of the stream
@@ -240,7 +240,7 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
     go out corrected with it, not uncorrectable (NaN) at once."""
     node, _, msgs = _two_station_node(ros, tmp_path, with_temperature_effect=True)
     for mi, mm, _ in msgs:                      # the samples, and no temperature yet
-        node.stream._on_imu(mi)
+        node.stream._on_imu(mi, None)
         node.stream._on_mag(mm)
     node.stream.close_hold()
     assert node.pub_station.msgs == [] and len(node.engine._pending) == 2
@@ -262,7 +262,7 @@ def test_a_station_waits_until_its_readers_are_matched_then_goes_or_says_who_mis
                                                              Parameter("reference_wait_s", value=wait_s)])
     node.pub_station.readers = 1                # one reader short: the first station waits
     for mi, mm, mt in msgs:
-        node.stream._on_imu(mi)
+        node.stream._on_imu(mi, None)
         node.stream._on_mag(mm)
         node.stream._on_temp(mt)
     assert node.pub_station.msgs == [] and len(node._outbox) == 1 and not node.engine._pending

@@ -454,7 +454,7 @@ def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
         mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (x * 1e-9 for x in m)
-        node.stream._on_imu(mi)
+        node.stream._on_imu(mi, None)
         node.stream._on_mag(mm)
     assert node.detector.noise.prior == pytest.approx((0.002, 20.0))
     lvl = node.detector.noise_level
