@@ -201,7 +201,13 @@ def run(args) -> int:
         cmd += ["--timeout", str(args.timeout)]
     print(f"replaying {bag} through the live graph into {out} ...", flush=True)
     proc = subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ))
-    last = (proc.stdout.strip().splitlines() or [""])[-1]
+    lines = proc.stdout.strip().splitlines() or [""]
+    last = lines[-1]
+    if "=== run summary ===" in lines:      # the run's accounting, as the launcher said it
+        for line in lines[lines.index("=== run summary ==="):]:
+            print(line)
+    else:
+        print("\n".join(lines[-20:]))
     problems = []
     if proc.returncode not in (0,):
         problems.append(f"the replay was not clean: {last.removeprefix('[launch] ')}")

@@ -295,7 +295,9 @@ class ProbeNode(Node):
         self.pub_imu = self.create_publisher(Imu, c.TOPIC_IMU, qos)
         self.pub_mag = self.create_publisher(MagneticField, c.TOPIC_MAG, qos)
         self.pub_temp = self.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
-        side_qos = c.latched_qos(depth=100) if self.flow_readers else c.reliable_qos(100)
+        # as deep as the samples' history: a reader whose delivery stalled until the next heartbeat
+        # repair (a loaded machine) gets every reference and depth sent meanwhile
+        side_qos = c.latched_qos(depth=qos.depth) if self.flow_readers else c.reliable_qos(100)
         self.pub_ref = self.create_publisher(Vector3Stamped, c.TOPIC_REFERENCE, side_qos)
         self.pub_depth = self.create_publisher(Float64, c.TOPIC_DEPTH, side_qos)
         # the source's announcement, its pacing and what it sent (StreamProgress): the readers'

@@ -137,8 +137,10 @@ class StreamDriver:
             node.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
             node.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
             node.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)]
-        side_qos = c.reliable_qos(100)
-        side_qos.durability = qos.durability     # transient local in a paced replay: a restart misses nothing
+        # as deep as the samples' (a delivery that stalls until a repair does not drop the oldest), transient
+        # local in a paced replay (a restart misses nothing)
+        side_qos = c.reliable_qos(max(100, qos.depth))
+        side_qos.durability = qos.durability
         if side:
             # the reference and the depth on the hot path too, taken in turn with the samples
             self.hot_subscriptions += [

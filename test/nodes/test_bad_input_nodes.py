@@ -283,19 +283,19 @@ def test_a_record_whose_plugin_the_node_was_not_given_is_refused_from_file_and_t
     assert "effect 'cube_bias_node' comes from the plug-in" in str(info.value) and "plugins" in str(info.value)
     # on the topic: reported as any record that fails its checks, the node keeps the record it had
     node = _correction(ros, coeffs_file)
-    before = node.processor.calibration.id
+    before = node.calibration.id
     capfd.readouterr()
     node._on_coefficients(c.coefficients_to_msg(cal, CalibrationCoefficients))
     err = capfd.readouterr().err
     assert "coefficients rejected, keeping the previous ones" in err and "which is not named" in err
-    assert node.processor.calibration.id == before
+    assert node.calibration.id == before
     assert not plug.with_name("executed.marker").exists()
 
 
 def test_a_record_whose_plugin_the_node_was_given_with_its_hash_is_applied(ros, plugin_record):
     rec, cal, plug = plugin_record
     node = _correction(ros, rec, Parameter("plugins", value=[str(plug)]))
-    assert node.processor.calibration.id == cal.id
+    assert node.calibration.id == cal.id
     assert plug.with_name("executed.marker").exists()
 
 

@@ -1,0 +1,107 @@
+"""The live graph equals reprocess: a recorded bag replayed through the graph gives reprocess's stations,
+bit for bit, whatever the machine's speed (here: one core for the whole graph) — through the user's
+own regression test, ``inclinometer-calib replay-test`` — and a run that loses anything says so.
+
+The independent simulator's probe with pose 7 cut from both rounds of its calibration log, then
+the first 36 stations of its stand grid: the calibration node ends the sequence when the probe
+leaves the stand, solves by least squares, and the survey is corrected live as offline."""
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
+
+import strangers as S  # noqa: E402
+from inclinometer_calib.cli import main  # noqa: E402
+from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.launcher import read_bag  # noqa: E402
+from inclinometer_calib.probelog import ProbeLog, read_csv, write_csv  # noqa: E402
+
+VAL_STATIONS = 36
+CUT = 7
+
+
+@pytest.fixture(scope="module")
+def cut_bag(tmp_path_factory):
+    """The stranger's logs, pose 7 cut from its calibration, as a bag with its probe's serial."""
+    d = tmp_path_factory.mktemp("replay")
+    files = S.stranger_files(d, val_stations=VAL_STATIONS)
+    log, _ = read_csv(files["both"])
+    keep = log.pose != CUT
+    write_csv(d / "cut.csv", ProbeLog(**{k: getattr(log, k)[keep] for k in ("t_s", "acc", "mag", "temp_c", "pose",
+                                                                            "ref")}))
+    bag = d / "cut.mcap"
+    assert main(["bag", "from-csv", str(d / "cut.csv"), "-o", str(bag), "--probe-serial", "STRANGER-1"]) == 0
+    return {"dir": d, "bag": bag, "site": files["site"]}
+
+
+def test_the_strangers_bag_with_a_pose_cut_replayed_at_speed_50_on_one_core_gives_reprocess_stations(cut_bag,
+                                                                                                   domain_env):
+    """``replay-test --expect reprocess``, the whole graph on one core at --speed 50: the same
+    stations, record and status as reprocess --calibrate, bit for bit; ≥ 90 % of the survey corrected."""
+    if shutil.which("taskset") is None:
+        pytest.skip("taskset (util-linux) is not installed: the graph cannot be held to one core")
+    env, _ = domain_env
+    out = cut_bag["dir"] / "run"
+    proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.cli", "replay-test",
+                           str(cut_bag["bag"]), "--expect", "reprocess", "--calibrate", "--site", str(cut_bag["site"]),
+                           "--speed", "50", "--tolerance", "1e-9", "--out", str(out), "--junit",
+                           str(cut_bag["dir"] / "replay.xml"), "--timeout", "240"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    log = proc.stdout + proc.stderr + (out / "launch.log").read_text()
+    assert proc.returncode == 0, log[-8000:]
+    assert "replay-test: PASS" in proc.stdout and "every station equal within 1e-09 deg" in proc.stdout
+    assert 'failures="0"' in (cut_bag["dir"] / "replay.xml").read_text()
+    stations, coefs = read_bag(out / "survey.mcap")[:2]
+    assert len(coefs) == 1
+    cal = Calibration.from_yaml(coefs[0]["coefficients_yaml"])
+    assert "least squares" in cal.method
+    survey = [s for s in stations if np.isfinite(s["reference_azimuth_deg"]) and s["reference_drift_deg"] < 89.5
+              and s["stamp"] > stations[21]["stamp"]]
+    corrected = [s for s in survey if s["coefficients_id"] == cal.id]
+    assert len(corrected) >= 0.9 * len(survey) and len(survey) >= 30
+    for s in corrected:       # the stand's reference, to the stranger's noise
+        assert abs(s["drift_deg"] - s["reference_drift_deg"]) < 0.01
+        assert abs((s["azimuth_deg"] - s["reference_azimuth_deg"] + 180) % 360 - 180) < 0.3
+    assert "the twelve-pose sequence is over" in log and "missing pose 7: never captured" in log
+    assert "samples: the probe sent" in log and "LOST" not in log
+
+
+def test_a_record_of_another_probe_is_refused_every_station_says_why_and_the_run_is_not_clean(cut_bag, domain_env,
+                                                                                               tmp_path):
+    env, _ = domain_env
+    cal, _ = S.stranger_truth()
+    cal.probe_id = "ANOTHER-7"
+    rec = tmp_path / "other.yaml"
+    cal.save(rec)
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", "mcap",
+                           "--input", str(cut_bag["bag"]), "--coeffs", str(rec), "--no-calibration", "--speed", "100",
+                           "--no-loop", "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 1, proc.stdout[-6000:]
+    last = proc.stdout.strip().splitlines()[-1]
+    assert "uncorrected: record refused: record " in last and "probe ANOTHER-7, the data are of probe STRANGER-1" in last
+    stations = read_bag(out / "survey.mcap")[0]
+    assert stations and all(not s["coefficients_id"] and s["uncorrected_reason"].startswith("record refused")
+                            for s in stations)
+    assert "uncorrected: record refused" in proc.stdout     # the summary's line
+
+
+def test_an_unpaced_replay_that_loses_samples_on_one_core_says_what_each_reader_lost_and_exits_1(domain_env,
+                                                                                                tmp_path):
+    """The live-source case: --unpaced at 1 kHz × 100 on one core — the readers cannot keep up; the
+    loss is counted per reader and topic, and the run is not clean."""
+    if shutil.which("taskset") is None:
+        pytest.skip("taskset (util-linux) is not installed")
+    env, _ = domain_env
+    out = tmp_path / "run"
+    proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.launcher", "--out",
+                           str(out), "--unpaced", "--speed", "100", "--rate", "1000", "--stations", "3", "--no-loop",
+                           "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 1, proc.stdout[-6000:]
+    assert " LOST " in proc.stdout and "(not paced)" in proc.stdout
+    last = proc.stdout.strip().splitlines()[-1]
+    assert "samples lost: " in last and "an unpaced replay or a live source" in last
