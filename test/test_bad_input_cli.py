@@ -461,3 +461,40 @@ def test_reprocess_takes_the_detectors_noise_from_the_data_or_from_an_option(sim
     code, stdout, _ = _run(capsys, ["reprocess", str(src), "--coeffs", "none", "-o", str(tmp_path / "b.mcap"),
                                     "--noise-acc", "0.004", "--noise-mag", "30"])
     assert code == 0 and "0.004/0.004/0.004 m/s^2 (override)" in stdout and "30/30/30 nT (override)" in stdout
+
+
+def test_a_crept_and_a_clipped_station_are_errors_in_correct_and_reprocess_alike_and_left_out_of_the_figures(
+        simdir, tmp_path, capsys):
+    """One status rule (pipeline.station_status) on every path: a station whose probe crept during
+    the hold, and one whose magnetometer z is clipped (flat), are status 2 in ``correct -o`` and in
+    ``reprocess`` both, and neither counts in ``correct``'s error figures."""
+    from inclinometer_calib.launcher import read_bag
+
+    log = Log(simdir / "val.csv")
+    crept, clipped = log.station_rows(ref=30.0), log.station_rows(ref=60.0)
+    for k, i in enumerate(crept):                  # a slow roll: 0.1° over the hold, below the detector's break
+        log.rows[i][1] = f"{float(log.rows[i][1]) + 0.017 * k / len(crept):.6f}"
+    for i in clipped:                              # the magnetometer's z stuck at its first value
+        log.rows[i][6] = log.rows[clipped[0]][6]
+    path = log.write(tmp_path / "v.csv")
+    out_csv = tmp_path / "stations.csv"
+    code, summ, err = _correct_json(capsys, path, simdir, "-o", str(out_csv))
+    assert code == 0 and summ["stations"] == N_VAL - 2          # the two are out of the figures
+    rows = [r.split(",") for r in out_csv.read_text().splitlines()]
+    col = {n: k for k, n in enumerate(rows[0])}
+    by_ref = {(r[col["ref_drift_deg"]], r[col["ref_azimuth_deg"]], r[col["ref_toolface_deg"]]): r for r in rows[1:]}
+    crept_row = next(r for k, r in by_ref.items() if k[0] == "30.0000" and k[1:] == ("0.0000", "0.0000"))
+    clipped_row = next(r for k, r in by_ref.items() if k[0] == "60.0000" and k[1:] == ("0.0000", "0.0000"))
+    assert crept_row[col["status"]] == "error" and "moved_during_capture" in crept_row[col["flags"]]
+    assert crept_row[col["drift_err_deg"]] == ""
+    assert clipped_row[col["status"]] == "error" and "mag_unusable" in clipped_row[col["flags"]]
+    assert clipped_row[col["drift_err_deg"]] == ""
+    # reprocess of the same data: the same verdicts
+    bag, re_bag = tmp_path / "v.mcap", tmp_path / "re.mcap"
+    assert main(["bag", "from-csv", path, "-o", str(bag)]) == 0
+    assert main(["reprocess", str(bag), "--coeffs", str(simdir / "truth_coeffs.yaml"), "-o", str(re_bag)]) == 0
+    st = {(s["reference_drift_deg"], s["reference_azimuth_deg"], s["reference_toolface_deg"]): s
+          for s in read_bag(re_bag)[0]}
+    assert st[(30.0, 0.0, 0.0)]["status"] == 2 and st[(30.0, 0.0, 0.0)]["moved_during_capture"]
+    assert st[(60.0, 0.0, 0.0)]["status"] == 2
+    assert sum(s["status"] == 2 for s in st.values()) == 2
