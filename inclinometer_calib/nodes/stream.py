@@ -380,7 +380,7 @@ class StreamDriver:
         m.pairs_dropped = cnt.nonfinite + cnt.implausible + cnt.out_of_order
         m.stations = self.stations_count()
         m.stations_uncorrected = cnt.uncorrected
-        m.records = cnt.records
+        m.records = cnt.records if eng.session is not None else 0   # records this node published
         m.forced = cnt.forced
         m.end = eng.done
         self.pub_progress.publish(m)
