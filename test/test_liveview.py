@@ -154,7 +154,8 @@ def _station(sid, md, n, e, tvd, status=0, coefficients_id="abc", **kw):
 
 def test_residual_series_hold_the_corrected_stations_only():
     view = lv.LiveView()
-    view.add(_station(0, NAN, NAN, NAN, NAN, coefficients_id="", delta_b_nt=900.0))    # raw: before calibration
+    view.add(_station(0, NAN, NAN, NAN, NAN, coefficients_id="", delta_b_nt=900.0,     # raw: before calibration
+                      uncorrected_reason="before calibration: the calibration has not solved yet"))
     view.add(_station(1, 500.0, 1.0, 2.0, 499.0, delta_g_mps2=0.001, delta_b_nt=-35.0, delta_dip_deg=0.02))
     view.add(_station(2, 530.0, 2.0, 4.0, 528.0, status=1, delta_g_mps2=-0.002, delta_b_nt=410.0,
                       delta_dip_deg=NAN))
