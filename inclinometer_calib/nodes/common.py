@@ -12,9 +12,7 @@ Per-sample helpers work on plain floats and tuples: no numpy arrays are allocate
 from __future__ import annotations
 
 import math
-import re
 import sys
-import time
 
 import numpy as np
 import rclpy
@@ -27,10 +25,8 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from ..coeffs import Calibration, message_fields
-from ..frames import NT_PER_TESLA, STANDARD_GRAVITY, Site
-from ..probelog import Limits, check_sample
+from ..frames import NT_PER_TESLA, Site
 from ..survey import Tolerances
-from ..streaming import StreamPairer  # noqa: F401  (the nodes' pairing; ROS-free, shared with reprocess)
 from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
 
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
@@ -257,39 +253,6 @@ def declare_detector(params: Params, prefix: str = "detector", **defaults) -> di
     return out
 
 
-def note_covariance(node, detector, imu_msg=None, mag_msg=None) -> None:
-    """Give the detector the noise the first Imu / MagneticField message states (its covariance's
-    first diagonal entry, if > 0) as a prior; called until both are seen (``node._prior_seen``)."""
-    seen = node._prior_seen
-    if imu_msg is not None and "acc" not in seen:
-        seen.add("acc")
-        var = imu_msg.linear_acceleration_covariance[0]
-        if var > 0:
-            detector.set_prior(noise_acc=math.sqrt(var))
-    if mag_msg is not None and "mag" not in seen:
-        seen.add("mag")
-        var = mag_msg.magnetic_field_covariance[0]
-        if var > 0:
-            detector.set_prior(noise_mag=math.sqrt(var) * NT_PER_TESLA)
-
-
-_ACC2 = (0.25 * STANDARD_GRAVITY ** 2, 2.25 * STANDARD_GRAVITY ** 2)   # |f|² of probelog.Limits' range
-_MAG2 = (5000.0 ** 2, 100000.0 ** 2)
-
-
-def implausible(f, m) -> str | None:
-    """Why a sample (specific force m/s², field nT) is unusable, or None: the CSV reader's limits
-    (:func:`probelog.check_sample`), with a cheap squared-norm pre-check for the per-sample path."""
-    a2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2]
-    b2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
-    if _ACC2[0] <= a2 <= _ACC2[1] and _MAG2[0] <= b2 <= _MAG2[1]:
-        return None
-    reason = check_sample(f, m, NAN, Limits())
-    if reason is not None and 1.0 < math.sqrt(b2) / NT_PER_TESLA < 1e6:
-        reason += " — the field looks like nT written into a tesla field; MagneticField carries tesla"
-    return reason
-
-
 def declare_qos(params: Params, prefix: str = "qos", reliability: str = "best_effort",
                 depth: int = 1000) -> QoSProfile:
     """QoS of the raw sensor streams from parameters (sensor-data profile by default)."""
@@ -334,10 +297,6 @@ def stamp_to_sec(stamp) -> float:
     return stamp.sec + 1e-9 * stamp.nanosec
 
 
-def stamp_key(stamp) -> tuple:
-    return (stamp.sec, stamp.nanosec)
-
-
 def set_stamp(stamp, t: float) -> None:
     """Write float seconds ``t`` (>= 0) into a builtin_interfaces/Time in place."""
     sec = math.floor(t)
@@ -375,71 +334,6 @@ def field_nt(mag_msg) -> tuple:
     """Magnetic field of a MagneticField message converted tesla -> nT, as a tuple of floats."""
     f = mag_msg.magnetic_field
     return (f.x * NT_PER_TESLA, f.y * NT_PER_TESLA, f.z * NT_PER_TESLA)
-
-
-def sample_is_finite(f, m) -> bool:
-    """True when all six components are finite (one addition chain: NaN and inf propagate)."""
-    return math.isfinite(f[0] + f[1] + f[2] + m[0] + m[1] + m[2])
-
-
-def bad_sample_text(t: float, f, m, count: int) -> str:
-    """Warning for a non-finite sample: what (which sensor, the values) and where (stamp)."""
-    which = [name for name, v in (("/probe/imu", f), ("/probe/mag", m)) if not all(map(math.isfinite, v))]
-    return (f"non-finite sample at t={t:.3f} s on {' and '.join(which)} (acc {tuple(f)} m/s^2, mag "
-            f"{tuple(m)} nT): ignored, it closes the current static interval; {count} so far")
-
-
-def out_of_order_text(topic: str, stamp, last_t: float, count: int) -> str:
-    """Warning for a sample whose stamp is not after the previous pair's (non-monotonic time)."""
-    return (f"{topic}: sample stamped t={stamp[0] + 1e-9 * stamp[1]:.3f} s is not after the previous one "
-            f"(t={last_t:.3f} s): non-monotonic timestamps, dropped; {count} so far")
-
-
-def warn_out_of_order(node, topic: str, stamp, pairer) -> None:
-    """Log (rate-limited) a sample dropped for a non-monotonic stamp: which topic, where, how many."""
-    node.get_logger().warning(out_of_order_text(topic, (stamp.sec, stamp.nanosec), pairer.last_t,
-                                                pairer.out_of_order), throttle_duration_sec=2.0)
-
-
-def note_bad_sample(node, t: float, f, m) -> None:
-    """Count and log (rate-limited) a non-finite sample on ``node.bad_samples``; cheap when fine."""
-    if not sample_is_finite(f, m):
-        node.bad_samples += 1
-        node.get_logger().warning(bad_sample_text(t, f, m, node.bad_samples), throttle_duration_sec=2.0)
-
-
-def feed_sample(node, t: float, f, m, on_station) -> None:
-    """One paired sample through a node's static detector: counted when non-finite, dropped (and
-    said) when implausible, else fed; ``on_station`` gets each station it closes; the detector's
-    messages are logged at WARNING.  ``node._last_wall`` (monotonic) marks the last sample, and
-    again after the heavier work of a closing station, so that the idle check never takes a busy
-    node for a quiet stream."""
-    note_bad_sample(node, t, f, m)
-    node._last_wall = time.monotonic()
-    if sample_is_finite(f, m) and implausible(f, m) is not None:
-        note_implausible(node, t, f, m)
-        return
-    closed = node.detector.update(t, f, m)   # temperatures come by stamp (detector.add_temperature)
-    for st in closed:
-        on_station(st)
-    if closed:
-        node._last_wall = time.monotonic()
-    if node.detector.events:
-        for e in node.detector.pop_events():
-            node.get_logger().warning(e)
-
-
-def note_implausible(node, t: float, f, m) -> None:
-    """Count and log a sample dropped as implausible (see :func:`implausible`): each kind of reason
-    (its text without the numbers) at most every 2 s, so one reason does not hide another."""
-    node.implausible_samples += 1
-    reason = implausible(f, m)
-    kind = re.sub(r"[-+0-9.e]+", "#", reason)
-    seen = node.__dict__.setdefault("_implausible_said", {})
-    now = time.monotonic()
-    if now - seen.get(kind, -math.inf) >= 2.0:
-        seen[kind] = now
-        node.get_logger().warning(f"sample at t={t:.3f} s dropped: {reason}; {node.implausible_samples} dropped so far")
 
 
 # --------------------------------------------------------------------------------------------

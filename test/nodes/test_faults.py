@@ -26,7 +26,6 @@ import pytest
 rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
 from inclinometer_calib.station import Station
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
 
 
 def _node(name, env, log_path, *params):

@@ -175,7 +175,9 @@ def test_coefficient_message_conventions():
 
 
 def test_stream_pairer_pairs_by_stamp_in_order():
-    p = c.StreamPairer(max_pending=4)
+    from inclinometer_calib.streaming import StreamPairer
+
+    p = StreamPairer(max_pending=4)
     assert p.add_imu((1, 0), "f1") is None
     assert p.add_imu((2, 0), "f2") is None
     assert p.add_mag((2, 0), "m2") == (2.0, "f2", "m2")
