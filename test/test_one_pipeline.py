@@ -107,3 +107,28 @@ def test_effect_metadata_is_asked_of_the_classes_not_keyed_by_name_elsewhere():
 def test_one_grammar_parses_effect_specifications():
     parsers = [(m, f) for m, t in MODULES.items() for f in _functions(t) if f.startswith("parse_effect")]
     assert parsers == [("effects.py", "parse_effects")], parsers
+
+
+def test_the_nodes_and_reprocess_drive_the_one_stream_engine():
+    """Samples to stations, what a station waits for, its gates, the session and the record in
+    force: ``engine.StreamEngine`` — the calibration and correction nodes and ``reprocess`` drive
+    it; nothing else pairs the streams or holds stations back."""
+    for module in ("reprocess.py", "nodes/correction.py", "nodes/calibration.py"):
+        assert ("engine", "StreamEngine") in _imports(MODULES[module]), module
+    pairers = sorted(m for m, t in MODULES.items() if any(
+        isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", "")) == "StreamPairer"
+        for n in ast.walk(t)))
+    assert pairers == ["engine.py"], pairers
+    # the tracks a station waits on are the engine's alone
+    tracks = sorted(m for m, t in MODULES.items() if any(
+        isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", "")) == "ReferenceTrack"
+        for n in ast.walk(t)))
+    assert tracks == ["engine.py"], tracks
+
+
+def test_a_stations_status_is_decided_in_one_place():
+    """``pipeline.station_status``: the nodes' and reprocess's fields (``station_fields``) and
+    ``correct``'s table and figures."""
+    callers = sorted(m for m, t in MODULES.items() if any(
+        isinstance(n, ast.Call) and getattr(n.func, "id", "") == "station_status" for n in ast.walk(t)))
+    assert callers == ["cli.py", "pipeline.py"], callers
