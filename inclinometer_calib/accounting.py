@@ -128,7 +128,8 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
              "pairs_dropped": int(m["pairs_dropped"])}
         if name == recorder and recorded is not None:
             r["taken"] = {k: int(recorded[k]) for k in topics}     # what the recording holds, each once
-        if src is not None:
+        if src is not None and src["end"] and (r["ended"] or name == recorder):
+            # final counts on both sides (before the end, each node's last progress is of another moment)
             lost = {k: int(src[k]) - r["taken"][k] for k in topics if r["taken"][k] < int(src[k])}
             if lost:
                 r["lost"] = lost
