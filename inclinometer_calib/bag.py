@@ -938,6 +938,26 @@ class BagReader:
                 pass
         return {t.topic: t for t in self._topics.values()}
 
+    def summary_counts(self) -> Optional[Dict[str, int]]:
+        """Messages per topic from the file's summary section (its statistics), without reading the
+        messages; None when the file has no usable summary (not finalized, damaged): then
+        :attr:`topics` counts them by reading."""
+        from mcap.exceptions import McapError
+        from mcap.reader import SeekingReader
+
+        try:
+            with open(self.mcap_path, "rb") as f:
+                summary = SeekingReader(f).get_summary()
+        except (McapError, OSError, ValueError, struct.error, EOFError):
+            return None
+        if summary is None or summary.statistics is None:
+            return None
+        counts = summary.statistics.channel_message_counts
+        out: Dict[str, int] = {}
+        for cid, ch in summary.channels.items():
+            out[ch.topic] = out.get(ch.topic, 0) + int(counts.get(cid, 0))
+        return out
+
     def topic_info(self, topic: str) -> Optional[TopicInfo]:
         """The channel of ``topic`` as read so far (during or after :meth:`messages`), or None."""
         for t in self._topics.values():

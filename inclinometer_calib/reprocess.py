@@ -388,13 +388,18 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     reader = open_bag(src)                      # BagError: not an MCAP / unreadable header
     report = ReprocessReport(Path(src), Path(dst) if dst is not None else None)
     det = detector if detector is not None else StaticDetector()
-    serial = bag_probe_serial(src) if probe_serial is None else str(probe_serial)
+    # the side streams a station waits for: those the bag has (offline, waiting changes when a
+    # station goes out, never what it is); a finalized bag says how many of each in its summary
+    counts = reader.summary_counts()
+    if counts is None:
+        counts = {t: info.count for t, info in reader.topics.items()}
+    if probe_serial is None:
+        serial = bag_probe_serial(src) if counts.get(TOPIC_SERIAL, 0) else None
+    else:
+        serial = str(probe_serial)
     report.probe_serial = serial or ""
     proc = SurveyProcessor(tolerances, site=site, monitor=monitor, probe_serial=serial or "", force_probe=force_probe)
     session = CaptureSession(site=site, probe_id=serial or probe_id, effects=effects) if calibrate else None
-    # the side streams a station waits for: those the bag has (offline, waiting changes when a
-    # station goes out, never what it is)
-    counts = {t: info.count for t, info in reader.topics.items()}
     engine = StreamEngine(det, proc, session, expect=Expect(reference=counts.get(TOPIC_REFERENCE, 0) > 0,
                                                                temperature=counts.get(TOPIC_TEMPERATURE, 0) > 0,
                                                                depth=counts.get(TOPIC_DEPTH, 0) > 0),
@@ -417,7 +422,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     t_first_pair = t_last_pair = None
     copied = report.copied
     issue = report._issue
-    where = [""]                                # the message being read (for what the engine says)
+    where = [("", 0)]                           # the message being read (for what the engine says)
     first_seen = {}                             # per-sample issue (index in _SAMPLE_ISSUES) -> where first
     log_time = 0
 
@@ -445,7 +450,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
                 report.calibration_warnings.append(ev.text)
             elif ev.text.startswith(_SAMPLE_ISSUES):
                 first_seen.setdefault(_SAMPLE_ISSUES.index(next(k for k in _SAMPLE_ISSUES if ev.text.startswith(k))),
-                                      where[0] + ": " + ev.text)
+                                      _where(*where[0]) + ": " + ev.text)
             elif ev.level in ("warning", "error"):
                 report.events.append(ev.text)
 
@@ -491,7 +496,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
             if cid >= 0:
                 writer.write(cid, m.data, log_time, m.publish_time)
                 copied[topic] += 1
-            where[0] = _where(topic, log_time)
+            where[0] = (topic, log_time)      # said only when something is wrong with it
             if topic == TOPIC_SERIAL:       # read before the loop (bag_probe_serial)
                 try:
                     if decode_string(m.data) != report.probe_serial:

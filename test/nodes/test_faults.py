@@ -1,11 +1,11 @@
 """Faults and recovery.
 
-* the correction node restarted mid-run picks up the latched coefficients and carries on;
 * in-process: a correction node with no calibration node around applies the last valid record
   on disk (``fallback_coeffs_file``), and its station ids continue across a restart
   (``state_file``);
-* the launcher: a recorder and a correction node killed mid-run are restarted (a new bag part;
-  the record on disk, the station ids), the summary is built from both parts, the run exits 1; a
+* the launcher: a recorder, a calibration and a correction node killed at once mid-run are
+  restarted (a new bag part; the two others resume from the recording): nothing is lost, the
+  stations are reprocess's, the summary is built from both parts, the run exits 1 (nodes died); a
   calibration that never solves, a damaged input bag exit 1; two launchers at once get different
   domains and do not mix; an explicit domain held by another run is refused (exit 2).
 
@@ -56,70 +56,6 @@ def _stop(proc, sig=signal.SIGINT):
     except subprocess.TimeoutExpired:
         proc.kill()
         return proc.wait()
-
-
-def test_restarted_correction_node_gets_latched_coefficients(ros_env, tmp_path):
-    from inclinometer_calib.msg import SurveyStation
-    from inclinometer_calib.nodes import common as c
-
-    rel = "qos.reliability:=reliable"
-    cal = _node("calibration", ros_env, tmp_path / "calibration.log", rel)
-    corr1 = _node("correction", ros_env, tmp_path / "correction1.log", rel)
-    probe = _node("probe", ros_env, tmp_path / "probe.log", rel, "speed:=4.0", "survey:=well_path",
-                  "well.n_stations:=14", "well.kickoff_deg:=5.0", "wait_for_subscribers:=2")
-    procs = [cal, corr1, probe]
-    rclpy.init()
-    node = rclpy.create_node("fault_watcher")
-    stations = []
-    node.create_subscription(SurveyStation, c.TOPIC_STATION, stations.append, c.reliable_qos(100))
-    stop = threading.Event()
-    th = threading.Thread(target=lambda: [rclpy.spin_once(node, timeout_sec=0.05) for _ in iter(stop.is_set, True)],
-                          daemon=True)
-    th.start()
-    try:
-        text = _wait_text(tmp_path / "correction1.log", "from /calibration/coefficients", 60, corr1)
-        coeff_id = text.split("applying coefficients ", 1)[1].split()[0]
-        corr1.send_signal(signal.SIGKILL)  # a crash: no clean shutdown
-        corr1.wait(10)
-        killed_at = time.monotonic()
-        n_before = len(stations)
-        corr2 = _node("correction", ros_env, tmp_path / "correction2.log", rel)
-        procs.append(corr2)
-        text2 = _wait_text(tmp_path / "correction2.log", "from /calibration/coefficients", 20, corr2)
-        assert f"applying coefficients {coeff_id} " in text2
-        assert probe.wait(60) == 0
-        _wait_text(tmp_path / "correction2.log", "station 3:", 15, corr2)  # it carries on
-        time.sleep(1.5)  # the last station closes after idle_flush_s
-        assert corr2.poll() is None and cal.poll() is None
-    finally:
-        stop.set()
-        th.join(2)
-        node.destroy_node()
-        rclpy.try_shutdown()
-        rcs = [_stop(p) for p in procs[::-1]]
-    cal_text = open(tmp_path / "calibration.log").read()
-    assert cal_text.count("published coefficients") == 1  # nothing was republished for the new node
-    # the new node (no state file) numbers its stations from 0, as its log says
-    said = [int(x) for x in re.findall(r"station (\d+): drift", open(tmp_path / "correction2.log").read())]
-    assert said == list(range(len(said))) and len(said) >= 4, said
-    # what the watcher got after the kill: stations of the killed node still in flight when it died
-    # (they continue its numbering), then the new node's; the new node's first may be missed, published
-    # before the watcher discovered its publisher (volatile: a station before the match is not resent)
-    prev = stations[n_before - 1].station_id if n_before else -1
-    got = [s.station_id for s in stations[n_before:]]
-    n_late = next((j for j, i in enumerate(got) if i != prev + 1 + j), len(got))
-    after = stations[n_before + n_late:]
-    assert [s.station_id for s in after] == said[len(said) - len(after):], (prev, got, said)
-    ids = [s.coefficients_id for s in after]
-    # A station the new node closes before the latched coefficients reach it (DDS discovery of the
-    # calibration node can lag the probe's under load) is published uncorrected, marked by an empty
-    # coefficients_id; from the moment they arrive every station carries them.
-    k = next((i for i, x in enumerate(ids) if x), len(ids))
-    assert all(x == "" for x in ids[:k]), ids
-    assert len(ids) - k >= 4 and all(x == coeff_id for x in ids[k:]), ids
-    survey = [s for s in after[k:] if s.drift_deg > 4.0 and s.status == 0]
-    assert len(survey) >= 3
-    assert rcs[0] == 0 and time.monotonic() > killed_at
 
 
 # ---- the correction node's recovery state, in-process (no DDS needed) ---------------------------
@@ -340,7 +276,7 @@ def fault_runs(tmp_path_factory):
     # lab on the recorded bag, seconds of CPU) is test_graph.py's subject
     common = ("--timeout", 150, "--no-loop")
     a = Launch(env, "--out", root / "a", "--source", "mcap", "--input", bag, "--speed", 8.0, *common)
-    b = Launch(env, "--out", root / "b", "--stations", 18, "--seed", 12, "--speed", 4.0,
+    b = Launch(env, "--out", root / "b", "--stations", 6, "--seed", 12, "--speed", 8.0,
                "--param", "probe:calibration_session:=false", *common)
     try:
         a_domain = int(a.wait_for(r"^\[launch\] ROS_DOMAIN_ID=(\d+)", 30).group(1))

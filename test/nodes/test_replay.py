@@ -70,36 +70,44 @@ def test_the_strangers_bag_with_a_pose_cut_replayed_at_speed_50_on_one_core_give
     assert "samples: the probe sent" in log and "LOST" not in log
 
 
-def test_a_record_of_another_probe_is_refused_every_station_says_why_and_the_run_is_not_clean(cut_bag, domain_env,
-                                                                                               tmp_path):
+def test_a_record_of_another_probe_is_refused_every_station_says_why_and_the_run_is_not_clean(domain_env, tmp_path):
+    from inclinometer_calib import simulate as sim
+    from inclinometer_calib.frames import Site
+    from inclinometer_calib.reprocess import write_probe_bag
+
     env, _ = domain_env
-    cal, _ = S.stranger_truth()
-    cal.probe_id = "ANOTHER-7"
+    probe = sim.build_probe(3)
+    log = sim.run_session(probe, Site(), sim.stand_grid_session(drifts=(10, 40), azimuths=(0, 120, 240),
+                                                                toolfaces=(0,), duration_s=1.5),
+                          np.random.default_rng(3), rate_hz=100)
+    bag = tmp_path / "sn1.mcap"
+    write_probe_bag(log, bag, serial="STRANGER-1")
+    cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id="ANOTHER-7", site=Site())
     rec = tmp_path / "other.yaml"
     cal.save(rec)
     out = tmp_path / "run"
     proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", "mcap",
-                           "--input", str(cut_bag["bag"]), "--coeffs", str(rec), "--no-calibration", "--speed", "100",
+                           "--input", str(bag), "--coeffs", str(rec), "--no-calibration", "--speed", "50",
                            "--no-loop", "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 1, proc.stdout[-6000:]
     last = proc.stdout.strip().splitlines()[-1]
     assert "uncorrected: record refused: record " in last and "probe ANOTHER-7, the data are of probe STRANGER-1" in last
     stations = read_bag(out / "survey.mcap")[0]
-    assert stations and all(not s["coefficients_id"] and s["uncorrected_reason"].startswith("record refused")
-                            for s in stations)
+    assert len(stations) == 6 and all(not s["coefficients_id"] and s["uncorrected_reason"].startswith(
+        "record refused") for s in stations)
     assert "uncorrected: record refused" in proc.stdout     # the summary's line
 
 
 def test_an_unpaced_replay_that_loses_samples_on_one_core_says_what_each_reader_lost_and_exits_1(domain_env,
                                                                                                 tmp_path):
-    """The live-source case: --unpaced at 1 kHz × 100 on one core — the readers cannot keep up; the
+    """The live-source case: --unpaced at 400 Hz × 100 on one core — the readers cannot keep up; the
     loss is counted per reader and topic, and the run is not clean."""
     if shutil.which("taskset") is None:
         pytest.skip("taskset (util-linux) is not installed")
     env, _ = domain_env
     out = tmp_path / "run"
     proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.launcher", "--out",
-                           str(out), "--unpaced", "--speed", "100", "--rate", "1000", "--stations", "3", "--no-loop",
+                           str(out), "--unpaced", "--speed", "100", "--rate", "400", "--stations", "3", "--no-loop",
                            "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 1, proc.stdout[-6000:]
     assert " LOST " in proc.stdout and "(not paced)" in proc.stdout

@@ -1,13 +1,12 @@
 """Acceptance test from outside, live: the independent simulator's probe through the ROS 2 graph.
 
 The stranger's calibration log (2.5× our noise, vertical poses without azimuth) followed by the
-first 36 stations of its stand grid, replayed by the probe node as a bag and as a CSV, calibrated
-and corrected by the live nodes with default settings (separate processes over DDS, this machine
-only).  The coefficients must be those of ``twelve-position`` on the same CSV and of ``reprocess
---calibrate`` on the same bag (bit for bit when every sample arrives, within their uncertainty
-when a loaded machine drops the first ones: see SAME), and the survey stations' angles the same
-too.  Two runs of about
-35 s each, and one more of a probe that is several strangers at once (20 s).
+first 36 stations of its stand grid, replayed by the probe node as a CSV, calibrated and corrected
+by the live nodes with default settings (separate processes over DDS, this machine only).  The
+replay is paced (it never outruns its readers): the coefficients are those of ``twelve-position``
+on the same CSV and of ``reprocess --calibrate`` on the same data as a bag, bit for bit, and the
+survey stations reprocess's.  (The same probe as a bag, with a pose cut, on one core: the
+replay tests.)  One run of about 15 s, and one more of a probe that is several strangers at once.
 """
 import subprocess
 import sys
@@ -22,14 +21,9 @@ from inclinometer_calib.cli import main  # noqa: E402
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
 
 VAL_STATIONS = 36
-SPEED = 10.0
-# Live, the coefficients are the CLI's bit for bit when every sample arrives (seen on a quiet
-# machine: the same content hash). A loaded CI machine may lose the first samples of the
-# best-effort streams, which shifts the noise estimator's blocks and can move a station boundary
-# by a sample: then they agree to within their own uncertainty, which these bounds are (a few σ
-# of the stranger's calibration: bias ~1e-4 m/s² and 1 nT, scale and e-terms ~1e-5).
-#: how far a station whose hold gained or lost a sample or two live may be from reprocess's, degrees
-SHIFTED = {"drift_deg": 2e-3, "azimuth_deg": 0.03, "toolface_deg": 0.1}
+SPEED = 50.0
+#: how far the live coefficients of the noisy 10 Hz mix may be from the CLI's, which reads the same CSV
+#: (a few σ of the stranger's calibration: bias ~1e-4 m/s² and 1 nT, scale and e-terms ~1e-5), times 5
 SAME = {"acc": {"bias": 3e-4, "scale": 5e-5, "e": 5e-5}, "mag": {"bias": 3.0, "scale": 1e-4, "e": 1e-4}}
 # These runs check the live nodes' coefficients and stations (read from the bag); the summary's model
 # loop (the lab on the recorded bag: 3-5 s of CPU per run) is test_graph.py's subject, not theirs.
@@ -73,43 +67,23 @@ def _live(offline, domain_env, tmp_path, source):
 def _check(offline, out, log):
     _, cli, re_stations = offline
     stations, coefs = S.stations_of_bag(out / "survey.mcap")
-    # the same calibration: both rounds solved, the last equal to the CLI's
+    # the same calibration: both rounds solved, the last the CLI's to the bit (the same content hash)
     assert len(coefs) == 2, log[-4000:]
     live = Calibration.from_yaml(coefs[-1]["coefficients_yaml"])
-    print(f"live coefficients {live.id}, CLI {cli.id}" + (" (the same)" if live.id == cli.id else ""))
-    _same_coefficients(live, cli)
-    # the same survey stations, with the same angles as reprocess on the bag
+    assert live.id == cli.id, (live.id, cli.id)
+    # the same stations as reprocess on the bag, every field that carries a number
+    assert len(stations) == len(re_stations)
+    for a, b in zip(stations, re_stations):
+        for key in ("drift_deg", "azimuth_deg", "toolface_deg", "total_field_nt", "dip_deg", "samples_averaged",
+                    "coefficients_id", "status", "temperature_c"):
+            assert a[key] == b[key] or (a[key] != a[key] and b[key] != b[key]), (a["station_id"], key, a[key], b[key])
     survey = [s for s in stations if s["coefficients_id"] == live.id and s["stamp"] > 1e-6 and
               np.isfinite(s["reference_azimuth_deg"]) and s["reference_drift_deg"] < 89.5]
-    offline_survey = [s for s in re_stations if s["coefficients_id"] == cli.id and np.isfinite(s["reference_azimuth_deg"])
-                      and s["reference_drift_deg"] < 89.5]
-    assert len(survey) == len(offline_survey) == VAL_STATIONS
-    # A station of as many samples as reprocess's has its angles (1e-12 when the coefficients are
-    # the same); a sample lost in a move on the best-effort streams can shift a hold's boundary by
-    # a sample or two (seen under load: 288 and 290 samples for 287 and 291, azimuth 0.004° apart),
-    # which moves its mean by a fraction of its noise (at 2° drift about 0.05° of toolface and
-    # azimuth over ~290 samples): such stations stay few and within SHIFTED of reprocess's.
-    same_n = [a["samples_averaged"] == b["samples_averaged"] for a, b in zip(survey, offline_survey)]
-    shifted = [(i, a["samples_averaged"], b["samples_averaged"]) for i, (a, b, ok) in
-               enumerate(zip(survey, offline_survey, same_n)) if not ok]
-    print(f"stations whose hold lost or gained samples live (index, live, reprocess): {shifted}")
-    assert len(shifted) <= 4 and all(abs(n1 - n2) <= 3 for _, n1, n2 in shifted), shifted
-    for key in ("drift_deg", "azimuth_deg", "toolface_deg"):
-        live_v = [s[key] for s, ok in zip(survey, same_n) if ok]
-        np.testing.assert_allclose(live_v, [s[key] for s, ok in zip(offline_survey, same_n) if ok], atol=2e-3,
-                                   err_msg=key)
-        for i, _, _ in shifted:
-            d = (survey[i][key] - offline_survey[i][key] + 180.0) % 360.0 - 180.0
-            assert abs(d) <= SHIFTED[key], (i, key, d)
+    assert len(survey) == VAL_STATIONS
     for s in survey:        # against the stand's reference: the noise level
         assert abs(s["drift_deg"] - s["reference_drift_deg"]) < 0.01
         assert abs((s["azimuth_deg"] - s["reference_azimuth_deg"] + 180) % 360 - 180) < 0.3
-    assert "[ERROR]" not in log
-
-
-def test_the_live_graph_calibrates_the_strangers_bag_as_the_cli_and_reprocess_do(offline, domain_env, tmp_path):
-    out, log = _live(offline, domain_env, tmp_path, "mcap")
-    _check(offline, out, log)
+    assert "[ERROR]" not in log and "LOST" not in log
 
 
 def test_the_live_graph_calibrates_the_strangers_csv_as_the_cli_and_reprocess_do(offline, domain_env, tmp_path):
