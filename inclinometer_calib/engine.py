@@ -297,8 +297,12 @@ class StreamEngine:
         if not serial or serial == self.serial:
             return
         self.serial = serial
-        if self.session is not None and getattr(self.session, "probe_id", None) in ("", UNNAMED_PROBE):
-            self.session.probe_id = serial
+        named = getattr(self.session, "probe_id", None)
+        if named is not None and named != serial:
+            if named not in ("", UNNAMED_PROBE):
+                self._say("warning", f"probe_id {named!r} is not the probe on /probe/serial ({serial}): the records "
+                                     "are named for the data's probe")
+            self.session.probe_id = serial        # the records this session makes are the data's probe's
         if self.proc is not None:
             self.proc.probe_serial = serial
             kept = []

@@ -5,6 +5,7 @@ core (the recorder) can use it without importing numpy and scipy (``common`` re-
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from contextlib import ExitStack
@@ -250,6 +251,21 @@ class HotPathExecutor(Executor):
 
 #: The longest a spinning node waits before it looks again whether its context is still up.
 WAKE_S = 0.5
+
+
+def _quiet_interrupted_task(unraisable, _default=sys.unraisablehook) -> None:
+    """``sys.unraisablehook`` of a node: a Ctrl-C or SIGTERM that lands while rclpy builds a
+    ``Task`` (its executor does, for every callback) leaves an object without the fields its
+    ``Future.__del__`` reads, and the garbage collector then prints a traceback at exit
+    ("'Task' object has no attribute '_exception'"); it says nothing about the node, which
+    stopped as asked.  Anything else goes to the default hook."""
+    exc, obj = unraisable.exc_value, unraisable.object
+    if isinstance(exc, AttributeError) and getattr(obj, "__qualname__", "") == "Future.__del__":
+        return
+    _default(unraisable)
+
+
+sys.unraisablehook = _quiet_interrupted_task
 
 
 def spin(node, executor, done=None) -> None:
