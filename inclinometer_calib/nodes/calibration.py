@@ -1,11 +1,15 @@
 """Calibration node: live twelve-pose capture from the probe's streams; publishes the coefficients.
 
-Subscribes ``/probe/imu``, ``/probe/mag`` (paired by header stamp) and ``/probe/temperature``;
-feeds the static detector (:class:`streaming.StaticDetector`), offers every closed static segment
-to the capture session (:class:`capture.CaptureSession`) and, when all twelve poses are in:
+Subscribes ``/probe/imu``, ``/probe/mag`` (paired by header stamp) and ``/probe/temperature``
+and drives the stream engine (:class:`engine.StreamEngine`, through :class:`.stream.StreamDriver`)
+in its calibrate role — the static detector, the gates, the capture session
+(:class:`capture.CaptureSession`), as ``reprocess --calibrate`` drives it offline — and, when all
+twelve poses are in, after a further complete round, when the sequence is over with poses missing
+(the probe left the stand: least squares, the missing poses said) and at the end of the data:
 
 * publishes ``inclinometer_calib/CalibrationCoefficients`` on ``/calibration/coefficients``
-  (reliable, transient local: late joiners get the latest set);
+  (reliable, transient local: late joiners get the latest set), stamped with the data time from
+  which it applies (the correction node applies it to the stations that end after it);
 * writes the coefficient record (YAML) to the ``output`` parameter's path (atomically).
 
 The record is the paper's twelve-position model, or — with ``model.effects`` (the package's effect
@@ -28,6 +32,11 @@ again at the end of the data with every step.
 (1..12), as everywhere in the package.  Services: ``~/reset`` (std_srvs/Trigger)
 discards all captures; ``~/recapture`` (RecapturePose) discards one pose so that it is captured
 again (the coefficients are re-solved and re-published once it is).
+
+Its progress (``/graph/progress``): how far it has taken the stream and how many records it
+published — the correction node keeps step with it, a paced replay waits for it.  Restarted with
+``resume.bags`` (the launcher, after it died), it rebuilds its session from the run's recording and
+publishes only the records the recording does not hold (its latest again, for late readers).
 """
 from __future__ import annotations
 

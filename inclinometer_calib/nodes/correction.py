@@ -6,17 +6,22 @@ station takes the latest when it closes, and gets its trajectory by minimum curv
 station before it in depth — :meth:`pipeline.SurveyProcessor`), and the coefficients: the latched topic
 ``/calibration/coefficients`` (transient-local subscription; ``use_topic``) and/or a coefficient
 YAML file (``coeffs_file``, may be changed at run time: the file is checked before it is
-accepted).  The most recently received set is applied.
+accepted).  Keeping step with the calibration node (``calibration.node``, the launcher sets it) a
+record applies from the data time it was solved at (its header stamp) and a station waits until
+that node has taken it too; otherwise a record applies from the next station.  All of it is the
+stream engine's (:class:`engine.StreamEngine`, the one ``reprocess`` drives), in its survey role,
+through :class:`.stream.StreamDriver`: the node publishes what the engine gives.
 
-Recovery (a node restarted mid-run, e.g. by the launcher, after the calibration node is gone):
-``fallback_coeffs_file`` is the last valid record on disk (the calibration node's ``output``); it
-is applied at start-up, with a warning, until a record arrives on the topic (one that differs
-replaces it).  ``state_file`` keeps the next station id (JSON, written atomically after every
-station), so the ids of a restarted node continue instead of starting again at 0.
+Recovery (a node restarted mid-run): with ``resume.bags`` (the launcher sets it) the node rebuilds
+its state from the run's recording and publishes only the stations it does not hold.  Without a
+recording, ``fallback_coeffs_file`` is the last valid record on disk (the calibration node's
+``output``), applied at start-up with a warning until a record arrives on the topic (one that
+differs replaces it), and ``state_file`` keeps the next station id (JSON, written atomically after
+every station), so the ids of a restarted node continue instead of starting again at 0.
 
 Outputs:
 
-* ``/survey/station`` (``SurveyStation``, reliable): one per static interval closed by the
+* ``/survey/station`` (``SurveyStation``, reliable, transient local keep 1000): one per static interval closed by the
   static detector, through the survey pipeline (:class:`pipeline.SurveyProcessor`): corrected by
   the current record's model (its lab effects too, with the station's temperature and time),
   evaluated against the site reference **the record owns** (``site.given:=true`` overrides it

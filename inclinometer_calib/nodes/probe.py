@@ -42,6 +42,16 @@ Covariances (per-axis variances on the diagonal): ``simulate`` publishes the sim
 that a bag whose messages carry a positive covariance keeps the recorded one, and a ``noise_acc``
 / ``noise_mag`` parameter > 0 overrides both for its sensor.
 
+Pacing (``flow.readers``, the launcher sets it for every replay): the node announces itself on
+``/graph/progress`` (``StreamProgress``: the side streams it keeps current, its window) and never
+runs more than ``flow.window`` samples ahead of the slowest reader named — their own progress
+messages say how far each has taken the stream — so no reader loses a sample whatever the machine;
+``speed`` is then a ceiling.  The streams are then reliable and transient local (``qos.depth``
+kept: a reader restarted mid-run gets what it missed), the reference and the depth are repeated
+every second of log time also while there is none (NaN), and after the last sample it says
+``end`` with what it sent per topic and exits once every reader has taken all of it (and the
+recorder has every station and record), at most ``flow.end_timeout_s`` later.
+
 At the end: ``on_end:=stop`` exits with status 0 — or :data:`INPUT_DAMAGED` (3) when the MCAP
 input was damaged (truncated, corrupt chunks, undecodable messages: the readable part was
 replayed) — ``on_end:=idle`` keeps the node alive.
