@@ -10,15 +10,18 @@ written with :mod:`inclinometer_calib.bag`.  It does offline what the correction
 * ``/probe/temperature`` (``sensor_msgs/Temperature``) gives the temperature of later samples;
 * ``/probe/reference`` (``geometry_msgs/Vector3Stamped``, drift/azimuth/toolface in degrees,
   NaN = none), if present, is copied into the stations' ``reference_*`` fields;
-* each pair goes through :class:`streaming.StaticDetector` (thresholds from the noise the data
-  show; the messages' covariance is a prior); every closed station goes through the survey
-  pipeline (:class:`pipeline.SurveyProcessor`: gates, the record's model with the station's
-  temperature and time, QC against the record's site, the field monitor) and is written as one
-  ``/survey/station`` message (fields as the correction node fills them);
+* every message goes to the stream engine (:class:`engine.StreamEngine`, through
+  :class:`BagFeeder`) exactly as the live nodes hand it theirs: pairs through the static detector
+  (thresholds from the noise the data show; the messages' covariance a prior), each closed station
+  — once what it waits for is in — through the gates and the survey pipeline
+  (:class:`pipeline.SurveyProcessor`: the record's model with the station's temperature and time,
+  QC against the record's site, the field monitor), written as one ``/survey/station`` message
+  (the correction node's fields);
 * with ``calibrate`` the same stations go through the live calibration node's twelve-pose
   session (:class:`capture.CaptureSession`): each solve is written as one
-  ``/calibration/coefficients`` message and corrects the stations that follow — offline, the
-  whole live graph.
+  ``/calibration/coefficients`` message, stamped with the data time from which it applies, and
+  corrects the stations that end after it — offline, the whole live graph, whose replay of the
+  same bag gives the same stations bit for bit.
 
 The input messages of those four topics are copied through unchanged (same bytes, log and publish
 times), so the output bag can be replayed again.  Other topics are skipped with a warning that
