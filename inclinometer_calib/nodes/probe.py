@@ -470,6 +470,7 @@ class ProbeNode(Node):
         if self.serial and bag and self.serial != bag:
             raise ValueError(f"probe_serial {self.serial!r} contradicts the bag's {c.TOPIC_SERIAL} ({bag!r})")
         serial = self.serial or bag or (f"SIM-{self.seed}" if self.source == "simulate" else "")
+        self.progress.serial = serial      # in the announcement too: readers check records before any station
         if not serial:
             self.get_logger().warning("the data name no probe (no probe_serial, none in the input): the records and "
                                       "stations cannot be checked against it")

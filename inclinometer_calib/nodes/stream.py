@@ -211,6 +211,8 @@ class StreamDriver:
             if self.announced is None:
                 self.announced = msg
                 self.window = int(msg.window)
+                if getattr(msg, "serial", ""):
+                    self.engine.set_serial(msg.serial)   # before any station goes out: records are checked
                 side = self.side   # the calibration takes neither reference nor depth: it never waits for them
                 self.engine.set_expect(Expect(reference=msg.has_reference and side, temperature=msg.has_temperature,
                                               depth=msg.has_depth and side))
