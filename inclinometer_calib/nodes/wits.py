@@ -68,6 +68,7 @@ class WitsNode(Node):
             if self.port else None
         self.sink = open(self.output, "ab") if self.output else None   # noqa: SIM115 (closed in destroy_node)
         self.sequence = 0
+        self._seen = set()           # (station id, stamp) of every station received: each sent once
         self.create_subscription(SurveyStation, c.TOPIC_STATION, self._on_station, c.reliable_qos(100))
         self.get_logger().info("WITS0 record 07 of the survey stations"
                                + (f" on tcp://{self.host}:{self.server.port}" if self.server else "")
@@ -75,6 +76,14 @@ class WitsNode(Node):
                                + (f"; WITSML 2.1 Trajectory in {self.witsml_file}" if self.witsml_file else ""))
 
     def _on_station(self, msg):
+        key = (msg.station_id, msg.header.stamp.sec, msg.header.stamp.nanosec)
+        if key in self._seen:
+            # the same station again: a correction node restarted mid-run publishes those its
+            # predecessor's recording lacks, and some reached this node already
+            self.get_logger().info(f"station {msg.station_id} received again (a restarted correction node): "
+                                   "already sent")
+            return
+        self._seen.add(key)
         if self.witsml_file:
             self.stations.append(station_dict(msg))
             if witsml.select_stations(self.stations[-1:])[0]:

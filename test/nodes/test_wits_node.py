@@ -1,6 +1,6 @@
 """The ``wits`` node over real DDS: SurveyStation messages published in this process reach the
 node (a separate process) and leave it as WITS0 record 07 to a TCP client on loopback and to a
-file, read back by the tests' own parser; raw and error stations are not sent.  The same node
+file, read back by the tests' own parser; raw and error stations are not sent, a station received again (a restarted correction node) is sent once.  The same node
 rewrites a WITSML 2.1 Trajectory after every station: it validates against the Energistics schema
 and parses back to the numbers published (error stations as ``rejected``), and is marked inactive
 when the node stops."""
@@ -71,10 +71,18 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
             published.append(m)
             if k not in (0, 3):
                 sent.append(m)
+        pub.publish(published[2])        # the same station again (a correction node restarted mid-run): sent once
         buf = b""
         client.settimeout(0.5)
         t0 = time.monotonic()
         while buf.count(b"!!\r\n") < len(sent) and time.monotonic() - t0 < 20:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            try:
+                buf += client.recv(65536)
+            except socket.timeout:
+                pass
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.5:       # a record sent twice would come now
             rclpy.spin_once(node, timeout_sec=0.05)
             try:
                 buf += client.recv(65536)
