@@ -134,14 +134,9 @@ def small_disk(tmp_path):
 
 
 def _publisher(tmp_path, env):
-    script = tmp_path / "publisher.py"
-    script.write_text(PUBLISHER)
-    proc = subprocess.Popen([sys.executable, str(script)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True)
-    if "READY" not in proc.stdout.readline():
-        proc.kill()
-        pytest.fail(f"publisher did not start: {proc.stdout.read()}")
-    return proc
+    from test_recorder import _start_publisher   # the recorder tests' publisher process, with this script
+
+    return _start_publisher(tmp_path, env, PUBLISHER)
 
 
 def _recorder(disk, tmp_path, env, *params):

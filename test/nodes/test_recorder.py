@@ -65,9 +65,10 @@ PUBLISHER = textwrap.dedent("""
 """)
 
 
-def _start_publisher(tmp_path, env):
+def _start_publisher(tmp_path, env, text=None):
+    """A publisher process running ``text`` (default :data:`PUBLISHER`), once it says READY."""
     script = tmp_path / "publisher.py"
-    script.write_text(PUBLISHER)
+    script.write_text(PUBLISHER if text is None else text)
     proc = subprocess.Popen([sys.executable, str(script)], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)
     line = proc.stdout.readline()
