@@ -117,7 +117,6 @@ class Say:
 class _Pending:
     station: object
     t_close: float          # stamp of the sample that closed it (inf: the end of the data)
-    since: float = 0.0      # the driver's clock when it closed (wall time live): for its patience
 
 
 @dataclass
@@ -492,13 +491,13 @@ class StreamEngine:
         if n:
             self.t_last = float(t[keep][-1]) if keep.any() else self.t_last
 
-    def _closed(self, st, t_close: float, since: float = 0.0) -> None:
+    def _closed(self, st, t_close: float) -> None:
         self.counts.stations += 1
         if st.short:
             self.counts.short += 1
             if self.session is None and not self.publish_short:
                 return
-        self._pending.append(_Pending(st, t_close, since))
+        self._pending.append(_Pending(st, t_close))
         self.release()
 
     # ---- waiting and going out -----------------------------------------------------------------
@@ -535,11 +534,6 @@ class StreamEngine:
     def waiting(self) -> list:
         """``(station, t_close, what it waits for)`` of the stations waiting, oldest first."""
         return [(p.station, p.t_close, self._missing(p)) for p in self._pending]
-
-    @property
-    def oldest_waiting_since(self) -> float | None:
-        """The driver's clock (``since``) of the oldest waiting station, or None."""
-        return self._pending[0].since if self._pending else None
 
     def release(self, force: bool = False, why: str = "") -> None:
         """Send on the waiting stations that can go, in order; with ``force`` all of them (the
