@@ -128,7 +128,8 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
              "pairs_dropped": int(m["pairs_dropped"])}
         if name == recorder and recorded is not None:
             r["taken"] = {k: int(recorded[k]) for k in topics}     # what the recording holds, each once
-        if src is not None and src["end"] and (r["ended"] or name == recorder):
+        r["final"] = bool(src is not None and src["end"] and (r["ended"] or name == recorder))
+        if r["final"]:
             # final counts on both sides (before the end, each node's last progress is of another moment)
             lost = {k: int(src[k]) - r["taken"][k] for k in topics if r["taken"][k] < int(src[k])}
             if lost:
@@ -137,7 +138,8 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
         if r["forced"]:
             problems.append(f"{name}: {r['forced']} station(s) went out before what they waited for had arrived "
                             "(their reference, temperatures, depth or the calibration's step: see its warnings)")
-        if src is not None and src["end"] and not r["ended"]:
+        if src is not None and src["end"] and not r["ended"] and name != recorder:
+            # (the recorder's counts are the recording's own: what it lost is its LOST line)
             problems.append(f"{name} did not take the end of the data")
         out["readers"][name] = r
     if lost_all:
@@ -184,9 +186,17 @@ def format_account(a: dict) -> list:
         lines.append("samples: the probe sent " + ", ".join(f"{sent[k]} {k}" for k in ALL_TOPICS if sent[k]) +
                      (f" (paced: at most {a['window']} ahead of its slowest reader)" if a.get("window") else
                       " (not paced)"))
+        ended = a.get("source_ended")
         for name, r in a["readers"].items():
             if "lost" in r:
                 lines.append(f"  {name} LOST " + ", ".join(f"{v} {k}" for k, v in r["lost"].items()))
+            elif not r.get("final"):
+                # no final counts on one side: what it took is not known to be all
+                short = {k: v for k, v in r["taken"].items() if v < sent[k]}
+                lines.append(f"  {name} took " + (", ".join(f"{r['taken'][k]} of {sent[k]} {k}" for k in short)
+                                                   if short else "as many as the probe had said it sent")
+                             + ("; it did not take the end" if ended and not r["ended"] else
+                                "; the probe's end is not in the recording" if not ended else ""))
             else:
                 lines.append(f"  {name} took every one" + (f"; {r['forced']} station(s) did not wait for their data"
                                                            if r["forced"] else ""))

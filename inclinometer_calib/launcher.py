@@ -438,6 +438,11 @@ def run_graph(args, out, env) -> GraphResult:
         params["probe"].setdefault("flow.readers", list(consumers))
         params["probe"].setdefault("flow.gone_s", FLOW_GONE_S)
         params["probe"].setdefault("flow.end_timeout_s", FLOW_END_S)
+    else:
+        # not paced, but the run ends once the nodes have taken the end (with what they lost
+        # counted): the accounting then has their final counts, whatever the machine's speed (the
+        # recorder, which never ends once it lost a sample, writes what it holds at its stop)
+        params["probe"].setdefault("flow.end_readers", [n for n in consumers if n != "recorder"])
     # every other node reads imu, mag and temperature; the reference goes to correction and recorder
     params["probe"].setdefault("wait_for_subscribers", len(consumers))
     params["probe"].setdefault("wait_for_reference_subscribers",
@@ -525,9 +530,9 @@ def run_graph(args, out, env) -> GraphResult:
                         reason = f"probe failed ({_exit_text(code)})"
                         result.problems.append(reason)
                         break
-                    # a paced probe ends once every reader has taken the end (and the recorder
+                    # the probe ends once every reader has taken the end (paced: and the recorder
                     # every station and record): a short drain is enough
-                    drain_until = time.monotonic() + (min(args.drain, 0.5) if not args.unpaced else args.drain)
+                    drain_until = time.monotonic() + args.drain
                     continue
                 died = f"{name} died unexpectedly ({_exit_text(code)})"
                 if name == "recorder" and code == RECORDING_INCOMPLETE:
@@ -1178,7 +1183,8 @@ def parse_args(argv=None):
     ap.add_argument("--config", help="directory with <node>.yaml parameter files (default: the package's config/)")
     ap.add_argument("--domain-id", type=int, help="ROS_DOMAIN_ID for the graph, reserved exactly (refused if another "
                     "run holds it; default: ROS_DOMAIN_ID if set, else a free one)")
-    ap.add_argument("--drain", type=float, default=3.0, help="seconds between the probe's end and stopping the rest")
+    ap.add_argument("--drain", type=float, default=0.5,
+                    help="seconds between the probe's exit (once its readers have taken the end) and stopping the rest")
     ap.add_argument("--timeout", type=float, default=0.0, help="stop the run after this many seconds (0: none)")
     return ap.parse_args(argv)
 

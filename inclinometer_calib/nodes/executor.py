@@ -233,20 +233,47 @@ class HotPathExecutor(Executor):
                         with lock:
                             task()
                         task.result()   # raises what the callback raised
-                ready = streams
-                while ready:   # one message of each stream per round, until all are empty
-                    more = []
-                    with lock:
-                        for stream in ready:
-                            take, msg_type, raw, callback, info = stream
-                            got = take(msg_type, raw)
-                            if got is not None:
-                                if info:
-                                    callback(*got)
-                                else:
-                                    callback(got[0])
-                                more.append(stream)
-                    ready = more
+                _take_all(streams, lock)
+
+    def take_waiting(self) -> None:
+        """Take every message still waiting in the hot subscriptions, after :meth:`shutdown` (a
+        node that is stopping: what its DDS reader holds was delivered to it — the recorder writes
+        it rather than losing it at its stop)."""
+        thread = self._hot_thread
+        if thread is not None and thread.is_alive():
+            raise RuntimeError("take_waiting: the hot thread still runs (call shutdown first)")
+        with self._hot_set_lock:
+            subs = list(self._hot)
+        with ExitStack() as held:
+            live = []
+            for sub in subs:
+                try:
+                    held.enter_context(sub.handle)
+                except InvalidHandle:
+                    continue
+                live.append(sub)
+            with_info = Subscription.CallbackType.WithMessageInfo
+            _take_all([(sub.handle.take_message, sub.msg_type, sub.raw, sub.callback,
+                        sub._callback_type is with_info) for sub in live], self._lock)
+
+
+def _take_all(streams, lock) -> None:
+    """Take and deliver every message waiting: one of each stream per round (the order in which
+    rclpy's executors deliver them), until all are empty."""
+    ready = streams
+    while ready:
+        more = []
+        with lock:
+            for stream in ready:
+                take, msg_type, raw, callback, info = stream
+                got = take(msg_type, raw)
+                if got is not None:
+                    if info:
+                        callback(*got)
+                    else:
+                        callback(got[0])
+                    more.append(stream)
+        ready = more
 
 
 #: The longest a spinning node waits before it looks again whether its context is still up.

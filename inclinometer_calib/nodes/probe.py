@@ -67,6 +67,7 @@ import time
 
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
@@ -104,6 +105,11 @@ CLOCK_PERIOD_S = 0.01
 #: 10 ms is the clock's own granularity (CLOCK_PERIOD_S); the readers' queues hold far more than
 #: one tick's samples.
 MIN_TICK_S = 0.01
+#: Unpaced (no flow readers): after the last sample, wait at most this long (wall clock, s) for
+#: every matched reader to acknowledge the end (and, with reliable streams, every sample): a
+#: process that exits at once takes its writers' undelivered messages with it.
+UNPACED_END_S = 30.0
+_NO_WAIT = Duration(seconds=0)
 KNOWN_BAG_TOPICS = PROBE_TOPICS   # what a replay publishes again, with the type each must have
 #: Samples prepared (simulated, converted to messages' floats) at a time by default (the
 #: ``chunk_samples`` parameter): 10 s at 1 kHz, a few MB.
@@ -280,6 +286,13 @@ class ProbeNode(Node):
         self.end_timeout = p.declare("flow.end_timeout_s", 120.0, "After the last sample, wait at most this long "
                                      "(wall clock, s) for every reader to have taken the end (and the recorder every "
                                      "station and record) before exiting", read_only=True, range=(0.0, 3600.0))
+        end_readers = list(p.declare(
+            "flow.end_readers", [], f"Unpaced (no flow.readers): before exiting, wait (at most "
+            f"{UNPACED_END_S:g} s, wall clock) until these nodes say on {c.TOPIC_PROGRESS} that they have taken the "
+            "end — with what they lost counted — so that the run's accounting has every reader's final counts",
+            read_only=True, ptype=Parameter.Type.STRING_ARRAY))
+        #: the readers whose end the probe waits for: the paced ones, or (unpaced) flow.end_readers
+        self.end_readers = self.flow_readers or end_readers
         self.recorder_name = p.declare("flow.recorder", "recorder", "The reader that records the others' stations "
                                        "and records: the end waits until it has every one of them", read_only=True)
         if self.flow_readers and qos.reliability != ReliabilityPolicy.RELIABLE:
@@ -313,6 +326,9 @@ class ProbeNode(Node):
         # the source's announcement, its pacing and what it sent (StreamProgress): the readers'
         # stations wait on the data's time alone, and the run's accounting starts here
         self.pub_progress = self.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos())
+        # what an unpaced end waits to have acknowledged by every matched reader (_drained)
+        self._reliable_pubs = [self.pub_ref, self.pub_depth, self.pub_progress] + (
+            [self.pub_imu, self.pub_mag, self.pub_temp] if qos.reliability == ReliabilityPolicy.RELIABLE else [])
         self.progress = StreamProgress(node=self.get_name(), settled=math.nan, window=self.window if self.flow_readers
                                        else 0, **self._announcement)
         self._acks = {}              # reader -> data time of the last sample it took
@@ -324,7 +340,7 @@ class ProbeNode(Node):
         self._stall_said = 0.0
         self._graph_check = 0.0
         self._progress_wall = -math.inf
-        if self.flow_readers:
+        if self.end_readers:
             self.create_subscription(StreamProgress, c.TOPIC_PROGRESS, self._on_progress, c.latched_qos(depth=100))
         self.pub_serial = self.create_publisher(String, c.TOPIC_SERIAL, c.latched_qos())
         self._publish_serial()
@@ -736,9 +752,10 @@ class ProbeNode(Node):
 
     def _finish(self):
         self._state = "ended"
-        if self.flow_readers and not self._drained():
+        if self.end_readers and not self._drained():
             self.get_logger().error(
-                f"the readers did not all take the end within flow.end_timeout_s ({self.end_timeout:g} s): "
+                f"the readers did not all take the end within "
+                f"{f'flow.end_timeout_s ({self.end_timeout:g} s)' if self.flow_readers else f'{UNPACED_END_S:g} s'}: "
                 + "; ".join(self._not_drained()) + " — the run's summary counts what they missed")
         status = 0
         if self.input_damaged:
@@ -754,7 +771,7 @@ class ProbeNode(Node):
     # ---- flow control ----------------------------------------------------------------------------
     def _on_progress(self, msg):
         name = msg.node
-        if name not in self.flow_readers:
+        if name not in self.end_readers:
             return
         t = c.stamp_to_sec(msg.header.stamp)
         if t > self._acks.get(name, -math.inf):
@@ -810,7 +827,7 @@ class ProbeNode(Node):
                                           f"{now - self._last_sent_wall:.0f} s")
 
     def _not_drained(self) -> list:
-        out = [f"{r} has not" for r in self.flow_readers if r not in self._gone and r not in self._reader_ends]
+        out = [f"{r} has not" for r in self.end_readers if r not in self._gone and r not in self._reader_ends]
         rec = self.recorder_name
         if rec in self.flow_readers and rec not in self._gone and rec in self._reader_counts:
             have = self._reader_counts[rec]
@@ -824,7 +841,10 @@ class ProbeNode(Node):
         """Every reader has taken the end, and the recorder every station and record the others
         published (their last counts, with the end)."""
         if not self.flow_readers:
-            return True
+            # unpaced: the end (and, with reliable streams, every sample) is in every matched
+            # reader's queue — acknowledged — before the writers go with this process; and the
+            # end readers have taken it
+            return all(pub.wait_for_all_acked(_NO_WAIT) for pub in self._reliable_pubs) and not self._not_drained()
         return not self._not_drained()
 
     def _publish_progress(self, force: bool = False, end: bool = False):
@@ -880,10 +900,11 @@ class ProbeNode(Node):
             self._stamp0 = now if now_stamps else self._stamp0
         if self._i >= n:
             self._state = "ending"
-            self._end_at = time.monotonic() + (self.end_timeout if self.flow_readers else 0.5)
+            self._end_at = time.monotonic() + (self.end_timeout if self.flow_readers else
+                                               min(self.end_timeout, UNPACED_END_S))
             self._publish_progress(force=True, end=True)
             self.get_logger().info(f"end of script: {n} samples published (on_end:={self.on_end})"
-                                   + (f"; waiting for {', '.join(self.flow_readers)} to take it" if self.flow_readers
+                                   + (f"; waiting for {', '.join(self.end_readers)} to take it" if self.end_readers
                                       else ""))
         else:
             self._publish_progress()

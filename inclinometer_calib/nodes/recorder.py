@@ -579,6 +579,14 @@ def main(args: Optional[List[str]] = None) -> int:
     finally:
         if executor is not None:
             executor.shutdown()   # no write from the hot path while the bag is finalized
+            if node is not None:
+                # what the DDS readers hold was delivered: recorded, not lost at the stop (an
+                # unpaced source's last samples and its end, which a busy machine had not served yet)
+                try:
+                    executor.take_waiting()
+                except Exception as exc:  # noqa: BLE001 — the bag is finalized whatever this says
+                    print(f"[{NODE_NAME}] the messages waiting at the stop were not all recorded: {exc}",
+                          file=sys.stderr, flush=True)
         if node is not None:
             _finalize(node)
             node.destroy_node()

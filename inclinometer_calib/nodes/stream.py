@@ -26,6 +26,7 @@ import time
 
 from geometry_msgs.msg import Vector3Stamped
 from rclpy.parameter import Parameter
+from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 
@@ -43,6 +44,10 @@ PROGRESS_PERIOD_S = 0.05
 PROGRESS_STEP = 100
 #: The source's end, with messages it sent still missing here: wait this long (wall, s) for them.
 END_WAIT_S = 10.0
+#: An unpaced source's end over best-effort streams: once nothing has arrived for this long (wall,
+#: s) after it, what is still missing was dropped from a full queue (best effort repairs nothing):
+#: the end is taken with the loss counted, not after the whole ``end_wait_s``.
+UNPACED_QUIET_S = 1.0
 #: A calibration node not in the graph for this long (wall, s) is gone: stations stop waiting for it.
 GONE_S = 5.0
 
@@ -130,6 +135,7 @@ class StreamDriver:
         self._skip = {}                # topic -> key up to which live messages were in the recording
         self.resent = 0
         qos = settings["qos"]
+        self._best_effort = qos.reliability == ReliabilityPolicy.BEST_EFFORT
         self.pub_progress = node.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos(depth=1))
         self.msg = StreamProgress()
         self.msg.node = node.get_name()
@@ -355,8 +361,9 @@ class StreamDriver:
             return
         if missing:
             text = ", ".join(f"{n} {k}" for n, k in missing.items())
-            self.log.error(f"the source's end came {self.end_wait:g} s ago and messages it sent never arrived here "
-                           f"({text}): the data end with what came; stations that needed them may be missing or cut")
+            self.log.error(f"the source's end came {time.monotonic() - self._end_seen:.1f} s ago and messages it "
+                           f"sent never arrived here ({text}): the data end with what came; stations that needed "
+                           "them may be missing or cut")
             self.engine.counts.lost = dict(missing)
         self._end_seen = None
         self.engine.end()
@@ -395,16 +402,18 @@ class StreamDriver:
     def _on_timer(self):
         eng = self.engine
         now = time.monotonic()
-        if self.source_end is not None and not eng.ended and self._end_seen is not None \
-                and now - self._end_seen > self.end_wait:
-            self._check_end(give_up=True)
+        paced = self.announced is not None and self.window > 0
+        if self.source_end is not None and not eng.ended and self._end_seen is not None:
+            dropped = (self._best_effort and not paced
+                       and now - max(self._end_seen, self._last_wall or -math.inf) > UNPACED_QUIET_S)
+            if dropped or now - self._end_seen > self.end_wait:
+                self._check_end(give_up=True)
         if eng.ended and not eng.done:       # the end came; stations still wait for the calibration node
             if self._end_seen is None:
                 self._end_seen = now
             elif now - self._end_seen > self.end_wait:
                 eng.release(force=True, why=f"{self.end_wait:g} s after the end of the data")
                 self._after()
-        paced = self.announced is not None and self.window > 0
         if self.announced is None and self.idle_flush > 0 and self._last_wall is not None \
                 and now - self._last_wall > self.idle_flush:
             self._last_wall = None      # a source that does not announce its end: the data paused or ended
