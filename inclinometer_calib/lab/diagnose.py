@@ -121,7 +121,9 @@ class Diagnosis:
     structure: list
     ranked: list
     untestable: list
-    significant_structure_left: bool
+    #: What the diagnosis found, one of :data:`FINDINGS` (:func:`finding`): the verdict's words and
+    #: the JSON's ``significant_structure_left`` both come from it.
+    finding: str
     verdict: str
     losses: list = field(default_factory=list)
     confounded: list = field(default_factory=list)
@@ -134,6 +136,12 @@ class Diagnosis:
     #: The noise model per sensor (:class:`allan.SensorNoise`): Allan deviation of the holds, the
     #: random walk across the stations (:func:`lab.noise.noise_model`).
     noise: dict = field(default_factory=dict)
+
+    @property
+    def significant_structure_left(self) -> bool:
+        """Structure the model leaves: an effect to add, a significant one not recommended, material
+        residual structure outside the catalogue, or a misfit beyond the noise."""
+        return self.finding not in ("explained", "refused")
 
     @property
     def recommended(self):
@@ -153,7 +161,7 @@ class Diagnosis:
                 "validation_kind": self.validation_kind,
                 "ranked": [c.to_json() for c in self.ranked],
                 "recommended": self.recommended.label if self.recommended else None,
-                "significant_structure_left": bool(self.significant_structure_left),
+                "significant_structure_left": bool(self.significant_structure_left), "finding": self.finding,
                 "confounded": self.confounded, "refused": self.refused,
                 "normalised_errors": self.uncertainty, "noise_floor": self.floor,
                 "structure": self.structure, "untestable": self.untestable, "verdict": self.verdict,
@@ -491,7 +499,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         refused = (f"the data left cannot identify the base model ({len(missing)} parameter(s): {why}), so no effect "
                    "can be ranked — add poses (all twelve, both rounds) or stations with references")
         verdict = _verdict(model, base_fit, base_val, [], None, [], False, losses=losses, refused=refused)
-        return Diagnosis(model, base_fit, base_val, base_score, [], [], untestable_effects(), False, verdict,
+        return Diagnosis(model, base_fit, base_val, base_score, [], [], untestable_effects(), "refused", verdict,
                          losses=losses, refused=refused)
     structure = residual_structure(model, data)
     noise = noise_model(model, data)
@@ -602,17 +610,17 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     _settle_stochastic(ranked, model, data, n_tests, say)
     ranked.sort(key=order)
     misfit = base_fit.z_rms > Z_RMS_LIMIT
-    dg = Diagnosis(model, base_fit, base_val, base_score, structure, ranked, untestable, False, "",
+    dg = Diagnosis(model, base_fit, base_val, base_score, structure, ranked, untestable, "explained", "",
                    losses=losses, confounded=confounded, noise=noise)
     ref = np.isfinite(data.ref[:, 0]) & ((data.role == "val") if by_field else True)
     if ref.any():
         dg.uncertainty = normalised_errors(model, base_fit, data.subset(ref))
         dg.floor = noise_floor(model, data.subset(ref))
     best = dg.recommended
-    dg.significant_structure_left = bool(best is not None or structure)
+    dg.finding = finding(best, ranked, structure, misfit)
     scatter = orientation_scatter_deg(model, data) if misfit else None
     dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
-                          confounded=confounded, uncertainty=dg.uncertainty, noise=noise)
+                          confounded=confounded, uncertainty=dg.uncertainty, noise=noise, found=dg.finding)
     return dg
 
 
@@ -754,8 +762,32 @@ def noise_line(noise) -> str:
             + ("; ".join(parts) or "no holds with samples (a bag keeps the stations' means only)") + ".")
 
 
+#: What a diagnosis can find (:func:`finding`), the first that holds.
+FINDINGS = ("refused", "recommended", "significant, not recommended", "outside the catalogue", "unstructured misfit",
+            "explained")
+
+
+def finding(best, ranked, structure, misfit: bool, refused: str = "") -> str:
+    """The one word for what a diagnosis found (:data:`FINDINGS`): refused (the base model cannot be
+    identified), an effect recommended, a significant candidate not recommended (it absorbs a
+    misfit), material residual structure no catalogue effect explains (R² ≥ :data:`MATERIAL_R2`), a
+    misfit beyond the noise without structure, or the data explained to the noise."""
+    if refused:
+        return "refused"
+    if best is not None:
+        return "recommended"
+    if any(c.significant for c in ranked):
+        return "significant, not recommended"
+    if any(e["r2"] >= MATERIAL_R2 for e in structure):
+        return "outside the catalogue"
+    if misfit:
+        return "unstructured misfit"
+    return "explained"
+
+
 def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter=None, losses=(), confounded=(),
-             refused="", uncertainty=None, noise=None) -> str:
+             refused="", uncertainty=None, noise=None, found=None) -> str:
+    found = found or finding(best, ranked, structure, misfit, refused)
     lines = [f"Model: {model.describe()}.",
              f"Fit: noise-normalised residual RMS {base_fit.z_rms:.2f} (1.0 = explained to the sensor noise)."]
     lost = losses_text(losses)
@@ -779,7 +811,9 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
     if structure:
         s = structure[0]
         lines.append(f"Strongest residual structure: {s['channel']} follows {s['regressor']} "
-                     f"(R² {s['r2']:.2f}, p {s['p']:.1e}).")
+                     f"(R² {s['r2']:.2f}, p {s['p']:.1e})" + ("" if s["r2"] >= MATERIAL_R2 else
+                                                             f": significant but slight (R² < {MATERIAL_R2:g}), not "
+                                                             "structure the model must explain") + ".")
     word = "field" if base_val.get("kind") == "field" else "in-sample"
     if best is not None:
         sig = signature(best)
@@ -841,7 +875,7 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
                          f"with random calibration-stand pose errors (stand_pose_error, different at every station) of about {sc.get('acc', float('nan')):.3f}° (from the accelerometer) / "
                          f"{sc.get('mag', float('nan')):.3f}° (from the magnetometer) rms, or with sensor noise "
                          "larger than the scatter inside the static segments shows.")
-        elif not strong:
+        elif found == "explained":
             lines.append("No significant structure left: the model explains the data to the noise level.")
     return "\n".join(lines)
 

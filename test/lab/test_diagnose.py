@@ -119,3 +119,18 @@ def test_declination_missing_from_the_site_is_found_as_a_heading_offset(tmp_path
     assert steps[-1].model.fit_heading
     assert abs(steps[-1].model.heading_deg - 2.0) < 0.01
     assert steps[-1].base_val["azimuth_rms_deg"] < 0.05
+
+
+def test_the_finding_is_the_first_that_holds_and_slight_structure_is_not_structure_left():
+    """One source for the verdict's words and the JSON (lab.diagnose.finding): a significant but
+    slight regression (R² below MATERIAL_R2) leaves nothing to explain; a material one is outside
+    the catalogue; a misfit without structure is said as such."""
+    from inclinometer_calib.lab.diagnose import MATERIAL_R2, finding
+
+    slight = [{"channel": "mag_x residual", "regressor": "temperature", "r2": MATERIAL_R2 / 3, "p": 1e-6}]
+    material = [dict(slight[0], r2=MATERIAL_R2 + 0.1)]
+    assert finding(None, [], slight, False) == "explained"
+    assert finding(None, [], material, False) == "outside the catalogue"
+    assert finding(None, [], slight, True) == "unstructured misfit"
+    assert finding(object(), [], material, True) == "recommended"
+    assert finding(None, [], [], False, refused="the base is not identifiable") == "refused"

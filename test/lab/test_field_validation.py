@@ -91,6 +91,9 @@ def test_a_small_real_effect_is_reported_and_clean_data_raise_no_alarm(tmp_path)
         dg = lab.diagnose(data, site=site)
         assert dg.recommended is None and not any(c.significant for c in dg.ranked), dg.verdict
         assert "No significant structure left" in dg.verdict
+        # the JSON says what the words say (it used to say structure was left)
+        js = dg.to_json()
+        assert js["significant_structure_left"] is False and js["finding"] == "explained"
         # the noise model resolves no random walk: no wander is tried, and the verdict says why
         walk = [u for u in dg.untestable if u["effect"].startswith("bias_wander")]
         assert {u["effect"] for u in walk} == {"bias_wander:acc:xyz", "bias_wander:mag:xyz"}
