@@ -114,8 +114,9 @@ class CaptureSession:
     solves: int = 0
 
     def __post_init__(self):
-        from .effects import parse_effects
-        self._specs = parse_effects(self.effects)   # a bad name is an error now, not at the first solve
+        from .effects import parse_effects, split_model_options
+        rest, self._options = split_model_options(self.effects)   # the stand's pose errors, a heading offset
+        self._specs = parse_effects(rest)   # a bad name is an error now, not at the first solve
         self.fit = None                   # the lab fit of the named effects (model.FitResult), if any
         self._round: list = []            # captures of a round in progress after the first solve
         self._dirty = False               # captures added since the last solve
@@ -560,7 +561,7 @@ class CaptureSession:
             if self.site is None:   # the site the stand measures is the record's (said by the caller)
                 cal.site = self.result.site_estimate(self._solve_site.gravity_mps2)
                 cal.site_source = "measured"
-            if self._specs:
+            if self._specs or self._options:
                 cal = self._fit_model(cal, notes)
             self.calibration = cal
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -595,28 +596,43 @@ class CaptureSession:
         the twelve-position solution; the stand's heading is fitted too (its north is not known).
         Parameters the captures cannot determine are named in the record and in ``notes``."""
         from .lab.fit import fit
-        from .lab.model import LabModel
+        from .lab.model import POSES_LABEL, LabModel
         from .station import Stations
 
         imp = self.result.implied_site()
-        lm = LabModel.from_calibration(cal, fit_heading=True)
+        lm = LabModel.from_calibration(cal, fit_heading=True)   # the stand's north is not known: always fitted
         lm.heading_deg = float(((imp["field_heading_deg"] - cal.site.declination_deg) + 180.0) % 360.0 - 180.0)
-        for spec in self._specs:
-            for eff in spec.build():
-                lm = lm.with_effect(eff, spec.scope)
+        lm = lm.with_named(self.effects)
+        named = lm.probe.labels() + ([POSES_LABEL] if lm.fit_poses else [])
         data = Stations.from_list(self.captures, "cal", source="captures")
-        res = fit(lm, data)
+        fixed = None
+        if lm.fit_poses:
+            # twelve poses alone do not separate every pose's rotation from the base model: the
+            # poses that are right (not left out of both triads alike) define the frame, held at
+            # zero; the rotations of those the stand holds off are fitted
+            off = list(self.result.poses_off)
+            idx = lm.param_index(POSES_LABEL)
+            fixed = np.zeros(len(lm.get_vector()), bool)
+            fixed[idx] = True
+            for q in off:
+                fixed[idx[3 * (q - 1):3 * q]] = False
+            lm.gauge_poses = np.array([q not in off for q in range(1, 13)])
+            notes.append("stand_pose_error: " + (f"the rotation of pose(s) {off} fitted, the other poses defining the "
+                                                 "frame" if off else "no pose is held off by these captures (none was "
+                                                 "left out of both triads alike): nothing to fit"))
+        res = fit(lm, data, fixed=fixed)
         if not res.success:
-            raise ValueError(f"the fit of {', '.join(lm.probe.labels())} did not converge: {res.message}")
+            raise ValueError(f"the fit of {', '.join(named)} did not converge: {res.message}")
         for n in res.not_identifiable:
-            notes.append(f"model {lm.probe.describe()}: {n.parameter} is not identifiable from these captures: "
+            notes.append(f"model [{', '.join(named) or 'base'}]: {n.parameter} is not identifiable from these captures: "
                          f"{n.reason}")
         self.fit = res
         out = lm.record(probe_id=self.probe_id, site_source=cal.site_source, not_identifiable=res.not_identifiable,
                         fit_stats={"chi2": res.chi2, "dof": res.dof, "z_rms": res.z_rms, "stations": len(data)},
-                        method=f"{cal.method}; then the lab's fit of {', '.join(lm.probe.labels())} to the captures")
+                        method=f"{cal.method}; then the lab's fit of {', '.join(named)} to the captures")
         out.diagnostics.update({k: v for k, v in cal.diagnostics.items() if k not in out.diagnostics})
-        notes.append(f"model fitted to the {len(data)} captures: {lm.probe.describe()}; noise-normalised residual RMS "
+        notes.append(f"model fitted to the {len(data)} captures: base (bias, scale, nonorthogonality) + "
+                     f"[{', '.join(named) or 'none'}]; noise-normalised residual RMS "
                      f"{res.z_rms:.2f} (the twelve-position model alone: {self.result.mag.z_rms:.2f} mag, "
                      f"{self.result.acc.z_rms:.2f} acc)")
         return out

@@ -365,9 +365,13 @@ def cmd_twelve_position(args):
         print(f"Implied by the corrected data: |B| {imp['total_field']:.1f} nT (site {site.total_field_nt:g}), "
               f"dip {imp['dip_deg']:.3f} deg (site {site.dip_deg:g}), stand tilt {imp['stand_tilt_deg']:.3f} deg")
     if session.fit is not None:
-        print(f"Model {cal.model.describe()} fitted to the captures: noise-normalised residual RMS "
+        poses = session.fit.model.fit_poses
+        with_poses = " with the stand's pose errors" if poses else ""
+        print(f"Model {cal.model.describe()}{with_poses} fitted to the captures: noise-normalised residual RMS "
               f"{session.fit.z_rms:.2f}")
         for r in session.fit.parameter_table(extras_only=True):
+            if poses and r["name"].startswith("stand_pose_error.") and r["std"] == 0 and r["value"] == 0:
+                continue   # a pose that is right: held at zero (it defines the frame)
             print(f"  {r['name']:<44}{r['value']:>14.6g} ± {r['std']:.2g} {r['unit']}")
         for n in cal.not_identifiable:
             print(f"  not identifiable: {n['parameter']}: {n['reason']}")

@@ -788,6 +788,45 @@ class EffectSpec:
         return out
 
 
+#: Names the effect grammar also takes that are not a triad's effects but options of the lab's fit
+#: (what ``lab diagnose`` recommends is accepted verbatim wherever a model is named): the stand's
+#: systematic pose errors (:class:`StandPoseError`'s name: a rotation per pose, the poses that are
+#: right defining the frame) and the heading offset between the stand's north and the site's.
+HEADING_OFFSET = "heading_offset"
+MODEL_OPTIONS = {StandPoseError.name: "fit_poses", HEADING_OFFSET: "fit_heading"}
+
+
+def split_model_options(text) -> tuple:
+    """``(effects_text, options)``: the model options of :data:`MODEL_OPTIONS` named in ``text``
+    (a string or list of strings in :func:`parse_effects`' grammar) taken out, as
+    ``{"fit_poses": True, ...}``; the rest as a list of strings for :func:`parse_effects`.  An
+    option takes no sensor, axes, scope or values (the lab fits what it is)."""
+    if text is None:
+        return None, {}
+    texts = [text] if isinstance(text, str) else list(text)
+    kept, options, after_option = [], {}, False
+    for tok in (t.strip() for x in texts for t in str(x).split(",")):
+        name = tok.split("=")[0].split("@")[0].split(":")[0].strip()
+        if name in MODEL_OPTIONS:
+            if tok != name:
+                raise ValueError(f"effect {tok!r}: {name} takes no sensor, axes, scope or values (the lab fits "
+                                 + ("a small rotation per pose of the stand" if name == StandPoseError.name else
+                                    "the angle between the stand's north and the site's") + ")")
+            options[MODEL_OPTIONS[name]] = True
+            after_option = True
+            continue
+        if after_option and tok:
+            try:
+                float(tok)
+            except ValueError:
+                pass
+            else:
+                raise ValueError(f"effect value {tok!r} after {name or 'a model option'}, which takes no values")
+        after_option = False
+        kept.append(tok)
+    return ",".join(kept), options
+
+
 def parse_effects(text) -> list:
     """Parse effect specifications (a string, or a list of strings) into :class:`EffectSpec` items.
 

@@ -286,6 +286,8 @@ class TwelvePositionResult:
     acc: TriadSolution
     mag: TriadSolution
     notes: list = field(default_factory=list)   # stations refused and other warnings, as text
+    #: Poses left out of both triads alike: the stand holds them off (one rotation of the probe).
+    poses_off: list = field(default_factory=list)
 
     def implied_site(self) -> dict:
         """Total field and dip implied by the corrected magnetometer (a check on the stand/site)."""
@@ -685,7 +687,7 @@ def solve_captures(acc: CaptureSet, mag: CaptureSet, site, field_down: float | N
             notes.append(f"{name}: the residuals are {sol.z_rms:.1f}× what the measured noise explains: the stand's "
                          "poses are off (a worn or badly set stand) or the probe has an effect the twelve-position "
                          "model lacks (temperature, nonlinearity ...) — `inclinometer-calib lab diagnose` tells which")
-    return TwelvePositionResult(acc=sols["acc"], mag=sols["mag"], notes=notes)
+    return TwelvePositionResult(acc=sols["acc"], mag=sols["mag"], notes=notes, poses_off=both)
 
 
 def _diagnostics(sol: TriadSolution, unit: str) -> dict:

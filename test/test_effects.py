@@ -89,3 +89,16 @@ def test_register_refuses_a_name_collision():
         stage = "output"
     with pytest.raises(ValueError, match="already taken"):
         fx.register(Clash)
+
+
+def test_the_stand_and_heading_options_are_taken_out_of_an_effect_list_and_refuse_values():
+    """What the lab recommends is accepted verbatim: stand_pose_error and heading_offset are options
+    of the lab's fit, not a triad's effects (effects.split_model_options)."""
+    rest, options = fx.split_model_options("temperature_bias:mag=1,2,3, stand_pose_error,heading_offset")
+    assert options == {"fit_poses": True, "fit_heading": True}
+    assert [s.name for s in fx.parse_effects(rest)] == ["temperature_bias"]
+    assert list(fx.parse_effects(rest)[0].values) == [1.0, 2.0, 3.0]
+    for bad in ("stand_pose_error=0.2", "stand_pose_error:acc", "heading_offset@val", "heading_offset,0.5"):
+        with pytest.raises(ValueError):
+            fx.split_model_options(bad)
+    assert fx.split_model_options(None) == (None, {})

@@ -61,7 +61,7 @@ PARALLEL = 0.9
 #: a likelihood ratio of e^5 ≈ 150.
 PREFER_CHI2 = 10.0
 #: Pseudo-effect: a heading offset between the stand's north and the site reference's north.
-HEADING = "heading_offset"
+HEADING = fx.HEADING_OFFSET
 HEADING_SIGNATURE = ("a constant azimuth error: the stand's north (or the declination) differs from the site "
                      "reference's — check the declination in the site file, or keep the offset fitted (--fit-heading)")
 

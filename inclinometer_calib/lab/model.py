@@ -58,6 +58,19 @@ class LabModel:
         """A record's model, with the record's site, as the start of a fit."""
         return cls(site=cal.site, probe=copy.deepcopy(cal.model), **kw)
 
+    def with_named(self, text) -> "LabModel":
+        """A copy with the effects named in the package's grammar (:func:`effects.parse_effects`)
+        added, the stand's pose errors and the heading offset among them
+        (:func:`effects.split_model_options`): whatever ``lab diagnose`` recommends."""
+        rest, options = fx.split_model_options(text)
+        new = copy.deepcopy(self)
+        for key in options:
+            setattr(new, key, True)
+        for spec in fx.parse_effects(rest):
+            for eff in spec.build():
+                new = new.with_effect(eff, spec.scope)
+        return new
+
     def with_effect(self, effect: fx.Effect, scope: str | None = None) -> "LabModel":
         """A copy with one more effect (see :meth:`model.ProbeModel.with_effect`)."""
         new = copy.deepcopy(self)
@@ -73,7 +86,7 @@ class LabModel:
         return self.probe.extra_terms
 
     def labels(self) -> list:
-        return self.probe.labels() + (["heading_offset"] if self.fit_heading else []) + \
+        return self.probe.labels() + ([fx.HEADING_OFFSET] if self.fit_heading else []) + \
             ([POSES_LABEL] if self.fit_poses else [])
 
     def _n_site(self) -> int:
@@ -83,7 +96,7 @@ class LabModel:
         """Indices in the parameter vector of one term (its :attr:`model.Term.label`), or of the
         stand's heading offset (``heading_offset``)."""
         n_probe = len(self.probe.param_names())
-        if label == "heading_offset":
+        if label == fx.HEADING_OFFSET:
             return np.array([n_probe + self._n_site() - 1]) if self.fit_heading else np.zeros(0, int)
         if label == POSES_LABEL:
             return np.arange(n_probe + self._n_site(), n_probe + self._n_site() + 3 * N_POSES) if self.fit_poses \
@@ -98,7 +111,7 @@ class LabModel:
     def without(self, label: str) -> "LabModel":
         """A copy without one extra term (or without the fitted heading offset)."""
         new = copy.deepcopy(self)
-        if label == "heading_offset":
+        if label == fx.HEADING_OFFSET:
             new.fit_heading, new.heading_deg = False, 0.0
             return new
         if label == POSES_LABEL:

@@ -16,12 +16,9 @@ def effect(name: str, sensor: str | None = None, axes: str | None = None) -> fx.
 
 def build_model(site, effects_text=None, **kw) -> LabModel:
     """The paper's base model plus the effects named in the package's grammar
-    (:func:`effects.parse_effects`; values given there are the starting point of a fit)."""
-    model = LabModel.base(site, **kw)
-    for spec in fx.parse_effects(effects_text):
-        for eff in spec.build():
-            model = model.with_effect(eff, spec.scope)
-    return model
+    (:func:`effects.parse_effects`; values given there are the starting point of a fit), the
+    stand's pose errors and the heading offset among them (:meth:`LabModel.with_named`)."""
+    return LabModel.base(site, **kw).with_named(effects_text)
 
 
 def uncorrected_metrics(data, site) -> dict:

@@ -49,7 +49,7 @@ from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
 from ..capture import CaptureSession
-from ..effects import parse_effects
+from ..effects import parse_effects, split_model_options
 from ..engine import RecordOut, StreamEngine
 from ..frames import gravity_from_specific_force
 from ..plugins import NODE_PARAMETER, name_plugins
@@ -63,7 +63,7 @@ from inclinometer_calib.srv import RecapturePose
 
 def _check_effects(text):
     try:
-        parse_effects(text)
+        parse_effects(split_model_options(text)[0])   # what the lab recommends, stand_pose_error too
     except ValueError as exc:
         return str(exc)
     return None

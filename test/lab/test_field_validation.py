@@ -261,15 +261,23 @@ def test_a_worn_stand_is_named_with_the_poses_that_are_off_and_fitted_to_the_tru
             r = rows[f"stand_pose_error.r{a}_p{pose}"]
             assert abs(r["value"] - true) < max(4 * r["std"], 0.01), (pose, a, r)
     assert "pose 3 by" in dg.verdict and "pose 7 by" in dg.verdict
-    # fitted on the calibration log alone, the survey error falls to the true model's level
+    # the recommendation applied verbatim, fitted on the calibration log alone: the survey error
+    # falls to the true model's level
     true = _true_level(gen, data, site)
-    model = lab.LabModel.base(site)
-    model.fit_poses = True
+    model = lab.build_model(site, top.label)
+    assert model.fit_poses and model.labels() == ["stand_pose_error"]
     v = _cal_only(model, data)
     assert v["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"]
     assert v["drift_rms_deg"] <= 1.2 * true["drift_rms_deg"]
     base = _cal_only(lab.LabModel.base(site), data)
     assert base["azimuth_rms_deg"] > 2 * true["azimuth_rms_deg"]
+    # and through the commands a user runs (they used to refuse "a whole-probe effect of the simulator")
+    args = ["--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site", str(tmp_path / "site.yaml"),
+            "--effects", top.label]
+    assert main(["lab", "fit", *args, "--fit-on", "cal", "-o", str(tmp_path / "fitted.yaml")]) == 0
+    record = yaml.safe_load((tmp_path / "fitted.yaml").read_text())
+    assert set(record["fit"]["stand_pose_errors_deg"]) >= set(OFF)
+    assert main(["lab", "diagnose", *args, "--json"]) == 0
 
 
 def test_twelve_position_says_which_pose_the_stand_holds_off(tmp_path, capsys):
@@ -281,6 +289,16 @@ def test_twelve_position_says_which_pose_the_stand_holds_off(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "pose 3 was left out of both triads alike" in err and "stand_pose_error" in err
     assert "pose 5" not in err
+    # what it advises is accepted verbatim: the pose rotations fitted to the captures, kept in the
+    # record as the stand's (never applied to the probe)
+    assert main(["twelve-position", str(tmp_path / "cal.csv"), "--site", str(tmp_path / "site.yaml"), "-o",
+                 str(tmp_path / "c2.yaml"), "--effects", "stand_pose_error"]) == 0
+    record = yaml.safe_load((tmp_path / "c2.yaml").read_text())
+    assert "stand_pose_error" in record["method"]
+    assert 3 in record["fit"]["stand_pose_errors_deg"]
+    assert main(["twelve-position", str(tmp_path / "cal.csv"), "--site", str(tmp_path / "site.yaml"), "-o",
+                 str(tmp_path / "c3.yaml"), "--effects", "stand_pose_error=0.2"]) == 2
+    assert "takes no sensor, axes, scope or values" in capsys.readouterr().err
 
 
 def test_the_predicted_uncertainty_holds_when_the_model_is_right_and_says_when_it_is_not(tmp_path):
