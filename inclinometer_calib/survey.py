@@ -84,6 +84,17 @@ def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict
     return out
 
 
+def compared_toolface_deg(res: dict, ref_drift_deg, tol: Tolerances = Tolerances()) -> np.ndarray:
+    """The toolface :func:`reference_errors` compares with a reference of drift ``ref_drift_deg``:
+    the gravity toolface, the magnetic one where the reference is vertical (within
+    ``tol.min_drift_deg``) — not the reported ``toolface_deg``, which switches to the magnetic
+    toolface inside ``tol.gravity_toolface_min_drift_deg`` (a predicted σ of a toolface error must
+    be this one's: at 2° drift the gravity toolface's noise is ~15× the magnetic one's)."""
+    with np.errstate(invalid="ignore"):
+        vertical = in_vertical_cone(np.asarray(ref_drift_deg, dtype=float), tol.min_drift_deg)
+    return np.where(vertical, res["magnetic_toolface_deg"], res["gravity_toolface_deg"])
+
+
 def reference_errors(res: dict, ref, site: Site, tol: Tolerances = Tolerances()) -> dict:
     """``drift_err``, ``azimuth_err``, ``toolface_err`` (deg) of evaluated stations ``res`` against
     reference attitudes ``ref`` (N, 3): drift, azimuth, toolface in degrees, NaN where not given
@@ -94,14 +105,14 @@ def reference_errors(res: dict, ref, site: Site, tol: Tolerances = Tolerances())
         vertical = in_vertical_cone(rd, tol.min_drift_deg)
         az_err = wrap180(res["azimuth_deg"] - ra)
         azimuth_err = np.where(res["azimuth_undefined"] | vertical | ~np.isfinite(ra), np.nan, az_err)
-        tf_err = wrap180(res["gravity_toolface_deg"] - rt)
+        tf_ref = rt
         # vertical reference: the rotation about the vertical, from the field (magnetic toolface)
         if np.any(vertical & np.isfinite(rt)):
             r = frames.orientation_matrix(np.where(np.isfinite(rd), rd, 0.0), np.where(np.isfinite(ra), ra, 0.0),
                                           np.where(np.isfinite(rt), rt, 0.0))
             b_ref = np.swapaxes(r, -1, -2) @ site.field_ned()
-            mtf_ref = frames.magnetic_toolface_deg(b_ref)
-            tf_err = np.where(vertical, wrap180(res["magnetic_toolface_deg"] - mtf_ref), tf_err)
+            tf_ref = np.where(vertical, frames.magnetic_toolface_deg(b_ref), rt)
+        tf_err = wrap180(compared_toolface_deg(res, rd, tol) - tf_ref)
         toolface_err = np.where(np.isfinite(rt), tf_err, np.nan)
     return {"drift_err": res["drift_deg"] - rd, "azimuth_err": azimuth_err, "toolface_err": toolface_err}
 

@@ -23,17 +23,19 @@ import copy
 import numpy as np
 
 from ..frames import Site, wrap180
-from ..survey import evaluate
+from ..survey import compared_toolface_deg, evaluate
 
 ANGLES = ("drift", "azimuth", "toolface")
 
 
 def _angles(model, data) -> np.ndarray:
+    """Drift, azimuth and the toolface a reference error compares (:func:`survey.compared_toolface_deg`:
+    the gravity toolface, the magnetic one at a vertical reference), deg."""
     g, b = model.correct(data)
     site = Site(model.site.total_field_nt, model.site.dip_deg, model.site.declination_deg + model.heading_deg,
                 model.site.gravity_mps2)
     r = evaluate(g, b, site)
-    return np.stack([r["drift_deg"], r["azimuth_deg"], r["toolface_deg"]], axis=1)
+    return np.stack([r["drift_deg"], r["azimuth_deg"], compared_toolface_deg(r, data.ref[:, 0])], axis=1)
 
 
 def _diff(a, b) -> np.ndarray:
