@@ -63,13 +63,17 @@ def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None) -> Loo
                          f"record {live.id}, {live.model.describe()}):")
         res.lines += ["  " + ln for ln in dg.verdict.splitlines()]
         if rec is not None and rec.effect != HEADING:
-            model = copy.deepcopy(dg.model).with_effect(fx.make_effect(rec.effect, rec.sensor, rec.axes), rec.scope)
+            if rec.effect in fx.MODEL_OPTIONS:     # the stand's pose errors: an option of the fit, not an effect
+                model = dg.model.with_named(rec.effect)
+            else:
+                model = copy.deepcopy(dg.model).with_effect(fx.make_effect(rec.effect, rec.sensor, rec.axes),
+                                                            rec.scope)
             result = fit(model, data)    # the best record: every station of the run, references too
             res.record = model.record(probe_id=live.probe_id, site_source=live.site_source,
                                       not_identifiable=result.not_identifiable,
                                       fit_stats={"chi2": result.chi2, "dof": result.dof, "z_rms": result.z_rms,
                                                  "stations": len(data), "data": data.describe()},
-                                      method=f"lab fit of {model.probe.describe()} to the run's captures and "
+                                      method=f"lab fit of {model.describe()} to the run's captures and "
                                              f"reference stations, from the live record {live.id}")
             path = os.path.join(out_dir, "lab_model.yaml")
             res.record.save(path)
