@@ -573,6 +573,12 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         if label == POSES_LABEL:     # the poses that are off, each with its three angles
             off = [int(t["axis"].split()[1]) for t in axis_tests if t["significant"]]
             idx = np.concatenate([idx[3 * (q - 1):3 * q] for q in off]) if off else idx[:0]
+            if significant and not off and transfers:
+                # a worn stand holds some poses off; rotations that help only all together, none
+                # on its own, absorb a misfit spread over the session (a wandering bias, a drift)
+                transfers = False
+                why = ("no pose is off on its own (each pose's rotation is within the noise): the rotations absorb a "
+                       "misfit spread over all the poses, not a stand holding some off")
         instance = next((copy.deepcopy(t.effect) for t in trial.probe.terms if t.label == label), None)
         ranked.append(Candidate(name, sensor, axes, scope, val, sc, gain, base_fit.chi2 - f.chi2,
                                 f.bic() - base_fit.bic(), wchi2, p, significant, axis_tests,
