@@ -94,6 +94,8 @@ DEPTH_PERIOD_S = 0.5
 REFERENCE_PERIOD_S = 1.0
 #: The progress (StreamProgress) goes out at most this often while publishing (wall time, s).
 PROGRESS_PERIOD_S = 0.02
+#: After the last sample the progress (with the end) is repeated this often (wall, s).
+ENDING_PROGRESS_PERIOD_S = 1.0
 #: Exit status at the end of the script when the MCAP input was damaged (the launcher reports it).
 INPUT_DAMAGED = 3
 #: Shortest wall-clock interval between two /clock messages, s: enough for the other nodes'
@@ -326,7 +328,7 @@ class ProbeNode(Node):
         # the source's announcement, its pacing and what it sent (StreamProgress): the readers'
         # stations wait on the data's time alone, and the run's accounting starts here
         self.pub_progress = self.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos())
-        # what an unpaced end waits to have acknowledged by every matched reader (_drained)
+        # what the end waits to have acknowledged by every matched reader (_drained)
         self._reliable_pubs = [self.pub_ref, self.pub_depth, self.pub_progress] + (
             [self.pub_imu, self.pub_mag, self.pub_temp] if qos.reliability == ReliabilityPolicy.RELIABLE else [])
         self.progress = StreamProgress(node=self.get_name(), settled=math.nan, window=self.window if self.flow_readers
@@ -744,7 +746,9 @@ class ProbeNode(Node):
                                           f"{', '.join(missing)}: starting anyway")
                 self._start()
         elif self._state == "ending":
-            self._publish_progress()
+            # the end is latched: repeated once a second, not every tick, so that the acknowledgements
+            # the end waits for (_drained) are not always one message behind
+            self._publish_progress(period=ENDING_PROGRESS_PERIOD_S)
             if self._drained() or time.monotonic() >= self._end_at:
                 self._finish()
         if self.flow_readers:
@@ -827,7 +831,12 @@ class ProbeNode(Node):
                                           f"{now - self._last_sent_wall:.0f} s")
 
     def _not_drained(self) -> list:
-        out = [f"{r} has not" for r in self.end_readers if r not in self._gone and r not in self._reader_ends]
+        # every reliable stream acknowledged by every matched reader: a message lost in transport
+        # waits for the writer's next heartbeat to be repaired (seconds), and a recorder stopped
+        # before that never has it (the references a loaded machine's recorder lost at the end)
+        out = [f"{pub.topic_name} is not acknowledged by every reader" for pub in self._reliable_pubs
+               if not pub.wait_for_all_acked(_NO_WAIT)]
+        out += [f"{r} has not" for r in self.end_readers if r not in self._gone and r not in self._reader_ends]
         rec = self.recorder_name
         if rec in self.flow_readers and rec not in self._gone and rec in self._reader_counts:
             have = self._reader_counts[rec]
@@ -838,18 +847,16 @@ class ProbeNode(Node):
         return out
 
     def _drained(self) -> bool:
-        """Every reader has taken the end, and the recorder every station and record the others
-        published (their last counts, with the end)."""
-        if not self.flow_readers:
-            # unpaced: the end (and, with reliable streams, every sample) is in every matched
-            # reader's queue — acknowledged — before the writers go with this process; and the
-            # end readers have taken it
-            return all(pub.wait_for_all_acked(_NO_WAIT) for pub in self._reliable_pubs) and not self._not_drained()
+        """Every reliable stream is acknowledged by every reader, every reader has taken the end,
+        and the recorder every station and record the others published (their last counts, with
+        the end)."""
+        # the end (and every message of a reliable stream) is in every matched reader's queue —
+        # acknowledged — before the writers go with this process; the end readers have taken it
         return not self._not_drained()
 
-    def _publish_progress(self, force: bool = False, end: bool = False):
+    def _publish_progress(self, force: bool = False, end: bool = False, period: float = PROGRESS_PERIOD_S):
         now = time.monotonic()
-        if not force and now - self._progress_wall < PROGRESS_PERIOD_S:
+        if not force and now - self._progress_wall < period:
             return
         self._progress_wall = now
         m = self.progress
