@@ -156,6 +156,11 @@ class Effect(abc.ABC):
     separated_by: ClassVar[str] = ""
     #: Set on plug-in classes by :func:`plugins.load_plugin`: ``{"file" or "module": ..., "sha256": ...}``.
     plugin: ClassVar[dict | None] = None
+    #: What the effect stands in for when it is not itself a physical cause (empty: it is one): a
+    #: bias drifting with time fits whatever follows time — a temperature lag, a settling, an
+    #: ageing.  The lab recommends a proxy over a physical candidate only when it also predicts
+    #: held-out data better, and never calls it the physical cause.
+    proxy: ClassVar[str] = ""
     #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
     #: estimates from the data (:mod:`lab.wander`), not values a least-squares fit moves.
     stochastic: ClassVar[bool] = False
@@ -554,6 +559,8 @@ class BiasDrift(Effect):
     needs: ClassVar[tuple] = ("time",)
     signature: ClassVar[str] = "residuals following time"
     separated_by: ClassVar[str] = SEPARATE_TIME
+    proxy: ClassVar[str] = ("anything that follows time: a temperature the sensor feels late (a thermal lag), a "
+                            "settling after power-on, an ageing")
     field_regressors: ClassVar[tuple] = ("time",)
     specs: ClassVar[tuple] = (_spec("rate", "m/s^2/h", "nT/h", 0.002, 30.0, "bias drift per hour"),)
 

@@ -55,6 +55,12 @@ ABSORB = 0.1
 WORSE = 0.01
 #: Residual structure that explains less of a channel's variance than this is not called structure.
 MATERIAL_R2 = 0.3
+#: Notes that set a significant candidate aside (another explains its residuals, or a physical
+#: candidate predicts held-out data as well as this proxy does).
+SET_ASIDE = ("explained by", "not preferred")
+#: Cross-validation folds (blocks of consecutive validation stations) of the held-out comparison
+#: of a proxy (a drift in time) with a physical candidate.
+HELD_OUT_FOLDS = 4
 #: Residual changes of two effects this parallel (cosine) make the effects alternatives.
 PARALLEL = 0.9
 #: χ² (in units of the reduced χ²) by which one of two alternatives must fit better to be preferred:
@@ -146,7 +152,7 @@ class Diagnosis:
     @property
     def recommended(self):
         for c in self.ranked:
-            if c.significant and c.transfers and not c.note.startswith("explained by"):
+            if c.significant and c.transfers and not c.note.startswith(SET_ASIDE):
                 return c
         return None
 
@@ -602,7 +608,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
 
     def order(c):
         merit = (c.score if by_field and np.isfinite(c.score) else c.delta_bic) if c.significant else c.p
-        return (not c.significant, not c.transfers, c.note.startswith("explained by"), c.after, merit)
+        return (not c.significant, not c.transfers, c.note.startswith(SET_ASIDE), c.after, merit)
 
     # The stand's systematic pose errors: the same pose off the same way in every round.
     repeated = np.bincount(data.pose[(data.kind == "pose") & (data.pose >= 1)], minlength=N_POSES + 1)
@@ -612,7 +618,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         trial.fit_poses = True
         score(trial, POSES_LABEL, POSES_LABEL, "probe", "", "cal")
     ranked.sort(key=order)
-    confounded = _confounding(ranked, r_base)
+    confounded = _confounding(ranked, r_base, data, say)
     _settle_stochastic(ranked, model, data, n_tests, say)
     ranked.sort(key=order)
     misfit = base_fit.z_rms > Z_RMS_LIMIT
@@ -630,14 +636,35 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     return dg
 
 
-def _confounding(ranked, r_base) -> list:
+def _proxy(c) -> str:
+    """What candidate ``c``'s effect stands in for (:attr:`effects.Effect.proxy`), '' if it is a cause."""
+    return getattr(fx.CATALOGUE.get(c.effect), "proxy", "")
+
+
+def _confounding(ranked, r_base, data=None, say=None) -> list:
     """Pairs of significant candidates on the same sensor axes, or whose residual changes are nearly
     parallel: the one that fits clearly better explains the other; otherwise they are confounded.
-    Marks the explained ones."""
+    Marks the explained ones.
+
+    A proxy (:attr:`effects.Effect.proxy`: a drift in time) that fits better than a physical
+    candidate is preferred only if it also predicts held-out data better (blocked cross-validation
+    of the validation stations with a reference, :func:`cross_validate`); otherwise the physical
+    one is, and the two are said to be confounded.  Without such data nothing is held out: the
+    physical candidate is preferred."""
     # a stochastic effect fits any slow misfit: it is weighed against the deterministic ones apart
     # (:func:`_settle_stochastic`), not named as explaining them by its flexibility
     sig = [c for c in ranked if c.significant and c.residual is not None and not c.stochastic]
     out = []
+    held = {}
+    folds = blocked_folds(data, HELD_OUT_FOLDS) if data is not None else []
+
+    def held_out(c):
+        if c.label not in held:
+            if say:
+                say(f"held-out blocks: {c.label}")
+            held[c.label] = cross_validate(c.fit_all.model, data, folds).get("pointing_rms_deg", float("nan"))
+        return held[c.label]
+
     for i, top in enumerate(sig):
         if top.note:
             continue
@@ -656,6 +683,21 @@ def _confounding(ranked, r_base) -> list:
                   (fx.CATALOGUE[other.effect].separated_by if other.effect in fx.CATALOGUE else "")
             entry = {"first": top.label, "second": other.label, "cosine": cos, "delta_chi2": margin,
                      "separated": bool(margin >= PREFER_CHI2), "experiment": sep}
+            if margin >= PREFER_CHI2 and _proxy(top) and not _proxy(other):
+                a, b = (held_out(top), held_out(other)) if folds else (float("nan"), float("nan"))
+                entry["held_out_pointing_rms_deg"] = {top.label: a, other.label: b}
+                if not (a < b):
+                    # the drift in time fits the fitted data better but predicts no better: the
+                    # physical candidate is preferred, the two are confounded
+                    entry.update(first=other.label, second=top.label, separated=False, proxy=True)
+                    out.append(entry)
+                    why = (f"on held-out blocks of the survey it predicts no better (pointing RMS {a:.4f}° against "
+                           f"{b:.4f}°)" if folds else "no held-out data can tell them apart")
+                    top.note = (f"not preferred over {other.label}: it fits the fitted data better (Δχ² {margin:.0f}) "
+                                f"but {why}; a drift in time stands for {_proxy(top)}")
+                    other.note = other.note or f"confounded with {top.label}"
+                    break
+                entry["held_out"] = True
             out.append(entry)
             if margin >= PREFER_CHI2:
                 other.note = f"explained by {top.label}: it fits the same residuals worse (Δχ² {margin:.0f})"
@@ -672,7 +714,7 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
     the model, the noise model is estimated again; if it resolves no walk, the wander is explained
     by ``D``.  Otherwise the wander is fitted on top, and if ``D`` is no longer significant (Wald,
     Bonferroni) ``D`` is explained by the wander; else both stay, the wander ranked after ``D``."""
-    det = [c for c in ranked if c.significant and c.transfers and not c.stochastic and not c.note.startswith("explained")]
+    det = [c for c in ranked if c.significant and c.transfers and not c.stochastic and not c.note.startswith(SET_ASIDE)]
     for sc in [c for c in ranked if c.stochastic and c.significant and not c.note]:
         if not det:
             return
@@ -703,8 +745,21 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
         lr = max((fs.chi2 + penalty_total(ms)) - (f.chi2 + penalty_total(mds)), 0.0) / red
         p = float(chdtrc(len(mds.param_index(d_label)), lr))
         if p * n_tests > ALPHA:
-            d.note = (f"explained by {sc.label}: no longer significant once the wander is fitted "
-                      f"(likelihood ratio χ² {lr:.1f}, p {min(p * n_tests, 1.0):.2g})")
+            # a path absorbs any slow misfit: the wander explains D only if it also predicts
+            # held-out blocks of the survey better than D does (else D first, the wander after it)
+            folds = blocked_folds(data, HELD_OUT_FOLDS)
+            a = cross_validate(ms, data, folds).get("pointing_rms_deg", float("nan")) if folds else float("nan")
+            b = cross_validate(md, data, folds).get("pointing_rms_deg", float("nan")) if folds else float("nan")
+            if a < b:
+                d.note = (f"explained by {sc.label}: no longer significant once the wander is fitted "
+                          f"(likelihood ratio χ² {lr:.1f}, p {min(p * n_tests, 1.0):.2g}), and the wander predicts "
+                          f"held-out blocks better (pointing RMS {a:.4f}° against {b:.4f}°)")
+            else:
+                sc.after = True
+                sc.note = ""
+                d.note = d.note or (f"preferred to {sc.label}, which fits it away but predicts held-out blocks no "
+                                    f"better (pointing RMS {a:.4f}° against {b:.4f}°)" if folds else
+                                    f"preferred to {sc.label}, which fits it away: no held-out data can tell them apart")
         else:
             sc.after = True
 
@@ -846,10 +901,25 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
         lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; significant against the noise "
                      f"({test}, p {best.p:.1e}, ΔBIC {best.delta_bic:.0f}): {effect_size}"
                      + (f"; adding it changes {' and '.join(changes)}" if changes else "") + ".")
+        if _proxy(best) and not any(c["first"] == best.label and c["separated"] for c in confounded):
+            lines.append(f"A drift in time is not itself a cause: it stands for {_proxy(best)} — no physical "
+                         "candidate of the catalogue explains these residuals as well.")
         for c in confounded:
             if c["first"] != best.label:
                 continue
-            if c["separated"]:
+            if c.get("proxy"):
+                ho = c["held_out_pointing_rms_deg"]
+                lines.append(f"Confounded: {c['second']} fits the fitted data better (Δχ² {c['delta_chi2']:.0f}) but "
+                             + (f"predicts held-out blocks of the survey no better (pointing RMS {ho[c['second']]:.4f}° "
+                                f"against {ho[best.label]:.4f}°)" if np.isfinite(ho[best.label]) else
+                                "no held-out data can tell them apart")
+                             + f": {best.label} is the physical explanation recommended; a drift in time is not a "
+                             f"cause. The experiment that separates them: {c['experiment']}.")
+            elif c["separated"] and _proxy(best):
+                lines.append(f"{c['second']} fits the same residuals alike in shape but clearly worse (Δχ² "
+                             f"{c['delta_chi2']:.0f}), on held-out blocks too: the data prefer {best.label}; a drift in "
+                             f"time is not itself a cause — it stands for {_proxy(best)}.")
+            elif c["separated"]:
                 lines.append(f"{c['second']} fits the same residuals alike in shape but clearly worse (Δχ² "
                              f"{c['delta_chi2']:.0f}): the data separate them, and {best.label} is the physical cause.")
             else:

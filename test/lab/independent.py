@@ -18,6 +18,7 @@ station's mean output corrected with the true parameters (what a perfect model w
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +47,7 @@ class Triad:
     remanence: float = 0.0                # share of the previous hold's true input kept (same log)
     survey_field: np.ndarray = field(default_factory=lambda: np.zeros(3))   # tool-frame field of the drill string
     square: np.ndarray = field(default_factory=lambda: np.zeros(3))   # y_i += square_i·x_i²/scale (scale: 1 g, 50 µT)
+    temp_lag_s: float = 0.0               # the sensor's temperature lags the logged one (first order, s)
 
 
 @dataclass
@@ -138,6 +140,31 @@ class Generator:
         self.t = 0.0
         self.walk_state = {"acc": np.zeros(3), "mag": np.zeros(3)}
         self.walk_track = {"acc": [], "mag": []}   # (t, value) per sample, for the true model
+        self.lag_state = {}                         # the temperature each sensor feels, across logs
+        self.felt_track = {"acc": [], "mag": []}   # (t, felt temperature), for the true model
+
+    def _lagged(self, name, t, temp, tau):
+        """The temperature the sensor feels: the logged one through a first-order lag of ``tau`` s,
+        continuing from the previous log (exact for a temperature linear between samples' ends)."""
+        state = self.lag_state.get(name, float(temp[0]))
+        out = np.empty_like(temp)
+        prev_t = t[0]
+        for k in range(len(t)):
+            a = math.exp(-max(t[k] - prev_t, 0.0) / tau)
+            state = a * state + (1.0 - a) * temp[k]
+            out[k] = state
+            prev_t = t[k]
+        self.lag_state[name] = state
+        self.felt_track[name].append((t.copy(), out.copy()))
+        return out
+
+    def felt_at(self, name, times, logged):
+        """The temperature sensor ``name`` felt at ``times`` (the logged one where it has no lag)."""
+        if not self.felt_track[name]:
+            return logged
+        t = np.concatenate([a for a, _ in self.felt_track[name]])
+        f = np.concatenate([b for _, b in self.felt_track[name]])
+        return np.interp(times, t, f)
 
     def outputs(self, t, rot, temp, prev_rot=None, prev_ok=None, survey=False):
         g_ned, b_ned = self.site.vectors()
@@ -148,7 +175,8 @@ class Generator:
             if survey:                                       # the drill string's field moves with the tool
                 x = x + tr.survey_field
             y = x @ tr.gain.T + tr.square * x ** 2 / (9.81 if name == "acc" else 5e4)
-            y = y + tr.bias + np.outer(temp - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
+            felt = self._lagged(name, t, temp, tr.temp_lag_s) if tr.temp_lag_s > 0 else temp
+            y = y + tr.bias + np.outer(felt - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
             if tr.remanence and prev_rot is not None:        # the previous hold's input, a little of it kept
                 y = y + tr.remanence * np.nan_to_num(prev_rot.inv().apply(v_ned) * prev_ok[:, None])
             if tr.walk:
@@ -202,7 +230,8 @@ def true_vectors(gen: Generator, data):
     out = []
     for name, meas in (("acc", data.g), ("mag", data.b)):
         tr = gen.probe[name]
-        y = meas - tr.bias - np.outer(data.temp_c - T0_C, tr.temp_coef) - np.outer(data.time_s / 3600.0, tr.drift_rate)
+        felt = gen.felt_at(name, data.time_s, data.temp_c)
+        y = meas - tr.bias - np.outer(felt - T0_C, tr.temp_coef) - np.outer(data.time_s / 3600.0, tr.drift_rate)
         y = y - gen.walk_at(name, data.time_s)
         if tr.remanence:
             v_ned = gen.site.vectors()[0 if name == "acc" else 1]

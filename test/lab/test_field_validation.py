@@ -280,6 +280,27 @@ def test_a_worn_stand_is_named_with_the_poses_that_are_off_and_fitted_to_the_tru
     assert main(["lab", "diagnose", *args, "--json"]) == 0
 
 
+def test_a_drift_in_time_that_predicts_held_out_blocks_no_better_is_not_preferred_to_temperature(tmp_path):
+    """A magnetometer that feels the temperature 60 s late, heated by a ramp during the calibration:
+    a drift in time fits the fitted data better than a temperature bias, but predicts held-out
+    blocks of the survey no better — it is a proxy (effects.BiasDrift.proxy), not preferred, and the
+    physical candidate is not called 'explained' by it."""
+    ramp = lambda t: 20.0 + 25.0 * np.clip(t / 500.0, 0.0, 1.0)   # noqa: E731
+    hot = lambda t: np.full_like(t, 45.0)                         # noqa: E731
+    gen, data, site = _session(tmp_path, 4, ramp, hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
+    dg = lab.diagnose(data, site=site)
+    drift = next(c for c in dg.ranked if c.label == "bias_drift:mag:z")
+    temp = next(c for c in dg.ranked if c.label == "temperature_bias:mag:z")
+    assert drift.significant and drift.delta_chi2 > temp.delta_chi2          # in-sample it fits better
+    assert drift.note.startswith("not preferred over temperature_bias:mag:z"), drift.note
+    assert "predicts no better" in drift.note and "stands for" in drift.note
+    assert dg.recommended is not drift
+    assert not temp.note.startswith("explained by bias_drift")
+    entry = next(c for c in dg.confounded if c.get("proxy"))
+    ho = entry["held_out_pointing_rms_deg"]
+    assert not ho["bias_drift:mag:z"] < ho["temperature_bias:mag:z"]
+
+
 def test_pose_rotations_that_help_only_together_are_not_called_a_worn_stand(tmp_path):
     """A wandering accelerometer bias misfits every pose a little: all twelve rotations together
     absorb some of it (significant), none on its own — that is not a stand holding poses off."""
