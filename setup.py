@@ -17,6 +17,8 @@ EXTRAS = {
     # reprocess, bags (inclinometer_calib/bag.py, reprocess.py, the launcher's summary): the MCAP
     # writer, its chunk compressions, and rosbags (type store, CDR, reading for the summary)
     "bag": ["mcap>=1.6", "zstandard>=0.25", "lz4>=4.4", "rosbags>=0.11.9"],
+    # the lab's discovery beyond the catalogue (inclinometer_calib/lab/discover.py): sparse regression
+    "lab": ["scikit-learn>=1.5"],
 }
 EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 EXTRAS["test"] = ["pytest>=7", "hypothesis>=6"]

@@ -32,7 +32,7 @@ CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj"
         "foxglove-sdk", "dask", "distributed", "pyarrow", "tqdm", "sqlalchemy", "alembic", "psycopg", "numba", "threadpoolctl"}
 OPTIONAL_MODULES = ("matplotlib", "mcap", "zstandard", "lz4", "rosbags")
 #: import name -> PyPI distribution, where they differ
-DISTRIBUTION = {"yaml": "PyYAML", "foxglove": "foxglove-sdk"}
+DISTRIBUTION = {"yaml": "PyYAML", "foxglove": "foxglove-sdk", "sklearn": "scikit-learn"}
 #: modules that come with ROS 2 (colcon / the ROS wheels), never from this package's metadata
 ROS_MODULES = {"rclpy", "rcl_interfaces", "ament_index_python", "std_srvs", "launch", "launch_ros",
                "builtin_interfaces", "rosidl_runtime_py"}
@@ -69,12 +69,13 @@ def test_install_requires_is_the_numerical_core(metadata):
     assert core == CORE
 
 
-def test_extras_report_bag_all(metadata):
+def test_extras_report_bag_lab_all(metadata):
     _, extras = metadata
-    assert {"report", "bag", "all"} <= set(extras), sorted(extras)
+    assert {"report", "bag", "lab", "all"} <= set(extras), sorted(extras)
     assert _names(extras["report"]) == {"matplotlib"}
     assert _names(extras["bag"]) == {"mcap", "zstandard", "lz4", "rosbags"}
-    assert _names(extras["all"]) == _names(extras["report"]) | _names(extras["bag"])
+    assert _names(extras["lab"]) == {"scikit-learn"}
+    assert _names(extras["all"]) == _names(extras["report"]) | _names(extras["bag"]) | _names(extras["lab"])
 
 
 def _python_files():

@@ -142,6 +142,10 @@ class Diagnosis:
     #: The noise model per sensor (:class:`allan.SensorNoise`): Allan deviation of the holds, the
     #: random walk across the stations (:func:`lab.noise.noise_model`).
     noise: dict = field(default_factory=dict)
+    #: Formulas found beyond the catalogue (:func:`lab.discover.propose`), best first; and the
+    #: stand-in they withheld from the recommendation (a proxy or a wander fitting such a term).
+    discovered: list = field(default_factory=list)
+    stand_in: str = ""
 
     @property
     def significant_structure_left(self) -> bool:
@@ -151,6 +155,8 @@ class Diagnosis:
 
     @property
     def recommended(self):
+        if self.stand_in:      # what fits best only stands in for a term outside the catalogue
+            return None
         for c in self.ranked:
             if c.significant and c.transfers and not c.note.startswith(SET_ASIDE):
                 return c
@@ -172,7 +178,8 @@ class Diagnosis:
                 "normalised_errors": self.uncertainty, "noise_floor": self.floor,
                 "structure": self.structure, "untestable": self.untestable, "verdict": self.verdict,
                 "losses": [x.to_json() for x in self.losses], "notes": self.notes,
-                "noise_model": noise_json(self.noise)}
+                "noise_model": noise_json(self.noise), "discovered": [p.to_json() for p in self.discovered],
+                "stand_in": self.stand_in}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -629,11 +636,34 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         dg.uncertainty = normalised_errors(model, base_fit, data.subset(ref))
         dg.floor = noise_floor(model, data.subset(ref))
     best = dg.recommended
-    dg.finding = finding(best, ranked, structure, misfit)
+    material = any(e["r2"] >= MATERIAL_R2 for e in structure)
+    if (best is not None and (best.stochastic or _proxy(best))) or (best is None and (material or misfit)):
+        # the catalogue names nothing, or only a stand-in: look for the term itself
+        say("looking beyond the catalogue: sparse regression of the residuals on physical features")
+        dg.discovered, why = _discover(model, data)
+        if why:
+            dg.notes.append(why)
+        outside = [p for p in dg.discovered if p.outside and (best is None or p.channel.startswith(best.sensor))]
+        if best is not None and outside:
+            dg.stand_in = best.label
+            best.note = (f"not preferred: it stands in for a term outside the catalogue ({outside[0].formula()})")
+            best = None
+    dg.finding = finding(best, ranked, structure, misfit, outside=any(p.outside for p in dg.discovered))
     scatter = orientation_scatter_deg(model, data) if misfit else None
     dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
-                          confounded=confounded, uncertainty=dg.uncertainty, noise=noise, found=dg.finding)
+                          confounded=confounded, uncertainty=dg.uncertainty, noise=noise, found=dg.finding,
+                          discovered=dg.discovered, stand_in=dg.stand_in)
     return dg
+
+
+def _discover(model, data) -> tuple:
+    """``(proposals, note)``: :func:`lab.discover.propose`, or nothing and why (scikit-learn missing)."""
+    from .discover import propose
+    try:
+        return propose(data, model), ""
+    except ImportError:
+        return [], ("the search beyond the catalogue was skipped: it needs scikit-learn "
+                    "(pip install 'inclinometer_calib[lab]')")
 
 
 def _proxy(c) -> str:
@@ -828,7 +858,7 @@ FINDINGS = ("refused", "recommended", "significant, not recommended", "outside t
             "explained")
 
 
-def finding(best, ranked, structure, misfit: bool, refused: str = "") -> str:
+def finding(best, ranked, structure, misfit: bool, refused: str = "", outside: bool = False) -> str:
     """The one word for what a diagnosis found (:data:`FINDINGS`): refused (the base model cannot be
     identified), an effect recommended, a significant candidate not recommended (it absorbs a
     misfit), material residual structure no catalogue effect explains (R² ≥ :data:`MATERIAL_R2`), a
@@ -837,17 +867,17 @@ def finding(best, ranked, structure, misfit: bool, refused: str = "") -> str:
         return "refused"
     if best is not None:
         return "recommended"
+    if outside or any(e["r2"] >= MATERIAL_R2 for e in structure) and not any(c.significant for c in ranked):
+        return "outside the catalogue"
     if any(c.significant for c in ranked):
         return "significant, not recommended"
-    if any(e["r2"] >= MATERIAL_R2 for e in structure):
-        return "outside the catalogue"
     if misfit:
         return "unstructured misfit"
     return "explained"
 
 
 def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter=None, losses=(), confounded=(),
-             refused="", uncertainty=None, noise=None, found=None) -> str:
+             refused="", uncertainty=None, noise=None, found=None, discovered=(), stand_in="") -> str:
     found = found or finding(best, ranked, structure, misfit, refused)
     lines = [f"Model: {model.describe()}.",
              f"Fit: noise-normalised residual RMS {base_fit.z_rms:.2f} (1.0 = explained to the sensor noise)."]
@@ -932,19 +962,31 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
                          + ".")
     else:
         strong = [c for c in ranked if c.significant]
-        if strong:
+        outside = [p for p in discovered if p.outside]
+        if stand_in and outside:
+            p = outside[0]
+            lines.append(f"Outside the catalogue: {p.formula()} (cross-validated R² {p.cv_r2:.2f} over {p.stations} "
+                         f"stations){'; ' + '; '.join(p.notes) if p.notes else ''}. {stand_in} fits these residuals "
+                         "only as a stand-in and is not recommended as their cause: write the term as a plug-in "
+                         "effect and fit it (lab fit --plugin).")
+        elif strong:
             c = strong[0]
             lines.append(f"{c.label} is significant in the fitted data (Wald χ² {c.wald_chi2:.0f}, ΔBIC "
                          f"{c.delta_bic:.0f}; {word} pointing RMS {base_val.get('pointing_rms_deg', float('nan')):.4f}° "
                          f"→ {c.score:.4f}°) but {c.note.replace('not recommended: ', '')}: it absorbs a misfit rather "
                          "than explaining it (e.g. a base model biased by the stand) — not recommended.")
         material = [e for e in structure if e["r2"] >= MATERIAL_R2]
-        if material and not strong:
+        if outside and not stand_in:
+            p = outside[0]
+            lines.append(f"Outside the catalogue: {p.formula()} (cross-validated R² {p.cv_r2:.2f} over {p.stations} "
+                         f"stations){'; ' + '; '.join(p.notes) if p.notes else ''}: write the term as a plug-in "
+                         "effect and fit it (lab fit --plugin).")
+        elif material and not strong:
             lines.append("Significant structure is left that no catalogue effect explains (no candidate is significant "
                          "against the noise): " + "; ".join(f"{s['channel']} ~ {s['regressor']} (R² {s['r2']:.2f})"
                                                           for s in material[:3])
                          + ". Consider a plug-in effect with that signature.")
-        elif misfit:
+        elif misfit and not outside:
             sc = scatter or {}
             lines.append(("Otherwise the" if strong else "The") + " model misfits the data beyond the sensor noise, but no "
                          "regressor and no catalogue effect explains it: the excess scatter is unstructured — consistent "

@@ -301,6 +301,37 @@ def test_a_drift_in_time_that_predicts_held_out_blocks_no_better_is_not_preferre
     assert not ho["bias_drift:mag:z"] < ho["temperature_bias:mag:z"]
 
 
+def test_a_term_outside_the_catalogue_is_proposed_as_a_formula_and_its_stand_in_not_recommended(tmp_path):
+    """A magnetometer that feels the temperature 60 s late (no catalogue effect has a time constant),
+    heated by a ramp: a wandering bias fits the residuals best, but only as a stand-in.  The lab
+    says the term is outside the catalogue, gives it as a formula — a lagged temperature, its
+    coefficient near the true 3 nT/°C with its 1σ — and recommends no catalogue effect as its cause."""
+    pytest.importorskip("sklearn", reason="the lab's discovery needs scikit-learn (requirements/core.txt)")
+    ramp = lambda t: 20.0 + 25.0 * np.clip(t / 500.0, 0.0, 1.0)   # noqa: E731
+    hot = lambda t: np.full_like(t, 45.0)                         # noqa: E731
+    gen, data, site = _session(tmp_path, 4, ramp, hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
+    dg = lab.diagnose(data, site=site)
+    assert dg.recommended is None and dg.stand_in.startswith("bias_wander:mag"), dg.verdict
+    assert dg.finding == "outside the catalogue" and dg.significant_structure_left
+    p = next(p for p in dg.discovered if p.outside)
+    assert p.channel == "mag z" and len(p.terms) == 1 and p.cv_r2 > 0.9
+    term = p.terms[0]
+    assert term.feature.startswith("temperature felt") and 15.0 <= term.lag_s <= 240.0
+    assert abs(term.coef - 3.0) < 0.25 * 3.0 and term.std < 0.2
+    assert "Outside the catalogue: mag z residual ≈" in dg.verdict and "only as a stand-in" in dg.verdict
+    assert "unstructured" not in dg.verdict
+    js = dg.to_json()
+    assert js["finding"] == "outside the catalogue" and js["discovered"][0]["outside_catalogue"] is True
+    # without the lag the same regression names the catalogue's own temperature bias, not a new term
+    gen, data, site = _session(tmp_path / "nolag", 4, ramp, hot, mag={"temp_coef": [0.0, 0.0, 3.0]})
+    from inclinometer_calib.lab.discover import propose
+    base = lab.LabModel.base(site)
+    field_fit(base, data)
+    found = propose(data, base)
+    assert found and found[0].channel == "mag z" and not found[0].outside
+    assert found[0].catalogue == "temperature_bias"
+
+
 def test_pose_rotations_that_help_only_together_are_not_called_a_worn_stand(tmp_path):
     """A wandering accelerometer bias misfits every pose a little: all twelve rotations together
     absorb some of it (significant), none on its own — that is not a stand holding poses off."""

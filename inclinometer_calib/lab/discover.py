@@ -1,0 +1,241 @@
+"""Discovery beyond the catalogue: the missing term of a model as a formula over physical features.
+
+When the catalogue's candidates leave structure the lab cannot name — or only a proxy or a
+wandering bias explains it — each residual channel of the oriented stations (a sensor axis,
+measured minus predicted, in the sensor's unit) is regressed on physical features of the
+stations, sparsely and cross-validated:
+
+* the temperature, its rate, and the temperature a sensor *feels* through a first-order lag of
+  time constant τ (15–480 s), ``τ·dT_s/dt = T − T_s``, exact for the temperature taken as linear
+  between the stations of the session;
+* the time (a drift), the previous hold's input (a remanence, a settling), the input, its square
+  and its sign (nonlinearity, asymmetry), and the attitude's harmonics where references exist.
+
+The selection is scikit-learn's orthogonal matching pursuit with blocked cross-validation (the
+folds are blocks of consecutive stations, so a slow process is not predicted from its neighbours),
+then ordinary least squares on the features chosen gives each coefficient and its 1σ.  A feature
+that a catalogue effect already models (the temperature: ``temperature_bias``) names that effect;
+one it does not (a lagged temperature, the temperature's rate, the previous hold's input) is said
+to be **outside the catalogue**, with its formula.  The time is a proxy (:attr:`effects.Effect.proxy`)
+and is never proposed as the cause.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Time constants (s) of the lagged temperatures tried.
+LAGS_S = (15.0, 30.0, 60.0, 120.0, 240.0, 480.0)
+#: Most features in one proposed term.
+MAX_FEATURES = 2
+#: Blocks of consecutive stations for the cross-validation.
+FOLDS = 5
+#: A channel is explained only when the cross-validated R² reaches this.
+MIN_CV_R2 = 0.5
+#: A second feature joins a term only if it raises the cross-validated R² by this much.
+MIN_GAIN_R2 = 0.05
+#: Family-wise significance of a coefficient (Bonferroni over channels and features).
+ALPHA = 1e-3
+
+#: Features a catalogue effect models, and which (the proposal then names it, not a new term).
+IN_CATALOGUE = {"temperature": "temperature_bias", "input²": "nonlinearity", "sign(input)": "scale_asymmetry"}
+#: Features that stand in for causes (never proposed as one).
+PROXIES = {"time": "bias_drift"}
+
+
+@dataclass
+class Term:
+    """One feature of a proposed formula: ``coef ± std`` (channel unit per feature unit)."""
+
+    feature: str
+    unit: str
+    coef: float
+    std: float
+    lag_s: float = math.nan
+
+
+@dataclass
+class Proposal:
+    """The formula found for one residual channel."""
+
+    channel: str
+    unit: str
+    terms: list
+    cv_r2: float
+    stations: int
+    outside: bool             # a feature no catalogue effect models
+    catalogue: str = ""       # the catalogue effect the features name, when not outside
+    notes: list = field(default_factory=list)
+
+    def formula(self) -> str:
+        parts = [f"({t.coef:+.4g} ± {t.std:.2g} {self.unit}/{t.unit})·{t.feature}" for t in self.terms]
+        return f"{self.channel} residual ≈ " + " + ".join(parts) + " + const"
+
+    def to_json(self) -> dict:
+        return {"channel": self.channel, "unit": self.unit, "formula": self.formula(), "cv_r2": self.cv_r2,
+                "stations": self.stations, "outside_catalogue": self.outside, "catalogue": self.catalogue,
+                "terms": [{"feature": t.feature, "unit": t.unit, "coef": t.coef, "std": t.std,
+                           **({"lag_s": t.lag_s} if np.isfinite(t.lag_s) else {})} for t in self.terms]}
+
+
+def lagged(time_s, temp_c, tau_s: float) -> np.ndarray:
+    """The temperature felt through a first-order lag ``tau_s`` at each station (in time order,
+    the temperature linear between stations): ``y₁ = T₁ − τs + (y₀ − T₀ + τs)·e^(−Δt/τ)`` with
+    ``s`` the slope of the segment — exact for a piecewise-linear input."""
+    order = np.argsort(time_s, kind="stable")
+    t, T = np.asarray(time_s, float)[order], np.asarray(temp_c, float)[order]
+    y = np.empty_like(T)
+    y[0] = T[0]
+    for k in range(1, len(T)):
+        dt = t[k] - t[k - 1]
+        if not dt > 0:
+            y[k] = y[k - 1]
+            continue
+        s = (T[k] - T[k - 1]) / dt
+        a = math.exp(-dt / tau_s)
+        y[k] = T[k] - tau_s * s + (y[k - 1] - T[k - 1] + tau_s * s) * a
+    out = np.empty_like(y)
+    out[order] = y
+    return out
+
+
+def rate(time_s, temp_c) -> np.ndarray:
+    """dT/dt (°C/s) at each station, by central differences over the stations in time order."""
+    order = np.argsort(time_s, kind="stable")
+    t, T = np.asarray(time_s, float)[order], np.asarray(temp_c, float)[order]
+    r = np.gradient(T, t) if len(t) > 2 else np.zeros_like(T)
+    out = np.empty_like(r)
+    out[order] = r
+    return out
+
+
+def features(data, model, sensor: str, axis: int) -> dict:
+    """name → (values (N,), unit, lag s) for the oriented stations ``data`` of one channel."""
+    g_t, b_t = model.true_vectors(data)
+    v = g_t if sensor == "acc" else b_t
+    unit = "m/s²" if sensor == "acc" else "nT"
+    out = {}
+    temp = data.temp_c
+    if np.all(np.isfinite(temp)) and np.ptp(temp) > 0:
+        out["temperature"] = (temp, "°C", math.nan)
+        out["temperature rate"] = (rate(data.time_s, temp), "°C/s", math.nan)
+        for tau in LAGS_S:
+            out[f"temperature felt {tau:g} s late"] = (lagged(data.time_s, temp, tau), "°C", tau)
+    out["time"] = (data.time_s / 3600.0, "h", math.nan)
+    prev = data.prev_g if sensor == "acc" else data.prev_b
+    if prev is not None and np.all(np.isfinite(prev[:, axis])):
+        out["previous hold's input"] = (prev[:, axis] - v[:, axis], unit, math.nan)
+    scale = float(np.nanmax(np.abs(v[:, axis]))) or 1.0
+    out["input²"] = ((v[:, axis] / scale) ** 2, "(full scale)²", math.nan)
+    out["sign(input)"] = (np.sign(v[:, axis]), "1", math.nan)
+    return out
+
+
+def _blocks(n: int, k: int):
+    idx = np.arange(n)
+    return [(np.setdiff1d(idx, b), b) for b in np.array_split(idx, k) if len(b)]
+
+
+def _family(name: str) -> str:
+    if name.startswith("temperature felt") or name == "temperature rate":
+        return "lag"
+    return name
+
+
+def propose(data, model, min_cv_r2: float = MIN_CV_R2) -> list:
+    """The formulas found for the residual channels of ``model`` on the oriented stations of
+    ``data`` (:class:`Proposal`, best cross-validated R² first; channels without one are left
+    out).  Needs scikit-learn (the lab's extra)."""
+    from sklearn.linear_model import OrthogonalMatchingPursuitCV   # here: 1.3 s of import
+
+    ori = data.oriented
+    d = data.subset(ori)
+    if len(d) < 4 * FOLDS:
+        return []
+    order = np.argsort(d.time_s, kind="stable")
+    d = d.subset(order)
+    g_t, b_t = model.true_vectors(d)
+    h_g, h_b = model.forward(d, g_t, b_t)
+    out = []
+    n_channels = 6
+    for sensor, meas, pred, unit in (("acc", d.g, h_g, "m/s²"), ("mag", d.b, h_b, "nT")):
+        for j, a in enumerate("xyz"):
+            y = meas[:, j] - pred[:, j]
+            if not np.all(np.isfinite(y)) or np.std(y) == 0:
+                continue
+            feats = features(d, model, sensor, j)
+            names = [k for k, (x, _, _) in feats.items() if np.all(np.isfinite(x)) and np.std(x) > 0]
+            if not names:
+                continue
+            X = np.column_stack([feats[k][0] for k in names])
+            mu, sd = X.mean(axis=0), X.std(axis=0)
+            Z = (X - mu) / sd
+            yc = y - y.mean()
+            omp = OrthogonalMatchingPursuitCV(cv=_blocks(len(y), FOLDS), max_iter=min(MAX_FEATURES, len(names)),
+                                              fit_intercept=True)
+            try:
+                omp.fit(Z, yc)
+            except ValueError:
+                continue
+            chosen = [k for k, c in zip(names, omp.coef_) if c != 0]
+            # one family at a time: a lag and the temperature's rate say the same thing
+            seen, keep = set(), []
+            for k in sorted(chosen, key=lambda k: -abs(omp.coef_[names.index(k)])):
+                if _family(k) not in seen:
+                    seen.add(_family(k))
+                    keep.append(k)
+            if not keep:
+                continue
+            # a further feature only where it predicts held-out blocks clearly better
+            cv = _cv_r2(np.column_stack([feats[keep[0]][0]]), y)
+            for k in keep[1:]:
+                more = _cv_r2(np.column_stack([feats[q][0] for q in keep[:keep.index(k)] + [k]]), y)
+                if more < cv + MIN_GAIN_R2:
+                    keep = keep[:keep.index(k)]
+                    break
+                cv = more
+            if not cv >= min_cv_r2:
+                continue
+            A = np.column_stack([np.ones(len(y))] + [feats[k][0] for k in keep])
+            coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+            resid = y - A @ coef
+            dof = max(len(y) - A.shape[1], 1)
+            s2 = float(resid @ resid) / dof
+            cov = s2 * np.linalg.pinv(A.T @ A)
+            std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            from scipy.stats import t as student
+
+            terms, notes = [], []
+            for i, k in enumerate(keep, start=1):
+                p = 2.0 * float(student.sf(abs(coef[i] / std[i]), dof)) if std[i] > 0 else 1.0
+                if p * n_channels * len(names) > ALPHA:
+                    continue
+                terms.append(Term(k, feats[k][1], float(coef[i]), float(std[i]), feats[k][2]))
+            if not terms:
+                continue
+            kinds = {_family(t.feature) for t in terms}
+            cat = [IN_CATALOGUE.get(t.feature, "") for t in terms]
+            outside = any(t.feature not in IN_CATALOGUE and t.feature not in PROXIES for t in terms)
+            if any(t.feature in PROXIES for t in terms):
+                notes.append("a drift in time is not itself a cause: it stands for whatever follows time")
+            if "lag" in kinds:
+                notes.append("the sensor feels the logged temperature late: a temperature effect with a time "
+                             "constant, which the catalogue does not have")
+            out.append(Proposal(f"{sensor} {a}", unit, terms, float(cv), len(y), outside,
+                                catalogue="" if outside else ", ".join(sorted({c for c in cat if c})), notes=notes))
+    out.sort(key=lambda p: -p.cv_r2)
+    return out
+
+
+def _cv_r2(X, y) -> float:
+    """Blocked cross-validated R² of ordinary least squares of ``y`` on ``X`` (with intercept)."""
+    sse = sst = 0.0
+    for train, test in _blocks(len(y), FOLDS):
+        A = np.column_stack([np.ones(len(train)), X[train]])
+        coef, *_ = np.linalg.lstsq(A, y[train], rcond=None)
+        pred = np.column_stack([np.ones(len(test)), X[test]]) @ coef
+        sse += float(np.sum((y[test] - pred) ** 2))
+        sst += float(np.sum((y[test] - y[train].mean()) ** 2))
+    return 1.0 - sse / sst if sst > 0 else float("nan")
