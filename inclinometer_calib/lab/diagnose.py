@@ -648,11 +648,24 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
             dg.stand_in = best.label
             best.note = (f"not preferred: it stands in for a term outside the catalogue ({outside[0].formula()})")
             best = None
+    lag = None
+    if best is not None and best.effect in fx.CATALOGUE and "temperature" in fx.CATALOGUE[best.effect].context_needs():
+        # a temperature effect: does the sensor feel the thermometer's temperature late?
+        from .discover import lag_check
+        lag = lag_check(data, model, best.sensor, best.axes)
+        if lag is not None:
+            dg.notes.append(f"{lag[0]} residuals follow the temperature felt {lag[1]:g} s late better than the logged "
+                            f"one (cross-validated R² {lag[2]:.2f} against {lag[3]:.2f})")
     dg.finding = finding(best, ranked, structure, misfit, outside=any(p.outside for p in dg.discovered))
     scatter = orientation_scatter_deg(model, data) if misfit else None
     dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
                           confounded=confounded, uncertainty=dg.uncertainty, noise=noise, found=dg.finding,
                           discovered=dg.discovered, stand_in=dg.stand_in)
+    if lag is not None:
+        dg.verdict += (f"\nThe {lag[0]} residuals follow the temperature felt {lag[1]:g} s late better than the logged "
+                       f"one (cross-validated R² {lag[2]:.2f} against {lag[3]:.2f}): the sensor lags the thermometer. "
+                       f"{best.label} is the catalogue's nearest term; a temperature effect with a time constant is "
+                       "outside the catalogue.")
     return dg
 
 

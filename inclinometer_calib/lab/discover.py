@@ -229,6 +229,32 @@ def propose(data, model, min_cv_r2: float = MIN_CV_R2) -> list:
     return out
 
 
+def lag_check(data, model, sensor: str, axes: str):
+    """Whether the residuals of ``sensor``'s ``axes`` on the oriented stations follow the temperature
+    felt through a first-order lag better than the logged one (cross-validated, blocks of
+    consecutive stations; least squares only, no scikit-learn): ``(channel, tau_s, cv_lagged,
+    cv_logged)`` of the clearest such channel (by :data:`MIN_GAIN_R2`), else None."""
+    d = data.subset(data.oriented)
+    if len(d) < 4 * FOLDS or not (np.all(np.isfinite(d.temp_c)) and np.ptp(d.temp_c) > 0):
+        return None
+    d = d.subset(np.argsort(d.time_s, kind="stable"))
+    g_t, b_t = model.true_vectors(d)
+    h_g, h_b = model.forward(d, g_t, b_t)
+    meas, pred = (d.g, h_g) if sensor == "acc" else (d.b, h_b)
+    best = None
+    for a in axes:
+        j = "xyz".index(a)
+        y = meas[:, j] - pred[:, j]
+        if not np.all(np.isfinite(y)):
+            continue
+        plain = _cv_r2(d.temp_c[:, None], y)
+        for tau in LAGS_S:
+            cv = _cv_r2(lagged(d.time_s, d.temp_c, tau)[:, None], y)
+            if cv >= max(plain + MIN_GAIN_R2, MIN_CV_R2) and (best is None or cv - plain > best[2] - best[3]):
+                best = (f"{sensor} {a}", tau, cv, plain)
+    return best
+
+
 def _cv_r2(X, y) -> float:
     """Blocked cross-validated R² of ordinary least squares of ``y`` on ``X`` (with intercept)."""
     sse = sst = 0.0

@@ -332,6 +332,21 @@ def test_a_term_outside_the_catalogue_is_proposed_as_a_formula_and_its_stand_in_
     assert found[0].catalogue == "temperature_bias"
 
 
+def test_a_sensor_that_feels_the_temperature_late_is_said_to_lag_the_thermometer(tmp_path):
+    """Under a temperature cycle a lag-free temperature bias is the catalogue's nearest term (it
+    predicts held-out blocks better than a wandering bias): recommended, with the lag said — the
+    residuals follow the temperature felt 60 s late, cross-validated — and no lag said without one."""
+    cycle = _up_down(20, 45, 400.0)
+    survey = _up_down(22, 40, 300.0)
+    gen, data, site = _session(tmp_path, 4, cycle, survey, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
+    dg = lab.diagnose(data, site=site)
+    assert dg.recommended is not None and dg.recommended.label == "temperature_bias:mag:z", dg.verdict
+    assert "residuals follow the temperature felt 60 s late" in dg.verdict and "lags the thermometer" in dg.verdict
+    gen, data, site = _session(tmp_path / "nolag", 5, cycle, survey, mag={"temp_coef": [0.0, 0.0, 3.0]})
+    dg = lab.diagnose(data, site=site)
+    assert dg.recommended.label == "temperature_bias:mag:z" and "lags the thermometer" not in dg.verdict
+
+
 def test_pose_rotations_that_help_only_together_are_not_called_a_worn_stand(tmp_path):
     """A wandering accelerometer bias misfits every pose a little: all twelve rotations together
     absorb some of it (significant), none on its own — that is not a stand holding poses off."""
