@@ -161,6 +161,9 @@ class Effect(abc.ABC):
     #: ageing.  The lab recommends a proxy over a physical candidate only when it also predicts
     #: held-out data better, and never calls it the physical cause.
     proxy: ClassVar[str] = ""
+    #: The features of the lab's search beyond the catalogue (:mod:`lab.discover`) this effect
+    #: models: a residual they explain names this effect, not a term outside the catalogue.
+    discovery_features: ClassVar[tuple] = ()
     #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
     #: estimates from the data (:mod:`lab.wander`), not values a least-squares fit moves.
     stochastic: ClassVar[bool] = False
@@ -466,6 +469,7 @@ class ScaleAsymmetry(Effect):
     """Different scale for positive and negative input: y = s·(1 + a·sign(s))."""
 
     name: ClassVar[str] = "scale_asymmetry"
+    discovery_features: ClassVar[tuple] = ("sign(input)",)
     stage: ClassVar[str] = "gain"
     needs: ClassVar[tuple] = ()
     signature: ClassVar[str] = "residuals following the sign of the input (|input|)"
@@ -485,6 +489,7 @@ class Nonlinearity(Effect):
     """
 
     name: ClassVar[str] = "nonlinearity"
+    discovery_features: ClassVar[tuple] = ("input²",)
     stage: ClassVar[str] = "gain"
     needs: ClassVar[tuple] = ()
     signature: ClassVar[str] = "residuals following input² / input³"
@@ -539,6 +544,7 @@ class TemperatureBias(Effect):
     """Bias varying with temperature: b(T) = c·(T - T_ref)."""
 
     name: ClassVar[str] = "temperature_bias"
+    discovery_features: ClassVar[tuple] = ("temperature",)
     stage: ClassVar[str] = "output"
     needs: ClassVar[tuple] = ("temperature",)
     signature: ClassVar[str] = "residuals following temperature"
@@ -555,6 +561,7 @@ class BiasDrift(Effect):
     """Slowly varying bias: b(t) = r·t/3600 (r per hour, t from the start of the log)."""
 
     name: ClassVar[str] = "bias_drift"
+    discovery_features: ClassVar[tuple] = ("time",)
     stage: ClassVar[str] = "output"
     needs: ClassVar[tuple] = ("time",)
     signature: ClassVar[str] = "residuals following time"

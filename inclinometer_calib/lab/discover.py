@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .. import effects as fx
+
 #: Time constants (s) of the lagged temperatures tried.
 LAGS_S = (15.0, 30.0, 60.0, 120.0, 240.0, 480.0)
 #: Most features in one proposed term.
@@ -39,10 +41,19 @@ MIN_GAIN_R2 = 0.05
 #: Family-wise significance of a coefficient (Bonferroni over channels and features).
 ALPHA = 1e-3
 
-#: Features a catalogue effect models, and which (the proposal then names it, not a new term).
-IN_CATALOGUE = {"temperature": "temperature_bias", "input²": "nonlinearity", "sign(input)": "scale_asymmetry"}
-#: Features that stand in for causes (never proposed as one).
-PROXIES = {"time": "bias_drift"}
+
+
+def catalogue_features() -> tuple:
+    """``(modelled, proxies)``: feature → the catalogue effect that models it
+    (:attr:`effects.Effect.discovery_features`), and the features whose effect is a proxy
+    (:attr:`effects.Effect.proxy`: they stand in for causes and are never proposed as one)."""
+    modelled, proxies = {}, set()
+    for name, cls in fx.CATALOGUE.items():
+        for f in cls.discovery_features:
+            modelled.setdefault(f, name)
+            if cls.proxy:
+                proxies.add(f)
+    return modelled, proxies
 
 
 @dataclass
@@ -216,9 +227,10 @@ def propose(data, model, min_cv_r2: float = MIN_CV_R2) -> list:
             if not terms:
                 continue
             kinds = {_family(t.feature) for t in terms}
-            cat = [IN_CATALOGUE.get(t.feature, "") for t in terms]
-            outside = any(t.feature not in IN_CATALOGUE and t.feature not in PROXIES for t in terms)
-            if any(t.feature in PROXIES for t in terms):
+            modelled, proxies = catalogue_features()
+            cat = [modelled.get(t.feature, "") for t in terms if t.feature not in proxies]
+            outside = any(t.feature not in modelled for t in terms)
+            if any(t.feature in proxies for t in terms):
                 notes.append("a drift in time is not itself a cause: it stands for whatever follows time")
             if "lag" in kinds:
                 notes.append("the sensor feels the logged temperature late: a temperature effect with a time "
