@@ -280,15 +280,29 @@ def test_a_worn_stand_is_named_with_the_poses_that_are_off_and_fitted_to_the_tru
     assert main(["lab", "diagnose", *args, "--json"]) == 0
 
 
-def test_a_drift_in_time_that_predicts_held_out_blocks_no_better_is_not_preferred_to_temperature(tmp_path):
-    """A magnetometer that feels the temperature 60 s late, heated by a ramp during the calibration:
-    a drift in time fits the fitted data better than a temperature bias, but predicts held-out
-    blocks of the survey no better — it is a proxy (effects.BiasDrift.proxy), not preferred, and the
-    physical candidate is not called 'explained' by it."""
-    ramp = lambda t: 20.0 + 25.0 * np.clip(t / 500.0, 0.0, 1.0)   # noqa: E731
-    hot = lambda t: np.full_like(t, 45.0)                         # noqa: E731
-    gen, data, site = _session(tmp_path, 4, ramp, hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
-    dg = lab.diagnose(data, site=site)
+def _ramp(t):
+    return 20.0 + 25.0 * np.clip(t / 500.0, 0.0, 1.0)
+
+
+def _hot(t):
+    return np.full_like(t, 45.0)
+
+
+@pytest.fixture(scope="module")
+def lag_ramp(tmp_path_factory):
+    """A magnetometer that feels the temperature 60 s late (3 nT/°C on z), heated by a ramp during
+    the calibration, the survey at a constant 45 °C; and the lab's diagnosis of it."""
+    gen, data, site = _session(tmp_path_factory.mktemp("lag"), 4, _ramp, _hot,
+                               mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
+    return gen, data, site, lab.diagnose(data, site=site)
+
+
+@pytest.mark.xdist_group("lab-lag-ramp")
+def test_a_drift_in_time_that_predicts_held_out_blocks_no_better_is_not_preferred_to_temperature(lag_ramp):
+    """Under the ramp a drift in time fits the fitted data better than a temperature bias, but
+    predicts held-out blocks of the survey no better — it is a proxy (effects.BiasDrift.proxy), not
+    preferred, and the physical candidate is not called 'explained' by it."""
+    _, _, _, dg = lag_ramp
     drift = next(c for c in dg.ranked if c.label == "bias_drift:mag:z")
     temp = next(c for c in dg.ranked if c.label == "temperature_bias:mag:z")
     assert drift.significant and drift.delta_chi2 > temp.delta_chi2          # in-sample it fits better
@@ -301,16 +315,14 @@ def test_a_drift_in_time_that_predicts_held_out_blocks_no_better_is_not_preferre
     assert not ho["bias_drift:mag:z"] < ho["temperature_bias:mag:z"]
 
 
-def test_a_term_outside_the_catalogue_is_proposed_as_a_formula_and_its_stand_in_not_recommended(tmp_path):
-    """A magnetometer that feels the temperature 60 s late (no catalogue effect has a time constant),
-    heated by a ramp: a wandering bias fits the residuals best, but only as a stand-in.  The lab
-    says the term is outside the catalogue, gives it as a formula — a lagged temperature, its
-    coefficient near the true 3 nT/°C with its 1σ — and recommends no catalogue effect as its cause."""
+@pytest.mark.xdist_group("lab-lag-ramp")
+def test_a_term_outside_the_catalogue_is_proposed_as_a_formula_and_its_stand_in_not_recommended(lag_ramp, tmp_path):
+    """No catalogue effect has a time constant: a wandering bias fits the lagged sensor's residuals
+    best, but only as a stand-in.  The lab says the term is outside the catalogue, gives it as a
+    formula — a lagged temperature, its coefficient near the true 3 nT/°C with its 1σ — and
+    recommends no catalogue effect as its cause."""
     pytest.importorskip("sklearn", reason="the lab's discovery needs scikit-learn (requirements/core.txt)")
-    ramp = lambda t: 20.0 + 25.0 * np.clip(t / 500.0, 0.0, 1.0)   # noqa: E731
-    hot = lambda t: np.full_like(t, 45.0)                         # noqa: E731
-    gen, data, site = _session(tmp_path, 4, ramp, hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
-    dg = lab.diagnose(data, site=site)
+    _, _, _, dg = lag_ramp
     assert dg.recommended is None and dg.stand_in.startswith("bias_wander:mag"), dg.verdict
     assert dg.finding == "outside the catalogue" and dg.significant_structure_left
     p = next(p for p in dg.discovered if p.outside)
@@ -323,7 +335,7 @@ def test_a_term_outside_the_catalogue_is_proposed_as_a_formula_and_its_stand_in_
     js = dg.to_json()
     assert js["finding"] == "outside the catalogue" and js["discovered"][0]["outside_catalogue"] is True
     # without the lag the same regression names the catalogue's own temperature bias, not a new term
-    gen, data, site = _session(tmp_path / "nolag", 4, ramp, hot, mag={"temp_coef": [0.0, 0.0, 3.0]})
+    gen, data, site = _session(tmp_path / "nolag", 4, _ramp, _hot, mag={"temp_coef": [0.0, 0.0, 3.0]})
     from inclinometer_calib.lab.discover import propose
     base = lab.LabModel.base(site)
     field_fit(base, data)
