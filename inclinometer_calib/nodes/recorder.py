@@ -61,8 +61,10 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 
-from ..bag import BagWriter, UnknownTypeError, normalize_type, refused_write_words, type_hash
+from ..bag import (BagError, BagWriter, UnknownTypeError, normalize_type, open_bag, refused_write_words, run_parts,
+                   type_hash)
 from ..topics import (TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE,
                       TOPIC_STATION, TOPIC_TEMPERATURE)
 from .executor import HotPathExecutor, spin
@@ -154,6 +156,31 @@ def subscription_qos(offered) -> QoSProfile:
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE,
     )
+
+
+def _recorded_station_ids(output, station_type) -> Set[int]:
+    """The station ids the run's earlier bag parts hold (``output`` a run part, ``survey_<k>.mcap``:
+    the parts before it in its directory; anything else: none).  A killed recorder's part is read
+    as far as it is readable."""
+    out: Set[int] = set()
+    path = os.path.abspath(str(output))
+    own = re.match(r"^survey(?:_(\d+))?\.mcap$", os.path.basename(path))
+    if own is None:
+        return out
+    k_own = int(own.group(1) or 0)
+    for part in run_parts(os.path.dirname(path)):
+        k = re.match(r"^survey(?:_(\d+))?\.mcap$", os.path.basename(part)).group(1)
+        if int(k or 0) >= k_own:
+            break
+        try:
+            for m in open_bag(part).messages([TOPIC_STATION], strict=False):
+                try:
+                    out.add(int(deserialize_message(bytes(m.data), station_type).station_id))
+                except Exception:  # noqa: BLE001 — not a station of this type
+                    continue
+        except (BagError, OSError):
+            continue
+    return out
 
 
 def _make_callback(write, channel_id: int, now=time.time_ns):
@@ -269,9 +296,14 @@ class Recorder(Node):
         self._reported = None
         self._progress_type = None
         try:
-            from inclinometer_calib.msg import StreamProgress
+            from inclinometer_calib.msg import StreamProgress, SurveyStation
         except ImportError:              # messages not built: a plain recorder, no progress
-            StreamProgress = None
+            StreamProgress = SurveyStation = None
+        # the stations the run's recording holds, by id, all parts: a recorder restarted into a new
+        # part counts what its predecessor recorded too (the paced probe's end waits until the
+        # recording has every station published; counting this part alone it waited in vain)
+        self._station_type = SurveyStation
+        self._station_ids: Set[int] = _recorded_station_ids(self.output, SurveyStation) if SurveyStation else set()
         if StreamProgress is not None:
             def latched(depth):
                 return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
@@ -320,6 +352,11 @@ class Recorder(Node):
         cid = self._channels.get(topic)
         if topic == TOPIC_IMU:
             self._t_imu = _stamp_s(data) or self._t_imu
+        elif topic == TOPIC_STATION and self._station_type is not None:
+            try:
+                self._station_ids.add(int(deserialize_message(data, self._station_type).station_id))
+            except Exception:  # noqa: BLE001 — a station of another type: counted as a message, not by id
+                pass
         if cid is None:
             return   # not recording: counted as not recorded
         try:
@@ -345,6 +382,8 @@ class Recorder(Node):
             return
         got, src = self._received, self._source
         counts = {k: got.get(t, 0) for t, k in COUNTED.items()}
+        if self._station_type is not None:
+            counts["stations"] = len(self._station_ids)   # by id, over all the run's parts
         end = bool(src is not None and src.end and counts["imu"] >= src.imu and counts["mag"] >= src.mag)
         key = (tuple(counts.values()), self._t_imu, end)
         if key == self._reported:

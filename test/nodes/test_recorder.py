@@ -248,3 +248,31 @@ def test_type_hashes_match_rclpy(ros_env):
         node.destroy_node()
     finally:
         rclpy.try_shutdown()
+
+
+def test_a_restarted_recorder_counts_the_stations_its_predecessors_recorded(tmp_path):
+    """The run's recording is every part: a recorder restarted into survey_2.mcap counts, by id, the
+    stations of survey.mcap and survey_1.mcap (the paced probe's end waits until the recording holds
+    every station published; counting its own part alone it waited the whole flow.end_timeout_s)."""
+    from rclpy.serialization import serialize_message
+
+    from inclinometer_calib.msg import SurveyStation
+    from inclinometer_calib.nodes.recorder import _recorded_station_ids
+    from inclinometer_calib.topics import STATION_TYPE, TOPIC_STATION
+
+    def part(name, ids, finalize=True):
+        w = bag.BagWriter(tmp_path / name)
+        cid = w.add_topic(TOPIC_STATION, STATION_TYPE, qos_profiles=[dict(bag.DEFAULT_QOS_PROFILE, depth=100)])
+        for i in ids:
+            w.write(cid, serialize_message(SurveyStation(station_id=i)), i * 1000, i * 1000)
+        if finalize:
+            w.close()
+        else:
+            w.flush()   # a killed recorder: its flushed chunks readable, never finalized
+
+    part("survey.mcap", [0, 1, 2, 3])
+    part("survey_1.mcap", [3, 4, 5], finalize=False)
+    assert _recorded_station_ids(tmp_path / "survey_2.mcap", SurveyStation) == {0, 1, 2, 3, 4, 5}
+    assert _recorded_station_ids(tmp_path / "survey_1.mcap", SurveyStation) == {0, 1, 2, 3}
+    assert _recorded_station_ids(tmp_path / "survey.mcap", SurveyStation) == set()
+    assert _recorded_station_ids(tmp_path / "elsewhere.mcap", SurveyStation) == set()
