@@ -10,6 +10,11 @@ leave the station out of what it would spoil:
   (or magnetometer) direction over the station is significant against the noise (``TREND_Z``
   standard errors) *and* larger than ``max_creep_deg``.  Both sensors are used: a rotation
   about the vertical leaves gravity unchanged but turns the field.
+* ``transient`` — the magnetometer's direction turns while the accelerometer holds still *and*
+  the total field or the dip changes beyond the noise (``TREND_Z`` standard errors): a rigid
+  rotation keeps both (turning about the vertical changes neither |B| nor the angle between the
+  field and gravity), a sensor settling after the move does not.  Only the magnetometer's data
+  are refused, and the message says it is not motion.
 * ``unsteady`` — the scatter left after removing that trend is far above the noise (a χ² test
   at p < 1e-6 *and* more than ``max_scatter_ratio`` × σ): vibration, or motion no trend
   describes.
@@ -81,6 +86,26 @@ def _trend_z(rate, noise, n, t_std):
     return float(z.max()) if len(z) else 0.0
 
 
+def _invariant_z(b, b_rate, b_noise, g, n, t_std) -> tuple:
+    """How far the magnetometer's trend over a hold changes the invariants a rigid rotation keeps:
+    ``(dB, z_B, ddip, z_dip)`` — the rate of |B| (unit/s) along b̂ and of the field's direction
+    towards ĝ (rad/s), each in standard errors of the per-axis slopes (the accelerometer still)."""
+    b, rate, g = (np.asarray(x, float) for x in (b, b_rate, g))
+    nb, ng = float(np.linalg.norm(b)), float(np.linalg.norm(g))
+    if not (nb > 0 and ng > 0):
+        return 0.0, 0.0, 0.0, 0.0
+    se = np.asarray(b_noise, float) / (t_std * math.sqrt(max(n - 1, 1)))
+    bh, gh = b / nb, g / ng
+    u = gh - bh * float(bh @ gh)                 # the direction in which the dip changes
+    nu = float(np.linalg.norm(u))
+    out = []
+    for d in (bh, u / nu if nu > 0 else u):
+        r = float(d @ rate)
+        s = float(np.sqrt(np.sum((d * se) ** 2)))
+        out += [r, abs(r) / s if s > 0 else 0.0]
+    return out[0], out[1], out[2] / nb, out[3]
+
+
 def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float | None = None) -> list:
     """The gates a :class:`station.Station` fails, as a list of :class:`Finding` (empty: fine).
 
@@ -91,6 +116,9 @@ def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float 
     out = []
     dur = st.duration_s
     where = f"{st.label} at {st.where}" if (st.pose or st.has_partial_ref) else st.where
+    g_noise = np.asarray(st.g_noise, float)
+    acc_still = bool(np.all(np.isfinite(g_noise) & (g_noise > 0))
+                     and _trend_z(st.g_rate, g_noise, st.n, st.t_std) <= TREND_Z)
     for sensor, name, mean, std, rate, noise, unit in (
             ("acc", "accelerometer", st.g, st.g_std, st.g_rate, st.g_noise, "m/s^2"),
             ("mag", "magnetometer", st.b, st.b_std, st.b_rate, st.b_noise, "nT")):
@@ -116,6 +144,15 @@ def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float 
         # creep: the direction turns during the hold
         turn = _turn_deg(mean, rate, dur)
         z = _trend_z(rate, noise, st.n, st.t_std)
+        if turn > limits.max_creep_deg and z > TREND_Z and sensor == "mag" and acc_still:
+            db, z_b, ddip, z_dip = _invariant_z(mean, rate, noise, st.g, st.n, st.t_std)
+            if max(z_b, z_dip) > TREND_Z:
+                out.append(Finding("transient", ("mag",), (
+                    f"{where}: the magnetometer turned {turn:.3f}° during the {dur:.2f} s hold while the accelerometer "
+                    f"held still, and |B| changed by {db * dur:+.1f} {unit} ({z_b:.0f} standard errors), the dip by "
+                    f"{math.degrees(ddip * dur):+.3f}° ({z_dip:.0f}): a rigid rotation keeps both — a sensor transient "
+                    "(the magnetometer settling after the move), not motion — its magnetometer data are not used")))
+                continue
         if turn > limits.max_creep_deg and z > TREND_Z:
             out.append(Finding("creep", ("acc", "mag"), (
                 f"{where}: the probe turned {turn:.3f}° during the {dur:.2f} s hold ({name} trend "
@@ -190,6 +227,7 @@ def apply_gates(st, limits: GateLimits = GateLimits(), gravity_mps2: float | Non
     st.gated = True
     st.findings = tuple(found)
     st.warnings.extend(f.message for f in found)
-    st.unusable = tuple(sorted(set(st.unusable) | {s for f in found if f.code in ("flat", "gravity") for s in f.sensors}))
+    st.unusable = tuple(sorted(set(st.unusable) | {s for f in found if f.code in ("flat", "gravity", "transient")
+                                                   for s in f.sensors}))
     st.moved = st.moved or any(f.code in ("creep", "unsteady") for f in found)
     return found

@@ -78,3 +78,25 @@ def test_limits_are_settings():
     assert station_findings(_station(g_rate=rate), GateLimits(max_creep_deg=0.2)) == []
     with pytest.raises(TypeError):
         GateLimits(0.1, 1.5, 0.1, 5)
+
+
+def test_a_magnetometer_that_changes_the_total_field_while_the_accelerometer_holds_is_a_transient_not_motion():
+    """A fluxgate settling after a move: its x axis drifts by 90 nT over the hold while gravity does
+    not move — the field's direction turns 0.074°, as a creep would, but |B| changes by 64 nT, which
+    no rigid rotation does. Named, only the magnetometer refused, the station not 'moved'."""
+    st = _station(b_rate=np.array([30.0, 0.0, 0.0]))                 # +30 nT/s on the sensor's x axis
+    f = station_findings(st)
+    assert [x.code for x in f] == ["transient"] and f[0].sensors == ("mag",), f
+    assert "not motion" in f[0].message and "|B| changed by +63.6 nT" in f[0].message
+    apply_gates(st)
+    assert st.unusable == ("mag",) and not st.moved
+
+
+def test_a_rotation_about_the_vertical_keeps_the_invariants_and_stays_a_creep():
+    rate = np.cross([0.0, 0.0, np.radians(0.2) / 3.0], B)          # the field turned about gravity
+    f = station_findings(_station(b_rate=rate))
+    assert [x.code for x in f] == ["creep"], f
+    # and a moving accelerometer makes any magnetometer trend motion, not a transient
+    tilt = np.array([9.80665 * np.radians(0.1) / 3.0, 0.0, 0.0])
+    codes = [x.code for x in station_findings(_station(g_rate=tilt, b_rate=np.array([30.0, 0.0, 0.0])))]
+    assert "creep" in codes and "transient" not in codes
