@@ -596,7 +596,7 @@ class CaptureSession:
         the twelve-position solution; the stand's heading is fitted too (its north is not known).
         Parameters the captures cannot determine are named in the record and in ``notes``."""
         from .lab.fit import fit
-        from .lab.model import POSES_LABEL, LabModel
+        from .lab.model import N_POSES, POSES_LABEL, LabModel
         from .station import Stations
 
         imp = self.result.implied_site()
@@ -616,7 +616,7 @@ class CaptureSession:
             fixed[idx] = True
             for q in off:
                 fixed[idx[3 * (q - 1):3 * q]] = False
-            lm.gauge_poses = np.array([q not in off for q in range(1, 13)])
+            lm.gauge_poses = np.array([q not in off for q in range(1, N_POSES + 1)])
             notes.append("stand_pose_error: " + (f"the rotation of pose(s) {off} fitted, the other poses defining the "
                                                  "frame" if off else "no pose is held off by these captures (none was "
                                                  "left out of both triads alike): nothing to fit"))

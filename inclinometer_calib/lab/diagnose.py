@@ -146,6 +146,9 @@ class Diagnosis:
     #: stand-in they withheld from the recommendation (a proxy or a wander fitting such a term).
     discovered: list = field(default_factory=list)
     stand_in: str = ""
+    #: A recommended temperature effect whose residuals follow a lagged temperature better
+    #: (:func:`lab.discover.lag_check`): channel, tau_s and the two cross-validated R².
+    lag: dict = field(default_factory=dict)
 
     @property
     def significant_structure_left(self) -> bool:
@@ -179,7 +182,7 @@ class Diagnosis:
                 "structure": self.structure, "untestable": self.untestable, "verdict": self.verdict,
                 "losses": [x.to_json() for x in self.losses], "notes": self.notes,
                 "noise_model": noise_json(self.noise), "discovered": [p.to_json() for p in self.discovered],
-                "stand_in": self.stand_in}
+                "stand_in": self.stand_in, "lag": self.lag}
 
 
 # ------------------------------------------------------------------------------------------------
@@ -648,24 +651,15 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
             dg.stand_in = best.label
             best.note = (f"not preferred: it stands in for a term outside the catalogue ({outside[0].formula()})")
             best = None
-    lag = None
     if best is not None and best.effect in fx.CATALOGUE and "temperature" in fx.CATALOGUE[best.effect].context_needs():
         # a temperature effect: does the sensor feel the thermometer's temperature late?
         from .discover import lag_check
-        lag = lag_check(data, model, best.sensor, best.axes)
-        if lag is not None:
-            dg.notes.append(f"{lag[0]} residuals follow the temperature felt {lag[1]:g} s late better than the logged "
-                            f"one (cross-validated R² {lag[2]:.2f} against {lag[3]:.2f})")
+        dg.lag = lag_check(data, model, best.sensor, best.axes) or {}
     dg.finding = finding(best, ranked, structure, misfit, outside=any(p.outside for p in dg.discovered))
     scatter = orientation_scatter_deg(model, data) if misfit else None
     dg.verdict = _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter, losses=losses,
                           confounded=confounded, uncertainty=dg.uncertainty, noise=noise, found=dg.finding,
-                          discovered=dg.discovered, stand_in=dg.stand_in)
-    if lag is not None:
-        dg.verdict += (f"\nThe {lag[0]} residuals follow the temperature felt {lag[1]:g} s late better than the logged "
-                       f"one (cross-validated R² {lag[2]:.2f} against {lag[3]:.2f}): the sensor lags the thermometer. "
-                       f"{best.label} is the catalogue's nearest term; a temperature effect with a time constant is "
-                       "outside the catalogue.")
+                          discovered=dg.discovered, stand_in=dg.stand_in, lag=dg.lag)
     return dg
 
 
@@ -799,7 +793,6 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
                           f"held-out blocks better (pointing RMS {a:.4f}° against {b:.4f}°)")
             else:
                 sc.after = True
-                sc.note = ""
                 d.note = d.note or (f"preferred to {sc.label}, which fits it away but predicts held-out blocks no "
                                     f"better (pointing RMS {a:.4f}° against {b:.4f}°)" if folds else
                                     f"preferred to {sc.label}, which fits it away: no held-out data can tell them apart")
@@ -880,7 +873,7 @@ def finding(best, ranked, structure, misfit: bool, refused: str = "", outside: b
         return "refused"
     if best is not None:
         return "recommended"
-    if outside or any(e["r2"] >= MATERIAL_R2 for e in structure) and not any(c.significant for c in ranked):
+    if outside or (any(e["r2"] >= MATERIAL_R2 for e in structure) and not any(c.significant for c in ranked)):
         return "outside the catalogue"
     if any(c.significant for c in ranked):
         return "significant, not recommended"
@@ -890,7 +883,7 @@ def finding(best, ranked, structure, misfit: bool, refused: str = "", outside: b
 
 
 def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter=None, losses=(), confounded=(),
-             refused="", uncertainty=None, noise=None, found=None, discovered=(), stand_in="") -> str:
+             refused="", uncertainty=None, noise=None, found=None, discovered=(), stand_in="", lag=None) -> str:
     found = found or finding(best, ranked, structure, misfit, refused)
     lines = [f"Model: {model.describe()}.",
              f"Fit: noise-normalised residual RMS {base_fit.z_rms:.2f} (1.0 = explained to the sensor noise)."]
@@ -944,6 +937,11 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
         lines.append(f"Recommended next effect: {best.label} — consistent with {sig}; significant against the noise "
                      f"({test}, p {best.p:.1e}, ΔBIC {best.delta_bic:.0f}): {effect_size}"
                      + (f"; adding it changes {' and '.join(changes)}" if changes else "") + ".")
+        if lag:
+            lines.append(f"The {lag['channel']} residuals follow the temperature felt {lag['tau_s']:g} s late better "
+                         f"than the logged one (cross-validated R² {lag['cv_r2_lagged']:.2f} against "
+                         f"{lag['cv_r2_logged']:.2f}): the sensor lags the thermometer. {best.label} is the "
+                         "catalogue's nearest term; a temperature effect with a time constant is outside the catalogue.")
         if _proxy(best) and not any(c["first"] == best.label and c["separated"] for c in confounded):
             lines.append(f"A drift in time is not itself a cause: it stands for {_proxy(best)} — no physical "
                          "candidate of the catalogue explains these residuals as well.")
@@ -976,12 +974,13 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
     else:
         strong = [c for c in ranked if c.significant]
         outside = [p for p in discovered if p.outside]
-        if stand_in and outside:
+        if outside:
             p = outside[0]
             lines.append(f"Outside the catalogue: {p.formula()} (cross-validated R² {p.cv_r2:.2f} over {p.stations} "
-                         f"stations){'; ' + '; '.join(p.notes) if p.notes else ''}. {stand_in} fits these residuals "
-                         "only as a stand-in and is not recommended as their cause: write the term as a plug-in "
-                         "effect and fit it (lab fit --plugin).")
+                         f"stations){'; ' + '; '.join(p.notes) if p.notes else ''}"
+                         + (f". {stand_in} fits these residuals only as a stand-in and is not recommended as their "
+                            "cause" if stand_in else "")
+                         + ": write the term as a plug-in effect and fit it (lab fit --plugin).")
         elif strong:
             c = strong[0]
             lines.append(f"{c.label} is significant in the fitted data (Wald χ² {c.wald_chi2:.0f}, ΔBIC "
@@ -989,12 +988,7 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
                          f"→ {c.score:.4f}°) but {c.note.replace('not recommended: ', '')}: it absorbs a misfit rather "
                          "than explaining it (e.g. a base model biased by the stand) — not recommended.")
         material = [e for e in structure if e["r2"] >= MATERIAL_R2]
-        if outside and not stand_in:
-            p = outside[0]
-            lines.append(f"Outside the catalogue: {p.formula()} (cross-validated R² {p.cv_r2:.2f} over {p.stations} "
-                         f"stations){'; ' + '; '.join(p.notes) if p.notes else ''}: write the term as a plug-in "
-                         "effect and fit it (lab fit --plugin).")
-        elif material and not strong:
+        if material and not strong and not outside:
             lines.append("Significant structure is left that no catalogue effect explains (no candidate is significant "
                          "against the noise): " + "; ".join(f"{s['channel']} ~ {s['regressor']} (R² {s['r2']:.2f})"
                                                           for s in material[:3])
@@ -1030,14 +1024,9 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
         rec = dg.recommended
         if rec is None:
             break
-        if rec.effect == HEADING:
-            model = copy.deepcopy(dg.model)
-            model.fit_heading = True
-            new_label = HEADING
-        elif rec.effect == POSES_LABEL:
-            model = copy.deepcopy(dg.model)
-            model.fit_poses = True
-            new_label = POSES_LABEL
+        if rec.effect in fx.MODEL_OPTIONS:     # the stand's heading or pose errors: options of the fit
+            model = dg.model.with_named(rec.effect)
+            new_label = rec.effect
         else:
             eff = copy.deepcopy(rec.instance) if rec.instance is not None else \
                 fx.CATALOGUE[rec.effect](sensor=rec.sensor, axes=rec.axes)

@@ -8,15 +8,15 @@ stations, sparsely and cross-validated:
 * the temperature, its rate, and the temperature a sensor *feels* through a first-order lag of
   time constant τ (15–480 s), ``τ·dT_s/dt = T − T_s``, exact for the temperature taken as linear
   between the stations of the session;
-* the time (a drift), the previous hold's input (a remanence, a settling), the input, its square
-  and its sign (nonlinearity, asymmetry), and the attitude's harmonics where references exist.
+* the time (a drift), the change of input since the previous hold (a remanence, a settling), and
+  the input's square and sign (nonlinearity, asymmetry).
 
 The selection is scikit-learn's orthogonal matching pursuit with blocked cross-validation (the
 folds are blocks of consecutive stations, so a slow process is not predicted from its neighbours),
 then ordinary least squares on the features chosen gives each coefficient and its 1σ.  A feature
 that a catalogue effect already models (the temperature: ``temperature_bias``) names that effect;
-one it does not (a lagged temperature, the temperature's rate, the previous hold's input) is said
-to be **outside the catalogue**, with its formula.  The time is a proxy (:attr:`effects.Effect.proxy`)
+one it does not (a lagged temperature, the temperature's rate, the change since the previous
+hold) is said to be **outside the catalogue**, with its formula.  The time is a proxy (:attr:`effects.Effect.proxy`)
 and is never proposed as the cause.
 """
 from __future__ import annotations
@@ -122,10 +122,29 @@ def rate(time_s, temp_c) -> np.ndarray:
     return out
 
 
-def features(data, model, sensor: str, axis: int) -> dict:
-    """name → (values (N,), unit, lag s) for the oriented stations ``data`` of one channel."""
-    g_t, b_t = model.true_vectors(data)
-    v = g_t if sensor == "acc" else b_t
+def residual_channels(data, model):
+    """The oriented stations of ``data`` in time order and, per channel (``"mag z"`` …), the
+    sensor's true input on it and its residual — measured minus ``model``'s prediction, in the
+    sensor's unit: ``(stations, {channel: (sensor, axis, input (N,), residual (N,))})``; None
+    with fewer stations than the blocked cross-validation needs."""
+    d = data.subset(data.oriented)
+    if len(d) < 4 * FOLDS:
+        return None
+    d = d.subset(np.argsort(d.time_s, kind="stable"))
+    g_t, b_t = model.true_vectors(d)
+    h_g, h_b = model.forward(d, g_t, b_t)
+    out = {}
+    for sensor, meas, pred, v in (("acc", d.g, h_g, g_t), ("mag", d.b, h_b, b_t)):
+        for j, a in enumerate("xyz"):
+            y = meas[:, j] - pred[:, j]
+            if np.all(np.isfinite(y)) and np.std(y) > 0:
+                out[f"{sensor} {a}"] = (sensor, j, v[:, j], y)
+    return d, out
+
+
+def features(data, sensor: str, axis: int, v) -> dict:
+    """name → (values (N,), unit, lag s) for the stations ``data`` of one channel (``v`` the
+    sensor's true input on that axis)."""
     unit = "m/s²" if sensor == "acc" else "nT"
     out = {}
     temp = data.temp_c
@@ -137,10 +156,10 @@ def features(data, model, sensor: str, axis: int) -> dict:
     out["time"] = (data.time_s / 3600.0, "h", math.nan)
     prev = data.prev_g if sensor == "acc" else data.prev_b
     if prev is not None and np.all(np.isfinite(prev[:, axis])):
-        out["previous hold's input"] = (prev[:, axis] - v[:, axis], unit, math.nan)
-    scale = float(np.nanmax(np.abs(v[:, axis]))) or 1.0
-    out["input²"] = ((v[:, axis] / scale) ** 2, "(full scale)²", math.nan)
-    out["sign(input)"] = (np.sign(v[:, axis]), "1", math.nan)
+        out["change of input since the previous hold"] = (prev[:, axis] - v, unit, math.nan)
+    scale = float(np.nanmax(np.abs(v))) or 1.0
+    out["input²"] = ((v / scale) ** 2, "(full scale)²", math.nan)
+    out["sign(input)"] = (np.sign(v), "1", math.nan)
     return out
 
 
@@ -159,84 +178,76 @@ def propose(data, model, min_cv_r2: float = MIN_CV_R2) -> list:
     """The formulas found for the residual channels of ``model`` on the oriented stations of
     ``data`` (:class:`Proposal`, best cross-validated R² first; channels without one are left
     out).  Needs scikit-learn (the lab's extra)."""
+    from scipy.stats import t as student
     from sklearn.linear_model import OrthogonalMatchingPursuitCV   # here: 1.3 s of import
 
-    ori = data.oriented
-    d = data.subset(ori)
-    if len(d) < 4 * FOLDS:
+    found = residual_channels(data, model)
+    if found is None:
         return []
-    order = np.argsort(d.time_s, kind="stable")
-    d = d.subset(order)
-    g_t, b_t = model.true_vectors(d)
-    h_g, h_b = model.forward(d, g_t, b_t)
+    d, channels = found
     out = []
     n_channels = 6
-    for sensor, meas, pred, unit in (("acc", d.g, h_g, "m/s²"), ("mag", d.b, h_b, "nT")):
-        for j, a in enumerate("xyz"):
-            y = meas[:, j] - pred[:, j]
-            if not np.all(np.isfinite(y)) or np.std(y) == 0:
+    modelled, proxies = catalogue_features()
+    for channel, (sensor, j, v, y) in channels.items():
+        unit = "m/s²" if sensor == "acc" else "nT"
+        feats = features(d, sensor, j, v)
+        names = [k for k, (x, _, _) in feats.items() if np.all(np.isfinite(x)) and np.std(x) > 0]
+        if not names:
+            continue
+        X = np.column_stack([feats[k][0] for k in names])
+        mu, sd = X.mean(axis=0), X.std(axis=0)
+        Z = (X - mu) / sd
+        yc = y - y.mean()
+        omp = OrthogonalMatchingPursuitCV(cv=_blocks(len(y), FOLDS), max_iter=min(MAX_FEATURES, len(names)),
+                                          fit_intercept=True)
+        try:
+            omp.fit(Z, yc)
+        except ValueError:
+            continue
+        chosen = [k for k, c in zip(names, omp.coef_) if c != 0]
+        # one family at a time: a lag and the temperature's rate say the same thing
+        seen, keep = set(), []
+        for k in sorted(chosen, key=lambda k: -abs(omp.coef_[names.index(k)])):
+            if _family(k) not in seen:
+                seen.add(_family(k))
+                keep.append(k)
+        if not keep:
+            continue
+        # a further feature only where it predicts held-out blocks clearly better
+        cv = _cv_r2(np.column_stack([feats[keep[0]][0]]), y)
+        for k in keep[1:]:
+            more = _cv_r2(np.column_stack([feats[q][0] for q in keep[:keep.index(k)] + [k]]), y)
+            if more < cv + MIN_GAIN_R2:
+                keep = keep[:keep.index(k)]
+                break
+            cv = more
+        if not cv >= min_cv_r2:
+            continue
+        A = np.column_stack([np.ones(len(y))] + [feats[k][0] for k in keep])
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        resid = y - A @ coef
+        dof = max(len(y) - A.shape[1], 1)
+        s2 = float(resid @ resid) / dof
+        cov = s2 * np.linalg.pinv(A.T @ A)
+        std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        terms, notes = [], []
+        for i, k in enumerate(keep, start=1):
+            p = 2.0 * float(student.sf(abs(coef[i] / std[i]), dof)) if std[i] > 0 else 1.0
+            if p * n_channels * len(names) > ALPHA:
                 continue
-            feats = features(d, model, sensor, j)
-            names = [k for k, (x, _, _) in feats.items() if np.all(np.isfinite(x)) and np.std(x) > 0]
-            if not names:
-                continue
-            X = np.column_stack([feats[k][0] for k in names])
-            mu, sd = X.mean(axis=0), X.std(axis=0)
-            Z = (X - mu) / sd
-            yc = y - y.mean()
-            omp = OrthogonalMatchingPursuitCV(cv=_blocks(len(y), FOLDS), max_iter=min(MAX_FEATURES, len(names)),
-                                              fit_intercept=True)
-            try:
-                omp.fit(Z, yc)
-            except ValueError:
-                continue
-            chosen = [k for k, c in zip(names, omp.coef_) if c != 0]
-            # one family at a time: a lag and the temperature's rate say the same thing
-            seen, keep = set(), []
-            for k in sorted(chosen, key=lambda k: -abs(omp.coef_[names.index(k)])):
-                if _family(k) not in seen:
-                    seen.add(_family(k))
-                    keep.append(k)
-            if not keep:
-                continue
-            # a further feature only where it predicts held-out blocks clearly better
-            cv = _cv_r2(np.column_stack([feats[keep[0]][0]]), y)
-            for k in keep[1:]:
-                more = _cv_r2(np.column_stack([feats[q][0] for q in keep[:keep.index(k)] + [k]]), y)
-                if more < cv + MIN_GAIN_R2:
-                    keep = keep[:keep.index(k)]
-                    break
-                cv = more
-            if not cv >= min_cv_r2:
-                continue
-            A = np.column_stack([np.ones(len(y))] + [feats[k][0] for k in keep])
-            coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-            resid = y - A @ coef
-            dof = max(len(y) - A.shape[1], 1)
-            s2 = float(resid @ resid) / dof
-            cov = s2 * np.linalg.pinv(A.T @ A)
-            std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            from scipy.stats import t as student
-
-            terms, notes = [], []
-            for i, k in enumerate(keep, start=1):
-                p = 2.0 * float(student.sf(abs(coef[i] / std[i]), dof)) if std[i] > 0 else 1.0
-                if p * n_channels * len(names) > ALPHA:
-                    continue
-                terms.append(Term(k, feats[k][1], float(coef[i]), float(std[i]), feats[k][2]))
-            if not terms:
-                continue
-            kinds = {_family(t.feature) for t in terms}
-            modelled, proxies = catalogue_features()
-            cat = [modelled.get(t.feature, "") for t in terms if t.feature not in proxies]
-            outside = any(t.feature not in modelled for t in terms)
-            if any(t.feature in proxies for t in terms):
-                notes.append("a drift in time is not itself a cause: it stands for whatever follows time")
-            if "lag" in kinds:
-                notes.append("the sensor feels the logged temperature late: a temperature effect with a time "
-                             "constant, which the catalogue does not have")
-            out.append(Proposal(f"{sensor} {a}", unit, terms, float(cv), len(y), outside,
-                                catalogue="" if outside else ", ".join(sorted({c for c in cat if c})), notes=notes))
+            terms.append(Term(k, feats[k][1], float(coef[i]), float(std[i]), feats[k][2]))
+        if not terms:
+            continue
+        kinds = {_family(t.feature) for t in terms}
+        cat = [modelled.get(t.feature, "") for t in terms if t.feature not in proxies]
+        outside = any(t.feature not in modelled for t in terms)
+        if any(t.feature in proxies for t in terms):
+            notes.append("a drift in time is not itself a cause: it stands for whatever follows time")
+        if "lag" in kinds:
+            notes.append("the sensor feels the logged temperature late: a temperature effect with a time "
+                         "constant, which the catalogue does not have")
+        out.append(Proposal(channel, unit, terms, float(cv), len(y), outside,
+                            catalogue="" if outside else ", ".join(sorted({c for c in cat if c})), notes=notes))
     out.sort(key=lambda p: -p.cv_r2)
     return out
 
@@ -244,26 +255,25 @@ def propose(data, model, min_cv_r2: float = MIN_CV_R2) -> list:
 def lag_check(data, model, sensor: str, axes: str):
     """Whether the residuals of ``sensor``'s ``axes`` on the oriented stations follow the temperature
     felt through a first-order lag better than the logged one (cross-validated, blocks of
-    consecutive stations; least squares only, no scikit-learn): ``(channel, tau_s, cv_lagged,
-    cv_logged)`` of the clearest such channel (by :data:`MIN_GAIN_R2`), else None."""
-    d = data.subset(data.oriented)
-    if len(d) < 4 * FOLDS or not (np.all(np.isfinite(d.temp_c)) and np.ptp(d.temp_c) > 0):
+    consecutive stations; least squares only, no scikit-learn): ``{channel, tau_s, cv_r2_lagged,
+    cv_r2_logged}`` of the clearest such channel (by :data:`MIN_GAIN_R2`), else None."""
+    found = residual_channels(data, model)
+    if found is None:
         return None
-    d = d.subset(np.argsort(d.time_s, kind="stable"))
-    g_t, b_t = model.true_vectors(d)
-    h_g, h_b = model.forward(d, g_t, b_t)
-    meas, pred = (d.g, h_g) if sensor == "acc" else (d.b, h_b)
+    d, channels = found
+    if not (np.all(np.isfinite(d.temp_c)) and np.ptp(d.temp_c) > 0):
+        return None
     best = None
     for a in axes:
-        j = "xyz".index(a)
-        y = meas[:, j] - pred[:, j]
-        if not np.all(np.isfinite(y)):
+        if f"{sensor} {a}" not in channels:
             continue
+        y = channels[f"{sensor} {a}"][3]
         plain = _cv_r2(d.temp_c[:, None], y)
         for tau in LAGS_S:
             cv = _cv_r2(lagged(d.time_s, d.temp_c, tau)[:, None], y)
-            if cv >= max(plain + MIN_GAIN_R2, MIN_CV_R2) and (best is None or cv - plain > best[2] - best[3]):
-                best = (f"{sensor} {a}", tau, cv, plain)
+            if cv >= max(plain + MIN_GAIN_R2, MIN_CV_R2) and (
+                    best is None or cv - plain > best["cv_r2_lagged"] - best["cv_r2_logged"]):
+                best = {"channel": f"{sensor} {a}", "tau_s": tau, "cv_r2_lagged": cv, "cv_r2_logged": plain}
     return best
 
 

@@ -354,9 +354,12 @@ def test_a_sensor_that_feels_the_temperature_late_is_said_to_lag_the_thermometer
     dg = lab.diagnose(data, site=site)
     assert dg.recommended is not None and dg.recommended.label == "temperature_bias:mag:z", dg.verdict
     assert "residuals follow the temperature felt 60 s late" in dg.verdict and "lags the thermometer" in dg.verdict
+    lag = dg.to_json()["lag"]
+    assert lag["channel"] == "mag z" and lag["tau_s"] == 60.0 and lag["cv_r2_lagged"] > lag["cv_r2_logged"] + 0.05
     gen, data, site = _session(tmp_path / "nolag", 5, cycle, survey, mag={"temp_coef": [0.0, 0.0, 3.0]})
     dg = lab.diagnose(data, site=site)
     assert dg.recommended.label == "temperature_bias:mag:z" and "lags the thermometer" not in dg.verdict
+    assert dg.lag == {}
 
 
 def test_pose_rotations_that_help_only_together_are_not_called_a_worn_stand(tmp_path):
