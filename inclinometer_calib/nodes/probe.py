@@ -756,7 +756,7 @@ class ProbeNode(Node):
 
     def _finish(self):
         self._state = "ended"
-        if self.end_readers and not self._drained():
+        if not self._drained():     # a reader that did not take the end, or a stream not acknowledged
             self.get_logger().error(
                 f"the readers did not all take the end within "
                 f"{f'flow.end_timeout_s ({self.end_timeout:g} s)' if self.flow_readers else f'{UNPACED_END_S:g} s'}: "
