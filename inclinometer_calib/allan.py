@@ -28,7 +28,10 @@ statistic at ``τ`` = the spacing of the stations.
 """
 from __future__ import annotations
 
+import copy
+import hashlib
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -43,6 +46,11 @@ RESOLVED_Z = 3.0
 #: One-sided 95 % quantile (for upper bounds of unresolved terms).
 Z95 = 1.645
 UNITS = {"acc": "m/s^2", "mag": "nT"}
+#: The last curves computed, by their segments' content: the lab takes the noise model of the same
+#: holds again and again (each diagnosis, its stochastic check, every step of a ladder), and
+#: ``allantools.oadev`` per hold and axis is most of its cost (a third of a diagnosis).
+CURVE_CACHE_SIZE = 16
+_curves: OrderedDict = OrderedDict()
 
 
 @dataclass
@@ -69,11 +77,28 @@ def allan_curve(segments, rate_hz: float | None = None) -> AllanCurve:
     a third of the longest segment, the Allan variance of every segment long enough
     (``n ≥ 3·m``) is averaged, weighted by its degrees of freedom.
     """
-    import allantools   # here, not at import: it brings scipy.signal to every process that imports the lab
-
     segs = [np.asarray(s, dtype=float) for s in segments if s is not None and len(s) >= 3]
     if not segs:
         return AllanCurve(np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), float("nan"), 0)
+    h = hashlib.blake2b(repr(rate_hz).encode(), digest_size=20)
+    for s in segs:
+        h.update(np.ascontiguousarray(s).tobytes())
+        h.update(str(s.shape).encode())
+    key = h.digest()
+    if key in _curves:
+        _curves.move_to_end(key)
+        return copy.deepcopy(_curves[key])
+    curve = _allan_curve(segs, rate_hz)
+    _curves[key] = copy.deepcopy(curve)
+    while len(_curves) > CURVE_CACHE_SIZE:
+        _curves.popitem(last=False)
+    return curve
+
+
+def _allan_curve(segs, rate_hz):
+    """:func:`allan_curve` of the usable segments, computed."""
+    import allantools   # here, not at import: it brings scipy.signal to every process that imports the lab
+
     if rate_hz is None:
         dts = np.concatenate([np.diff(s[:, 0]) for s in segs])
         dts = dts[dts > 0]
