@@ -85,7 +85,7 @@ class History:
     ``source`` (its log), ``order`` (its place in the log, time order, from 0), ``previous_g`` and
     ``previous_b`` (N, 3) the true tool-frame input of the previous hold in the same log (gravity
     vector m/s², field nT; the measured means where that hold's attitude is unknown; NaN for a
-    log's first hold), and ``samples`` (N,) each station's samples as an (n, 7) array of time (s),
+    log's first hold), where in its hold each station lies, and ``samples`` (N,) each station's samples as an (n, 7) array of time (s),
     gravity vector (3, m/s²) and field (3, nT), or None where the data keep none (a bag)."""
 
     source: np.ndarray
@@ -93,6 +93,12 @@ class History:
     previous_g: np.ndarray
     previous_b: np.ndarray
     samples: np.ndarray | None = None
+    #: The part of its hold each station keeps: seconds left out at the hold's start (a sensor
+    #: settling after the move, :mod:`gates`), seconds kept and samples kept, (N,); None: unknown
+    #: (taken as a whole hold of unknown length: no settling is modelled).
+    settled_s: np.ndarray | None = None
+    duration_s: np.ndarray | None = None
+    n: np.ndarray | None = None
 
 
 @dataclass
@@ -671,6 +677,63 @@ class BiasWander(Effect):
         return super().describe() + moved
 
 
+def mean_decay(start_s, n, spacing_s, tau_s):
+    """Mean of ``exp(−t/τ)`` over ``n`` samples ``spacing_s`` apart from ``t = start_s``
+    (broadcasts): ``exp(−a/τ)·(1 − rⁿ)/(n·(1 − r))``, ``r = exp(−Δt/τ)`` — a decay averaged over
+    the samples a station keeps."""
+    r = np.exp(-np.asarray(spacing_s, float) / tau_s)
+    n = np.asarray(n, float)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        geo = np.where(np.abs(1.0 - r) > 1e-12, (1.0 - r ** n) / (n * (1.0 - r)), 1.0)
+    return np.exp(-np.asarray(start_s, float) / tau_s) * geo
+
+
+@dataclass
+class Settling(Effect):
+    """A sensor settling after each move: an offset set by the change of its input at the move,
+    decaying from the hold's first sample: ``y += h·(x_prev − x)·exp(−t/τ)``, ``τ = exp(ln_tau)``
+    seconds, averaged over the
+    samples a station keeps (``t`` from ``settled_s`` to ``settled_s + duration``: a hold whose
+    start the gates trimmed keeps the tail, :mod:`gates`).
+
+    A fluxgate's core keeps a little of the field it held before (``h`` of the change, per axis)
+    and lets it go with a time constant ``τ`` of about a second; with ``τ`` long against the holds
+    it is the remanence of the previous field.  Needs the station sequence and where in its hold
+    each station lies (:class:`History`): the lab's stations have them; a correction without them
+    (a node, ``correct``) refuses the model (:class:`model.ModelContextError`), never guesses."""
+
+    name: ClassVar[str] = "settling"
+    stage: ClassVar[str] = "tool"
+    #: a fluxgate's core (its magnetisation follows the field it held); an accelerometer's proof
+    #: mass has no such memory
+    sensors: ClassVar[tuple] = ("mag",)
+    needs: ClassVar[tuple] = ("history",)
+    signature: ClassVar[str] = ("residuals following the change of input since the previous hold, larger in holds "
+                                "kept from early on")
+    separated_by: ClassVar[str] = ("holds of different lengths, and the same pose reached from different poses: a "
+                                   "settling fades over a long hold, a constant offset does not")
+    specs: ClassVar[tuple] = (
+        _spec("h", "1", "1", 1e-3, 1e-3, "share of the change of input at the move left as an offset"),
+        # ln τ, not τ: with no settling (h = 0) the data say nothing of τ, and the fits' weak prior
+        # (100× the typical size: ±3 in ln τ, τ from 0.05 to 20 s at 1σ) then holds it at 0 — τ = 1 s,
+        # a fluxgate's — instead of letting it wander (τ = 0 would see nothing)
+        _spec("ln_tau", "ln(s)", "ln(s)", 0.03, 0.03, "natural log of the settling's time constant in s"),
+    )
+
+    def _apply(self, v, ctx):
+        h = ctx.history
+        if h is None or h.settled_s is None or h.duration_s is None or h.n is None:
+            raise ValueError("settling: the data give no hold timing (the station sequence)")
+        prev = h.previous_g if self.sensor == "acc" else h.previous_b
+        c = self._cols()
+        n = np.maximum(np.asarray(h.n, float), 1.0)
+        spacing = np.where(n > 1, np.nan_to_num(h.duration_s) / np.maximum(n - 1, 1), 0.0)
+        tau = np.exp(np.clip(self.values["ln_tau"], -7.0, 7.0))
+        decay = mean_decay(np.asarray(h.settled_s, float)[:, None], n[:, None], spacing[:, None], tau[None, :])
+        change = np.nan_to_num(prev[:, c] - v[:, c])       # a log's first hold: nothing before it
+        v[:, c] += self.values["h"] * change * decay
+
+
 # ---------------------------------------------------------------------------------------------
 # Whole-probe effects (the simulator applies them; no triad signal chain)
 # ---------------------------------------------------------------------------------------------
@@ -724,7 +787,7 @@ class TimeSkew(WholeProbeEffect):
 CATALOGUE = {cls.name: cls for cls in (
     Bias, Scale, NonOrthogonality, Misalignment, TriadMisalignment, AxialInterference,
     TemperatureScale, ScaleAsymmetry, Nonlinearity, CrossCoupling, TemperatureBias, BiasDrift, BiasWander,
-    StandPoseError, TimeSkew,
+    Settling, StandPoseError, TimeSkew,
 )}
 #: The seed paper's base model of a triad, in signal-chain order (E, then K, then B).
 BASE = ("nonorthogonality", "scale", "bias")

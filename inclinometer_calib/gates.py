@@ -13,8 +13,12 @@ leave the station out of what it would spoil:
 * ``transient`` — the magnetometer's direction turns while the accelerometer holds still *and*
   the total field or the dip changes beyond the noise (``TREND_Z`` standard errors): a rigid
   rotation keeps both (turning about the vertical changes neither |B| nor the angle between the
-  field and gravity), a sensor settling after the move does not.  Only the magnetometer's data
-  are refused, and the message says it is not motion.
+  field and gravity), a sensor settling after the move does not.  The message says it is not
+  motion.  The settling is then measured (:func:`settling`: ``y = c + A·exp(−τ/τ_s)`` fitted to
+  the hold's shape, one time constant for the three axes) and the start of the hold left out
+  until the gates find no transient in the rest (``settled``, said with the figures: the hold is
+  kept, shorter; what the settling leaves in its mean the lab models, :class:`effects.Settling`);
+  a hold that has not settled with ``min_settled_s`` left has its magnetometer data refused.
 * ``unsteady`` — the scatter left after removing that trend is far above the noise (a χ² test
   at p < 1e-6 *and* more than ``max_scatter_ratio`` × σ): vibration, or motion no trend
   describes.
@@ -28,10 +32,11 @@ leave the station out of what it would spoil:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
+from .effects import mean_decay
 from .noise import chi_quantile
 
 #: Significance of a trend, in standard errors of the slope.
@@ -40,6 +45,10 @@ TREND_Z = 5.0
 SCATTER_P = 1e-6
 #: Scatter below this fraction of the noise is an axis that does not respond (≥ 10 samples).
 FLAT_RATIO = 0.25
+#: The time constants (s) tried for a sensor settling after the move.
+SETTLE_TAUS = np.geomspace(0.05, 30.0, 80)
+#: The station fields a trimmed hold replaces (:meth:`station.Station.settled_from`).
+_SETTLED_FIELDS = ("t_start", "n", "g", "b", "g_std", "b_std", "g_rate", "b_rate", "t_std", "settled_s", "profile")
 
 
 @dataclass(frozen=True)
@@ -52,6 +61,8 @@ class GateLimits:
     max_creep_deg: float = 0.05
     max_scatter_ratio: float = 1.5
     max_gravity_error: float = 0.10
+    #: A hold whose sensor settles after the move keeps at least this long (s) once trimmed.
+    min_settled_s: float = field(default=0.5, kw_only=True)
 
 
 @dataclass(frozen=True)
@@ -144,7 +155,7 @@ def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float 
         # creep: the direction turns during the hold
         turn = _turn_deg(mean, rate, dur)
         z = _trend_z(rate, noise, st.n, st.t_std)
-        if turn > limits.max_creep_deg and z > TREND_Z and sensor == "mag" and acc_still:
+        if z > TREND_Z and sensor == "mag" and acc_still:
             db, z_b, ddip, z_dip = _invariant_z(mean, rate, noise, st.g, st.n, st.t_std)
             if max(z_b, z_dip) > TREND_Z:
                 out.append(Finding("transient", ("mag",), (
@@ -166,7 +177,7 @@ def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float 
         if st.n >= 5 and ratio[k] > max(limits.max_scatter_ratio, chi_quantile(st.n, 1.0 - SCATTER_P)):
             out.append(Finding("unsteady", ("acc", "mag"), (
                 f"{where}: {name} {'xyz'[k]} scatters {ratio[k]:.1f}× its noise ({resid[k]:.3g} vs {noise[k]:.3g} "
-                f"{unit}): vibration or motion during the hold — station not used")))
+                f"{unit}): vibration or motion during the hold — station not used"), axis=f"{name} {'xyz'[k]}"))
     if gravity_mps2 and not any(f.code == "flat" and "acc" in f.sensors for f in out):
         gn = float(np.linalg.norm(st.g))
         err = gn / gravity_mps2 - 1.0
@@ -176,6 +187,70 @@ def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float 
                 f"±{100 * limits.max_gravity_error:g}%): a saturated axis, wrong units or a moving probe — its "
                 "accelerometer data are not used")))
     return out
+
+
+@dataclass(frozen=True)
+class Settling:
+    """A sensor settling after the move, measured over one hold: ``y(τ) = c + A·exp(−τ/tau_s)``
+    per axis (``τ`` from the hold's first sample), ``amplitude`` ``A`` (3,) in the sensor's unit,
+    and where the hold is settled: ``row`` of :attr:`station.Station.profile`, ``trim_s`` from
+    its start."""
+
+    sensor: str
+    tau_s: float
+    amplitude: np.ndarray
+    row: int
+    trim_s: float
+
+
+def settling(st, sensor: str = "mag", limits: GateLimits = GateLimits(), gravity_mps2: float | None = None
+             ) -> Settling | None:
+    """Measure a sensor settling over the hold ``st`` (a :class:`station.Station` with its
+    profile) and where it has settled; None when the hold's shape is not a settling (no profile,
+    too few segments, a time constant as long as the hold) or it has not settled with
+    ``limits.min_settled_s`` left.
+
+    The hold's segments between profile rows (a quarter second each) give the shape; for each
+    time constant of :data:`SETTLE_TAUS` the three axes' ``c`` and ``A`` are a weighted linear
+    fit (weights the segments' sample counts, the axes by their noise), and the time constant of
+    least χ² is taken; a time constant as long as the hold is a drift (or a hold too short to see
+    the settling), not a settling.  The hold has settled from the first profile row after which the
+    gates find neither a transient nor motion in what is left (:func:`station_findings`), at least
+    ``min_settled_s`` long: what the settling
+    still leaves in that part's mean is below what the gates can tell from the noise, and the lab
+    models it (:class:`effects.Settling`)."""
+    seg = st.segments()
+    p = st.profile
+    cols = slice(0, 3) if sensor == "acc" else slice(3, 6)
+    noise = np.asarray(st.g_noise if sensor == "acc" else st.b_noise, float)
+    if seg is None or len(seg[0]) < 4 or not np.all(np.isfinite(noise) & (noise > 0)) or st.n < 3:
+        return None
+    dt = float(p[-1, 0]) / max(float(p[-1, 1]) - 1.0, 1.0)    # the sample interval (counts from the first sample)
+    starts, w, mean = seg
+    y = mean[:, cols]
+    e = mean_decay(starts[None, :], w[None, :], dt, SETTLE_TAUS[:, None])     # (taus, segments)
+    sw = w.sum()
+    eb = (e * w).sum(axis=1) / sw
+    yb = (y * w[:, None]).sum(axis=0) / sw
+    de, dy = e - eb[:, None], y - yb
+    sxx = (w * de * de).sum(axis=1)
+    sxy = (w[None, :, None] * de[:, :, None] * dy[None, :, :]).sum(axis=1)          # (taus, 3)
+    syy = (w[:, None] * dy * dy).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        chi2 = ((syy[None, :] - sxy ** 2 / sxx[:, None]) / noise ** 2).sum(axis=1)
+    chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
+    k = int(np.argmin(chi2))
+    tau = float(SETTLE_TAUS[k])
+    if k == len(SETTLE_TAUS) - 1 or not np.isfinite(chi2[k]) or tau >= p[-1, 0]:
+        return None          # as slow as the hold or slower: a drift (or a hold too short to see it settle)
+    amp = sxy[k] / sxx[k]
+    for row in range(len(p) - 1):
+        if p[-1, 0] - p[row, 0] < limits.min_settled_s - 1e-9 or p[-1, 1] - p[row, 1] < 3:
+            return None
+        left = station_findings(st.settled_from(row), limits, gravity_mps2)
+        if not any(f.code in ("transient", "creep", "unsteady") for f in left):
+            return Settling(sensor, tau, amp, row, float(p[row, 0]))
+    return None
 
 
 class SaturationMonitor:
@@ -224,6 +299,11 @@ def apply_gates(st, limits: GateLimits = GateLimits(), gravity_mps2: float | Non
     if st.gated:
         return []
     found = station_findings(st, limits, gravity_mps2)
+    # the magnetometer changing while the accelerometer holds: a sensor settling after the move?
+    mag_only = [f for f in found if f.code == "transient" or (f.code == "unsteady" and f.axis.startswith("magnetometer"))]
+    if mag_only and st.profile is not None and not any(
+            f.code in ("creep", "unsteady") and f not in mag_only for f in found):
+        found = _settle(st, found, limits, gravity_mps2)
     st.gated = True
     st.findings = tuple(found)
     st.warnings.extend(f.message for f in found)
@@ -231,3 +311,23 @@ def apply_gates(st, limits: GateLimits = GateLimits(), gravity_mps2: float | Non
                                                    for s in f.sensors}))
     st.moved = st.moved or any(f.code in ("creep", "unsteady") for f in found)
     return found
+
+
+def _settle(st, found, limits, gravity_mps2) -> list:
+    """A hold whose magnetometer changed while the accelerometer held: measure the settling
+    (:func:`settling`) and, when the hold settles, keep it from there (``st`` changed in place, a
+    ``settled`` finding that refuses nothing); else the findings as they were."""
+    where = f"{st.label} at {st.where}" if (st.pose or st.has_partial_ref) else st.where
+    s = settling(st, "mag", limits, gravity_mps2)
+    if s is None:
+        return found
+    kept = st.settled_from(s.row)
+    n0, dur0 = st.n, st.duration_s
+    for name in _SETTLED_FIELDS:
+        setattr(st, name, getattr(kept, name))
+    size = float(np.linalg.norm(s.amplitude))
+    note = Finding("settled", (), (
+        f"{where}: the magnetometer settles after the move ({size:.0f} nT at the start of the hold, decaying with a "
+        f"time constant of {s.tau_s:.2f} s) — a sensor transient, not motion: the first {s.trim_s:.2f} s of the "
+        f"{dur0:.2f} s hold are left out ({st.n} of {n0} samples kept)"))
+    return [note] + station_findings(st, limits, gravity_mps2)

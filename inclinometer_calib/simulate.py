@@ -71,7 +71,8 @@ class SimulatedProbe:
     def time_skew_s(self) -> float:
         return self._whole(fx.TimeSkew)
 
-    def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool, draws: "SessionDraws | None" = None):
+    def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool, draws: "SessionDraws | None" = None,
+                history=None):
         """Raw outputs for true tool-frame gravity (m/s², down) and field (nT), (N, 3) each, on the
         stand (``survey`` False) or in the survey; ``t_s`` s since the data's first sample.
 
@@ -79,12 +80,13 @@ class SimulatedProbe:
         increments (N × its axes), the accelerometer noise (N × 3), the magnetometer noise (N × 3).
         ``draws`` (:class:`SessionDraws`): the samples are one piece of a longer block, in order,
         and take their numbers from the block's streams instead, the same ones the whole block
-        would have taken from ``rng``.
+        would have taken from ``rng``.  ``history`` (:class:`effects.History`, per sample): for
+        effects that depend on the sequence of holds (a sensor settling after the move).
 
         Returns ``(specific_force_mps2, field_nt)``.
         """
         role = "val" if survey else "cal"
-        a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role=role)
+        a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role=role, history=history)
         walk = self._walk(np.asarray(t_s, dtype=float), rng, role, draws)
         a, m = a + walk["acc"], m + walk["mag"]
         a = a + (draws.stream("acc") if draws else rng).normal(0.0, self.noise_acc, a.shape)
@@ -331,6 +333,24 @@ class SessionPlan:
         r[hold] = self._actual[seg_id[hold]]
         return r
 
+    def _history(self, t_all, seg_id):
+        """Each sample's place in the sequence of holds (:class:`effects.History`, one entry per
+        sample: its time from its hold's first sample, the previous hold's true inputs; a moving
+        sample has no hold), or None when no effect of the probe needs it."""
+        if "history" not in self.probe.model.needs("val" if self.survey else "cal"):
+            return None
+        start = {k: ts for (ts, _, k, _, _) in self.segments if k >= 0}
+        held = seg_id >= 0
+        since = np.full(len(t_all), np.inf)
+        since[held] = t_all[held] - np.array([start[k] for k in seg_id[held]])
+        prev = np.full((len(t_all), 3, 3), np.nan)
+        after = held & (seg_id >= 1)
+        prev[after] = self._actual[seg_id[after] - 1]
+        rt = np.swapaxes(prev, -1, -2)
+        return fx.History(source=np.zeros(len(t_all), dtype=int), order=np.maximum(seg_id, 0),
+                          previous_g=rt @ self.site.gravity_ned(), previous_b=rt @ self.site.field_ned(),
+                          settled_s=since, duration_s=np.zeros(len(t_all)), n=np.ones(len(t_all)))
+
     def _simulate(self, a: int, b: int, draws) -> ProbeLog:
         probe, site = self.probe, self.site
         t_all, seg_id, temp, pose, ref = self.labels(a, b)
@@ -338,7 +358,8 @@ class SessionPlan:
         r_mag = self._rot_at(t_all + probe.time_skew_s, t_all, seg_id) if probe.time_skew_s else r_acc
         g_tool = np.einsum("nji,j->ni", r_acc, site.gravity_ned())   # Rᵀ·g_ned
         b_tool = np.einsum("nji,j->ni", r_mag, site.field_ned())     # Rᵀ·b_ned
-        f, m = probe.measure(g_tool, b_tool, temp, t_all, self.rng, self.survey, draws=draws)
+        f, m = probe.measure(g_tool, b_tool, temp, t_all, self.rng, self.survey, draws=draws,
+                             history=self._history(t_all, seg_id))
         md = (np.interp(t_all, *self._md_keys, left=np.nan, right=np.nan) if self._md_keys is not None
               else np.full(len(t_all), np.nan))
         return ProbeLog(t_all, f, m, temp, pose, ref, station=seg_id, md_m=md)

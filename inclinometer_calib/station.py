@@ -92,6 +92,17 @@ class Station:
     #: Measured depth of the station (m; NaN: not known): a log's ``md_m`` rows, a stream's
     #: ``/probe/depth``, a plan's set depth.
     md_m: float = math.nan
+    #: The detector's running sums through the hold (None: not kept): ``origin`` (6,) the first
+    #: sample (gravity vector, field) the sums are taken from; ``profile`` (k, 22) a row per
+    #: :data:`streaming.PROFILE_AT` passed — the time from the first sample of the sample that
+    #: passed it, then the sums *before* that sample: ``n``, Σd, Σd², Στd (six each, ``d`` the
+    #: sample less ``origin``, ``τ`` its time from the first sample), Στ, Στ² — and a last row with
+    #: the whole hold's sums at its last sample's time.  :meth:`settled_from` takes the station from
+    #: any row to its end.
+    origin: np.ndarray | None = None
+    profile: np.ndarray | None = None
+    #: Seconds left out at the start of the hold (a sensor settling after the move: :mod:`gates`).
+    settled_s: float = 0.0
 
     def __post_init__(self):
         for name in ("g", "b", "g_std", "b_std", "g_rate", "b_rate", "g_noise", "b_noise", "ref"):
@@ -122,6 +133,48 @@ class Station:
     @duration_s.setter
     def duration_s(self, value: float) -> None:   # a plan's hold made longer or shorter
         self.t_end = self.t_start + float(value)
+
+    def segments(self):
+        """The hold cut at the rows of :attr:`profile` (a quarter second apart), as arrays
+        ``(start, n, mean)``: each piece's first sample's time from the hold's first sample (s),
+        its samples, and the mean of the six values — the hold's shape (a sensor settling after
+        the move); None without a profile."""
+        p = self.profile
+        if p is None or len(p) < 2:
+            return None
+        if self.settled_s == 0:                # the hold from its first sample: sums of nothing before it
+            p = np.vstack([np.zeros((1, p.shape[1])), p])
+        dn = np.diff(p[:, 1])
+        ok = dn > 0
+        mean = np.diff(p[:, 2:8], axis=0)[ok] / dn[ok, None] + self.origin
+        return p[:-1, 0][ok], dn[ok], mean
+
+    def settled_from(self, row: int) -> "Station":
+        """A copy of the station from the sample that passed :attr:`profile` row ``row`` to its end:
+        means, scatter, trends and times of those samples only, from the running sums (the same
+        formulas as the detector's).  Labels, noise, gate outcome and temperature are kept (the
+        temperature of the whole hold: a few seconds do not change it)."""
+        import dataclasses
+
+        p = self.profile
+        a, z = p[row], p[-1]
+        n = int(round(z[1] - a[1]))
+        if n < 2:
+            raise ValueError(f"{self.where}: fewer than 2 samples after {a[0]:.2f} s")
+        s1, s2, st = z[2:8] - a[2:8], z[8:14] - a[8:14], z[14:20] - a[14:20]
+        tt, tt2 = z[20] - a[20], z[21] - a[21]
+        mean_d = s1 / n
+        var = np.maximum(s2 / n - mean_d * mean_d, 0.0) * n / (n - 1)
+        mean = self.origin + mean_d
+        tbar = tt / n
+        stt = tt2 - n * tbar * tbar
+        rate = (st - tbar * s1) / stt if stt > 0 else np.zeros(6)
+        std = np.sqrt(var)
+        t0 = self.t_start - self.settled_s
+        return dataclasses.replace(
+            self, t_start=t0 + float(a[0]), n=n, g=mean[:3], b=mean[3:], g_std=std[:3], b_std=std[3:],
+            g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)), settled_s=float(a[0]),
+            warnings=list(self.warnings), profile=p[row:].copy())
 
     @property
     def has_ref(self) -> bool:
@@ -249,6 +302,10 @@ class Stations:
     prev_g: np.ndarray = None
     prev_b: np.ndarray = None
     samples: np.ndarray = None
+    #: The part of each hold a station keeps (:attr:`Station.settled_s`, :attr:`Station.duration_s`):
+    #: seconds left out at the hold's start (a sensor settling after the move) and kept, (N,).
+    settled_s: np.ndarray = None
+    duration_s: np.ndarray = None
     #: What reading left out or changed, with the reason (:class:`Loss`): the lab's verdict, JSON
     #: and report count it.  Not per station: a subset keeps the whole ledger.
     losses: list = field(default_factory=list)
@@ -262,6 +319,10 @@ class Stations:
                 setattr(self, name, np.full(shape, np.nan))
         if self.samples is None:
             self.samples = np.full(n, None, dtype=object)
+        if self.settled_s is None:
+            self.settled_s = np.zeros(n)
+        if self.duration_s is None:
+            self.duration_s = np.full(n, np.nan)
 
     def __len__(self):
         return len(self.g)
@@ -358,4 +419,5 @@ class Stations:
             prev_rotation=np.concatenate([np.full((min(n, 1), 3, 3), np.nan), rot[:-1]]),
             prev_g=np.concatenate([np.full((min(n, 1), 3), np.nan), np.array([st.g for st in stations]).reshape(n, 3)[:-1]]),
             prev_b=np.concatenate([np.full((min(n, 1), 3), np.nan), np.array([st.b for st in stations]).reshape(n, 3)[:-1]]),
-            samples=_object_array(samples, n))
+            samples=_object_array(samples, n), settled_s=np.array([st.settled_s for st in stations], dtype=float),
+            duration_s=np.array([st.duration_s for st in stations], dtype=float))

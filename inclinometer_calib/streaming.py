@@ -32,6 +32,12 @@ GAP_MIN_S = 0.05
 #: times stamped in a bag (sec + nanosec, far from zero) differ in their last bits, and durations
 #: nominally equal to a limit must fall on the same side of it in both.
 TIME_EPS = 1e-6
+#: The hold's running sums are kept at these times from its first sample (s, less TIME_EPS): a
+#: station can then be taken from any of them to its end (:meth:`station.Station.settled_from`) —
+#: a sensor that settles after each move has the start of its holds trimmed (:mod:`gates`).
+PROFILE_STEP_S = 0.25
+PROFILE_SPAN_S = 8.0
+PROFILE_AT = tuple(k * PROFILE_STEP_S - TIME_EPS for k in range(1, int(round(PROFILE_SPAN_S / PROFILE_STEP_S)) + 1))
 
 
 class StaticDetector:
@@ -116,6 +122,8 @@ class StaticDetector:
         self._s2 = [0.0] * 6
         self._st = [0.0] * 6
         self._tt = self._tt2 = 0.0
+        self._profile = []       # the running sums before the first sample at each PROFILE_AT
+        self._pj = 0             # the next PROFILE_AT to pass
 
     def set_prior(self, noise_acc: float | None = None, noise_mag: float | None = None) -> None:
         """The per-sample σ stated by the messages (covariance): used until the data give one."""
@@ -306,9 +314,12 @@ class StaticDetector:
         if self._n == 0:
             self._t0 = t
             self._x0 = list(x)
+        tau = t - self._t0
+        if self._pj < len(PROFILE_AT) and tau >= PROFILE_AT[self._pj]:
+            self._profile.append(self._sums(tau))
+            self._pj = bisect.bisect_right(PROFILE_AT, tau)
         self._n += 1
         self._t_last = t
-        tau = t - self._t0
         self._tt += tau
         self._tt2 += tau * tau
         x0, s1, s2, st = self._x0, self._s1, self._s2, self._st
@@ -317,6 +328,12 @@ class StaticDetector:
             s1[k] += d
             s2[k] += d * d
             st[k] += tau * d
+
+    def _sums(self, tau) -> tuple:
+        """A row of :attr:`station.Station.profile`: ``tau`` (s from the hold's first sample), then the
+        running sums before that sample: ``n``, Σd, Σd², Στd (six each, ``d`` from the first
+        sample), Στ, Στ²."""
+        return (tau, float(self._n), *self._s1, *self._s2, *self._st, self._tt, self._tt2)
 
     def _close(self, reason):
         st = None
@@ -346,12 +363,13 @@ class StaticDetector:
         rate = (np.array(self._st) - tbar * s1) / stt if stt > 0 else np.zeros(6)
         std = np.sqrt(var)
         sig = np.array(self.noise.measured)   # the gates judge against the data's noise, not an override
+        profile = np.array(self._profile + [self._sums(self._t_last - self._t0)])   # the last row: the totals
         return Station(t_start=self._t0, t_end=self._t_last, n=n, g=mean[:3], b=mean[3:], g_std=std[:3],
                        b_std=std[3:], temp_c=self.temps.mean(self._t0, self._t_last),
                        g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)),
                        g_noise=sig[:3], b_noise=sig[3:], outliers=self._outliers,
                        short=(self._t_last - self._t0) < self.min_duration_s - TIME_EPS, ended_by=reason,
-                       t_origin=self.t_first)
+                       t_origin=self.t_first, origin=np.array(self._x0), profile=profile)
 
     def _pieces(self, st):
         """Say so when a hold was cut into pieces, with the likely reason and the setting that fixes
@@ -601,11 +619,21 @@ class _BatchRun:
         if k:
             dk = d[:k]
             tau = ts[:k] - det._t0
+            s2 = np.cumsum(np.vstack([np.array(det._s2)[None], dk * dk]), axis=0)     # before each row, then after
+            st = np.cumsum(np.vstack([np.array(det._st)[None], tau[:, None] * dk]), axis=0)
+            tt = np.cumsum(np.r_[det._tt, tau])
+            tt2 = np.cumsum(np.r_[det._tt2, tau * tau])
+            # the profile's rows that fall among these (as _add keeps them, sample by sample)
+            while det._pj < len(PROFILE_AT) and tau[-1] >= PROFILE_AT[det._pj]:
+                r = int(np.searchsorted(tau, PROFILE_AT[det._pj], side="left"))
+                det._profile.append((float(tau[r]), float(n0 + r), *s1[r].tolist(), *s2[r].tolist(), *st[r].tolist(),
+                                     float(tt[r]), float(tt2[r])))
+                det._pj = bisect.bisect_right(PROFILE_AT, float(tau[r]))
             det._s1 = s1[k].tolist()
-            det._s2 = np.cumsum(np.vstack([np.array(det._s2)[None], dk * dk]), axis=0)[-1].tolist()
-            det._st = np.cumsum(np.vstack([np.array(det._st)[None], tau[:, None] * dk]), axis=0)[-1].tolist()
-            det._tt = float(np.cumsum(np.r_[det._tt, tau])[-1])
-            det._tt2 = float(np.cumsum(np.r_[det._tt2, tau * tau])[-1])
+            det._s2 = s2[-1].tolist()
+            det._st = st[-1].tolist()
+            det._tt = float(tt[-1])
+            det._tt2 = float(tt2[-1])
             det._n = n0 + k
             det._t_last = float(ts[k - 1])
             det._out = 0

@@ -100,3 +100,45 @@ def test_a_rotation_about_the_vertical_keeps_the_invariants_and_stays_a_creep():
     tilt = np.array([9.80665 * np.radians(0.1) / 3.0, 0.0, 0.0])
     codes = [x.code for x in station_findings(_station(g_rate=tilt, b_rate=np.array([30.0, 0.0, 0.0])))]
     assert "creep" in codes and "transient" not in codes
+
+
+def _settling_hold(tau_s, amplitude, seconds=6.0, rate_hz=50.0, seed=0):
+    """One hold of a probe whose magnetometer settles after the move (``amplitude`` nT at the
+    hold's first sample, decaying with ``tau_s``), found by the detector from its samples."""
+    from inclinometer_calib.streaming import StaticDetector
+
+    rng = np.random.default_rng(seed)
+    n = int(seconds * rate_hz)
+    t = np.arange(n) / rate_hz
+    f = -G + rng.normal(0, 0.004, (n, 3))                              # REP-145 specific force at rest
+    m = B + rng.normal(0, 25.0, (n, 3)) + np.outer(np.exp(-t / tau_s), amplitude)
+    det = StaticDetector(noise_acc=0.004, noise_mag=25.0, max_duration_s=60.0)
+    (st,) = list(det.run(t, f, m)) + list(det.flush())
+    st.b_noise, st.g_noise = np.full(3, 25.0), np.full(3, 0.004)
+    return st
+
+
+def test_a_magnetometer_that_settles_after_the_move_is_measured_and_its_hold_kept_from_where_it_settled():
+    """A fluxgate settling after every move (issue 23): the gates measure the time constant from
+    the hold's shape, leave out the start until no transient is left, say so with the figures,
+    and keep the hold — its magnetometer mean then within the noise of the settled field."""
+    st = _settling_hold(1.2, np.array([250.0, -180.0, 120.0]))
+    n0 = st.n
+    found = apply_gates(st)
+    assert [f.code for f in found] == ["settled"], [f.message for f in found]
+    tau = float(found[0].message.split("time constant of ")[1].split(" s")[0])
+    assert abs(tau - 1.2) < 0.25
+    assert not st.unusable and not st.moved and st.n < n0 and st.settled_s > 1.0
+    assert "not motion" in found[0].message and f"({st.n} of {n0} samples kept)" in found[0].message
+    se = 25.0 / np.sqrt(st.n)
+    assert np.all(np.abs(st.b - B) < 5 * se), (st.b - B) / se
+    assert station_findings(st) == []                                 # what is kept passes every gate
+
+
+def test_a_drift_that_never_settles_or_a_hold_too_short_to_settle_stays_refused():
+    slow = _settling_hold(200.0, np.array([0.0, 0.0, 1500.0]))        # a drift, not a settling
+    found = apply_gates(slow)
+    assert "settled" not in [f.code for f in found] and slow.unusable == ("mag",), [f.message for f in found]
+    short = _settling_hold(3.0, np.array([400.0, 300.0, 0.0]), seconds=2.0)
+    found = apply_gates(short)
+    assert "settled" not in [f.code for f in found] and short.unusable == ("mag",), [f.message for f in found]

@@ -32,3 +32,36 @@ def test_a_station_says_where_it_is_and_what_reference_it_has():
     assert st.where == "t=1.00-3.50 s" and st.label == "I=0 A=- T=90"
     st.first_row, st.last_row = 101, 350
     assert st.where.startswith("rows 101-350")
+
+
+def test_a_hold_taken_from_a_profile_row_has_the_statistics_of_its_samples_from_there():
+    """The detector keeps its running sums through the hold (``Station.profile``); a station taken
+    from any row of it (a sensor settling after the move trimmed off) has the means, scatter,
+    trend and times of exactly the samples from that row on."""
+    from inclinometer_calib.streaming import StaticDetector
+
+    rng = np.random.default_rng(3)
+    t = np.arange(600) * 0.02                                         # 12 s at 50 Hz
+    f = np.c_[rng.normal(0, 0.004, (600, 2)), rng.normal(-9.81, 0.004, 600)]   # REP-145: at rest, −g
+    m = rng.normal(0, 25, (600, 3)) + [20000.0, 0.0, 40000.0] + np.outer(np.exp(-t / 1.5), [120.0, -80.0, 40.0])
+    det = StaticDetector(noise_acc=0.004, noise_mag=60.0, max_duration_s=60.0)      # no sample left out as a spike
+    (st,) = list(det.run(t, f, m)) + list(det.flush())
+    assert st.n == 600 and st.profile.shape == (32 + 1, 22)           # a row a quarter second to 8 s, then the totals
+    for row in (0, 5, 19, 31):
+        k = int(st.profile[row, 1])                                    # samples before the row's
+        assert np.isclose(t[k], st.profile[row, 0] + t[0])
+        part = st.settled_from(row)
+        x = np.c_[-f[k:], m[k:]]
+        ref = _from_samples(t[k:], x)
+        assert part.n == 600 - k and part.t_start == t[k] and part.t_end == st.t_end
+        assert np.isclose(part.settled_s, t[k] - t[0]) and part.pose == st.pose
+        np.testing.assert_allclose(part.b, ref.b, rtol=1e-12)
+        np.testing.assert_allclose(part.g, ref.g, rtol=1e-12)
+        np.testing.assert_allclose(part.b_std, ref.b_std, rtol=1e-7)
+        np.testing.assert_allclose(part.b_rate, ref.b_rate, rtol=1e-7, atol=1e-9)
+        assert np.isclose(part.t_std, ref.t_std, rtol=1e-9)
+        # and taken again from a later row of the part: the same as from the whole
+        if row + 3 < 32:
+            later = part.settled_from(3)
+            np.testing.assert_allclose(later.b, st.settled_from(row + 3).b, rtol=1e-12)
+            assert later.t_start == st.settled_from(row + 3).t_start

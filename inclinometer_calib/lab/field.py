@@ -172,6 +172,8 @@ class FieldMonitor:
         for eff, _ in candidate_effects(LabModel(site=cal.site, probe=cal.model)):
             if eff.key in seen or eff.identifiability(t_span, float(np.ptp(time)), frozenset({"free"})):
                 continue
+            if "history" in type(eff).context_needs():   # the window's rows carry no station sequence
+                continue
             seen.add(eff.key)
             term = eff                     # a fresh effect of the lab's list, its parameters zero
             sensor = term.sensor

@@ -234,7 +234,8 @@ class LabModel:
         g_prev = np.where(known[:, None], g_prev, data.prev_g[m])
         b_prev = np.where(known[:, None], b_prev, data.prev_b[m])
         return fx.History(source=data.source[m], order=data.order[m], previous_g=g_prev, previous_b=b_prev,
-                          samples=data.samples[m])
+                          samples=data.samples[m], settled_s=data.settled_s[m], duration_s=data.duration_s[m],
+                          n=data.n[m])
 
     def forward(self, data, g_true, b_true):
         """Predicted outputs (gravity-vector m/s², nT) for true vectors, station by station."""

@@ -2,10 +2,13 @@
 
 Its own physics, written out here with numpy and scipy only: orientations from scipy's
 ``Rotation`` (intrinsic Z-Y-Z: azimuth, drift, toolface; tool Z down-hole, NED), each triad's
-output ``y = A·x + q·x²/s + b + c·(T - 20 °C) + r·t + w(t) + k·x_prev + noise`` with a full 3×3 gain
+output ``y = A·x + q·x²/s + b + c·(T - 20 °C) + r·t + w(t) + k·x_prev + h·(x_prev − x)·exp(−t_h/τ_h) + noise``
+with a full 3×3 gain
 matrix ``A`` (scale and non-orthogonality together), a square-law term ``q`` per axis (``s`` 9.81 m/s²
 or 50 000 nT), a temperature coefficient ``c``, a drift rate ``r`` and a
-random-walk bias ``w`` and a remanence ``k`` (a share of the previous hold's input); in a survey log
+random-walk bias ``w``, a remanence ``k`` (a share of the previous hold's input) and a settling ``h``
+(a fluxgate's offset set by the change of field at the move, decaying with ``τ_h`` from the hold's
+first sample, ``t_h`` the time since it); in a survey log
 the input ``x`` carries the drill string's field, fixed in the tool frame; a stand whose twelve poses may sit off by fixed small rotations (the
 same in every round, both triads alike); moves between holds by spherical interpolation.  Logs
 are written the way other tools write them: specific force (a resting probe reads -gravity),
@@ -48,6 +51,8 @@ class Triad:
     survey_field: np.ndarray = field(default_factory=lambda: np.zeros(3))   # tool-frame field of the drill string
     square: np.ndarray = field(default_factory=lambda: np.zeros(3))   # y_i += square_i·x_i²/scale (scale: 1 g, 50 µT)
     temp_lag_s: float = 0.0               # the sensor's temperature lags the logged one (first order, s)
+    settle_share: float = 0.0             # share of the field's change at the move left as an offset
+    settle_tau_s: float = 1.0             # ... decaying with this time constant from the hold's start (s)
 
 
 @dataclass
@@ -142,6 +147,7 @@ class Generator:
         self.walk_track = {"acc": [], "mag": []}   # (t, value) per sample, for the true model
         self.lag_state = {}                         # the temperature each sensor feels, across logs
         self.felt_track = {"acc": [], "mag": []}   # (t, felt temperature), for the true model
+        self.hold_starts = []                       # (time of a hold's first sample, its previous hold's rotation or None)
 
     def _lagged(self, name, t, temp, tau):
         """The temperature the sensor feels: the logged one through a first-order lag of ``tau`` s,
@@ -166,7 +172,7 @@ class Generator:
         f = np.concatenate([b for _, b in self.felt_track[name]])
         return np.interp(times, t, f)
 
-    def outputs(self, t, rot, temp, prev_rot=None, prev_ok=None, survey=False):
+    def outputs(self, t, rot, temp, prev_rot=None, prev_ok=None, survey=False, since=None):
         g_ned, b_ned = self.site.vectors()
         out = {}
         for name, v_ned in (("acc", g_ned), ("mag", b_ned)):
@@ -179,6 +185,10 @@ class Generator:
             y = y + tr.bias + np.outer(felt - T0_C, tr.temp_coef) + np.outer(t / 3600.0, tr.drift_rate)
             if tr.remanence and prev_rot is not None:        # the previous hold's input, a little of it kept
                 y = y + tr.remanence * np.nan_to_num(prev_rot.inv().apply(v_ned) * prev_ok[:, None])
+            if tr.settle_share and since is not None:        # the change at the move, settling away
+                step = (prev_rot.inv().apply(v_ned) - rot.inv().apply(v_ned)) * prev_ok[:, None]
+                decay = np.where(np.isfinite(since), np.exp(-np.nan_to_num(since) / tr.settle_tau_s), 0.0)
+                y = y + tr.settle_share * step * decay[:, None]
             if tr.walk:
                 dt = np.diff(t, prepend=t[0] - 1.0 / self.rate_hz)
                 steps = self.rng.normal(0, 1, (len(t), 3)) * tr.walk * np.sqrt(dt)[:, None]
@@ -199,7 +209,12 @@ class Generator:
         prev = np.where(idx >= 0, idx - 1, held)
         prev_ok = (prev >= 0).astype(float)
         prev_rot = Rotation.concatenate([holds[max(k, 0)].rot for k in prev])
-        acc, mag = self.outputs(t, rot, temp, prev_rot, prev_ok, survey)
+        first = (idx >= 0) & np.r_[True, idx[1:] != idx[:-1]]          # each hold's first sample
+        t_first = np.full(len(holds), np.nan)
+        t_first[idx[first]] = t[first]
+        since = np.where(idx >= 0, t - t_first[np.maximum(idx, 0)], np.nan)
+        self.hold_starts += [(float(t_first[k]), holds[k - 1].rot if k else None) for k in range(len(holds))]
+        acc, mag = self.outputs(t, rot, temp, prev_rot, prev_ok, survey, since)
         with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose", "ref_drift_deg",
@@ -237,6 +252,8 @@ def true_vectors(gen: Generator, data):
             v_ned = gen.site.vectors()[0 if name == "acc" else 1]
             prev = np.swapaxes(data.prev_rotation, -1, -2) @ v_ned
             y = y - tr.remanence * np.nan_to_num(prev)
+        if tr.settle_share:
+            y = y - tr.settle_share * _settling_means(gen, data, name, tr.settle_tau_s)
         x = np.linalg.solve(tr.gain, y.T).T
         for _ in range(20):                                  # y = A·x + q·x²/s, by fixed point
             x = np.linalg.solve(tr.gain, (y - tr.square * x ** 2 / (9.81 if name == "acc" else 5e4)).T).T
@@ -244,3 +261,22 @@ def true_vectors(gen: Generator, data):
             x = x - np.outer(data.role == "val", tr.survey_field)
         out.append(x)
     return out[0], out[1]
+
+
+def _settling_means(gen: Generator, data, name, tau):
+    """Per station, the mean over its samples of the settling's ``(x_prev − x)·exp(−t_h/τ)`` (the
+    hold it lies in found by its first sample's time)."""
+    v_ned = gen.site.vectors()[0 if name == "acc" else 1]
+    starts = np.array([s for s, _ in gen.hold_starts])
+    out = np.zeros((len(data), 3))
+    for i, smp in enumerate(data.samples):
+        ts = np.asarray(smp)[:, 0]
+        k = int(np.searchsorted(starts, ts[0] + 1e-9)) - 1
+        t0, prev = gen.hold_starts[k]
+        if prev is None:
+            continue
+        x = np.asarray(smp)[:, 1:4] if name == "acc" else np.asarray(smp)[:, 4:7]
+        rot = Rotation.from_matrix(data.rotation[i]) if np.all(np.isfinite(data.rotation[i])) else None
+        cur = rot.inv().apply(v_ned) if rot is not None else x.mean(axis=0)
+        out[i] = (prev.inv().apply(v_ned) - cur) * np.mean(np.exp(-(ts - t0) / tau))
+    return out
