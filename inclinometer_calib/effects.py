@@ -170,6 +170,10 @@ class Effect(abc.ABC):
     #: The features of the lab's search beyond the catalogue (:mod:`lab.discover`) this effect
     #: models: a residual they explain names this effect, not a term outside the catalogue.
     discovery_features: ClassVar[tuple] = ()
+    #: Parameters (spec names) the data say nothing of while the effect is absent (a settling's time
+    #: constant when nothing settles): the lab's test of the effect holds them at their start and
+    #: tests the others, then fits them all when those are significant (:mod:`lab.diagnose`).
+    held_in_test: ClassVar[tuple] = ()
     #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
     #: estimates from the data (:mod:`lab.wander`), not values a least-squares fit moves.
     stochastic: ClassVar[bool] = False
@@ -707,6 +711,7 @@ class Settling(Effect):
     #: a fluxgate's core (its magnetisation follows the field it held); an accelerometer's proof
     #: mass has no such memory
     sensors: ClassVar[tuple] = ("mag",)
+    held_in_test: ClassVar[tuple] = ("ln_tau",)
     needs: ClassVar[tuple] = ("history",)
     signature: ClassVar[str] = ("residuals following the change of input since the previous hold, larger in holds "
                                 "kept from early on")

@@ -200,16 +200,17 @@ def fit_data(data: Stations) -> Stations:
 
 
 def field_fit(model: LabModel, data: Stations, uncertainty: bool = True, progress=None, max_nfev: int = 200,
-              survey_invariants: bool = True):
+              survey_invariants: bool = True, fixed=None):
     """Fit ``model`` (in place) as for a survey; returns the :class:`fit.FitResult`.
 
     The fit sees what a rig has: the calibration stations, and (``survey_invariants``) the survey
     stations' |g|, |B| and dip against the site — never their reference angles
     (:func:`fit_data`).  With ``survey_invariants=False`` it sees the calibration logs only (an
-    effect acting on the survey alone then stays at its prior, zero)."""
+    effect acting on the survey alone then stays at its prior, zero).  ``fixed``: parameters held
+    (:func:`fit.fit`)."""
     fd = fit_data(data)
     use = fd if survey_invariants or not (fd.role == "cal").any() else fd.subset(fd.role == "cal")
-    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty)
+    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty, fixed=fixed)
 
 
 def validation(model: LabModel, data: Stations, survey_invariants: bool = True) -> dict:
@@ -411,9 +412,27 @@ def _param_rows(fit_result, idx) -> list:
 
 
 def _test_term(trial: LabModel, label: str, data, n_tests: int):
-    """Field-fit ``trial`` and test the term ``label``: (fit, Wald χ², adjusted p, per-axis tests)."""
-    f = field_fit(trial, data)
+    """Field-fit ``trial`` and test the term ``label``: (fit, Wald χ², adjusted p, per-axis tests).
+
+    An effect's parameters that the data say nothing of until the effect is there
+    (:attr:`effects.Effect.held_in_test`: a settling's time constant) are held at their start for
+    the test of the others; when those are significant the term is fitted again with all free and
+    tested whole."""
     idx = trial.param_index(label)
+    eff = next((t.effect for t in trial.probe.terms if t.label == label), None)
+    held = np.zeros(len(trial.get_vector()), bool)
+    if eff is not None and eff.held_in_test:       # the effect's vector: spec by spec, each over its axes
+        per = eff.n_params // max(len(eff.specs), 1)
+        for k, spec in enumerate(eff.specs):
+            if spec.name in eff.held_in_test:
+                held[idx[k * per:(k + 1) * per]] = True
+    f = field_fit(trial, data, fixed=held if held.any() else None)
+    if held.any():
+        _, _, p = f.wald(idx[~held[idx]])
+        if p * n_tests < ALPHA:
+            f = field_fit(trial, data)
+        else:
+            idx = idx[~held[idx]]
     axis_tests = []
     if label == POSES_LABEL:      # per pose the data have: its three angles
         have = sorted(set(int(q) for q in data.pose[(data.kind == "pose") & (data.pose >= 1)]))
@@ -424,11 +443,10 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
                                "significant": bool(pq * n_tests * len(have) < ALPHA)})
     chi2, _, p = f.wald(idx)
     if label not in (HEADING, POSES_LABEL):
-        eff = next(t.effect for t in trial.probe.terms if t.label == label)
         if eff.stage != fx.PROBE_STAGE and len(eff.axes) > 1:
             n_ax = len(eff.axes)
             for j, a in enumerate(eff.axes):
-                sub = idx[[k * n_ax + j for k in range(len(eff.specs))]]
+                sub = idx[[k * n_ax + j for k in range(len(idx) // n_ax)]]
                 c, _, pa = f.wald(sub)
                 axis_tests.append({"axis": a, "wald_chi2": c, "p": min(pa * n_tests * n_ax, 1.0),
                                    "significant": bool(pa * n_tests * n_ax < ALPHA)})
