@@ -143,10 +143,11 @@ class Calibration:
             self._plan = CorrectionPlan(self.model, "val")
         return self._plan
 
-    def correct(self, g_raw, b_raw, temperature_c=None, time_s=None):
+    def correct(self, g_raw, b_raw, temperature_c=None, time_s=None, history=None):
         """Corrected gravity vector (m/s²) and field (nT) from raw outputs in the same conventions,
-        on survey data (:meth:`model.ProbeModel.correct`, the one correction path)."""
-        return self.plan.correct(g_raw, b_raw, temperature_c, time_s)
+        on survey data (:meth:`model.ProbeModel.correct`, the one correction path); ``history``
+        (:class:`effects.History`) for effects that depend on the sequence of holds."""
+        return self.plan.correct(g_raw, b_raw, temperature_c, time_s, history=history)
 
     @property
     def needs(self) -> tuple:

@@ -77,12 +77,17 @@ def site_override_note(cal, site) -> str:
             + ", ".join(diffs) + " — QC and azimuths use the given one")
 
 
-def correct_stations(stations, cal, strict: bool = False):
+def correct_stations(stations, cal, strict: bool = False, previous=None):
     """Corrected gravity vectors (m/s²) and fields (nT) of stations, (N, 3) each, with each
     station's temperature and time (``cal`` None: the raw vectors).  A station without the
     temperature the model needs comes out NaN (:func:`context_warnings` says why); ``strict``:
     raise :class:`model.ModelContextError` instead when no station has one (a log without a
-    temperature column)."""
+    temperature column).
+
+    A model with effects that depend on the sequence of holds (a sensor settling after the move,
+    :class:`effects.Settling`) corrects the stations one after another, in the order given, each
+    with its place in its hold and the previous hold's corrected vectors as that hold's input
+    (``previous``: ``(g, b)`` of the hold before the first, None: none — a stream's first)."""
     g = np.array([s.g for s in stations], dtype=float).reshape(-1, 3)
     b = np.array([s.b for s in stations], dtype=float).reshape(-1, 3)
     if cal is None:
@@ -91,7 +96,25 @@ def correct_stations(stations, cal, strict: bool = False):
     times = np.array([s.time_s for s in stations], dtype=float)
     if strict and "temperature" in cal.needs and len(temps) and not np.isfinite(temps).any():
         return cal.correct(g, b, None, times)   # raises: the model needs a temperature, the data give none
-    return cal.correct(g, b, temps, times)
+    if "history" not in cal.needs:
+        return cal.correct(g, b, temps, times)
+    out_g, out_b = np.empty_like(g), np.empty_like(b)
+    prev = previous if previous is not None else (np.full(3, np.nan), np.full(3, np.nan))
+    for i, st in enumerate(stations):
+        h = hold_history(st, prev)
+        out_g[i:i + 1], out_b[i:i + 1] = cal.correct(g[i:i + 1], b[i:i + 1], temps[i:i + 1], times[i:i + 1], history=h)
+        prev = (out_g[i], out_b[i])
+    return out_g, out_b
+
+
+def hold_history(st: Station, previous) -> "fx.History":
+    """One station's :class:`effects.History`: where in its hold it lies, and ``previous`` — the
+    ``(g, b)`` input of the hold before it (NaN: none)."""
+    from . import effects as fx
+
+    pg, pb = (np.asarray(v, dtype=float).reshape(1, 3) for v in previous)
+    return fx.History(source=np.zeros(1, dtype=int), order=np.array([st.index]), previous_g=pg, previous_b=pb,
+                      settled_s=np.array([st.settled_s]), duration_s=np.array([st.duration_s]), n=np.array([st.n]))
 
 
 def evaluate_stations(g, b, site, tol: Tolerances = Tolerances(), ref=None, axial: bool = False) -> dict:
@@ -165,6 +188,7 @@ class SurveyProcessor:
         self.forced = ""                    # what every station says when a mismatched record is forced
         self.refused = ""                   # why the record was dropped (the data's serial is another probe's)
         self._next_id = 0
+        self._previous = None                # the last station's corrected (g, b)
         self.notes: list = []
         if calibration is not None:
             self.set_calibration(calibration)
@@ -228,7 +252,8 @@ class SurveyProcessor:
                 st.warnings.append(said)
         if ref is not None and not any(math.isfinite(x) for x in ref):
             ref = None
-        g, b = correct_stations([st], cal)
+        g, b = correct_stations([st], cal, previous=self._previous)
+        self._previous = (g[0], b[0])        # the next hold's previous input (a settling's)
         site = self.site
         if site is None and NO_SITE not in st.warnings:
             st.warnings.append(NO_SITE)

@@ -157,7 +157,9 @@ class FieldMonitor:
         from .model import LabModel
 
         cal = self.calibration
-        if cal is None:
+        if cal is None or "history" in cal.needs:
+            # a model that depends on the sequence of holds (a settling) cannot be evaluated on the
+            # window's rows, which keep no hold timing: its trends are still tested, no candidate
             return []
         x = {"acc": np.array([r["g"] for r in rows]), "mag": np.array([r["b"] for r in rows])}
         temp = np.array([r["temp"] for r in rows])
