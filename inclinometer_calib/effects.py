@@ -37,6 +37,7 @@ Adding an effect means adding one class here and registering it in :data:`CATALO
 from __future__ import annotations
 
 import abc
+import math
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -99,6 +100,11 @@ class History:
     settled_s: np.ndarray | None = None
     duration_s: np.ndarray | None = None
     n: np.ndarray | None = None
+    #: Stations corrected one at a time (a stream): the times (s) and temperatures (°C) of the
+    #: stations before these, in order — the temperature a sensor feels late depends on them
+    #: (:class:`ThermalLag`); None: the rows given are the whole sequence.
+    earlier_time_s: np.ndarray | None = None
+    earlier_temp_c: np.ndarray | None = None
 
 
 @dataclass
@@ -174,6 +180,9 @@ class Effect(abc.ABC):
     #: constant when nothing settles): the lab's test of the effect holds them at their start and
     #: tests the others, then fits them all when those are significant (:mod:`lab.diagnose`).
     held_in_test: ClassVar[tuple] = ()
+    #: What the model must already depend on for this effect to do anything (``"temperature"``:
+    #: a temperature effect of the same sensor; empty: nothing) — the lab tries it only then.
+    requires: ClassVar[str] = ""
     #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
     #: estimates from the data (:mod:`lab.wander`), not values a least-squares fit moves.
     stochastic: ClassVar[bool] = False
@@ -241,6 +250,11 @@ class Effect(abc.ABC):
         without the gather and scatter copies of a list index: the same elementwise operations,
         so the same bits, in about half the time), else :meth:`_idx`."""
         return slice(None) if self.axes == "xyz" else self._idx()
+
+    def chain_context(self, ctx: Context) -> Context:
+        """The context the effects of this effect's chain see (:func:`apply_chain`): ``ctx`` itself,
+        unless the effect changes what the others see (a sensor feeling the temperature late)."""
+        return ctx
 
     def apply(self, v: np.ndarray, ctx: Context) -> np.ndarray:
         """Apply the effect to the (N, 3) signal ``v`` at this effect's stage; returns a new array."""
@@ -739,6 +753,78 @@ class Settling(Effect):
         v[:, c] += self.values["h"] * change * decay
 
 
+def felt_temperature(time_s, temp_c, tau_s: float) -> np.ndarray:
+    """The temperature felt through a first-order lag ``tau_s`` (``dT_f/dt = (T − T_f)/τ``) at each
+    of the times given (any order; the temperature linear between them, felt as logged at the
+    first): ``y₁ = T₁ − τs + (y₀ − T₀ + τs)·e^(−Δt/τ)``, ``s`` the segment's slope — exact for a
+    piecewise-linear input."""
+    time_s, temp_c = np.asarray(time_s, float), np.asarray(temp_c, float)
+    order = np.argsort(time_s, kind="stable")
+    t, T = time_s[order].tolist(), temp_c[order].tolist()
+    y = [0.0] * len(T)
+    if T:
+        y[0] = T[0]
+    for k in range(1, len(T)):
+        dt = t[k] - t[k - 1]
+        if not dt > 0:
+            y[k] = y[k - 1]
+            continue
+        sl = (T[k] - T[k - 1]) / dt
+        a = math.exp(-dt / tau_s)
+        y[k] = T[k] - tau_s * sl + (y[k - 1] - T[k - 1] + tau_s * sl) * a
+    out = np.empty(len(T))
+    out[order] = y
+    return out
+
+
+@dataclass
+class ThermalLag(Effect):
+    """The sensor feels the temperature late: its other temperature effects see the logged
+    temperature through a first-order lag, ``dT_f/dt = (T − T_f)/τ``, ``τ = exp(ln_tau)`` seconds,
+    the temperature linear between stations (:func:`felt_temperature`).  One time constant per
+    sensor (its thermal coupling to the thermometer).
+
+    It adds nothing by itself: it is tried on a model that already has a temperature effect of the
+    sensor (:attr:`Effect.requires`).  The felt temperature depends on the stations before: a
+    correction one station at a time (a stream) passes them (:attr:`History.earlier_time_s`)."""
+
+    name: ClassVar[str] = "thermal_lag"
+    stage: ClassVar[str] = "tool"
+    needs: ClassVar[tuple] = ("temperature", "time", "history")
+    requires: ClassVar[str] = "temperature"
+    signature: ClassVar[str] = ("residuals following the temperature's rate (the logged temperature leads the "
+                                "sensor's)")
+    separated_by: ClassVar[str] = ("heating and cooling at different rates: a lag follows the rate, a drift in time "
+                                   "does not change sign when the temperature turns")
+    discovery_features: ClassVar[tuple] = ("lag",)       # the temperature's rate, or felt late
+    # ln τ: positive by construction; the fits' weak prior (±3 in ln τ) holds it at τ = 1 s while
+    # the data say nothing
+    specs: ClassVar[tuple] = (_spec("ln_tau", "ln(s)", "ln(s)", 0.03, 0.03,
+                                    "natural log of the sensor's thermal time constant in s"),)
+
+    @property
+    def _n_axes(self) -> int:
+        return 1                                  # one time constant for the sensor, whatever the axes
+
+    def param_names(self) -> list:
+        return [f"{self.key}.{s.name}" for s in self.specs]
+
+    def _apply(self, v, ctx):
+        pass                                      # it changes what the sensor's other effects see only
+
+    def chain_context(self, ctx: Context) -> Context:
+        tau = float(np.exp(np.clip(self.values["ln_tau"][0], -7.0, 12.0)))
+        h = ctx.history
+        t, temp = np.asarray(ctx.time_s, float), np.asarray(ctx.temperature_c, float)
+        n_before = 0
+        if h is not None and h.earlier_time_s is not None and len(h.earlier_time_s):
+            n_before = len(h.earlier_time_s)
+            t = np.concatenate([np.asarray(h.earlier_time_s, float), t])
+            temp = np.concatenate([np.asarray(h.earlier_temp_c, float), temp])
+        felt = felt_temperature(t, temp, tau)[n_before:]
+        return Context(temperature_c=felt, time_s=ctx.time_s, history=ctx.history)
+
+
 # ---------------------------------------------------------------------------------------------
 # Whole-probe effects (the simulator applies them; no triad signal chain)
 # ---------------------------------------------------------------------------------------------
@@ -792,7 +878,7 @@ class TimeSkew(WholeProbeEffect):
 CATALOGUE = {cls.name: cls for cls in (
     Bias, Scale, NonOrthogonality, Misalignment, TriadMisalignment, AxialInterference,
     TemperatureScale, ScaleAsymmetry, Nonlinearity, CrossCoupling, TemperatureBias, BiasDrift, BiasWander,
-    Settling, StandPoseError, TimeSkew,
+    Settling, ThermalLag, StandPoseError, TimeSkew,
 )}
 #: The seed paper's base model of a triad, in signal-chain order (E, then K, then B).
 BASE = ("nonorthogonality", "scale", "bias")
@@ -829,6 +915,8 @@ def register(cls):
 def apply_chain(v: np.ndarray, effects, ctx: Context, stages=STAGES) -> np.ndarray:
     """Apply ``effects`` to the (N, 3) signal ``v`` stage by stage (in list order within a stage)."""
     out = np.asarray(v, dtype=float)
+    for eff in effects:
+        ctx = eff.chain_context(ctx)
     for stage in stages:
         for eff in effects:
             if eff.stage == stage:

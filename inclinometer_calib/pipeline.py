@@ -87,7 +87,8 @@ def correct_stations(stations, cal, strict: bool = False, previous=None):
     A model with effects that depend on the sequence of holds (a sensor settling after the move,
     :class:`effects.Settling`) corrects the stations one after another, in the order given, each
     with its place in its hold and the previous hold's corrected vectors as that hold's input
-    (``previous``: ``(g, b)`` of the hold before the first, None: none — a stream's first)."""
+    and the earlier stations' times and temperatures (a sensor feeling the temperature late);
+    ``previous``: the :class:`StationSequence` before the first (None: none — a stream's first)."""
     g = np.array([s.g for s in stations], dtype=float).reshape(-1, 3)
     b = np.array([s.b for s in stations], dtype=float).reshape(-1, 3)
     if cal is None:
@@ -99,22 +100,40 @@ def correct_stations(stations, cal, strict: bool = False, previous=None):
     if "history" not in cal.needs:
         return cal.correct(g, b, temps, times)
     out_g, out_b = np.empty_like(g), np.empty_like(b)
-    prev = previous if previous is not None else (np.full(3, np.nan), np.full(3, np.nan))
+    prev = previous if previous is not None else StationSequence()
     for i, st in enumerate(stations):
-        h = hold_history(st, prev)
+        h = prev.history(st)
         out_g[i:i + 1], out_b[i:i + 1] = cal.correct(g[i:i + 1], b[i:i + 1], temps[i:i + 1], times[i:i + 1], history=h)
-        prev = (out_g[i], out_b[i])
+        prev = prev.after(st, out_g[i], out_b[i])
     return out_g, out_b
 
 
-def hold_history(st: Station, previous) -> "fx.History":
-    """One station's :class:`effects.History`: where in its hold it lies, and ``previous`` — the
-    ``(g, b)`` input of the hold before it (NaN: none)."""
-    from . import effects as fx
+#: Earlier stations a :class:`StationSequence` keeps (their times and temperatures).
+STATIONS_KEPT = 5000
 
-    pg, pb = (np.asarray(v, dtype=float).reshape(1, 3) for v in previous)
-    return fx.History(source=np.zeros(1, dtype=int), order=np.array([st.index]), previous_g=pg, previous_b=pb,
-                      settled_s=np.array([st.settled_s]), duration_s=np.array([st.duration_s]), n=np.array([st.n]))
+
+class StationSequence:
+    """What a station corrected on its own needs of the ones before it (:class:`effects.History`):
+    the previous hold's corrected vectors (a settling's input) and the earlier stations' times and
+    temperatures (a sensor feeling the temperature late).  Immutable: :meth:`after` gives the next."""
+
+    def __init__(self, g=None, b=None, times=(), temps=()):
+        self.g = np.full(3, np.nan) if g is None else np.asarray(g, dtype=float)
+        self.b = np.full(3, np.nan) if b is None else np.asarray(b, dtype=float)
+        self.times, self.temps = tuple(times), tuple(temps)
+
+    def after(self, st: Station, g, b) -> "StationSequence":
+        keep = STATIONS_KEPT - 1      # a lag forgets what lies many time constants back
+        return StationSequence(g, b, self.times[-keep:] + (st.time_s,), self.temps[-keep:] + (st.temp_c,))
+
+    def history(self, st: Station):
+        from . import effects as fx
+
+        return fx.History(source=np.zeros(1, dtype=int), order=np.array([st.index]),
+                          previous_g=self.g.reshape(1, 3), previous_b=self.b.reshape(1, 3),
+                          settled_s=np.array([st.settled_s]), duration_s=np.array([st.duration_s]),
+                          n=np.array([st.n]), earlier_time_s=np.array(self.times, dtype=float),
+                          earlier_temp_c=np.array(self.temps, dtype=float))
 
 
 def evaluate_stations(g, b, site, tol: Tolerances = Tolerances(), ref=None, axial: bool = False) -> dict:
@@ -188,7 +207,7 @@ class SurveyProcessor:
         self.forced = ""                    # what every station says when a mismatched record is forced
         self.refused = ""                   # why the record was dropped (the data's serial is another probe's)
         self._next_id = 0
-        self._previous = None                # the last station's corrected (g, b)
+        self._previous = StationSequence()   # the stations before the next (:class:`StationSequence`)
         self.notes: list = []
         if calibration is not None:
             self.set_calibration(calibration)
@@ -253,7 +272,7 @@ class SurveyProcessor:
         if ref is not None and not any(math.isfinite(x) for x in ref):
             ref = None
         g, b = correct_stations([st], cal, previous=self._previous)
-        self._previous = (g[0], b[0])        # the next hold's previous input (a settling's)
+        self._previous = self._previous.after(st, g[0], b[0])     # what the next station needs of this one
         site = self.site
         if site is None and NO_SITE not in st.warnings:
             st.warnings.append(NO_SITE)

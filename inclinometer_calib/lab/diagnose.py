@@ -146,6 +146,9 @@ class Diagnosis:
     #: stand-in they withheld from the recommendation (a proxy or a wander fitting such a term).
     discovered: list = field(default_factory=list)
     stand_in: str = ""
+    #: The candidate recommended in the stand-in's place (a catalogue cause the search beyond the
+    #: catalogue pointed to: a temperature effect whose sensor feels the temperature late), or "".
+    preferred: str = ""
     #: A recommended temperature effect whose residuals follow a lagged temperature better
     #: (:func:`lab.discover.lag_check`): channel, tau_s and the two cross-validated R².
     lag: dict = field(default_factory=dict)
@@ -158,8 +161,8 @@ class Diagnosis:
 
     @property
     def recommended(self):
-        if self.stand_in:      # what fits best only stands in for a term outside the catalogue
-            return None
+        if self.stand_in:      # what fits best only stands in: for a term outside the catalogue, or a cause
+            return next((c for c in self.ranked if c.label == self.preferred), None) if self.preferred else None
         for c in self.ranked:
             if c.significant and c.transfers and not c.note.startswith(SET_ASIDE):
                 return c
@@ -331,6 +334,9 @@ def candidate_effects(model: LabModel, names=None):
             eff = cls(sensor=sensor, axes=cls.default_axes)
             if any(k.split(":")[:2] == [name, sensor] for k in have):
                 continue
+            if cls.requires and not any(t.effect.sensor == sensor and cls.requires in type(t.effect).context_needs()
+                                        and not isinstance(t.effect, cls) for t in model.terms):
+                continue          # it would change nothing: the model has nothing of the sensor's it acts through
             for scope in (("val", "all") if cls.survey_only else ("all",)):
                 out.append((eff, scope))
     return out
@@ -665,10 +671,24 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         if why:
             dg.notes.append(why)
         outside = [p for p in dg.discovered if p.outside and (best is None or p.channel.startswith(best.sensor))]
+        lagged = [p for p in dg.discovered if not p.outside and fx.ThermalLag.name in p.catalogue.split(", ")
+                  and (best is None or p.channel.startswith(best.sensor))]
         if best is not None and outside:
             dg.stand_in = best.label
             best.note = (f"not preferred: it stands in for a term outside the catalogue ({outside[0].formula()})")
             best = None
+        elif lagged:
+            # the residuals follow a temperature felt late: the catalogue's temperature effect first (the
+            # lag acts through it, the next round), never the stand-in
+            warm = next((c for c in ranked if c.significant and c.transfers and c.sensor == lagged[0].channel.split()[0]
+                         and c.effect in fx.CATALOGUE and "temperature" in fx.CATALOGUE[c.effect].context_needs()),
+                        None)
+            if warm is not None and warm is not best:
+                if best is not None:
+                    dg.stand_in, dg.preferred = best.label, warm.label
+                    best.note = ("not preferred: it stands in for a temperature the sensor feels late "
+                                 f"({lagged[0].formula()})")
+                best = warm
     if best is not None and best.effect in fx.CATALOGUE and "temperature" in fx.CATALOGUE[best.effect].context_needs():
         # a temperature effect: does the sensor feel the thermometer's temperature late?
         from .discover import lag_check
@@ -958,8 +978,8 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
         if lag:
             lines.append(f"The {lag['channel']} residuals follow the temperature felt {lag['tau_s']:g} s late better "
                          f"than the logged one (cross-validated R² {lag['cv_r2_lagged']:.2f} against "
-                         f"{lag['cv_r2_logged']:.2f}): the sensor lags the thermometer. {best.label} is the "
-                         "catalogue's nearest term; a temperature effect with a time constant is outside the catalogue.")
+                         f"{lag['cv_r2_logged']:.2f}): the sensor lags the thermometer. Fit {best.label} now and "
+                         f"then {fx.ThermalLag.name}:{best.sensor} (its time constant, fitted with its 1σ).")
         if _proxy(best) and not any(c["first"] == best.label and c["separated"] for c in confounded):
             lines.append(f"A drift in time is not itself a cause: it stands for {_proxy(best)} — no physical "
                          "candidate of the catalogue explains these residuals as well.")
@@ -985,6 +1005,9 @@ def _verdict(model, base_fit, base_val, structure, best, ranked, misfit, scatter
                 lines.append(f"Confounded: {best.label} and {c['second']} fit these data alike (Δχ² "
                              f"{c['delta_chi2']:.1f}); the data cannot tell them apart. The experiment that separates "
                              f"them: {c['experiment']}.")
+        if stand_in:
+            lines.append(f"{stand_in} fits these residuals better only as a stand-in (the search beyond the catalogue "
+                         f"finds them following a temperature felt late) and is not recommended as their cause.")
         others = [c for c in ranked if c is not best and c.significant and not c.note]
         if others:
             lines.append("Also significant: " + ", ".join(f"{c.label} (ΔBIC {c.delta_bic:.0f})" for c in others[:3])

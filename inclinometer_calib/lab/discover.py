@@ -49,7 +49,7 @@ def catalogue_features() -> tuple:
     (:attr:`effects.Effect.proxy`: they stand in for causes and are never proposed as one)."""
     modelled, proxies = {}, set()
     for name, cls in fx.CATALOGUE.items():
-        for f in cls.discovery_features:
+        for f in cls.discovery_features:     # a feature, or a family of them (``lag``: :func:`_family`)
             modelled.setdefault(f, name)
             if cls.proxy:
                 proxies.add(f)
@@ -92,24 +92,9 @@ class Proposal:
 
 
 def lagged(time_s, temp_c, tau_s: float) -> np.ndarray:
-    """The temperature felt through a first-order lag ``tau_s`` at each station (in time order,
-    the temperature linear between stations): ``y₁ = T₁ − τs + (y₀ − T₀ + τs)·e^(−Δt/τ)`` with
-    ``s`` the slope of the segment — exact for a piecewise-linear input."""
-    order = np.argsort(time_s, kind="stable")
-    t, T = np.asarray(time_s, float)[order], np.asarray(temp_c, float)[order]
-    y = np.empty_like(T)
-    y[0] = T[0]
-    for k in range(1, len(T)):
-        dt = t[k] - t[k - 1]
-        if not dt > 0:
-            y[k] = y[k - 1]
-            continue
-        s = (T[k] - T[k - 1]) / dt
-        a = math.exp(-dt / tau_s)
-        y[k] = T[k] - tau_s * s + (y[k - 1] - T[k - 1] + tau_s * s) * a
-    out = np.empty_like(y)
-    out[order] = y
-    return out
+    """The temperature felt through a first-order lag ``tau_s`` at each station
+    (:func:`effects.felt_temperature`, the catalogue's :class:`effects.ThermalLag`)."""
+    return fx.felt_temperature(time_s, temp_c, tau_s)
 
 
 def rate(time_s, temp_c) -> np.ndarray:
@@ -239,13 +224,13 @@ def propose(data, model, min_cv_r2: float = MIN_CV_R2) -> list:
         if not terms:
             continue
         kinds = {_family(t.feature) for t in terms}
-        cat = [modelled.get(t.feature, "") for t in terms if t.feature not in proxies]
-        outside = any(t.feature not in modelled for t in terms)
+        cat = [modelled.get(_family(t.feature), "") for t in terms if t.feature not in proxies]
+        outside = any(_family(t.feature) not in modelled for t in terms)
         if any(t.feature in proxies for t in terms):
             notes.append("a drift in time is not itself a cause: it stands for whatever follows time")
         if "lag" in kinds:
             notes.append("the sensor feels the logged temperature late: a temperature effect with a time "
-                         "constant, which the catalogue does not have")
+                         f"constant ({fx.ThermalLag.name} with the temperature effect)")
         out.append(Proposal(channel, unit, terms, float(cv), len(y), outside,
                             catalogue="" if outside else ", ".join(sorted({c for c in cat if c})), notes=notes))
     out.sort(key=lambda p: -p.cv_r2)
