@@ -899,8 +899,12 @@ def cmd_lab_fit(args):
 
 
 def cmd_lab_diagnose(args):
+    if args.plugin_out and os.path.exists(args.plugin_out):
+        raise UserError(f"{args.plugin_out}: exists; name a new file for the plug-in (nothing is overwritten)")
     lab, site, data, model = _lab_setup(args)
     dg = lab.diagnose(data, model, progress=_progress(args))
+    if args.plugin_out:
+        _write_plugin(args.plugin_out, dg, " and ".join(str(x) for x in (args.cal or []) + [args.val] if x))
     if args.json:
         print(json.dumps(dg.to_json(), indent=2, default=float))
         return 0
@@ -917,6 +921,25 @@ def cmd_lab_diagnose(args):
     for u in dg.untestable:
         print(f"not testable here: {u['effect']}: {u['reason']}")
     return 0
+
+
+def _write_plugin(path, dg, where) -> None:
+    """Write the diagnosis' first term outside the catalogue as a plug-in module at ``path``
+    (:func:`lab.discover.plugin_source`), whole or not at all; say what was written, or that
+    nothing was found outside the catalogue."""
+    from .lab.discover import plugin_name, plugin_source
+
+    outside = [p for p in dg.discovered if p.outside]
+    if not outside:
+        _warn(f"{path}: not written: nothing outside the catalogue was found")
+        return
+    text = plugin_source(outside[0], where)
+    tmp = f"{path}.part"
+    with open(tmp, "x", encoding="utf-8") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+    _warn(f"wrote {path}: {outside[0].formula()} as the effect {plugin_name(outside[0])} — fit it: "
+          f"inclinometer-calib lab fit ... --plugin {path} --effects {plugin_name(outside[0])}")
 
 
 def cmd_lab_report(args):
@@ -1210,6 +1233,9 @@ def _lab_parser(sub):
     f.set_defaults(func=cmd_lab_fit)
     d = lsub.add_parser("diagnose", help="rank candidate effects by significance against the noise and the field error; recommend the next")
     common(d, "effects already in the model (start of the diagnosis)")
+    d.add_argument("--plugin-out", metavar="FILE.py",
+                   help="when a term outside the catalogue is found, write it here as a plug-in effect to read, "
+                        "edit and fit (lab fit --plugin FILE.py --effects discovered_<sensor>_<axis>)")
     d.set_defaults(func=cmd_lab_diagnose)
     r = lsub.add_parser("report", help="effect ladder + plots + tables as one self-contained HTML file")
     common(r, "effects to start from")

@@ -272,3 +272,94 @@ def _cv_r2(X, y) -> float:
         sse += float(np.sum((y[test] - pred) ** 2))
         sst += float(np.sum((y[test] - y[train].mean()) ** 2))
     return 1.0 - sse / sst if sst > 0 else float("nan")
+
+
+#: How each feature of :func:`features` reads in a plug-in effect's ``_apply`` (``v`` the sensor's
+#: true input, ``i`` the channel's axis, ``ctx`` the :class:`effects.Context`), and what it needs.
+_FEATURE_CODE = {
+    "temperature": ("(ctx.temperature_c - fx.T_REF_C)", ("temperature",)),
+    "temperature rate": ("rate(ctx.time_s, ctx.temperature_c)", ("temperature", "time")),
+    "time": ("ctx.time_s / 3600.0", ("time",)),
+    "change of input since the previous hold": ("np.nan_to_num(PREVIOUS(ctx)[:, i] - v[:, i])", ("history",)),
+    "input²": ("(v[:, i] / FULL_SCALE) ** 2", ()),
+    "sign(input)": ("np.sign(v[:, i])", ()),
+}
+
+
+def plugin_name(proposal: Proposal) -> str:
+    """The effect name a proposal's plug-in registers: ``discovered_mag_z``."""
+    return "discovered_" + proposal.channel.replace(" ", "_")
+
+
+def plugin_source(proposal: Proposal, where: str = "") -> str:
+    """A plug-in module (Python source) with the proposal's formula as an effect the lab fits
+    (``lab fit --plugin FILE --effects NAME``): one output term on the channel's axis, a parameter
+    per feature (its value the proposal's coefficient, typical size its 1σ or the coefficient),
+    readable and editable — the user owns it.  ``where``: what data it was found on (said in the
+    docstring)."""
+    sensor, axis = proposal.channel.split()
+    name = plugin_name(proposal)
+    specs, lines, needs = [], [], []
+    unit_out = "m/s^2" if sensor == "acc" else "nT"
+    for k, t in enumerate(proposal.terms, start=1):
+        if t.feature.startswith("temperature felt"):
+            code, need = f"(fx.felt_temperature(ctx.time_s, ctx.temperature_c, {t.lag_s:g}) - fx.T_REF_C)", \
+                ("temperature", "time")
+        elif t.feature in _FEATURE_CODE:
+            code, need = _FEATURE_CODE[t.feature]
+        else:
+            raise ValueError(f"no plug-in code for the feature {t.feature!r}")
+        needs += [n for n in need if n not in needs]
+        typical = max(abs(t.coef), t.std, 1e-12)
+        specs.append(f'        fx.ParamSpec("k{k}", {{"{sensor}": "{unit_out}/({t.unit})"}}, {{"{sensor}": {typical:.6g}}},\n'
+                     f'                     "coefficient of {t.feature} (found: {t.coef:.6g} ± {t.std:.2g})"),')
+        lines.append(f'        v[:, i] += self.values["k{k}"][0] * {code}')
+    full_scale = 9.80665 if sensor == "acc" else 50000.0
+    return f'''"""A term outside the catalogue, found by `inclinometer-calib lab diagnose`{(" on " + where) if where else ""}:
+
+    {proposal.formula()}
+    (cross-validated R² {proposal.cv_r2:.2f} over {proposal.stations} stations)
+
+Written as a plug-in effect to read, edit and fit:
+
+    inclinometer-calib lab fit --cal CAL.csv --val VAL.csv --plugin THIS_FILE.py --effects {name}
+
+Its parameters start at zero (the fit finds them; the values found are in the specs' docs); the
+features are the lab's own (:mod:`inclinometer_calib.lab.discover`), evaluated on the stations the
+effect acts on.  A record written with it names this file and its SHA-256: a changed file is refused
+until it is named again.
+"""
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from inclinometer_calib import effects as fx
+from inclinometer_calib.lab.discover import rate  # noqa: F401  (a feature may use it)
+
+FULL_SCALE = {full_scale!r}   # {unit_out}: the scale of the input² feature
+
+
+def PREVIOUS(ctx):
+    """The previous hold's true input of the sensor (the station sequence)."""
+    return ctx.history.previous_{"g" if sensor == "acc" else "b"}
+
+
+@dataclass
+class Discovered(fx.Effect):
+    """{proposal.formula()}"""
+
+    name: ClassVar[str] = "{name}"
+    sensors: ClassVar[tuple] = ("{sensor}",)
+    default_axes: ClassVar[str] = "{axis}"
+    stage: ClassVar[str] = "output"
+    needs: ClassVar[tuple] = {tuple(needs)!r}
+    signature: ClassVar[str] = "residuals following {", ".join(t.feature for t in proposal.terms)}"
+    specs: ClassVar[tuple] = (
+{chr(10).join(specs)}
+    )
+
+    def _apply(self, v, ctx):
+        i = fx.AXIS_INDEX[self.axes[0]]
+{chr(10).join(lines)}
+'''

@@ -593,3 +593,39 @@ def test_a_magnetometer_that_settles_after_each_move_is_trimmed_named_and_fitted
     both = np.isfinite(a) & np.isfinite(b)       # vertical stations: no azimuth; a moved one: flagged alike
     assert both.sum() >= len(a) - 4
     np.testing.assert_allclose(a[both], b[both], atol=1e-9)
+
+
+def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits(tmp_path, capsys):
+    """With the thermal lag taken out of the catalogue, a lagged temperature is outside it: `lab
+    diagnose --plugin-out` writes the formula as a plug-in module (whole, never over a file), which
+    the user names to `lab fit --plugin` and fits; with nothing outside, no file and the reason."""
+    pytest.importorskip("sklearn", reason="the lab's discovery needs scikit-learn (requirements/core.txt)")
+    from inclinometer_calib import effects as fx
+
+    gen, data, site = _session(tmp_path, 4, _ramp, _hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
+    logs = ["--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site", str(tmp_path / "site.yaml")]
+    out = tmp_path / "found.py"
+    lag = fx.CATALOGUE.pop("thermal_lag")
+    try:
+        assert main(["lab", "diagnose", *logs, "--plugin-out", str(out)]) == 0
+    finally:
+        fx.CATALOGUE["thermal_lag"] = lag
+    said = capsys.readouterr().err
+    assert f"wrote {out}" in said and "--effects discovered_mag_z" in said
+    text = out.read_text()
+    assert "mag z residual ≈" in text and "temperature felt" in text and not (tmp_path / "found.py.part").exists()
+    try:
+        assert main(["lab", "fit", *logs, "--plugin", str(out), "--effects", "discovered_mag_z", "--fit-on", "cal",
+                     "--json"]) == 0
+        fitted = json.loads(capsys.readouterr().out)
+        k = next(p for p in fitted["parameters"] if p["name"].startswith("discovered_mag_z"))
+        found = float(text.split("coefficient of temperature felt")[1].split("found: ")[1].split(" ")[0])
+        assert 0.5 * found < k["value"] < 2.0 * found and k["std"] < 0.2 * abs(k["value"]), (k, found)
+    finally:
+        fx.CATALOGUE.pop("discovered_mag_z", None)
+    # nothing outside the catalogue (the lag is back in it): no file, and why
+    again = tmp_path / "none.py"
+    assert main(["lab", "diagnose", *logs, "--plugin-out", str(again)]) == 0
+    assert not again.exists() and "nothing outside the catalogue was found" in capsys.readouterr().err
+    assert main(["lab", "diagnose", *logs, "--plugin-out", str(out)]) == 2        # never over a file
+    assert "exists" in capsys.readouterr().err
