@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .frames import Site, angle_between_deg
-from .gates import GateLimits, SaturationMonitor, apply_gates
+from .gates import GateLimits, SaturationMonitor, SettlingTally, apply_gates
 from .station import Station, merge_stations
 from .twelve_position import (POSES, CaptureSet, field_heading_deg, identify_pose, pose_reference, solve_captures,
                               to_calibration, _gravity_candidates)
@@ -121,6 +121,7 @@ class CaptureSession:
         self._round: list = []            # captures of a round in progress after the first solve
         self._dirty = False               # captures added since the last solve
         self._saturation = SaturationMonitor()
+        self._settled = SettlingTally()
         self._flat_seen = {}              # "accelerometer x" -> stations in which it was flat
         self._flat_reported = {}
         self._h2 = [0.0, 0.0]             # sums of cos, sin of twice the captures' field headings
@@ -288,11 +289,14 @@ class CaptureSession:
             return self._reject(pose, "capture too short")
         apply_gates(st, self.limits, self._solve_site.gravity_mps2)   # a no-op when the caller gated it
         findings = st.findings
+        said = set(self._settled.add(findings))      # a settling at every hold: said twice, then counted
         for f in findings:
             if f.code == "flat":   # the same stuck/clipped axis in every station: said twice, then counted
                 self._flat_seen[f.axis] = self._flat_seen.get(f.axis, 0) + 1
                 if self._flat_seen[f.axis] > 2:
                     continue
+            if f.code == "settled" and f.message not in said:
+                continue
             self._warn(f.message)
         for msg in self._saturation.add(st, findings):
             self._warn(msg)
@@ -497,6 +501,7 @@ class CaptureSession:
         self._round = []
         self._dirty = False
         self._saturation = SaturationMonitor()
+        self._settled = SettlingTally()
         self._flat_seen, self._flat_reported = {}, {}
         self._h2, self._heading, self._heading_said, self.solve_notes = [0.0, 0.0], 0.0, False, []
         self._solve_texts = set()
@@ -550,6 +555,9 @@ class CaptureSession:
             if k > 2:
                 notes.append(f"{axis} was flat in {k} captures (the first two are named above); those captures' "
                              f"{axis.split()[0]} data are not used")
+        settled = self._settled.summary(len(self.captures))
+        if settled:
+            notes.append(settled)
         acc, mag = self.capture_sets()
         missing = self.pending
         try:

@@ -19,7 +19,7 @@ from .coeffs import Calibration, CoefficientError
 from .deps import MissingDependency
 from .frames import Site
 from .capture import CaptureSession
-from .gates import apply_gates
+from .gates import SettlingTally, apply_gates
 from .probelog import MAG_UNITS, Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
 from .model import ModelContextError
 from .pipeline import (NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note,
@@ -392,10 +392,14 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
     _, stations, _, _ = load_stations(log_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
     if not stations:
         raise UserError(f"{log_path}: no static stations found")
+    tally = SettlingTally()
     for st in stations:
-        for f in apply_gates(st):   # corrected |G| is checked by the QC; the raw |g| gate is for captures
+        for msg in tally.add(apply_gates(st)):   # corrected |G| is checked by the QC; the raw |g| gate is for captures
             if not quiet:
-                _warn(f"{log_path}: {f.message}")
+                _warn(f"{log_path}: {msg}")
+    settled = tally.summary(len(stations), str(log_path))
+    if settled and not quiet:
+        _warn(settled)
     try:
         g, b = correct_stations(stations, cal, strict=True)   # the one correction path, with each station's temperature
     except ModelContextError as exc:

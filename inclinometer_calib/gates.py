@@ -75,6 +75,9 @@ class Finding:
     sensors: tuple
     message: str
     axis: str = ""
+    #: The figures of the message, for summaries: ``settled``: (time constant s, seconds left out,
+    #: size at the hold's start in the sensor's unit).
+    values: tuple = ()
 
 
 def _turn_deg(mean, rate, duration):
@@ -253,6 +256,40 @@ def settling(st, sensor: str = "mag", limits: GateLimits = GateLimits(), gravity
     return None
 
 
+class SettlingTally:
+    """A sensor that settles after every move gets a ``settled`` finding at every hold: the first
+    :attr:`SAID` are said as they come, the rest counted, and :meth:`summary` gives one line with
+    the figures over all of them."""
+
+    SAID = 2
+
+    def __init__(self):
+        self.found = []
+
+    def add(self, findings) -> list:
+        """The messages of ``findings`` (a station's) to say now: all but the ``settled`` ones past
+        the first :attr:`SAID`."""
+        out = []
+        for f in findings:
+            if f.code == "settled":
+                self.found.append(f.values)
+                if len(self.found) > self.SAID:
+                    continue
+            out.append(f.message)
+        return out
+
+    def summary(self, holds: int | None = None, where: str = "") -> str | None:
+        """One line over every settled hold (None when fewer than :attr:`SAID` + 1: all were said)."""
+        if len(self.found) <= self.SAID:
+            return None
+        tau, trim, size = (np.array(x) for x in zip(*self.found))
+        of = f" of {holds}" if holds else ""
+        return (f"{where}{': ' if where else ''}the magnetometer settles after the move in {len(self.found)}{of} holds "
+                f"(time constant {np.median(tau):.2f} s, {tau.min():.2f}–{tau.max():.2f}; up to {size.max():.0f} nT at a "
+                f"hold's start): a sensor transient, not motion — {trim.min():.2f}–{trim.max():.2f} s left out at each "
+                f"hold's start ({len(self.found) - self.SAID} of these holds not said one by one)")
+
+
 class SaturationMonitor:
     """Notices an axis that goes flat at the same level in several stations: an ADC that
     saturates (below the full scale the data sheet states, or the limit is not known).
@@ -329,5 +366,5 @@ def _settle(st, found, limits, gravity_mps2) -> list:
     note = Finding("settled", (), (
         f"{where}: the magnetometer settles after the move ({size:.0f} nT at the start of the hold, decaying with a "
         f"time constant of {s.tau_s:.2f} s) — a sensor transient, not motion: the first {s.trim_s:.2f} s of the "
-        f"{dur0:.2f} s hold are left out ({st.n} of {n0} samples kept)"))
+        f"{dur0:.2f} s hold are left out ({st.n} of {n0} samples kept)"), values=(s.tau_s, s.trim_s, size))
     return [note] + station_findings(st, limits, gravity_mps2)

@@ -142,3 +142,17 @@ def test_a_drift_that_never_settles_or_a_hold_too_short_to_settle_stays_refused(
     short = _settling_hold(3.0, np.array([400.0, 300.0, 0.0]), seconds=2.0)
     found = apply_gates(short)
     assert "settled" not in [f.code for f in found] and short.unusable == ("mag",), [f.message for f in found]
+
+
+def test_a_settling_at_every_hold_is_said_twice_then_summed_up_in_one_line():
+    from inclinometer_calib.gates import SettlingTally
+
+    tally, said = SettlingTally(), []
+    for k, tau in enumerate((1.0, 1.2, 0.9, 1.1)):
+        st = _settling_hold(tau, np.array([250.0, -180.0, 120.0]), seed=k)
+        said += tally.add(apply_gates(st))
+    assert len(said) == 2 and all("settles after the move (" in m for m in said)
+    line = tally.summary(5, "log.csv")
+    assert line.startswith("log.csv: the magnetometer settles after the move in 4 of 5 holds (time constant ")
+    assert "(2 of these holds not said one by one)" in line
+    assert SettlingTally().summary() is None

@@ -20,7 +20,7 @@ import re
 
 import numpy as np
 
-from ..gates import apply_gates
+from ..gates import SettlingTally, apply_gates
 from ..probelog import read_csv, report, segment_stations
 from ..station import Loss, Stations
 
@@ -58,10 +58,11 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
                                                                                          "found: ")[-1])
                    for p in problems if ": no static station found: " in p]
         kept = []
+        tally = SettlingTally()
         for st in stations:
             findings = apply_gates(st)
-            for f in findings:
-                say(f"{path}: {f.message}")
+            for msg in tally.add(findings):
+                say(f"{path}: {msg}")
             if st.moved:
                 losses.append(Loss(str(path), "stations", 1, f"{st.label} at {st.where}: the probe moved during "
                                                              "the hold"))
@@ -70,6 +71,9 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
                                    f"{' and '.join(st.unusable)} data (" + "; ".join(f.message for f in findings) + ")"))
             else:
                 kept.append(st)
+        settled = tally.summary(len(stations), str(path))
+        if settled:
+            say(settled)
         if len(kept) < len(stations):
             say(f"{path}: {len(stations) - len(kept)} station(s) left out (the probe moved, or a sensor's data "
                 "refused by a gate)")
