@@ -937,11 +937,19 @@ def _write_plugin(path, dg, where) -> None:
     if not outside:
         _warn(f"{path}: not written: nothing outside the catalogue was found")
         return
+    import tempfile
+
     text = plugin_source(outside[0], where)
-    tmp = f"{path}.part"
-    with open(tmp, "x", encoding="utf-8") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+    fd, tmp = tempfile.mkstemp(prefix=os.path.basename(path) + ".", suffix=".part",
+                               dir=os.path.dirname(os.path.abspath(path)))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except OSError as exc:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise UserError(f"{path}: not written: {exc.strerror}") from None
     _warn(f"wrote {path}: {outside[0].formula()} as the effect {plugin_name(outside[0])} — fit it: "
           f"inclinometer-calib lab fit ... --plugin {path} --effects {plugin_name(outside[0])}")
 

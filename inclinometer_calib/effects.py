@@ -757,21 +757,27 @@ def felt_temperature(time_s, temp_c, tau_s: float) -> np.ndarray:
     """The temperature felt through a first-order lag ``tau_s`` (``dT_f/dt = (T − T_f)/τ``) at each
     of the times given (any order; the temperature linear between them, felt as logged at the
     first): ``y₁ = T₁ − τs + (y₀ − T₀ + τs)·e^(−Δt/τ)``, ``s`` the segment's slope — exact for a
-    piecewise-linear input."""
+    piecewise-linear input.  An unknown (NaN) temperature is NaN there and skipped: the lag goes on
+    from the last known one."""
     time_s, temp_c = np.asarray(time_s, float), np.asarray(temp_c, float)
     order = np.argsort(time_s, kind="stable")
     t, T = time_s[order].tolist(), temp_c[order].tolist()
-    y = [0.0] * len(T)
-    if T:
-        y[0] = T[0]
-    for k in range(1, len(T)):
-        dt = t[k] - t[k - 1]
-        if not dt > 0:
-            y[k] = y[k - 1]
-            continue
-        sl = (T[k] - T[k - 1]) / dt
-        a = math.exp(-dt / tau_s)
-        y[k] = T[k] - tau_s * sl + (y[k - 1] - T[k - 1] + tau_s * sl) * a
+    y = [math.nan] * len(T)
+    last = None                       # (time, logged, felt) of the last known temperature
+    for k in range(len(T)):
+        if not (T[k] == T[k] and t[k] == t[k]):
+            continue                  # unknown here: NaN, and the lag goes on from the last known one
+        if last is None:
+            y[k] = T[k]
+        else:
+            dt = t[k] - last[0]
+            if not dt > 0:
+                y[k] = last[2]
+            else:
+                sl = (T[k] - last[1]) / dt
+                a = math.exp(-dt / tau_s)
+                y[k] = T[k] - tau_s * sl + (last[2] - last[1] + tau_s * sl) * a
+        last = (t[k], T[k], y[k])
     out = np.empty(len(T))
     out[order] = y
     return out

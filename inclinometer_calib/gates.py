@@ -160,7 +160,12 @@ def station_findings(st, limits: GateLimits = GateLimits(), gravity_mps2: float 
         z = _trend_z(rate, noise, st.n, st.t_std)
         if z > TREND_Z and sensor == "mag" and acc_still:
             db, z_b, ddip, z_dip = _invariant_z(mean, rate, noise, st.g, st.n, st.t_std)
-            if max(z_b, z_dip) > TREND_Z:
+            # as material as a creep: the direction turns beyond the limit, or |B| or the dip changes by
+            # as much as that turn would move the field (a slow drift of a few nT over a long hold is not)
+            limit = math.radians(limits.max_creep_deg)
+            material = (turn > limits.max_creep_deg or abs(db * dur) > limit * float(np.linalg.norm(mean))
+                        or abs(ddip * dur) > limit)
+            if max(z_b, z_dip) > TREND_Z and material:
                 out.append(Finding("transient", ("mag",), (
                     f"{where}: the magnetometer turned {turn:.3f}° during the {dur:.2f} s hold while the accelerometer "
                     f"held still, and |B| changed by {db * dur:+.1f} {unit} ({z_b:.0f} standard errors), the dip by "
@@ -250,8 +255,12 @@ def settling(st, sensor: str = "mag", limits: GateLimits = GateLimits(), gravity
     for row in range(len(p) - 1):
         if p[-1, 0] - p[row, 0] < limits.min_settled_s - 1e-9 or p[-1, 1] - p[row, 1] < 3:
             return None
-        left = station_findings(st.settled_from(row), limits, gravity_mps2)
-        if not any(f.code in ("transient", "creep", "unsteady") for f in left):
+        rest = st.settled_from(row)
+        left = station_findings(rest, limits, gravity_mps2)
+        # settled: no trend of |B| or the dip left that the noise can tell, however small (the gate's
+        # own test also asks for a material change; the part kept must not carry the transient on)
+        z = _invariant_z(rest.b, rest.b_rate, noise, rest.g, rest.n, rest.t_std)
+        if not any(f.code in ("transient", "creep", "unsteady") for f in left) and max(z[1], z[3]) <= TREND_Z:
             return Settling(sensor, tau, amp, row, float(p[row, 0]))
     return None
 

@@ -304,6 +304,9 @@ class CorrectionPlan:
         self.chains = {s: model.chain(s, role) for s in sensors}
         self.extra = {s: len(self.chains[s]) > len(fx.BASE) for s in sensors}
         self.needs = model.needs(role)
+        # what each triad's own chain needs (a magnetometer-only effect never stops the accelerometer)
+        self.triad_needs = {sn: tuple(dict.fromkeys(n for e in self.chains[sn] for n in type(e).context_needs()))
+                            for sn in sensors}
         # per-sample form of a base-only triad (correct_sample): C row by row, then B, as floats
         self._floats = {s: None if self.extra[s] else
                         (tuple(float(x) for x in self.matrix_t[s].T.ravel()),
@@ -321,7 +324,8 @@ class CorrectionPlan:
         h2 = h.reshape(-1, 3)
         x = self.triads[sensor].inverse(h2, self.matrix_t[sensor])
         if self.extra[sensor]:
-            ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history, needs=self.needs)
+            ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history,
+                                     needs=self.triad_needs[sensor])
             m = self.matrix_t[sensor]
             chain = self.chains[sensor]
             for _ in range(CORRECTION_ITERATIONS):

@@ -124,6 +124,8 @@ class StationSequence:
 
     def after(self, st: Station, g, b) -> "StationSequence":
         keep = STATIONS_KEPT - 1      # a lag forgets what lies many time constants back
+        if not (math.isfinite(st.temp_c) and math.isfinite(st.time_s)):     # nothing to feel late
+            return StationSequence(g, b, self.times, self.temps)
         return StationSequence(g, b, self.times[-keep:] + (st.time_s,), self.temps[-keep:] + (st.temp_c,))
 
     def history(self, st: Station):

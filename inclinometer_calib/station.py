@@ -229,7 +229,8 @@ def merge_stations(a: Station, b: Station) -> Station:
         ended_by=b.ended_by, index=a.index, pose=a.pose or b.pose, ref=a.ref if a.has_partial_ref else b.ref,
         first_row=a.first_row, last_row=b.last_row, warnings=a.warnings + b.warnings,
         unusable=tuple(sorted(set(a.unusable) | set(b.unusable))), moved=a.moved or b.moved,
-        gated=a.gated and b.gated, findings=a.findings + b.findings, rotation=a.rotation, t_origin=a.t_origin)
+        gated=a.gated and b.gated, findings=a.findings + b.findings, rotation=a.rotation, t_origin=a.t_origin,
+        settled_s=a.settled_s)
 
 
 # ---------------------------------------------------------------------------------------------

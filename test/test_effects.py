@@ -102,3 +102,35 @@ def test_the_stand_and_heading_options_are_taken_out_of_an_effect_list_and_refus
         with pytest.raises(ValueError):
             fx.split_model_options(bad)
     assert fx.split_model_options(None) == (None, {})
+
+
+def test_a_temperature_felt_late_skips_an_unknown_temperature_and_goes_on():
+    """A station without a temperature is NaN, the ones after it still feel the known ones (a NaN
+    carried forward once turned every later station NaN)."""
+    import numpy as np
+
+    from inclinometer_calib import effects as fx
+
+    t = np.array([0.0, 10.0, 20.0, 30.0, 40.0])
+    temp = np.array([20.0, np.nan, 24.0, 26.0, 28.0])
+    felt = fx.felt_temperature(t, temp, 15.0)
+    assert np.isnan(felt[1]) and np.all(np.isfinite(felt[[0, 2, 3, 4]]))
+    ref = fx.felt_temperature(t[[0, 2, 3, 4]], temp[[0, 2, 3, 4]], 15.0)
+    np.testing.assert_allclose(felt[[0, 2, 3, 4]], ref)
+    assert 20.0 < felt[4] < 28.0                  # it lags the logged temperature
+
+
+def test_a_magnetometer_effect_that_needs_the_sequence_never_stops_the_accelerometer_stream():
+    import numpy as np
+
+    from inclinometer_calib import effects as fx
+    from inclinometer_calib.model import ModelContextError, ProbeModel
+
+    model = ProbeModel.base().with_effect(fx.TemperatureBias(sensor="acc", values={"c": 1e-4}), "all") \
+        .with_effect(fx.Settling(sensor="mag", values={"h": 1e-3}), "all")
+    plan = model.plan("val") if hasattr(model, "plan") else __import__("inclinometer_calib.model", fromlist=["x"]) \
+        .CorrectionPlan(model, "val")
+    g = plan.correct_sample("acc", (0.1, 0.2, 9.8), 30.0, 5.0)
+    assert all(np.isfinite(g))
+    with pytest.raises(ModelContextError, match="history"):
+        plan.correct_sample("mag", (20000.0, 0.0, 40000.0), 30.0, 5.0)

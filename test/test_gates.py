@@ -156,3 +156,18 @@ def test_a_settling_at_every_hold_is_said_twice_then_summed_up_in_one_line():
     assert line.startswith("log.csv: the magnetometer settles after the move in 4 of 5 holds (time constant ")
     assert "(2 of these holds not said one by one)" in line
     assert SettlingTally().summary() is None
+
+
+def test_a_slow_drift_of_a_few_nanotesla_over_a_long_hold_is_not_a_transient():
+    """The invariants' trend is significant (a long, quiet hold), but 3 nT over 30 s is far less than
+    the creep limit moves the field: not a transient, the magnetometer kept."""
+    from inclinometer_calib.streaming import StaticDetector
+
+    rng = np.random.default_rng(2)
+    t = np.arange(3000) / 100.0
+    f = -G + rng.normal(0, 0.004, (3000, 3))
+    m = B + rng.normal(0, 5.0, (3000, 3)) + np.outer(0.1 * t, B / np.linalg.norm(B))
+    det = StaticDetector(noise_acc=0.004, noise_mag=5.0, max_duration_s=60.0)
+    (st,) = list(det.run(t, f, m)) + list(det.flush())
+    found = apply_gates(st)
+    assert not st.unusable and not st.moved, [x.message for x in found]

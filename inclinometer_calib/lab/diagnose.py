@@ -421,9 +421,11 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
     """Field-fit ``trial`` and test the term ``label``: (fit, Wald χ², adjusted p, per-axis tests).
 
     An effect's parameters that the data say nothing of until the effect is there
-    (:attr:`effects.Effect.held_in_test`: a settling's time constant) are held at their start for
-    the test of the others; when those are significant the term is fitted again with all free and
-    tested whole."""
+    (:attr:`effects.Effect.held_in_test`: a settling's time constant) are held at their start, and
+    the test (and the per-axis tests) is of the others in that fit — held at its start, not tested
+    against zero, and not made to share the others' evidence (with it free, a settling's share and
+    its time constant trade off and neither alone looks significant); when they are significant the
+    term is fitted again with all free for its values."""
     idx = trial.param_index(label)
     eff = next((t.effect for t in trial.probe.terms if t.label == label), None)
     held = np.zeros(len(trial.get_vector()), bool)
@@ -434,11 +436,7 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
                 held[idx[k * per:(k + 1) * per]] = True
     f = field_fit(trial, data, fixed=held if held.any() else None)
     if held.any():
-        _, _, p = f.wald(idx[~held[idx]])
-        if p * n_tests < ALPHA:
-            f = field_fit(trial, data)
-        else:
-            idx = idx[~held[idx]]
+        idx = idx[~held[idx]]
     axis_tests = []
     if label == POSES_LABEL:      # per pose the data have: its three angles
         have = sorted(set(int(q) for q in data.pose[(data.kind == "pose") & (data.pose >= 1)]))
@@ -449,13 +447,16 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
                                "significant": bool(pq * n_tests * len(have) < ALPHA)})
     chi2, _, p = f.wald(idx)
     if label not in (HEADING, POSES_LABEL):
-        if eff.stage != fx.PROBE_STAGE and len(eff.axes) > 1:
+        if eff.stage != fx.PROBE_STAGE and len(eff.axes) > 1 and eff.n_params % len(eff.axes) == 0 \
+                and len(idx) >= len(eff.axes):          # per-axis parameters (not one for the sensor)
             n_ax = len(eff.axes)
             for j, a in enumerate(eff.axes):
                 sub = idx[[k * n_ax + j for k in range(len(idx) // n_ax)]]
                 c, _, pa = f.wald(sub)
                 axis_tests.append({"axis": a, "wald_chi2": c, "p": min(pa * n_tests * n_ax, 1.0),
                                    "significant": bool(pa * n_tests * n_ax < ALPHA)})
+    if held.any() and p * n_tests < ALPHA:
+        f = field_fit(trial, data)          # there is an effect: its values with every parameter free
     return f, chi2, min(p * n_tests, 1.0), axis_tests
 
 
@@ -677,17 +678,19 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
             dg.stand_in = best.label
             best.note = (f"not preferred: it stands in for a term outside the catalogue ({outside[0].formula()})")
             best = None
-        elif lagged:
+        elif lagged and best is not None:
             # the residuals follow a temperature felt late: the catalogue's temperature effect first (the
             # lag acts through it, the next round), never the stand-in
-            warm = next((c for c in ranked if c.significant and c.transfers and c.sensor == lagged[0].channel.split()[0]
-                         and c.effect in fx.CATALOGUE and "temperature" in fx.CATALOGUE[c.effect].context_needs()),
-                        None)
+            # (set aside by nothing but the stand-in itself)
+            warm = next((c for c in ranked if c.significant and c.transfers
+                         and (not c.note.startswith(SET_ASIDE) or c.note.startswith(f"explained by {best.label}"))
+                         and c.sensor == lagged[0].channel.split()[0] and c.effect in fx.CATALOGUE
+                         and "temperature" in fx.CATALOGUE[c.effect].context_needs()), None)
             if warm is not None and warm is not best:
-                if best is not None:
-                    dg.stand_in, dg.preferred = best.label, warm.label
-                    best.note = ("not preferred: it stands in for a temperature the sensor feels late "
-                                 f"({lagged[0].formula()})")
+                dg.stand_in, dg.preferred = best.label, warm.label
+                warm.note = ""
+                best.note = ("not preferred: it stands in for a temperature the sensor feels late "
+                             f"({lagged[0].formula()})")
                 best = warm
     if best is not None and best.effect in fx.CATALOGUE and "temperature" in fx.CATALOGUE[best.effect].context_needs():
         # a temperature effect: does the sensor feel the thermometer's temperature late?

@@ -278,7 +278,7 @@ def _cv_r2(X, y) -> float:
 #: true input, ``i`` the channel's axis, ``ctx`` the :class:`effects.Context`), and what it needs.
 _FEATURE_CODE = {
     "temperature": ("(ctx.temperature_c - fx.T_REF_C)", ("temperature",)),
-    "temperature rate": ("rate(ctx.time_s, ctx.temperature_c)", ("temperature", "time")),
+    "temperature rate": ("(SEQUENCE(ctx, rate))", ("temperature", "time", "history")),
     "time": ("ctx.time_s / 3600.0", ("time",)),
     "change of input since the previous hold": ("np.nan_to_num(PREVIOUS(ctx)[:, i] - v[:, i])", ("history",)),
     "input²": ("(v[:, i] / FULL_SCALE) ** 2", ()),
@@ -303,8 +303,8 @@ def plugin_source(proposal: Proposal, where: str = "") -> str:
     unit_out = "m/s^2" if sensor == "acc" else "nT"
     for k, t in enumerate(proposal.terms, start=1):
         if t.feature.startswith("temperature felt"):
-            code, need = f"(fx.felt_temperature(ctx.time_s, ctx.temperature_c, {t.lag_s:g}) - fx.T_REF_C)", \
-                ("temperature", "time")
+            code, need = f"(SEQUENCE(ctx, lambda t, T: fx.felt_temperature(t, T, {t.lag_s:g})) - fx.T_REF_C)", \
+                ("temperature", "time", "history")
         elif t.feature in _FEATURE_CODE:
             code, need = _FEATURE_CODE[t.feature]
         else:
@@ -343,6 +343,17 @@ FULL_SCALE = {full_scale!r}   # {unit_out}: the scale of the input² feature
 def PREVIOUS(ctx):
     """The previous hold's true input of the sensor (the station sequence)."""
     return ctx.history.previous_{"g" if sensor == "acc" else "b"}
+
+
+def SEQUENCE(ctx, f):
+    """``f(times, temperatures)`` over the stations before these (a stream corrects one at a time:
+    they come in the history) and these, at these."""
+    h = ctx.history
+    t, temp = np.asarray(ctx.time_s, float), np.asarray(ctx.temperature_c, float)
+    if h is not None and h.earlier_time_s is not None and len(h.earlier_time_s):
+        n = len(h.earlier_time_s)
+        return f(np.r_[h.earlier_time_s, t], np.r_[h.earlier_temp_c, temp])[n:]
+    return f(t, temp)
 
 
 @dataclass

@@ -364,6 +364,12 @@ def test_a_sensor_that_feels_the_temperature_late_is_said_to_lag_the_thermometer
     lag = dg.to_json()["lag"]
     assert lag["channel"] == "mag z" and lag["tau_s"] == 60.0 and lag["cv_r2_lagged"] > lag["cv_r2_logged"] + 0.05
     assert "then thermal_lag:mag" in dg.verdict
+    # the next round tests the lag: one parameter for the sensor, tested whole (no per-axis rows of nothing)
+    nxt = lab.diagnose(data, model=lab.build_model(site, "temperature_bias:mag:z"), site=site,
+                       candidates=["thermal_lag", "bias_drift"])
+    lagc = next(c for c in nxt.ranked if c.effect == "thermal_lag")
+    assert lagc.significant and np.isfinite(lagc.p) and not lagc.axis_tests, (lagc.p, lagc.axis_tests)
+    assert nxt.recommended is lagc, nxt.verdict
     # the recommendation followed: the lag fitted with its 1σ (the true 60 s inside), and the field
     # errors at the true model's level where the temperature bias alone stays at 1.7× (issue 23: 4×)
     true = _true_level(gen, data, site)
@@ -617,7 +623,7 @@ def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits
     said = capsys.readouterr().err
     assert f"wrote {out}" in said and "--effects discovered_mag_z" in said
     text = out.read_text()
-    assert "mag z residual ≈" in text and "temperature felt" in text and not (tmp_path / "found.py.part").exists()
+    assert "mag z residual ≈" in text and "temperature felt" in text and not list(tmp_path.glob("*.part"))
     try:
         assert main(["lab", "fit", *logs, "--plugin", str(out), "--effects", "discovered_mag_z", "--fit-on", "cal",
                      "--json"]) == 0
