@@ -86,8 +86,9 @@ class History:
     ``source`` (its log), ``order`` (its place in the log, time order, from 0), ``previous_g`` and
     ``previous_b`` (N, 3) the true tool-frame input of the previous hold in the same log (gravity
     vector m/s², field nT; the measured means where that hold's attitude is unknown; NaN for a
-    log's first hold), where in its hold each station lies, and ``samples`` (N,) each station's samples as an (n, 7) array of time (s),
-    gravity vector (3, m/s²) and field (3, nT), or None where the data keep none (a bag)."""
+    log's first hold), where in its hold each station lies, the stations before these (a stream's),
+    and ``samples`` (N,) each station's samples as an (n, 7) array of time (s), gravity vector
+    (3, m/s²) and field (3, nT), or None where the data keep none (a bag)."""
 
     source: np.ndarray
     order: np.ndarray
@@ -710,15 +711,15 @@ def mean_decay(start_s, n, spacing_s, tau_s):
 class Settling(Effect):
     """A sensor settling after each move: an offset set by the change of its input at the move,
     decaying from the hold's first sample: ``y += h·(x_prev − x)·exp(−t/τ)``, ``τ = exp(ln_tau)``
-    seconds, averaged over the
-    samples a station keeps (``t`` from ``settled_s`` to ``settled_s + duration``: a hold whose
+    seconds, averaged over the samples a station keeps (``t`` from ``settled_s`` to ``settled_s + duration``: a hold whose
     start the gates trimmed keeps the tail, :mod:`gates`).
 
     A fluxgate's core keeps a little of the field it held before (``h`` of the change, per axis)
     and lets it go with a time constant ``τ`` of about a second; with ``τ`` long against the holds
     it is the remanence of the previous field.  Needs the station sequence and where in its hold
-    each station lies (:class:`History`): the lab's stations have them; a correction without them
-    (a node, ``correct``) refuses the model (:class:`model.ModelContextError`), never guesses."""
+    each station lies (:class:`History`): the lab's stations have them, and stations corrected in
+    order get them (:func:`pipeline.correct_stations`); a correction without them (a node's sample
+    streams) refuses the model (:class:`model.ModelContextError`), never guesses."""
 
     name: ClassVar[str] = "settling"
     stage: ClassVar[str] = "tool"
@@ -743,7 +744,7 @@ class Settling(Effect):
         h = ctx.history
         if h is None or h.settled_s is None or h.duration_s is None or h.n is None:
             raise ValueError("settling: the data give no hold timing (the station sequence)")
-        prev = h.previous_g if self.sensor == "acc" else h.previous_b
+        prev = h.previous_b                                  # a magnetometer's (``sensors``)
         c = self._cols()
         n = np.maximum(np.asarray(h.n, float), 1.0)
         spacing = np.where(n > 1, np.nan_to_num(h.duration_s) / np.maximum(n - 1, 1), 0.0)
@@ -783,6 +784,19 @@ def felt_temperature(time_s, temp_c, tau_s: float) -> np.ndarray:
     return out
 
 
+def over_sequence(ctx: Context, f) -> np.ndarray:
+    """``f(times, temperatures)`` at the rows of ``ctx``, over the stations before them too when
+    they come in its history (a stream corrects one station at a time: :attr:`History.earlier_time_s`)
+    — for what depends on the temperature's course, not on the rows alone."""
+    h = ctx.history
+    t, temp = np.asarray(ctx.time_s, float), np.asarray(ctx.temperature_c, float)
+    if h is None or h.earlier_time_s is None or not len(h.earlier_time_s):
+        return f(t, temp)
+    n = len(h.earlier_time_s)
+    return f(np.concatenate([np.asarray(h.earlier_time_s, float), t]),
+             np.concatenate([np.asarray(h.earlier_temp_c, float), temp]))[n:]
+
+
 @dataclass
 class ThermalLag(Effect):
     """The sensor feels the temperature late: its other temperature effects see the logged
@@ -820,14 +834,7 @@ class ThermalLag(Effect):
 
     def chain_context(self, ctx: Context) -> Context:
         tau = float(np.exp(np.clip(self.values["ln_tau"][0], -7.0, 12.0)))
-        h = ctx.history
-        t, temp = np.asarray(ctx.time_s, float), np.asarray(ctx.temperature_c, float)
-        n_before = 0
-        if h is not None and h.earlier_time_s is not None and len(h.earlier_time_s):
-            n_before = len(h.earlier_time_s)
-            t = np.concatenate([np.asarray(h.earlier_time_s, float), t])
-            temp = np.concatenate([np.asarray(h.earlier_temp_c, float), temp])
-        felt = felt_temperature(t, temp, tau)[n_before:]
+        felt = over_sequence(ctx, lambda t, temp: felt_temperature(t, temp, tau))
         return Context(temperature_c=felt, time_s=ctx.time_s, history=ctx.history)
 
 
@@ -918,11 +925,22 @@ def register(cls):
     return cls
 
 
-def apply_chain(v: np.ndarray, effects, ctx: Context, stages=STAGES) -> np.ndarray:
-    """Apply ``effects`` to the (N, 3) signal ``v`` stage by stage (in list order within a stage)."""
-    out = np.asarray(v, dtype=float)
+def chain_context(effects, ctx: Context) -> Context:
+    """The context ``effects`` see (:meth:`Effect.chain_context`: a sensor feeling the temperature
+    late changes the temperature the others see)."""
     for eff in effects:
-        ctx = eff.chain_context(ctx)
+        if type(eff).chain_context is not Effect.chain_context:
+            ctx = eff.chain_context(ctx)
+    return ctx
+
+
+def apply_chain(v: np.ndarray, effects, ctx: Context, stages=STAGES, prepared: bool = False) -> np.ndarray:
+    """Apply ``effects`` to the (N, 3) signal ``v`` stage by stage (in list order within a stage).
+    ``prepared``: ``ctx`` is already :func:`chain_context`'s (a caller that applies the chain again
+    and again, the correction's Newton steps, works it out once)."""
+    out = np.asarray(v, dtype=float)
+    if not prepared:
+        ctx = chain_context(effects, ctx)
     for stage in stages:
         for eff in effects:
             if eff.stage == stage:

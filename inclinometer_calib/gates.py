@@ -10,11 +10,11 @@ leave the station out of what it would spoil:
   (or magnetometer) direction over the station is significant against the noise (``TREND_Z``
   standard errors) *and* larger than ``max_creep_deg``.  Both sensors are used: a rotation
   about the vertical leaves gravity unchanged but turns the field.
-* ``transient`` — the magnetometer's direction turns while the accelerometer holds still *and*
-  the total field or the dip changes beyond the noise (``TREND_Z`` standard errors): a rigid
-  rotation keeps both (turning about the vertical changes neither |B| nor the angle between the
-  field and gravity), a sensor settling after the move does not.  The message says it is not
-  motion.  The settling is then measured (:func:`settling`: ``y = c + A·exp(−τ/τ_s)`` fitted to
+* ``transient`` — the magnetometer trends while the accelerometer holds still *and* the total
+  field or the dip changes beyond the noise (``TREND_Z`` standard errors) and as much as a creep at
+  the limit would move the field: a rigid rotation keeps both (turning about the vertical changes
+  neither |B| nor the angle between the field and gravity), a sensor settling after the move does
+  not.  The message says it is not motion.  The settling is then measured (:func:`settling`: ``y = c + A·exp(−τ/τ_s)`` fitted to
   the hold's shape, one time constant for the three axes) and the start of the hold left out
   until the gates find no transient in the rest (``settled``, said with the figures: the hold is
   kept, shorter; what the settling leaves in its mean the lab models, :class:`effects.Settling`);

@@ -328,8 +328,9 @@ class CorrectionPlan:
                                      needs=self.triad_needs[sensor])
             m = self.matrix_t[sensor]
             chain = self.chains[sensor]
+            ctx = fx.chain_context(chain, ctx)          # once, not at every Newton step
             for _ in range(CORRECTION_ITERATIONS):
-                x = x + fx.rotate(m, h2 - fx.apply_chain(x, chain, ctx))
+                x = x + fx.rotate(m, h2 - fx.apply_chain(x, chain, ctx, prepared=True))
         return x.reshape(h.shape)
 
     def correct_sample(self, sensor: str, h, temperature_c=None, time_s=None) -> tuple:

@@ -161,19 +161,12 @@ class Station:
         n = int(round(z[1] - a[1]))
         if n < 2:
             raise ValueError(f"{self.where}: fewer than 2 samples after {a[0]:.2f} s")
-        s1, s2, st = z[2:8] - a[2:8], z[8:14] - a[8:14], z[14:20] - a[14:20]
-        tt, tt2 = z[20] - a[20], z[21] - a[21]
-        mean_d = s1 / n
-        var = np.maximum(s2 / n - mean_d * mean_d, 0.0) * n / (n - 1)
-        mean = self.origin + mean_d
-        tbar = tt / n
-        stt = tt2 - n * tbar * tbar
-        rate = (st - tbar * s1) / stt if stt > 0 else np.zeros(6)
-        std = np.sqrt(var)
+        mean, std, rate, t_std = hold_statistics(n, self.origin, z[2:8] - a[2:8], z[8:14] - a[8:14],
+                                                 z[14:20] - a[14:20], z[20] - a[20], z[21] - a[21])
         t0 = self.t_start - self.settled_s
         return dataclasses.replace(
             self, t_start=t0 + float(a[0]), n=n, g=mean[:3], b=mean[3:], g_std=std[:3], b_std=std[3:],
-            g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)), settled_s=float(a[0]),
+            g_rate=rate[:3], b_rate=rate[3:], t_std=t_std, settled_s=float(a[0]),
             warnings=list(self.warnings), profile=p[row:].copy())
 
     @property
@@ -200,6 +193,23 @@ class Station:
         if self.has_partial_ref:
             return "I={} A={} T={}".format(*("-" if not math.isfinite(v) else f"{v:g}" for v in self.ref))
         return f"station {self.index}"
+
+
+def hold_statistics(n: int, origin, s1, s2, st, tt: float, tt2: float) -> tuple:
+    """A hold's statistics from its running sums over ``n`` samples (the detector's, and a hold
+    taken from a point of its profile): ``origin`` (6,) the values the sums are taken from, ``s1``,
+    ``s2``, ``st`` (6,) Σd, Σd², Στd (``d`` a sample less ``origin``, ``τ`` its time from the
+    hold's first sample), ``tt``, ``tt2`` Στ, Στ².  Returns ``(mean, std, rate, t_std)``: means,
+    sample standard deviations and least-squares slopes (per s) of the six values, (6,) each, and
+    the standard deviation of the sample times (s)."""
+    s1 = np.asarray(s1, dtype=float)
+    mean_d = s1 / n
+    var = np.maximum(np.asarray(s2, dtype=float) / n - mean_d * mean_d, 0.0) * n / (n - 1)
+    mean = np.asarray(origin, dtype=float) + mean_d
+    tbar = tt / n
+    stt = tt2 - n * tbar * tbar
+    rate = (np.asarray(st, dtype=float) - tbar * s1) / stt if stt > 0 else np.zeros(6)
+    return mean, np.sqrt(var), rate, math.sqrt(max(stt, 0.0) / (n - 1))
 
 
 def merge_stations(a: Station, b: Station) -> Station:

@@ -21,7 +21,7 @@ import numpy as np
 
 from .frames import angle_between_deg, gravity_from_specific_force
 from .noise import AXES6, UNITS6, NoiseEstimator
-from .station import Station
+from .station import Station, hold_statistics
 
 
 _NO_STATIONS = ()
@@ -353,20 +353,12 @@ class StaticDetector:
 
     def _station(self, reason):
         n = self._n
-        s1 = np.array(self._s1)
-        mean_d = s1 / n
-        var = np.maximum(np.array(self._s2) / n - mean_d * mean_d, 0.0) * n / (n - 1)
-        mean = np.array(self._x0) + mean_d
-        # least-squares slope per axis: cov(t, x) / var(t)
-        tbar = self._tt / n
-        stt = self._tt2 - n * tbar * tbar
-        rate = (np.array(self._st) - tbar * s1) / stt if stt > 0 else np.zeros(6)
-        std = np.sqrt(var)
+        mean, std, rate, t_std = hold_statistics(n, self._x0, self._s1, self._s2, self._st, self._tt, self._tt2)
         sig = np.array(self.noise.measured)   # the gates judge against the data's noise, not an override
         profile = np.array(self._profile + [self._sums(self._t_last - self._t0)])   # the last row: the totals
         return Station(t_start=self._t0, t_end=self._t_last, n=n, g=mean[:3], b=mean[3:], g_std=std[:3],
                        b_std=std[3:], temp_c=self.temps.mean(self._t0, self._t_last),
-                       g_rate=rate[:3], b_rate=rate[3:], t_std=math.sqrt(max(stt, 0.0) / (n - 1)),
+                       g_rate=rate[:3], b_rate=rate[3:], t_std=t_std,
                        g_noise=sig[:3], b_noise=sig[3:], outliers=self._outliers,
                        short=(self._t_last - self._t0) < self.min_duration_s - TIME_EPS, ended_by=reason,
                        t_origin=self.t_first, origin=np.array(self._x0), profile=profile)

@@ -91,12 +91,6 @@ class Proposal:
                            **({"lag_s": t.lag_s} if np.isfinite(t.lag_s) else {})} for t in self.terms]}
 
 
-def lagged(time_s, temp_c, tau_s: float) -> np.ndarray:
-    """The temperature felt through a first-order lag ``tau_s`` at each station
-    (:func:`effects.felt_temperature`, the catalogue's :class:`effects.ThermalLag`)."""
-    return fx.felt_temperature(time_s, temp_c, tau_s)
-
-
 def rate(time_s, temp_c) -> np.ndarray:
     """dT/dt (°C/s) at each station, by central differences over the stations in time order."""
     order = np.argsort(time_s, kind="stable")
@@ -137,7 +131,7 @@ def features(data, sensor: str, axis: int, v) -> dict:
         out["temperature"] = (temp, "°C", math.nan)
         out["temperature rate"] = (rate(data.time_s, temp), "°C/s", math.nan)
         for tau in LAGS_S:
-            out[f"temperature felt {tau:g} s late"] = (lagged(data.time_s, temp, tau), "°C", tau)
+            out[f"temperature felt {tau:g} s late"] = (fx.felt_temperature(data.time_s, temp, tau), "°C", tau)
     out["time"] = (data.time_s / 3600.0, "h", math.nan)
     prev = data.prev_g if sensor == "acc" else data.prev_b
     if prev is not None and np.all(np.isfinite(prev[:, axis])):
@@ -255,7 +249,7 @@ def lag_check(data, model, sensor: str, axes: str):
         y = channels[f"{sensor} {a}"][3]
         plain = _cv_r2(d.temp_c[:, None], y)
         for tau in LAGS_S:
-            cv = _cv_r2(lagged(d.time_s, d.temp_c, tau)[:, None], y)
+            cv = _cv_r2(fx.felt_temperature(d.time_s, d.temp_c, tau)[:, None], y)
             if cv >= max(plain + MIN_GAIN_R2, MIN_CV_R2) and (
                     best is None or cv - plain > best["cv_r2_lagged"] - best["cv_r2_logged"]):
                 best = {"channel": f"{sensor} {a}", "tau_s": tau, "cv_r2_lagged": cv, "cv_r2_logged": plain}
@@ -278,7 +272,7 @@ def _cv_r2(X, y) -> float:
 #: true input, ``i`` the channel's axis, ``ctx`` the :class:`effects.Context`), and what it needs.
 _FEATURE_CODE = {
     "temperature": ("(ctx.temperature_c - fx.T_REF_C)", ("temperature",)),
-    "temperature rate": ("(SEQUENCE(ctx, rate))", ("temperature", "time", "history")),
+    "temperature rate": ("fx.over_sequence(ctx, rate)", ("temperature", "time", "history")),
     "time": ("ctx.time_s / 3600.0", ("time",)),
     "change of input since the previous hold": ("np.nan_to_num(PREVIOUS(ctx)[:, i] - v[:, i])", ("history",)),
     "input²": ("(v[:, i] / FULL_SCALE) ** 2", ()),
@@ -303,7 +297,7 @@ def plugin_source(proposal: Proposal, where: str = "") -> str:
     unit_out = "m/s^2" if sensor == "acc" else "nT"
     for k, t in enumerate(proposal.terms, start=1):
         if t.feature.startswith("temperature felt"):
-            code, need = f"(SEQUENCE(ctx, lambda t, T: fx.felt_temperature(t, T, {t.lag_s:g})) - fx.T_REF_C)", \
+            code, need = f"(fx.over_sequence(ctx, lambda t, T: fx.felt_temperature(t, T, {t.lag_s:g})) - fx.T_REF_C)", \
                 ("temperature", "time", "history")
         elif t.feature in _FEATURE_CODE:
             code, need = _FEATURE_CODE[t.feature]
@@ -343,17 +337,6 @@ FULL_SCALE = {full_scale!r}   # {unit_out}: the scale of the input² feature
 def PREVIOUS(ctx):
     """The previous hold's true input of the sensor (the station sequence)."""
     return ctx.history.previous_{"g" if sensor == "acc" else "b"}
-
-
-def SEQUENCE(ctx, f):
-    """``f(times, temperatures)`` over the stations before these (a stream corrects one at a time:
-    they come in the history) and these, at these."""
-    h = ctx.history
-    t, temp = np.asarray(ctx.time_s, float), np.asarray(ctx.temperature_c, float)
-    if h is not None and h.earlier_time_s is not None and len(h.earlier_time_s):
-        n = len(h.earlier_time_s)
-        return f(np.r_[h.earlier_time_s, t], np.r_[h.earlier_temp_c, temp])[n:]
-    return f(t, temp)
 
 
 @dataclass
