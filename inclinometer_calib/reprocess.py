@@ -36,7 +36,6 @@ reported with the topic and the log time of the first one.
 from __future__ import annotations
 
 import math
-import struct
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +45,8 @@ import numpy as np
 
 from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
 from .capture import CaptureSession
+from .cdr import (DECODE_ERRORS, decode_float64, decode_imu, decode_imu_covariance, decode_mag_covariance,
+                  decode_string, decode_temperature, decode_vector3, header)
 from .deps import require
 from .frames import NT_PER_TESLA, Site
 from .coeffs import message_fields
@@ -61,79 +62,10 @@ from .topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG
 #: Input topics read (and copied through) and the type each must have.
 INPUT_TOPICS = PROBE_TOPICS
 
-NAN = float("nan")
 
 
 class ReprocessError(ValueError):
     """The input cannot be reprocessed at all (no probe samples, wrong units throughout...)."""
-
-
-# ---------------------------------------------------------------------------------------------
-# CDR decoding of the probe's fixed-layout messages (faster than a generic deserializer)
-
-_LE = (struct.Struct("<iiI"), struct.Struct("<ddd"), struct.Struct("<d"))
-_BE = (struct.Struct(">iiI"), struct.Struct(">ddd"), struct.Struct(">d"))
-# Imu after its header: orientation (4), orientation_covariance (9), angular_velocity (3),
-# angular_velocity_covariance (9) float64, then linear_acceleration.
-_IMU_ACC_OFFSET = 8 * (4 + 9 + 3 + 9)
-
-
-def _header(data):
-    """(stamp sec, nanosec, CDR offset of the first 8-byte-aligned field after the header, structs).
-
-    CDR: 4-byte encapsulation header (byte 1: 0 big-endian, 1 little-endian), then the message;
-    alignment is relative to the end of the encapsulation header.
-    """
-    structs = _LE if data[1] == 1 else _BE
-    sec, nsec, n = structs[0].unpack_from(data, 4)
-    if sec < 0 or nsec >= 1_000_000_000 and nsec != 0xFFFFFFFF:
-        raise ValueError(f"invalid header stamp {sec}.{nsec:09d}")
-    pos = 12 + n                       # relative to the body: 4 (sec) + 4 (nanosec) + 4 (len) + n
-    pos = (pos + 7) & ~7
-    return sec, nsec, 4 + pos, structs
-
-
-def decode_imu(data):
-    """``((sec, nanosec), (fx, fy, fz))`` from the CDR bytes of a ``sensor_msgs/Imu``."""
-    sec, nsec, pos, s = _header(data)
-    return (sec, nsec), s[1].unpack_from(data, pos + _IMU_ACC_OFFSET)
-
-
-def decode_imu_covariance(data) -> float:
-    """σ per axis (m/s²) that a ``sensor_msgs/Imu`` states for its linear acceleration (the square
-    root of the covariance's first diagonal entry), NaN when not stated (≤ 0)."""
-    _, _, pos, s = _header(data)
-    var = s[2].unpack_from(data, pos + _IMU_ACC_OFFSET + 24)[0]
-    return math.sqrt(var) if var > 0 else NAN
-
-
-def decode_mag_covariance(data) -> float:
-    """σ per axis (tesla) that a ``sensor_msgs/MagneticField`` states, NaN when not stated."""
-    _, _, pos, s = _header(data)
-    var = s[2].unpack_from(data, pos + 24)[0]
-    return math.sqrt(var) if var > 0 else NAN
-
-
-def decode_vector3(data):
-    """``((sec, nanosec), (x, y, z))`` of a message whose first field after the header is a
-    Vector3 (``sensor_msgs/MagneticField``, ``geometry_msgs/Vector3Stamped``)."""
-    sec, nsec, pos, s = _header(data)
-    return (sec, nsec), s[1].unpack_from(data, pos)
-
-
-def decode_float64(data) -> float:
-    """The value of a ``std_msgs/Float64`` (no header: the double right after the 4-byte CDR
-    encapsulation header, 8-byte aligned from there)."""
-    return struct.unpack_from("<d" if data[1] == 1 else ">d", data, 4)[0]
-
-
-def decode_string(data) -> str:
-    """The text of a ``std_msgs/String`` (uint32 length including the terminating NUL, then the
-    bytes, right after the 4-byte CDR encapsulation header)."""
-    n = struct.unpack_from("<I" if data[1] == 1 else ">I", data, 4)[0]
-    if n < 1 or 8 + n > len(data):
-        raise ValueError(f"string length {n} does not fit the message ({len(data)} bytes)")
-    return bytes(data[8:8 + n - 1]).decode("utf-8")
 
 
 def bag_probe_serial(path) -> Optional[str]:
@@ -143,15 +75,9 @@ def bag_probe_serial(path) -> Optional[str]:
     for m in reader.messages([TOPIC_SERIAL], strict=False):
         try:
             return decode_string(m.data)
-        except (struct.error, ValueError, UnicodeDecodeError) as exc:
+        except DECODE_ERRORS as exc:
             raise ReprocessError(f"{path}: undecodable {TOPIC_SERIAL} message ({exc})") from None
     return None
-
-
-def decode_temperature(data):
-    """``((sec, nanosec), temperature °C)`` of a ``sensor_msgs/Temperature``."""
-    sec, nsec, pos, s = _header(data)
-    return (sec, nsec), s[2].unpack_from(data, pos)[0]
 
 
 class BagFeeder:
@@ -183,7 +109,7 @@ class BagFeeder:
         if m.topic == TOPIC_DEPTH:
             return m.publish_time <= last
         if m.topic in self._STAMPED:
-            sec, nsec, _, _ = _header(m.data)
+            sec, nsec, _, _ = header(m.data)
             return sec + 1e-9 * nsec <= last
         return False
 
@@ -227,7 +153,7 @@ class BagFeeder:
                         from .coeffs import Calibration
                         cal = Calibration.from_yaml(fields["coefficients_yaml"], source=f"{topic} in {m.topic}")
                         eng.record(cal, fields["stamp"] if eng.sync else eng.released_t, topic)
-        except (struct.error, ValueError, IndexError, UnicodeDecodeError) as exc:
+        except DECODE_ERRORS as exc:
             return f"undecodable {topic} message ({exc})"
         return ""
 
@@ -505,7 +431,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
                     if decode_string(m.data) != report.probe_serial:
                         issue(f"a second probe serial in one bag ({decode_string(m.data)!r} after "
                               f"{report.probe_serial!r}), ignored", _where(topic, log_time))
-                except (struct.error, ValueError, UnicodeDecodeError) as exc:
+                except DECODE_ERRORS as exc:
                     issue(f"undecodable {topic} message ({exc})", _where(topic, log_time))
                 continue
             n_pairs = engine.counts.pairs

@@ -13,9 +13,7 @@ from inclinometer_calib.bag import BagWriter, open_bag  # noqa: E402
 from inclinometer_calib.cli import main  # noqa: E402
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.frames import Site  # noqa: E402
-from inclinometer_calib.reprocess import (IMU_TYPE,  # noqa: E402
-                                          MAG_TYPE, STATION_TYPE, decode_imu, decode_temperature,
-                                          decode_vector3, reprocess, write_probe_bag)
+from inclinometer_calib.reprocess import STATION_TYPE, reprocess, write_probe_bag  # noqa: E402
 
 SITE = Site(total_field_nt=52000.0, dip_deg=50.0, declination_deg=0.0)
 DRIFTS = (0, 3, 10, 45, 90)
@@ -154,28 +152,6 @@ def test_input_topic_with_the_wrong_type_is_skipped_naming_the_expected_type(sur
     assert "skipped topic /probe/temperature (std_msgs/msg/String: expected sensor_msgs/msg/Temperature)" in err
     st = _stations(out)
     assert len(st) == survey["n_stations"] and all(math.isnan(s.temperature_c) for s in st)
-
-
-@pytest.mark.parametrize("frame_id", ["", "p", "probe", "probe_frame_1234"])
-@pytest.mark.parametrize("little_endian", [True, False])
-def test_fast_decoders_agree_with_rosbags(frame_id, little_endian):
-    from rosbags.typesys import Stores, get_typestore
-
-    st = get_typestore(Stores.ROS2_JAZZY)
-    T = st.types
-    hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1700000123, nanosec=450000000),
-                                   frame_id=frame_id)
-    V = T["geometry_msgs/msg/Vector3"]
-    imu = T[IMU_TYPE](header=hdr, orientation=T["geometry_msgs/msg/Quaternion"](x=1.0, y=2.0, z=3.0, w=4.0),
-                      orientation_covariance=np.arange(9.0), angular_velocity=V(x=5.0, y=6.0, z=7.0),
-                      angular_velocity_covariance=np.arange(9.0) + 10, linear_acceleration=V(x=0.1, y=-0.2, z=-9.8),
-                      linear_acceleration_covariance=np.arange(9.0) + 20)
-    mag = T[MAG_TYPE](header=hdr, magnetic_field=V(x=2e-5, y=-1e-6, z=4e-5), magnetic_field_covariance=np.zeros(9))
-    tmp = T["sensor_msgs/msg/Temperature"](header=hdr, temperature=31.5, variance=0.1)
-    ser = (lambda m, t: bytes(st.serialize_cdr(m, t, little_endian=little_endian)))
-    assert decode_imu(ser(imu, IMU_TYPE)) == ((1700000123, 450000000), (0.1, -0.2, -9.8))
-    assert decode_vector3(ser(mag, MAG_TYPE)) == ((1700000123, 450000000), (2e-5, -1e-6, 4e-5))
-    assert decode_temperature(ser(tmp, "sensor_msgs/msg/Temperature")) == ((1700000123, 450000000), 31.5)
 
 
 def test_station_messages_carry_our_definition_and_hash(survey, tmp_path):

@@ -24,6 +24,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from ..cdr import stamp_parts
 from ..coeffs import Calibration, message_fields
 from ..frames import NT_PER_TESLA, Site
 from ..survey import Tolerances
@@ -298,13 +299,8 @@ def stamp_to_sec(stamp) -> float:
 
 
 def set_stamp(stamp, t: float) -> None:
-    """Write float seconds ``t`` (>= 0) into a builtin_interfaces/Time in place."""
-    sec = math.floor(t)
-    ns = int(round((t - sec) * 1e9))
-    if ns >= 1_000_000_000:
-        sec, ns = sec + 1, ns - 1_000_000_000
-    stamp.sec = int(sec)
-    stamp.nanosec = ns
+    """Write float seconds ``t`` (>= 0) into a builtin_interfaces/Time in place (:func:`cdr.stamp_parts`)."""
+    stamp.sec, stamp.nanosec = stamp_parts(t)
 
 
 def steady_timer(node, period_s: float, callback):

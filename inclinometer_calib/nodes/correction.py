@@ -52,6 +52,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..coeffs import Calibration, CoefficientError
@@ -289,7 +290,10 @@ class CorrectionNode(Node):
         if self._outbox:
             self._flush_outbox()
 
-    def _publish_corrected(self, msg):
+    def _publish_corrected(self, sample):
+        """One sample the stream driver took (``(type, CDR bytes)``: taken raw) corrected and published."""
+        msg_type, data = sample
+        msg = deserialize_message(data, msg_type)
         if isinstance(msg, Temperature):
             self._temp = msg.temperature
             return

@@ -71,13 +71,16 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 
+from .. import cdr
 from .. import effects as fx
 from .. import simulate as sim
+from ..cdr import stamp_parts
 from ..coeffs import Calibration
 from ..noise import estimate_noise
 from ..probelog import MAG_UNITS, ProbeLog, atomic_write_text, label_runs, read_csv
@@ -505,12 +508,8 @@ class ProbeNode(Node):
         another type, are skipped with a warning naming them; a message that does not decode is
         skipped with a warning naming topic and log time.
         """
-        from rclpy.serialization import deserialize_message
-
         from ..bag import BagError, open_bag
 
-        types = {c.TOPIC_IMU: Imu, c.TOPIC_MAG: MagneticField, c.TOPIC_TEMPERATURE: Temperature,
-                 c.TOPIC_REFERENCE: Vector3Stamped, c.TOPIC_DEPTH: Float64, c.TOPIC_SERIAL: String}
         try:
             reader = open_bag(path)
         except BagError as exc:
@@ -534,35 +533,29 @@ class ProbeNode(Node):
                                     f"{path}: topic {m.topic} has type {m.type or '?'}, expected {want}: skipped")
                 skipped[m.topic] += 1
                 continue
+            # decoded where reprocess decodes the same bytes (inclinometer_calib.cdr)
             try:
-                msg = deserialize_message(m.data, types[m.topic])
-            except (RuntimeError, ValueError, TypeError) as exc:  # rclpy's deserializer errors
+                if m.topic == c.TOPIC_DEPTH:
+                    depth.append((m.publish_time, cdr.decode_float64(m.data)))   # the send order (as reprocess)
+                elif m.topic == c.TOPIC_SERIAL:    # latched, published once at the start (not replayed)
+                    self._bag_serial = self._bag_serial or cdr.decode_string(m.data)
+                elif m.topic == c.TOPIC_IMU:
+                    key, imu[key] = cdr.decode_imu(m.data)
+                    imu_sent[key] = m.publish_time
+                    cov_acc = cdr.imu_covariance(m.data)
+                elif m.topic == c.TOPIC_MAG:
+                    key, mag[key] = cdr.decode_vector3(m.data)   # tesla as recorded: republished unchanged
+                    cov_mag = cdr.mag_covariance(m.data)
+                elif m.topic == c.TOPIC_TEMPERATURE:
+                    key, temp[key] = cdr.decode_temperature(m.data)
+                else:
+                    key, v = cdr.decode_vector3(m.data)
+                    ref.append((key[0] + 1e-9 * key[1], v))
+            except cdr.DECODE_ERRORS as exc:
                 if m.topic not in undecodable:
                     log.warning(f"{path}: {m.topic} message at log time {m.log_time} ns does not decode "
                                 f"({type(exc).__name__}: {exc}): skipped")
                 undecodable[m.topic] = undecodable.get(m.topic, 0) + 1
-                continue
-            if m.topic == c.TOPIC_DEPTH:
-                depth.append((m.publish_time, msg.data))   # the send order (reprocess places it the same way)
-                continue
-            if m.topic == c.TOPIC_SERIAL:          # latched, published once at the start (not replayed)
-                self._bag_serial = self._bag_serial or msg.data
-                continue
-            key = (msg.header.stamp.sec, msg.header.stamp.nanosec)
-            if m.topic == c.TOPIC_IMU:
-                imu_sent[key] = m.publish_time
-                a = msg.linear_acceleration
-                imu[key] = (a.x, a.y, a.z)
-                cov_acc = msg.linear_acceleration_covariance
-            elif m.topic == c.TOPIC_MAG:
-                f = msg.magnetic_field
-                mag[key] = (f.x, f.y, f.z)   # tesla as recorded: republished unchanged
-                cov_mag = msg.magnetic_field_covariance
-            elif m.topic == c.TOPIC_TEMPERATURE:
-                temp[key] = msg.temperature
-            else:
-                v = msg.vector
-                ref.append((key[0] + 1e-9 * key[1], (v.x, v.y, v.z)))
         for err in reader.errors:
             log.warning(f"{err}; replaying the messages read before it")
         self.input_damaged = len(reader.errors) + sum(undecodable.values())
@@ -685,6 +678,9 @@ class ProbeNode(Node):
         self.m_temp = Temperature()
         self.m_temp.header.frame_id = self.frame_id
         self.m_temp.variance = 0.0
+        self._cdr_imu = cdr.Patcher.imu(serialize_message(self.m_imu))
+        self._cdr_mag = cdr.Patcher.vector3(serialize_message(self.m_mag))
+        self._cdr_temp = cdr.Patcher.temperature(serialize_message(self.m_temp))
 
     # ---- publishing ------------------------------------------------------------------------
     def _after_set(self, params):
@@ -942,22 +938,15 @@ class ProbeNode(Node):
         self._sent_t = stamp_s
         pg.imu += 1
         pg.mag += 1
-        mi, mm, mt = self.m_imu, self.m_mag, self.m_temp
-        c.set_stamp(mi.header.stamp, stamp_s)
-        mm.header.stamp = mt.header.stamp = mi.header.stamp
+        sec, nsec = stamp_parts(stamp_s)
         j = k - self._base
-        a = self._acc[j]
-        la = mi.linear_acceleration
-        la.x, la.y, la.z = a
-        m = self._mag[j]
-        mf = mm.magnetic_field
-        mf.x, mf.y, mf.z = m
-        self.pub_imu.publish(mi)
-        self.pub_mag.publish(mm)
+        a, m = self._acc[j], self._mag[j]
+        # the bytes rclpy would serialize from the message _init_messages built, stamp and values patched
+        self.pub_imu.publish(self._cdr_imu(sec, nsec, a[0], a[1], a[2]))
+        self.pub_mag.publish(self._cdr_mag(sec, nsec, m[0], m[1], m[2]))
         tc = self._temp[j]
         if tc == tc:  # not NaN
-            mt.temperature = tc
-            self.pub_temp.publish(mt)
+            self.pub_temp.publish(self._cdr_temp(sec, nsec, tc))
             pg.temperature += 1
 
     def _publish_depth(self, stamp_s):

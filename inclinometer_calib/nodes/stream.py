@@ -30,6 +30,7 @@ from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 
+from .. import cdr
 from ..engine import Expect, Say, StreamEngine
 from ..frames import NT_PER_TESLA
 from ..gates import GateLimits
@@ -134,15 +135,19 @@ class StreamDriver:
         self.recorded_records = []     # record ids the recording holds (resume)
         self._skip = {}                # topic -> key up to which live messages were in the recording
         self.resent = 0
+        self.undecodable = {}          # topic -> messages that did not decode
+        self.late = {}                 # topic -> messages that came after the end was declared (not used)
         qos = settings["qos"]
         self._best_effort = qos.reliability == ReliabilityPolicy.BEST_EFFORT
         self.pub_progress = node.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos(depth=1))
         self.msg = StreamProgress()
         self.msg.node = node.get_name()
+        # the samples are taken raw and decoded where reprocess decodes a bag's (inclinometer_calib.cdr):
+        # the same numbers by the same code, without building a Python message of each (19 µs a message)
         self.hot_subscriptions = [
-            node.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos),
-            node.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos),
-            node.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos)]
+            node.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos, raw=True),
+            node.create_subscription(MagneticField, c.TOPIC_MAG, self._on_mag, qos, raw=True),
+            node.create_subscription(Temperature, c.TOPIC_TEMPERATURE, self._on_temp, qos, raw=True)]
         # as deep as the samples' (a delivery that stalls until a repair does not drop the oldest), transient
         # local in a paced replay (a restart misses nothing)
         side_qos = c.reliable_qos(max(100, qos.depth))
@@ -150,7 +155,7 @@ class StreamDriver:
         if side:
             # the reference and the depth on the hot path too, taken in turn with the samples
             self.hot_subscriptions += [
-                node.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, side_qos),
+                node.create_subscription(Vector3Stamped, c.TOPIC_REFERENCE, self._on_reference, side_qos, raw=True),
                 node.create_subscription(Float64, c.TOPIC_DEPTH, self._on_depth, side_qos)]
         node.create_subscription(String, c.TOPIC_SERIAL, self._on_serial, c.latched_qos())
         node.create_subscription(StreamProgress, c.TOPIC_PROGRESS, self._on_progress, c.latched_qos(depth=100))
@@ -158,49 +163,82 @@ class StreamDriver:
         self._prior = [False, False]
 
     # ---- messages ---------------------------------------------------------------------------
-    def _on_imu(self, msg, info):
+    def _on_imu(self, data, info):
         # (two parameters without a default: rclpy then passes the message info — its source timestamp)
-        s = msg.header.stamp
-        if self._skip and self._resent(c.TOPIC_IMU, s.sec + 1e-9 * s.nanosec):
+        if self.engine.ended:
+            return self._late(c.TOPIC_IMU)
+        try:
+            key, f = cdr.decode_imu(data)
+            sigma = math.nan if self._prior[0] else cdr.decode_imu_covariance(data)
+        except cdr.DECODE_ERRORS as exc:
+            return self._undecodable(c.TOPIC_IMU, exc)
+        if self._skip and self._resent(c.TOPIC_IMU, key[0] + 1e-9 * key[1]):
             return
-        a = msg.linear_acceleration
-        sigma = math.nan
-        if not self._prior[0]:
-            self._prior[0] = True
-            var = msg.linear_acceleration_covariance[0]
-            sigma = math.sqrt(var) if var > 0 else math.nan
+        self._prior[0] = True
         self._last_wall = time.monotonic()
-        self.engine.imu((s.sec, s.nanosec), (a.x, a.y, a.z), info.get("source_timestamp", 0) if info else 0, sigma)
-        self._after(msg, info)
+        self.engine.imu(key, f, info.get("source_timestamp", 0) if info else 0, sigma)
+        self._after((Imu, data), info)
 
-    def _on_mag(self, msg):
-        s = msg.header.stamp
-        if self._skip and self._resent(c.TOPIC_MAG, s.sec + 1e-9 * s.nanosec):
+    def _on_mag(self, data):
+        if self.engine.ended:
+            return self._late(c.TOPIC_MAG)
+        try:
+            key, f = cdr.decode_vector3(data)
+            sigma = math.nan if self._prior[1] else cdr.decode_mag_covariance(data) * NT_PER_TESLA
+        except cdr.DECODE_ERRORS as exc:
+            return self._undecodable(c.TOPIC_MAG, exc)
+        if self._skip and self._resent(c.TOPIC_MAG, key[0] + 1e-9 * key[1]):
             return
-        f = msg.magnetic_field
-        sigma = math.nan
-        if not self._prior[1]:
-            self._prior[1] = True
-            var = msg.magnetic_field_covariance[0]
-            sigma = math.sqrt(var) * NT_PER_TESLA if var > 0 else math.nan
+        self._prior[1] = True
         self._last_wall = time.monotonic()
-        self.engine.mag((s.sec, s.nanosec), (f.x * NT_PER_TESLA, f.y * NT_PER_TESLA, f.z * NT_PER_TESLA), sigma)
-        self._after(msg)
+        self.engine.mag(key, (f[0] * NT_PER_TESLA, f[1] * NT_PER_TESLA, f[2] * NT_PER_TESLA), sigma)
+        self._after((MagneticField, data))
 
-    def _on_temp(self, msg):
-        if self._skip and self._resent(c.TOPIC_TEMPERATURE, c.stamp_to_sec(msg.header.stamp)):
+    def _on_temp(self, data):
+        if self.engine.ended:
+            return self._late(c.TOPIC_TEMPERATURE)
+        try:
+            key, temp = cdr.decode_temperature(data)
+        except cdr.DECODE_ERRORS as exc:
+            return self._undecodable(c.TOPIC_TEMPERATURE, exc)
+        t = key[0] + 1e-9 * key[1]
+        if self._skip and self._resent(c.TOPIC_TEMPERATURE, t):
             return
-        self.engine.temperature(c.stamp_to_sec(msg.header.stamp), msg.temperature)
-        self._after(msg)
+        self.engine.temperature(t, temp)
+        self._after((Temperature, data))
 
-    def _on_reference(self, msg):
-        if self._skip and self._resent(c.TOPIC_REFERENCE, c.stamp_to_sec(msg.header.stamp)):
+    def _on_reference(self, data):
+        if self.engine.ended:
+            return self._late(c.TOPIC_REFERENCE)
+        try:
+            key, v = cdr.decode_vector3(data)
+        except cdr.DECODE_ERRORS as exc:
+            return self._undecodable(c.TOPIC_REFERENCE, exc)
+        t = key[0] + 1e-9 * key[1]
+        if self._skip and self._resent(c.TOPIC_REFERENCE, t):
             return
-        v = msg.vector
-        self.engine.reference(c.stamp_to_sec(msg.header.stamp), (v.x, v.y, v.z))
+        self.engine.reference(t, v)
         self._after()
 
+    def _late(self, topic: str) -> None:
+        """A message after the node ended the data (it gave up waiting for the rest: see
+        :meth:`_check_end`): not used and not counted as taken — the counts stay those of the end,
+        so the run's summary says the loss the node's log line said."""
+        n = self.late[topic] = self.late.get(topic, 0) + 1
+        if n == 1:
+            self.log.warning(f"{topic}: messages still arrive after the end of the data was declared: not used "
+                             "(they are among those said lost)")
+
+    def _undecodable(self, topic: str, exc) -> None:
+        """A message whose bytes are not its type's (a raw publisher's): counted, said once a topic."""
+        n = self.undecodable[topic] = self.undecodable.get(topic, 0) + 1
+        if n == 1:
+            self.log.error(f"a {topic} message does not decode ({exc}): skipped (and every such message "
+                           "after it, counted)")
+
     def _on_depth(self, msg, info):
+        if self.engine.ended:
+            return self._late(c.TOPIC_DEPTH)
         order = info.get("source_timestamp", 0) if info else 0
         if self._skip and self._resent(c.TOPIC_DEPTH, order):
             return

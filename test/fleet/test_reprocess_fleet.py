@@ -269,6 +269,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.parametrize("fleet", ["sqlite"], indirect=True)   # the cluster is the point, not the database
 def test_cli_on_a_separately_started_scheduler_and_worker(fleet, tmp_path):
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"

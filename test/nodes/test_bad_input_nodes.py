@@ -128,9 +128,9 @@ def test_non_monotonic_stamps_and_absent_field_are_reported(ros, coeffs_file, ca
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = log.acc[k].tolist()
         mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (log.mag[k] * 1e-9).tolist()
         if imu:
-            node.stream._on_imu(mi, None)
+            node.stream._on_imu(serialize_message(mi), None)
         if mag:
-            node.stream._on_mag(mm)
+            node.stream._on_mag(serialize_message(mm))
 
     n = len(log)
     for k in range(n // 2):

@@ -17,6 +17,7 @@ rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setu
 from rcl_interfaces.srv import SetParameters  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.serialization import serialize_message  # noqa: E402
 from sensor_msgs.msg import Imu, MagneticField, Temperature  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
@@ -108,9 +109,9 @@ def test_the_node_on_the_hot_path_executor_gives_what_its_callbacks_give(ros, tm
     ros.append(direct)
     direct.pub_station, direct.pub_diag, direct.pub_imu, direct.pub_mag = _Collect(), _Collect(), _Collect(), _Collect()
     for mi, mm, mt in _messages(log):   # its own copies: the node corrects a message in place
-        direct.stream._on_imu(mi, None)
-        direct.stream._on_mag(mm)
-        direct.stream._on_temp(mt)
+        direct.stream._on_imu(serialize_message(mi), None)
+        direct.stream._on_mag(serialize_message(mm))
+        direct.stream._on_temp(serialize_message(mt))
     direct.stream.idle()                  # what the idle flush does at the end of the stream
     assert len(direct.pub_station.msgs) == 3 and len(direct.pub_imu.msgs) == len(msgs)
 
@@ -240,13 +241,13 @@ def test_a_station_waits_for_the_first_temperature_its_record_needs(ros, tmp_pat
     go out corrected with it, not uncorrectable (NaN) at once."""
     node, _, msgs = _two_station_node(ros, tmp_path, with_temperature_effect=True)
     for mi, mm, _ in msgs:                      # the samples, and no temperature yet
-        node.stream._on_imu(mi, None)
-        node.stream._on_mag(mm)
+        node.stream._on_imu(serialize_message(mi), None)
+        node.stream._on_mag(serialize_message(mm))
     node.stream.close_hold()
     assert node.pub_station.msgs == [] and len(node.engine._pending) == 2
     assert [w for _, _, w in node.engine.waiting()] == [["temperature"], ["temperature"]]
     for _, _, mt in msgs:                       # the temperatures, late
-        node.stream._on_temp(mt)
+        node.stream._on_temp(serialize_message(mt))
     got = node.pub_station.msgs
     assert len(got) == 2 and all(math.isfinite(s.azimuth_deg) and math.isfinite(s.temperature_c) for s in got)
 
@@ -262,12 +263,12 @@ def test_a_station_waits_until_its_readers_are_matched_then_goes_or_says_who_mis
                                                              Parameter("reference_wait_s", value=wait_s)])
     node.pub_station.readers = 1                # one reader short: the first station waits
     for mi, mm, mt in msgs:
-        node.stream._on_imu(mi, None)
-        node.stream._on_mag(mm)
-        node.stream._on_temp(mt)
+        node.stream._on_imu(serialize_message(mi), None)
+        node.stream._on_mag(serialize_message(mm))
+        node.stream._on_temp(serialize_message(mt))
     assert node.pub_station.msgs == [] and len(node._outbox) == 1 and not node.engine._pending
     node.pub_station.readers = 2                # matched: it goes at the next message
-    node.stream._on_temp(msgs[-1][2])
+    node.stream._on_temp(serialize_message(msgs[-1][2]))
     assert len(node.pub_station.msgs) == 1 and not node._outbox
     node.pub_station.readers = 1                # a reader gone: the last one waits, then goes, said
     node.stream.close_hold()
@@ -292,9 +293,9 @@ def test_an_unstamped_depth_holds_from_the_sample_sent_after_it_however_late_it_
     src = [1_000_000 * (k + 1) for k in range(len(msgs))]   # ns, the probe's publish order
     node.stream._on_depth(Float64(data=500.0), {"source_timestamp": 1})
     for k, (mi, mm, mt) in enumerate(msgs):
-        node.stream._on_imu(mi, {"source_timestamp": src[k]})
-        node.stream._on_mag(mm)
-        node.stream._on_temp(mt)
+        node.stream._on_imu(serialize_message(mi), {"source_timestamp": src[k]})
+        node.stream._on_mag(serialize_message(mm))
+        node.stream._on_temp(serialize_message(mt))
     node.stream._on_depth(Float64(data=530.0), {"source_timestamp": src[j] - 1})   # sent before sample j, taken last
     node.engine.end()                           # the end of the data: what came is all there is
     node.stream._after()

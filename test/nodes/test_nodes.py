@@ -443,6 +443,7 @@ def test_periodic_work_runs_on_steady_time_when_the_sim_clock_stops(spinning, tm
 def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_says_so(ros, capfd):
     # a probe driver stating 0.002 m/s² / 20 nT for a probe 2.5× noisier: every hold is still one
     # station, and the node warns that the stated noise is not what the data show
+    from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu, MagneticField
 
     log = _noisy_log(0.005, 50.0)
@@ -456,8 +457,8 @@ def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
         mm.magnetic_field.x, mm.magnetic_field.y, mm.magnetic_field.z = (x * 1e-9 for x in m)
-        node.stream._on_imu(mi, None)
-        node.stream._on_mag(mm)
+        node.stream._on_imu(serialize_message(mi), None)
+        node.stream._on_mag(serialize_message(mm))
     assert node.detector.noise.prior == pytest.approx((0.002, 20.0))
     lvl = node.detector.noise_level
     assert lvl.acc_source == "data" and np.allclose(lvl.acc, 0.005, rtol=0.15)
