@@ -257,11 +257,13 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
         return residual_vector(model, data, full(x), cache=cache)
 
     def solve(x_start):
-        """Levenberg–Marquardt from ``x_start`` (with the stand's pose errors, the poses found off
-        leave the gauge and the fit is repeated)."""
+        """Gauss–Newton on one Jacobian (:func:`chord`), else Levenberg–Marquardt, from ``x_start``
+        (with the stand's pose errors, the poses found off leave the gauge and the fit is repeated)."""
         for _ in range(3 if model.fit_poses else 1):
-            res = least_squares(fun, x_start, x_scale=scale, method="lm", jac="2-point",
-                                max_nfev=max_nfev * (len(x_start) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
+            res = chord(fun, x_start, scale)
+            if res is None:
+                res = least_squares(fun, x_start, x_scale=scale, method="lm", jac="2-point",
+                                    max_nfev=max_nfev * (len(x_start) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
             model.set_vector(full(res.x))
             if not model.fit_poses or not model.regauge(data):
                 break
@@ -309,6 +311,107 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
                      std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=ok,
                      message=msg, seconds=time.perf_counter() - t0, nfev=nfev, not_identifiable=notid,
                      covariance=cov, n_free=p_eff)
+
+
+#: Evaluations of the residuals a :func:`chord` fit may take for its steps before it falls back
+#: to Levenberg–Marquardt, and Jacobians it may take.
+CHORD_ITERATIONS = 20
+CHORD_JACOBIANS = 3
+#: Converged when the Gauss–Newton step at the Jacobian of the point itself promises a fall of χ²
+#: (noise-normalised) below this, or this share of χ² (Levenberg–Marquardt's ftol).
+CHORD_CHI2 = 1e-6
+CHORD_FTOL = 1e-10
+#: A step from a fresh Jacobian that promises a fall of χ² below this is the last one (taken
+#: without a Jacobian more: what remains after it is of the order of its square).
+CHORD_LAST = 1e-2
+#: A step that gains less than this share of the fall it promised re-linearises (a new Jacobian).
+CHORD_GAIN = 0.25
+
+
+class Solution:
+    """What :func:`fit` reads of a solver's result (``scipy.optimize.OptimizeResult``'s names)."""
+    __slots__ = ("x", "jac", "success", "message", "nfev")
+
+    def __init__(self, x, jac, message, nfev):
+        self.x, self.jac, self.success, self.message, self.nfev = x, jac, True, message, nfev
+
+
+def forward_jacobian(fun, x, r, scale) -> np.ndarray:
+    """Forward differences of ``fun`` at ``x`` (``r = fun(x)``), the step of each parameter
+    ``√ε·max(|x|, scale)`` (ε the float64 resolution): relative to the parameter, or to its
+    typical magnitude where it is near zero."""
+    h = np.sqrt(np.finfo(float).eps) * np.maximum(np.abs(x), scale)
+    jac = np.empty((len(r), len(x)))
+    for j in range(len(x)):
+        xj = x.copy()
+        xj[j] += h[j]
+        jac[:, j] = (fun(xj) - r) / (xj[j] - x[j])
+    return jac
+
+
+def chord(fun, x0, scale, max_iter: int = CHORD_ITERATIONS, max_jac: int = CHORD_JACOBIANS):
+    """Least squares by Gauss–Newton steps, the Jacobian kept while it serves (a chord method).
+
+    The lab's residuals are close to linear in the parameters near a calibration (the base model
+    is linear, the effects small), so one finite-difference Jacobian serves several steps: each
+    costs one evaluation of the residuals, where Levenberg–Marquardt takes a new Jacobian (one
+    evaluation per parameter) at every step.  A step is solved by the SVD of the scaled Jacobian.
+    A new Jacobian is taken when a step gains less than :data:`CHORD_GAIN` of the fall of χ² it
+    promised, and always at the end: converged only when the Gauss–Newton step at the point's own
+    Jacobian promises a fall below :data:`CHORD_CHI2` (or :data:`CHORD_FTOL` of χ²) — so a
+    parameter the first Jacobian did not see (a time constant while its effect is zero) is
+    found at the second; a step from a fresh Jacobian promising less than :data:`CHORD_LAST` is
+    the last.  The last Jacobian is the solution's (its covariance).  Returns None —
+    the caller falls back to Levenberg–Marquardt — when a step from a fresh Jacobian raises χ²,
+    or after ``max_iter`` steps or ``max_jac`` Jacobians (a strongly nonlinear problem)."""
+    x = np.asarray(x0, dtype=float).copy()
+    if not len(x):
+        return None
+    r = fun(x)
+    cost = float(r @ r)
+    nfev, n_jac, steps = 1, 0, 0
+    fresh = False
+    while True:
+        if not fresh:
+            if n_jac == max_jac:
+                return None
+            jac = forward_jacobian(fun, x, r, scale)
+            nfev += len(x)
+            n_jac += 1
+            u, sv, vt = np.linalg.svd(jac * scale, full_matrices=False)
+            keep = sv > sv[0] * 1e-12 if len(sv) and sv[0] > 0 else sv > 0
+            fresh = True
+        g = u[:, keep].T @ r
+        promised = float(g @ g)
+        if promised <= max(CHORD_CHI2, CHORD_FTOL * cost):
+            if fresh:
+                return Solution(x, jac, f"chord: converged in {steps} steps, {n_jac} Jacobians", nfev)
+            fresh = False
+            continue
+        if steps == max_iter:
+            return None
+        ds = -(vt[keep].T @ (g / sv[keep]))
+        x_new = x + ds * scale
+        r_new = fun(x_new)
+        nfev += 1
+        steps += 1
+        cost_new = float(r_new @ r_new)
+        gain = cost - cost_new if np.isfinite(cost_new) else -np.inf
+        if fresh and promised <= CHORD_LAST:
+            # a last step from a Jacobian of this point, promising less than any test could see:
+            # taken (if it gains) without a Jacobian more; that Jacobian is the solution's
+            if gain > 0:
+                x = x_new
+            return Solution(x, jac, f"chord: converged in {steps} steps, {n_jac} Jacobians", nfev)
+        if gain <= 0:
+            if fresh:
+                return None          # the linearisation at this very point misleads: not for the chord
+            fresh = False            # re-linearise here and try again
+            continue
+        x, r, cost = x_new, r_new, cost_new
+        fresh = fresh and False
+        if gain < CHORD_GAIN * promised:
+            fresh = False
 
 
 def _group_inflation(r_data, data, n_params) -> np.ndarray:
