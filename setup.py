@@ -5,12 +5,15 @@ ament_cmake, see ``CMakeLists.txt`` and ``docs/packaging.md``); this file serves
 ``pip install .`` (core + CLI, no ROS needed; ``pip install '.[all]'`` adds the optional parts, see
 ``EXTRAS``) and the PyPI-based development environment.
 """
+import glob
+
 from setuptools import find_packages, setup
 
-# Optional parts (pip install '.[report]', '.[bag]', '.[all]'); without them the commands that need
-# them stop with a one-line hint (inclinometer_calib/deps.py). The bag extra's lower bounds are the
-# versions of requirements/jazzy.lock, the tested environment (rosbags changes its API between minor
-# versions); test/test_extras.py checks the lock satisfies every bound.
+# Optional parts (pip install '.[report]', '.[bag]', '.[fleet]', ..., '.[all]'); without them the
+# commands that need them stop with a one-line hint before they start (inclinometer_calib/deps.py).
+# The bag extra's lower bounds are the versions of requirements/jazzy.lock, the tested environment
+# (rosbags changes its API between minor versions); test/test_extras.py checks the lock satisfies
+# every bound.
 EXTRAS = {
     # lab report: plots (inclinometer_calib/lab/report.py)
     "report": ["matplotlib>=3.7"],
@@ -19,9 +22,22 @@ EXTRAS = {
     "bag": ["mcap>=1.6", "zstandard>=0.25", "lz4>=4.4", "rosbags>=0.11.9"],
     # the lab's discovery beyond the catalogue (inclinometer_calib/lab/discover.py): sparse regression
     "lab": ["scikit-learn>=1.5"],
+    # the fleet (inclinometer_calib/fleet/): the registry's database and migrations, PostgreSQL,
+    # reprocessing on Dask into Parquet
+    "fleet": ["sqlalchemy>=2.0", "alembic>=1.13", "psycopg[binary]>=3.1", "dask>=2026.8.0",
+              "distributed>=2026.8.0", "pyarrow>=26.0"],
+    # the live view in Foxglove (inclinometer_calib/nodes/live.py)
+    "live": ["foxglove-sdk>=0.30.3"],
+    # speed: the fused batch-correction kernel (inclinometer_calib/batchkernel.py; numpy without it)
+    # and the column-wise probe-log reader (inclinometer_calib/probelog.py; row by row without it)
+    "fast": ["numba>=0.68.1", "pyarrow>=26.0"],
 }
 EXTRAS["all"] = sorted({req for reqs in EXTRAS.values() for req in reqs})
 EXTRAS["test"] = ["pytest>=7", "hypothesis>=6"]
+#: The interface definitions the bags and messages need (reprocess writes SurveyStation with its
+#: definition), installed where ROS keeps them: <prefix>/share/inclinometer_calib/{msg,srv}
+#: (:class:`inclinometer_calib.bag.MessageDefinitions` looks there under sys.prefix).
+INTERFACES = [(f"share/inclinometer_calib/{kind}", sorted(glob.glob(f"{kind}/*.{kind}"))) for kind in ("msg", "srv")]
 
 setup(
     name="inclinometer_calib",
@@ -30,21 +46,15 @@ setup(
     license="Apache-2.0",
     python_requires=">=3.10",
     packages=find_packages(include=["inclinometer_calib", "inclinometer_calib.*"]),
+    # the core: the numerics, the site's field (WMM/IGRF, projections), WITSML out, progress bars
     install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0", "allantools>=2019.9",
                       # one BLAS thread around the lab's small fits (inclinometer_calib/lab/blas.py)
                       "threadpoolctl>=3.1",
                       "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6",
                       # WITSML 2.1 out (inclinometer_calib/witsml.py): building/reading, schema validation
                       "lxml>=6.1", "xmlschema>=4.3",
-                      # live view in Foxglove (inclinometer_calib/nodes/live.py, liveview.py)
-                      "foxglove-sdk>=0.30.3",
-                      # fleet registry (inclinometer_calib/fleet/registry.py): database, migrations, PostgreSQL
-                      "sqlalchemy>=2.0", "alembic>=1.13", "psycopg[binary]>=3.1",
-                      # fleet reprocessing on Dask into Parquet (inclinometer_calib/fleet/reprocess.py);
-                      # pyarrow also reads the probe-log CSVs (inclinometer_calib/probelog.py)
-                      "dask>=2026.8.0", "distributed>=2026.8.0", "pyarrow>=26.0", "tqdm>=4.66",
-                      # fused batch-correction kernel (inclinometer_calib/batchkernel.py; numpy fallback without it)
-                      "numba>=0.68.1"],
+                      "tqdm>=4.66"],
+    data_files=INTERFACES,
     # the Energistics schemas the WITSML documents are validated against (schemas/witsml21/README.md)
     package_data={"inclinometer_calib": ["schemas/witsml21/README.md",
                                          "schemas/witsml21/energyml/data/*/*/xsd_schemas/*.xsd",

@@ -16,7 +16,7 @@ import yaml
 
 from . import simulate as sim
 from .coeffs import Calibration, CoefficientError
-from .deps import MissingDependency
+from .deps import MissingDependency, require
 from .frames import Site
 from .capture import CaptureSession
 from .gates import SettlingTally, apply_gates
@@ -1019,6 +1019,17 @@ def parse_date(text: str, what: str):
     return t.replace(tzinfo=dt.timezone.utc) if t.tzinfo is None else t
 
 
+#: What the fleet's commands import (the ``fleet`` extra), checked before any work starts.
+FLEET_REGISTRY = ("sqlalchemy", "alembic")
+FLEET_REPROCESS = FLEET_REGISTRY + ("dask", "distributed", "pyarrow")
+
+
+def _fleet_needs(purpose: str, modules) -> None:
+    """One line, exit status 2, when the ``fleet`` extra is not installed (:func:`deps.require`)."""
+    for module in modules:
+        require(module, "fleet", purpose)
+
+
 def _registry(args):
     from .fleet.registry import DEFAULT_URL, Registry, RegistryError
 
@@ -1030,6 +1041,7 @@ def _registry(args):
 
 def cmd_fleet_register(args):
     """``fleet register SERIAL``: add a probe to the registry (or, with --update, change its details)."""
+    _fleet_needs("fleet register", FLEET_REGISTRY)
     from .fleet.registry import RegistryError
 
     with _registry(args) as reg:
@@ -1050,6 +1062,7 @@ def cmd_fleet_register(args):
 def cmd_fleet_add(args):
     """``fleet add RECORD.yaml --date DATE``: store a calibration record of a registered probe, with
     the date of the calibration, the operator's note and the SHA-256 of the raw log."""
+    _fleet_needs("fleet add", FLEET_REGISTRY)
     import hashlib
 
     from .fleet.registry import RegistryError
@@ -1082,6 +1095,7 @@ def cmd_fleet_add(args):
 def cmd_fleet_history(args):
     """``fleet history SERIAL``: each parameter over time with its 1σ, the calibrations that moved
     beyond their combined uncertainty, and whether the probe is overdue (text; --html with plots)."""
+    _fleet_needs("fleet history", FLEET_REGISTRY)
     from .fleet import history as fh
     from .fleet.registry import RegistryError
 
@@ -1148,6 +1162,7 @@ def cmd_fleet_reprocess(args):
     dataset (:mod:`inclinometer_calib.fleet.reprocess`). Exit status 0 when every bag is done
     (now or before), 1 when some failed (each with its reason in the summary), 2 when nothing
     could be done."""
+    _fleet_needs("fleet reprocess", FLEET_REPROCESS)
     from .fleet.manifest import ManifestError, entries_from_paths, read_manifest
     from .fleet.registry import DEFAULT_URL, RegistryError
     from .fleet.reprocess import Settings, reprocess_fleet

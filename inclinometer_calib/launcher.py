@@ -314,6 +314,10 @@ def build_params(args, out):
     if args.foxglove_port:
         if not 1 <= args.foxglove_port <= 65535:
             raise SystemExit(f"--foxglove-port {args.foxglove_port}: a TCP port is 1..65535 (0: no live view)")
+        try:   # before the graph starts, not as a node's traceback in it
+            require("foxglove", "live", "the live view (--foxglove-port)")
+        except MissingDependency as exc:
+            raise SystemExit(f"error: {exc}") from None
         p["live"]["port"] = int(args.foxglove_port)   # the live view in Foxglove (host: config/live.yaml, loopback)
     if not args.unpaced or args.reliable:
         # lossless: reliable, and a history deep enough that a node running behind the replay on a

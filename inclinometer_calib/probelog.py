@@ -46,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .deps import installed, require
 from .frames import STANDARD_GRAVITY
 
 HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
@@ -188,15 +189,16 @@ def _unit_guess(total: float):
     return None
 
 
-#: The readers of :func:`parse_csv` and :func:`read_csv`.  ``"arrow"`` (the default) splits and
-#: converts the columns with pyarrow and checks them with numpy; ``"rows"`` is one Python pass per
-#: row, the reference.  Both give the same log and the same rejections, message for message: the
-#: arrow reader hands the rows its vectorised checks do not pass (rare) to the same per-row code.
-ENGINES = ("arrow", "rows")
+#: The readers of :func:`parse_csv` and :func:`read_csv`.  ``"arrow"`` splits and converts the
+#: columns with pyarrow (the ``fast`` extra) and checks them with numpy; ``"rows"`` is one Python
+#: pass per row, the reference; ``"auto"`` (the default) is arrow when pyarrow is installed, else
+#: rows.  Both give the same log and the same rejections, message for message: the arrow reader
+#: hands the rows its vectorised checks do not pass (rare) to the same per-row code.
+ENGINES = ("auto", "arrow", "rows")
 
 
 def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_unit: str = "nT",
-              engine: str = "arrow"):
+              engine: str = "auto"):
     """Parse probe-log CSV text.  Returns ``(ProbeLog, [Rejection, ...])``.
 
     ``mag_unit``: the unit of the magnetometer columns (a key of :data:`MAG_UNITS`), converted to
@@ -204,7 +206,7 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
     reference).  Raises ``ValueError`` only when the file as a whole is unusable (wrong header,
     no data, unknown unit).
     """
-    _check_engine(engine)
+    engine = _check_engine(engine)
     if engine == "arrow":
         try:
             data = text.encode("utf-8")
@@ -215,11 +217,11 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
     return _parse_rows(text, limits, source, mag_unit)
 
 
-def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT", engine: str = "arrow"):
+def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT", engine: str = "auto"):
     """Read a probe-log CSV file (``.gz``: compressed).  Returns ``(ProbeLog, [Rejection, ...])``.
 
     ``engine``: as for :func:`parse_csv`."""
-    _check_engine(engine)
+    engine = _check_engine(engine)
     opener = gzip.open if str(path).endswith(".gz") else open
     if engine == "rows":
         with opener(path, "rt", encoding="utf-8") as fh:
@@ -232,9 +234,16 @@ def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT", engine: str 
     return _parse_arrow(data, limits, str(path), mag_unit)
 
 
-def _check_engine(engine):
+def _check_engine(engine) -> str:
+    """The reader ``engine`` names (``auto`` resolved); raises ValueError for an unknown one,
+    :class:`deps.MissingDependency` for ``arrow`` without pyarrow."""
     if engine not in ENGINES:
         raise ValueError(f"probe-log reader {engine!r} unknown (one of {', '.join(ENGINES)})")
+    if engine == "auto":
+        return "arrow" if installed("pyarrow") else "rows"
+    if engine == "arrow":
+        require("pyarrow", "fast", "the column-wise probe-log reader")
+    return engine
 
 
 def _mag_scale(mag_unit, source) -> float:

@@ -15,6 +15,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 from importlib.metadata import Distribution
 
 import pytest
@@ -28,9 +29,12 @@ from inclinometer_calib.reprocess import write_probe_bag
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = os.path.join(ROOT, "inclinometer_calib")
-CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj", "lxml", "xmlschema",
-        "foxglove-sdk", "dask", "distributed", "pyarrow", "tqdm", "sqlalchemy", "alembic", "psycopg", "numba", "threadpoolctl"}
-OPTIONAL_MODULES = ("matplotlib", "mcap", "zstandard", "lz4", "rosbags")
+CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj", "lxml", "xmlschema", "tqdm",
+        "threadpoolctl"}
+#: never in a core install (issue 24): the fleet stack, the live view, the numba kernel, pyarrow
+NOT_CORE = {"dask", "distributed", "sqlalchemy", "alembic", "psycopg", "pyarrow", "numba", "foxglove-sdk"}
+OPTIONAL_MODULES = ("matplotlib", "mcap", "zstandard", "lz4", "rosbags", "sklearn", "sqlalchemy", "alembic",
+                    "psycopg", "dask", "distributed", "pyarrow", "numba", "foxglove")
 #: import name -> PyPI distribution, where they differ
 DISTRIBUTION = {"yaml": "PyYAML", "foxglove": "foxglove-sdk", "sklearn": "scikit-learn"}
 #: modules that come with ROS 2 (colcon / the ROS wheels), never from this package's metadata
@@ -66,16 +70,18 @@ def _names(reqs):
 
 def test_install_requires_is_the_numerical_core(metadata):
     core, _ = metadata
-    assert core == CORE
+    assert core == CORE and not core & NOT_CORE
 
 
-def test_extras_report_bag_lab_all(metadata):
+def test_extras_report_bag_lab_fleet_live_fast_all(metadata):
     _, extras = metadata
-    assert {"report", "bag", "lab", "all"} <= set(extras), sorted(extras)
-    assert _names(extras["report"]) == {"matplotlib"}
-    assert _names(extras["bag"]) == {"mcap", "zstandard", "lz4", "rosbags"}
-    assert _names(extras["lab"]) == {"scikit-learn"}
-    assert _names(extras["all"]) == _names(extras["report"]) | _names(extras["bag"]) | _names(extras["lab"])
+    want = {"report": {"matplotlib"}, "bag": {"mcap", "zstandard", "lz4", "rosbags"}, "lab": {"scikit-learn"},
+            "fleet": {"sqlalchemy", "alembic", "psycopg", "dask", "distributed", "pyarrow"},
+            "live": {"foxglove-sdk"}, "fast": {"numba", "pyarrow"}}
+    assert set(want) | {"all"} <= set(extras), sorted(extras)
+    for extra, names in want.items():
+        assert _names(extras[extra]) == names, extra
+    assert _names(extras["all"]) == set().union(*want.values())
 
 
 def _python_files():
@@ -240,3 +246,76 @@ def test_bag_from_csv_without_the_bag_packages(logs, tmp_path):
     _one_line_error(r, "error: writing a probe log as a bag needs mcap, which is not installed: "
                        "pip install 'inclinometer_calib[bag]'")
     assert not (tmp_path / "val.mcap").exists()
+
+
+@pytest.mark.parametrize("args, purpose", [
+    (["fleet", "register", "P1", "--db", "fleet.db"], "fleet register"),
+    (["fleet", "history", "P1", "--db", "fleet.db"], "fleet history"),
+    (["fleet", "reprocess", "x.mcap", "-o", "out"], "fleet reprocess"),
+])
+def test_fleet_commands_without_the_fleet_packages_say_so_before_they_start(tmp_path, args, purpose):
+    r = run_cli(args, OPTIONAL_MODULES, tmp_path)
+    _one_line_error(r, f"error: {purpose} needs sqlalchemy, which is not installed: "
+                       "pip install 'inclinometer_calib[fleet]'")
+    assert not list(tmp_path.iterdir())          # no registry, no output folder
+
+
+def test_a_probe_log_is_read_row_by_row_without_pyarrow(logs, tmp_path):
+    """The core reads probe logs without the ``fast`` extra: the row reader, the same numbers."""
+    r = run_cli(["correct", logs / "val.csv", "--coeffs", "none", "--json"], ("pyarrow", "numba"), tmp_path)
+    assert r.returncode == 0, r.stderr
+    fast = run_cli(["correct", logs / "val.csv", "--coeffs", "none", "--json"], (), tmp_path)
+    assert r.stdout == fast.stdout and r.stdout
+
+
+# ---------------------------------------------------------------------------------------------
+# the wheel
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory):
+    """The wheel pip builds from this tree (no dependencies fetched: --no-deps, no build isolation)."""
+    out = tmp_path_factory.mktemp("wheel")
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                        "--disable-pip-version-check", "-w", str(out), ROOT], capture_output=True, text=True,
+                       timeout=300, cwd=out)
+    assert r.returncode == 0, r.stderr
+    (path,) = out.glob("inclinometer_calib-*.whl")
+    return path
+
+
+def test_the_wheel_carries_the_message_definitions_and_reprocess_finds_them_where_it_installs_them(
+        wheel, logs, tmp_path):
+    """``pip install '.[all]'`` and then ``reprocess``: the SurveyStation definition comes with the
+    wheel (it failed on every bag: msg/ was not shipped).  Installed into a prefix of its own (no
+    dependencies: those of this environment serve), reprocess run from outside the source tree
+    finds the definitions there — with this repository's msg/ folder out of reach."""
+    import zipfile
+
+    names = zipfile.ZipFile(wheel).namelist()
+    data = [n for n in names if ".data/data/share/inclinometer_calib/" in n]
+    assert {n.rsplit("/", 2)[-2] + "/" + n.rsplit("/", 1)[-1] for n in data} >= {
+        "msg/SurveyStation.msg", "msg/CalibrationCoefficients.msg", "msg/StreamProgress.msg",
+        "msg/CalibrationStatus.msg", "srv/RecapturePose.srv"}, data
+    prefix = tmp_path / "prefix"
+    # --ignore-installed: beside this environment's editable install, not instead of it
+    r = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--ignore-installed", "-q",
+                        "--disable-pip-version-check", "--prefix", str(prefix), str(wheel)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    (site,) = prefix.glob("lib/python*/site-packages")
+    probe = textwrap.dedent(f"""
+        import sys
+        sys.prefix = {str(prefix)!r}                 # as if the wheel were installed in this environment
+        import inclinometer_calib, inclinometer_calib.bag as bag
+        assert inclinometer_calib.__file__.startswith({str(site)!r}), inclinometer_calib.__file__
+        bag._REPO_MSG_DIR = bag.Path("/nonexistent")   # this repository's msg/ out of reach
+        from inclinometer_calib.cli import main
+        sys.exit(main(["reprocess", {str(logs / "val.mcap")!r}, "--coeffs", "none", "-o", "out.mcap"]))
+    """)
+    # -S: no .pth files, so not this environment's editable install of the source tree either
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "AMENT_PREFIX_PATH")}
+    env["PYTHONPATH"] = os.pathsep.join([str(site)] + [p for p in sys.path if p.endswith("site-packages")])
+    r = subprocess.run([sys.executable, "-S", "-c", probe], cwd=tmp_path, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert (tmp_path / "out.mcap").stat().st_size > 0
