@@ -296,6 +296,11 @@ def test_the_wheel_carries_the_message_definitions_and_reprocess_finds_them_wher
     assert {n.rsplit("/", 2)[-2] + "/" + n.rsplit("/", 1)[-1] for n in data} >= {
         "msg/SurveyStation.msg", "msg/CalibrationCoefficients.msg", "msg/StreamProgress.msg",
         "msg/CalibrationStatus.msg", "srv/RecapturePose.srv"}, data
+    meta = next(n for n in names if n.endswith(".dist-info/METADATA"))
+    reqs = [Requirement(line.split(":", 1)[1].strip()) for line in
+            zipfile.ZipFile(wheel).read(meta).decode().splitlines() if line.startswith("Requires-Dist:")]
+    core = {canonicalize_name(r.name) for r in reqs if r.marker is None}
+    assert core == CORE and not core & NOT_CORE, sorted(core)      # what a plain install pulls
     prefix = tmp_path / "prefix"
     # --ignore-installed: beside this environment's editable install, not instead of it
     r = subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--no-index", "--ignore-installed", "-q",
