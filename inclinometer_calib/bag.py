@@ -74,7 +74,6 @@ style directory ``<dir>/<dir-name>_0.mcap`` plus ``<dir>/metadata.yaml`` (writte
 """
 from __future__ import annotations
 
-import errno
 import io
 import mmap
 import os
@@ -95,7 +94,7 @@ __all__ = [
     "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
     "normalize_type", "qos_profiles_yaml", "parse_qos_profiles", "DEFAULT_QOS_PROFILE",
     "BagWriter", "BagReader", "BagMessage", "TopicInfo", "RecoveryReport", "open_bag", "recover",
-    "available_compressions", "refused_write_words",
+    "available_compressions",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -445,19 +444,6 @@ class _UnbufferedSink:
 
     def close(self) -> None:
         self._f.close()
-
-
-def refused_write_words(exc: OSError):
-    """(short reason, one-line description) of a write the OS refused, for people:
-    ``("disk full", "no space left on the device (ENOSPC)")``; others by strerror and errno name."""
-    name = errno.errorcode.get(exc.errno or 0, str(exc.errno))
-    known = {errno.ENOSPC: ("disk full", "no space left on the device"),
-             errno.EDQUOT: ("disk quota exceeded", "the disk quota is exceeded"),
-             errno.EFBIG: ("file too large", "the file is larger than the file system or a limit allows"),
-             errno.EIO: ("I/O error", "the disk reported an input/output error")}
-    text = exc.strerror or str(exc)
-    short, long = known.get(exc.errno, (text, text))
-    return short, f"{long} ({name})"
 
 
 def _library_string() -> str:

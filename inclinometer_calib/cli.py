@@ -20,7 +20,8 @@ from .deps import MissingDependency, require
 from .frames import Site
 from .capture import CaptureSession
 from .gates import SettlingTally, apply_gates
-from .probelog import MAG_UNITS, Limits, atomic_write_text, read_csv, report, segment_stations, write_csv
+from .output import OutputError, atomic_write_bytes, atomic_write_text, check_output, output_folder, output_path
+from .probelog import MAG_UNITS, Limits, read_csv, report, segment_stations, write_csv
 from .model import ModelContextError
 from .pipeline import (NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note,
                        station_status, usable)
@@ -135,9 +136,16 @@ def cmd_simulate(args):
     if args.no_labels:  # a log as a probe without a stand system writes it: no pose, no reference
         cal.pose[:] = 0
         cal.ref[:] = np.nan
-    os.makedirs(args.out, exist_ok=True)
-    write_csv(os.path.join(args.out, "cal.csv"), cal, mag_unit=args.mag_unit)
-    write_csv(os.path.join(args.out, "val.csv"), val, mag_unit=args.mag_unit)
+    with output_folder(args.out) as out:       # all the files or none
+        said = _write_simulation(args, out, probe, site, rng, temps, val_temps, cal, val, cal_session, val_session)
+    print("\n".join(said))
+    return 0
+
+
+def _write_simulation(args, out, probe, site, rng, temps, val_temps, cal, val, cal_session, val_session) -> list:
+    """The simulated session's files written into ``out``; returns what to say of them."""
+    write_csv(os.path.join(out, "cal.csv"), cal, mag_unit=args.mag_unit)
+    write_csv(os.path.join(out, "val.csv"), val, mag_unit=args.mag_unit)
     truth = {"seed": args.seed, "site": site.to_dict(), "probe": probe.to_dict(),
              "cal": {"stations": len(cal_session), "rows": len(cal), "temperatures_c": temps},
              "val": {"stations": len(val_session), "rows": len(val), "temperature_profile_c": val_temps,
@@ -152,21 +160,19 @@ def cmd_simulate(args):
                                t0=val.t_s[-1] + 10.0)
         if args.no_table_angles:
             tt.table_deg[:] = np.nan
-        write_csv(os.path.join(args.out, "turntable.csv"), tt, mag_unit=args.mag_unit)
+        write_csv(os.path.join(out, "turntable.csv"), tt, mag_unit=args.mag_unit)
         truth["turntable"] = {"steps_per_mount": args.turntable, "rows": len(tt), "tilt_deg": args.table_tilt,
                               "table_angles_written": not args.no_table_angles}
         written.append("turntable.csv")
-    atomic_write_text(os.path.join(args.out, "truth.json"), json.dumps(truth, indent=2) + "\n")
-    atomic_write_text(os.path.join(args.out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
+    atomic_write_text(os.path.join(out, "truth.json"), json.dumps(truth, indent=2) + "\n")
+    atomic_write_text(os.path.join(out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
     true_cal = Calibration(probe.model, probe_id=f"sim-{args.seed}", method="simulator truth", site=site)
-    true_cal.save(os.path.join(args.out, "truth_coeffs.yaml"))
-    print(f"wrote {args.out}/cal.csv ({len(cal)} rows, {len(cal_session)} stations), "
-          f"val.csv ({len(val)} rows, {len(val_session)} stations), "
-          + (f"turntable.csv ({truth['turntable']['rows']} rows, 3 mounts × {args.turntable} steps), "
-             if args.turntable else "") + "truth.json, truth_coeffs.yaml, site.yaml")
-    for e in probe.effects:
-        print(f"  hidden effect: {e.describe()}")
-    return 0
+    true_cal.save(os.path.join(out, "truth_coeffs.yaml"))
+    return ([f"wrote {args.out}/cal.csv ({len(cal)} rows, {len(cal_session)} stations), "
+             f"val.csv ({len(val)} rows, {len(val_session)} stations), "
+             + (f"turntable.csv ({truth['turntable']['rows']} rows, 3 mounts × {args.turntable} steps), "
+                if args.turntable else "") + "truth.json, truth_coeffs.yaml, site.yaml"]
+            + [f"  hidden effect: {e.describe()}" for e in probe.effects])
 
 
 def cmd_turntable(args):
@@ -245,8 +251,7 @@ def cmd_wits(args):
     data = b"".join(encode(s, k + 1, args.well_id, args.hole_section,
                            dt.datetime.fromtimestamp(s["stamp"], dt.timezone.utc)) for k, s in enumerate(survey))
     if args.output:
-        with open(args.output, "wb") as fh:
-            fh.write(data)
+        atomic_write_bytes(args.output, data)
         print(f"wrote {args.output}: {len(survey)} WITS0 record 07 ({len(stations) - len(survey)} raw or error "
               "stations not exported)")
     else:
@@ -627,10 +632,13 @@ def cmd_reprocess(args):
         if cal is None and not args.calibrate:
             _warn(f"{args.bag}: {NO_SITE} (give --site SITE.yaml)")
     det = detector_from_args(args)
+    if args.coeffs_out:
+        check_output(args.coeffs_out)
     try:
-        rep = reprocess(args.bag, args.output, cal, site, tol, det, compression=args.compression,
-                        warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id, effects=args.effects,
-                        monitor=field_monitor(args), force_probe=args.force_probe)
+        with output_path(args.output) as tmp:       # whole or not at all
+            rep = reprocess(args.bag, tmp, cal, site, tol, det, compression=args.compression,
+                            warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id, effects=args.effects,
+                            monitor=field_monitor(args), force_probe=args.force_probe)
     except ValueError as exc:   # ReprocessError, a bad --effects
         raise UserError(str(exc)) from None
     except FileExistsError as exc:
@@ -767,7 +775,8 @@ def cmd_bag_from_csv(args):
         logs.append(log)
     log = ProbeLog.concatenate(logs)
     try:
-        counts = write_probe_bag(log, args.output, compression=args.compression, serial=args.probe_serial)
+        with output_path(args.output) as tmp:       # whole or not at all
+            counts = write_probe_bag(log, tmp, compression=args.compression, serial=args.probe_serial)
     except FileExistsError as exc:
         raise UserError(str(exc)) from None
     print(f"wrote {args.output}: " + ", ".join(f"{n} {t}" for t, n in counts.items()))
@@ -1497,7 +1506,7 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (UserError, MissingDependency) as exc:  # MissingDependency: an optional package, see deps.py
+    except (UserError, MissingDependency, OutputError) as exc:  # an optional package (deps.py), an output refused
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -39,7 +39,7 @@ from .errormodel import E_TERMS, TriadModel
 from .frames import Site, specific_force_from_gravity
 from .model import CorrectionPlan, ProbeModel
 from .plugins import PluginError
-from .probelog import atomic_write_text
+from .output import atomic_write_text
 
 FORMAT = "inclinometer_calib/coefficients"
 FORMAT_VERSION = 2

@@ -187,7 +187,7 @@ def refused_write(path, exc, print_fn=print, who="launch", name=None) -> dict:
     """A write of the launcher's own that the OS refused, said once in words (``[summary] cannot
     write OUT/summary.json: no space left on the device (ENOSPC)``); returns the entry for the
     run's list of files not written (``name``: how the last line names it, default the file name)."""
-    from .bag import refused_write_words
+    from .output import refused_write_words
 
     short, words = refused_write_words(exc)
     print_fn(f"[{who}] cannot write {path}: {words}")
@@ -909,7 +909,7 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
 def write_text(path, text, not_written, print_fn=print) -> bool:
     """``atomic_write_text``; a write the OS refuses is said once in words (:func:`refused_write`)
     and added to ``not_written``.  True if written."""
-    from .probelog import atomic_write_text
+    from .output import atomic_write_text
 
     try:
         atomic_write_text(path, text)
@@ -1273,7 +1273,7 @@ def main(argv=None) -> int:
         os.makedirs(out, exist_ok=True)
         out_lock = _lock_out_dir(out)
     except OSError as exc:   # e.g. a full disk: the lock file takes our pid
-        from .bag import refused_write_words
+        from .output import refused_write_words
 
         if domain_lock is not None:
             domain_lock.close()

@@ -40,13 +40,13 @@ import io
 import math
 import mmap
 import os
-import tempfile
 from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
 
 from .deps import installed, require
+from .output import atomic_write_text
 from .frames import STANDARD_GRAVITY
 
 HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
@@ -752,26 +752,6 @@ def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
     if not len(log):
         return header + "\n"
     return header + "\n" + "\n".join(map(",".join, zip(*cols))) + "\n"
-
-
-def atomic_write_text(path, text: str) -> None:
-    """Write ``text`` to ``path`` via a temporary file and rename: never a half-written file."""
-    path = os.fspath(path)
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=d)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file ordinary permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def write_csv(path, log: ProbeLog, mag_unit: str = "nT") -> None:

@@ -221,7 +221,7 @@ def run(args) -> int:
     for p in problems:
         print(p)
     if args.junit:
-        from .probelog import atomic_write_text
+        from .output import atomic_write_text
         atomic_write_text(args.junit, junit_xml(c, problems, f"replay-test {bag.name}"))
         print(f"wrote {args.junit}")
     ok = c.equal and not problems

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 from lxml import etree
 
 from . import __version__
-from .probelog import atomic_write_text
+from .output import atomic_write_text
 
 NS_WITSML = "http://www.energistics.org/energyml/data/witsmlv2"
 NS_EML = "http://www.energistics.org/energyml/data/commonv2"

@@ -58,7 +58,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 from .. import __version__
 from ..bag import BagError, open_bag
-from ..probelog import atomic_write_text
+from ..output import atomic_write_text
 from ..survey import Tolerances
 from .manifest import BagEntry, dedupe, entries_from_paths
 

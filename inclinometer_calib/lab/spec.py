@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import effects as fx
-from ..probelog import atomic_write_text
+from ..output import atomic_write_text, check_output
 from ..survey import evaluate, summarize
 from .model import LabModel
 
@@ -42,6 +42,7 @@ def write_report(path, data, site, effects_text: str | None = None, max_steps: i
     from .report import render
 
     require("matplotlib", "report", "lab report")  # the plots; checked before the minutes of fitting
+    check_output(path)                             # and where the report goes
     steps = ladder(data, site, max_steps=max_steps, progress=progress, candidates=candidates,
                    start=build_model(site, effects_text))
     # the last rung's diagnosis field-fitted its model already (Diagnosis.base_fit; its model is

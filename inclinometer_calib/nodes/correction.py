@@ -61,7 +61,7 @@ from ..frames import gravity_from_specific_force, specific_force_from_gravity
 from ..lab.field import FieldMonitor
 from ..pipeline import NO_SITE, SurveyProcessor
 from ..plugins import NODE_PARAMETER, name_plugins
-from ..probelog import atomic_write_text
+from ..output import atomic_write_text
 from . import common as c
 from .stream import StreamDriver, declare_stream_params, make_detector
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation

@@ -83,7 +83,8 @@ from .. import simulate as sim
 from ..cdr import stamp_parts
 from ..coeffs import Calibration
 from ..noise import estimate_noise
-from ..probelog import MAG_UNITS, ProbeLog, atomic_write_text, label_runs, read_csv
+from ..output import atomic_write_text
+from ..probelog import MAG_UNITS, ProbeLog, label_runs, read_csv
 from ..streaming import depth_per_sample
 from ..topics import GRAPH_OUTPUTS, PROBE_TOPICS
 from . import common as c

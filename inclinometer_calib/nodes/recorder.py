@@ -63,8 +63,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from ..bag import (BagError, BagWriter, UnknownTypeError, normalize_type, open_bag, refused_write_words, run_parts,
+from ..bag import (BagError, BagWriter, UnknownTypeError, normalize_type, open_bag, run_parts,
                    type_hash)
+from ..output import refused_write_words
 from ..topics import (TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE,
                       TOPIC_STATION, TOPIC_TEMPERATURE)
 from .executor import HotPathExecutor, spin
