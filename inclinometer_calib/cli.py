@@ -1039,11 +1039,12 @@ def _fleet_needs(purpose: str, modules) -> None:
         require(module, "fleet", purpose)
 
 
-def _registry(args):
+def _registry(args, create: bool = True):
+    """The registry ``--db`` names; ``create=False`` for a command that only reads it."""
     from .fleet.registry import DEFAULT_URL, Registry, RegistryError
 
     try:
-        return Registry(args.db or DEFAULT_URL)
+        return Registry(args.db or DEFAULT_URL, create=create)
     except RegistryError as exc:
         raise UserError(str(exc)) from None
 
@@ -1111,7 +1112,7 @@ def cmd_fleet_history(args):
     at = parse_date(args.at, "--at") if args.at else None
     if not (args.k > 0):
         raise UserError(f"--k must be positive, got {args.k}")
-    with _registry(args) as reg:
+    with _registry(args, create=False) as reg:
         try:
             h = fh.analyse(reg.probe(args.serial), reg.history(args.serial), at=at, k=args.k)
         except RegistryError as exc:
@@ -1173,7 +1174,7 @@ def cmd_fleet_reprocess(args):
     could be done."""
     _fleet_needs("fleet reprocess", FLEET_REPROCESS)
     from .fleet.manifest import ManifestError, entries_from_paths, read_manifest
-    from .fleet.registry import DEFAULT_URL, RegistryError
+    from .fleet.registry import DEFAULT_URL
     from .fleet.reprocess import Settings, reprocess_fleet
 
     if bool(args.bags) == bool(args.manifest):
@@ -1184,6 +1185,8 @@ def cmd_fleet_reprocess(args):
         raise UserError(str(exc)) from None
     settings = Settings(field_nt=args.field_tol, dip_deg=args.dip_tol, gravity_mps2=args.gravity_tol,
                         monitor_window=args.monitor_window, force_probe=args.force_probe)
+    with _registry(args, create=False):     # the records come from it: an existing one, before any cluster
+        pass
     try:
         summary = reprocess_fleet(entries, out_dir=args.output, registry_url=args.db or DEFAULT_URL,
                                   scheduler=args.scheduler, n_workers=args.workers, progress=not args.no_progress,

@@ -644,6 +644,17 @@ def read_bag(path, progress=None):
     from pathlib import Path
 
     require("rosbags.highlevel", "bag", "the run summary")
+    from rosbags.highlevel import AnyReaderError
+    from rosbags.rosbag2 import ReaderError
+    from rosbags.serde import SerdeError
+
+    try:
+        return _read_bag(Path(path), progress)
+    except (AnyReaderError, ReaderError, SerdeError) as exc:   # not a bag, or a damaged one: said, not raised raw
+        raise ValueError(f"not a readable bag ({type(exc).__name__}: {exc})") from None
+
+
+def _read_bag(path, progress):
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
@@ -653,7 +664,7 @@ def read_bag(path, progress=None):
     wanted = {"/survey/station", "/calibration/coefficients", "/calibration/status"}
     if progress is not None:
         wanted.add(TOPIC_PROGRESS)
-    with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
         conns = [x for x in reader.connections if x.topic in wanted]
         # rosbags reads an empty connection list as "every connection": a bag without these
         # topics (only /clock and /probe/*) has nothing to read here
@@ -813,17 +824,13 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
     stations, coef_msgs, status, progress = [], [], None, []
     parts = readable_parts(out, print_fn) if bag_parts(out) else []
     if parts:
-        require("rosbags.highlevel", "bag", "the run summary")
-        from rosbags.highlevel import AnyReaderError
-        from rosbags.rosbag2 import ReaderError
-        from rosbags.serde import SerdeError
         seen = set()
         for part in parts:
             if part["read"] is None:
                 continue
             try:
                 st, co, stat = read_bag(part["read"], progress)
-            except (AnyReaderError, ReaderError, SerdeError, OSError, ValueError) as exc:
+            except (OSError, ValueError) as exc:
                 part["error"] = f"{type(exc).__name__}: {exc}"
                 print_fn(f"[summary] cannot read {part['read']}: {part['error']}")
                 continue

@@ -498,3 +498,13 @@ def test_a_crept_and_a_clipped_station_are_errors_in_correct_and_reprocess_alike
     assert st[(30.0, 0.0, 0.0)]["status"] == 2 and st[(30.0, 0.0, 0.0)]["moved_during_capture"]
     assert st[(60.0, 0.0, 0.0)]["status"] == 2
     assert sum(s["status"] == 2 for s in st.values()) == 2
+
+
+@pytest.mark.parametrize("command", [["wits"], ["witsml", "-o", "w.xml"]])
+def test_the_rig_exports_of_a_file_that_is_not_a_bag_are_one_line(tmp_path, capsys, command):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(np.random.default_rng(0).bytes(5000))
+    assert main([command[0], str(junk), *command[1:]]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == f"error: {junk}: not a readable bag (AnyReaderError: File magic is invalid.)", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["junk.mcap"]

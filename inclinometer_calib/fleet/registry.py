@@ -189,12 +189,17 @@ class Registry:
     """The probe registry and calibration history in the database at ``url`` (see the module's
     docstring): created if absent, migrated to the newest schema on opening."""
 
-    def __init__(self, url: str = DEFAULT_URL, *, echo: bool = False):
+    def __init__(self, url: str = DEFAULT_URL, *, echo: bool = False, create: bool = True):
+        """``create=False`` (a command that only reads): a SQLite file that does not exist is an
+        error, not a new empty registry (a mistyped ``--db`` would otherwise make one)."""
         try:
             self.url = make_url(normalize_url(url))
         except ArgumentError as exc:
             raise RegistryError(f"registry URL {url!r} is not valid: {exc}") from None
         if self.url.get_backend_name() == "sqlite" and self.url.database not in (None, "", ":memory:"):
+            if not create and not os.path.isfile(self.url.database):
+                raise RegistryError(f"registry {self.url.database} does not exist (fleet register creates one; "
+                                    "check --db)")
             folder = os.path.dirname(os.path.abspath(self.url.database))
             if not os.path.isdir(folder):
                 raise RegistryError(f"registry {self.url.database}: folder {folder} does not exist")

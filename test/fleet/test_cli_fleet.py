@@ -84,3 +84,13 @@ def test_errors_are_one_line_and_name_the_problem(db_url, records, capsys, tmp_p
     assert rc == 0 and "model other" in out
     rc, _, err = run(capsys, "fleet", "register", "SN-C", "--db", str(tmp_path / "missing" / "f.db"))
     assert rc == 2 and "does not exist" in err
+
+
+@pytest.mark.parametrize("command", [["fleet", "history", "P1"], ["fleet", "reprocess", "x.mcap", "-o", "out"]])
+def test_a_command_that_reads_the_registry_never_creates_one(tmp_path, capsys, monkeypatch, command):
+    """A mistyped ``--db`` is said, not answered from a new empty registry (it used to make one)."""
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(command + ["--db", "typo.db"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"error: registry {tmp_path / 'typo.db'} does not exist (fleet register creates one; check --db)"
+    assert list(tmp_path.iterdir()) == []
