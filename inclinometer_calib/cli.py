@@ -16,6 +16,7 @@ import yaml
 
 from . import simulate as sim
 from .coeffs import Calibration, CoefficientError
+from . import __version__
 from .deps import MissingDependency, require
 from .frames import Site
 from .capture import CaptureSession
@@ -513,9 +514,23 @@ def cmd_correct(args):
     if site is not None:
         from .geomag import azimuth_reference
         summ["azimuth_reference"] = azimuth_reference(site)
+    status = np.asarray(res["status"], dtype=int)
+    summ["qc"] = {name: int(np.sum(status == k)) for k, name in enumerate(("ok", "warn", "error"))}
+    # most stations out of tolerance against the record's own site: the record is not this probe's
+    # (or the site is wrong) — said, and not a clean exit
+    n_fail = summ["qc"]["warn"] + summ["qc"]["error"]
+    failed = cal is not None and n_fail > len(stations) / 2
+    qc_text = (f"QC against the site (|B| {tol.field_nt:g} nT, dip {tol.dip_deg:g}°, |G| {tol.gravity_mps2:g} m/s²): "
+               f"{summ['qc']['ok']} ok, {summ['qc']['warn']} warn, {summ['qc']['error']} error of {len(stations)} "
+               "stations" + (" (the error stations are left out of the figures)" if summ["qc"]["error"] else ""))
+    fail_text = (f"error: {n_fail} of the {len(stations)} stations fail QC against the site of record "
+                 f"{cal.id if cal else ''} ({summ['qc']['warn']} warn, {summ['qc']['error']} error): is it this "
+                 "probe's record, and the site this survey's?")
     if args.json:
         print(json.dumps(summ, indent=2))
-        return 0
+        if failed:
+            print(fail_text, file=sys.stderr)
+        return 1 if failed else 0
     ref = np.array([s.ref for s in stations])
     if "drift_err" in res:
         label = "after" if cal else "uncorrected"
@@ -528,10 +543,14 @@ def cmd_correct(args):
         print(format_result(fit, [st.index for st in stations], res["drift_deg"]))
         print()
     print(_summary_line(summ))
+    print(qc_text)
     if "azimuth_reference" in summ:
         print(f"azimuths from {summ['azimuth_reference']}")
     if args.output:
         print(f"wrote {args.output} ({len(stations)} stations)")
+    if failed:
+        print(fail_text, file=sys.stderr)
+        return 1
     return 0
 
 
@@ -1311,6 +1330,7 @@ def _detector_options(p, mag_unit=True):
 def build_parser():
     p = argparse.ArgumentParser(prog="inclinometer-calib",
                                 description="Calibrate magnetic borehole inclinometers and correct their surveys.")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("simulate", help="simulate a probe: twelve-pose calibration log and stand-grid validation log")

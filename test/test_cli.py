@@ -1,6 +1,7 @@
 """CLI end to end: simulate -> twelve-position -> correct, and clear errors for bad input."""
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -143,3 +144,35 @@ def test_a_site_given_later_that_contradicts_a_record_solved_without_one_is_said
     assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(coeffs), "--site", str(other), "--json"]) == 0
     err = capsys.readouterr().err
     assert "the coefficients were solved without a site" in err and "calibrate with --site" in err
+
+
+def test_the_version_is_printed():
+    from inclinometer_calib import __version__
+    r = subprocess.run([sys.executable, "-m", "inclinometer_calib.cli", "--version"], capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.strip() == f"inclinometer-calib {__version__}"
+
+
+def test_correct_says_its_qc_counts_and_fails_when_most_stations_fail_against_the_records_site(simdir, tmp_path,
+                                                                                             capsys):
+    """Another probe's record on this probe's log: most stations out of |B|/dip tolerance.  It used
+    to exit 0 with an azimuth RMS of degrees and no word about its QC errors."""
+    assert main(["twelve-position", str(simdir / "cal.csv"), "-o", str(tmp_path / "own.yaml")]) == 0
+    other = tmp_path / "other"
+    assert main(["simulate", "--out", str(other), "--seed", "9"]) == 0
+    assert main(["twelve-position", str(other / "cal.csv"), "-o", str(tmp_path / "other.yaml")]) == 0
+    capsys.readouterr()
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(tmp_path / "own.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "QC against the site (|B| 300 nT, dip 0.25°, |G| 0.0981 m/s²): " in out and " 0 error of " in out
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(tmp_path / "other.yaml")]) == 1
+    cap = capsys.readouterr()
+    n = re.search(r": (\d+) ok, (\d+) warn, (\d+) error of (\d+) stations", cap.out)
+    ok, warn, err, total = map(int, n.groups())
+    assert ok + warn + err == total and warn + err > total / 2, cap.out
+    assert cap.err.strip().splitlines()[-1].startswith(f"error: {warn + err} of the {total} stations fail QC "
+                                                       f"against the site of record "), cap.err
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", str(tmp_path / "other.yaml"), "--json"]) == 1
+    js = json.loads(capsys.readouterr().out)
+    assert js["qc"] == {"ok": ok, "warn": warn, "error": err}
+    # uncorrected figures (no record) are not held to the site
+    assert main(["correct", str(simdir / "val.csv"), "--coeffs", "none", "--json"]) == 0
