@@ -78,7 +78,9 @@ def check_output(path, *, folder: bool = False) -> None:
     if not os.path.isdir(parent):
         raise OutputError(p, f"the folder {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(p, f"the folder {parent} may not be written (permission denied)")
+        if os.statvfs(parent).f_flag & os.ST_RDONLY:
+            raise OutputError(p, "the file system is read-only (EROFS)", errno.EROFS)
+        raise OutputError(p, f"the folder {parent} may not be written: permission denied (EACCES)", errno.EACCES)
     if not folder and os.path.isdir(p):
         raise OutputError(p, "it is a folder")
     if folder and os.path.exists(p) and not os.path.isdir(p):

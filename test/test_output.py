@@ -106,21 +106,26 @@ def test_an_output_in_a_missing_folder_is_one_line_and_nothing_is_written(logs, 
 
 FULL_DISK = r"""
 set -u
-mnt="$1"; shift
+mnt="$1"; ro="$2"; shift 2
 mount -t tmpfs -o size=64k tmpfs "$mnt" || exit 97
 cd "$mnt"
-cat /dev/zero > .fill 2>/dev/null       # every block taken: the command's first write fails
+if [ "$ro" = ro ]; then
+    mount -o remount,ro "$mnt" || exit 97     # a read-only file system (root may write anywhere else)
+else
+    cat /dev/zero > .fill 2>/dev/null         # every block taken: the command's first write fails
+fi
 "$@"
 rc=$?
-rm -f .fill
+rm -f .fill 2>/dev/null
 echo "LEFT:$(ls -A | tr '\n' ' ')" >&2
 exit $rc
 """
 
 
-def _full_disk_run(argv, mnt):
-    return subprocess.run(["unshare", "--mount", "sh", "-c", FULL_DISK, "sh", str(mnt), sys.executable, "-m",
-                           "inclinometer_calib.cli", *argv], capture_output=True, text=True, timeout=180)
+def _full_disk_run(argv, mnt, ro=False):
+    return subprocess.run(["unshare", "--mount", "sh", "-c", FULL_DISK, "sh", str(mnt), "ro" if ro else "rw",
+                           sys.executable, "-m", "inclinometer_calib.cli", *argv], capture_output=True, text=True,
+                          timeout=180)
 
 
 @pytest.fixture(scope="module")
@@ -144,3 +149,12 @@ def test_a_full_disk_is_one_line_and_leaves_no_partial_file(logs, full_disk_ok, 
     _assert_one_line(r, f"error: cannot write {first}: no space left on the device (ENOSPC)")
     assert r.stderr.strip().splitlines()[-1] == "LEFT:", r.stderr      # nothing under the name, no temporary
     assert not os.listdir(full_disk_ok)                                   # (the namespace's mount is gone)
+
+
+@pytest.mark.parametrize("name", list(OUTPUT_NAME))
+def test_a_read_only_folder_is_said_before_the_work(logs, full_disk_ok, name):
+    argv = _argv(_commands(logs)[name], OUTPUT_NAME[name])
+    r = _full_disk_run(argv, full_disk_ok, ro=True)
+    assert r.returncode != 97, r.stderr
+    _assert_one_line(r, f"error: cannot write {OUTPUT_NAME[name]}: the file system is read-only (EROFS)")
+    assert r.stderr.strip().splitlines()[-1] == "LEFT:", r.stderr
