@@ -1,8 +1,12 @@
 """Probe logs: the CSV format, row validation, and segmentation into static stations.
 
-CSV format (the header line is literal)::
+CSV format (columns by name; this is their canonical order)::
 
     t_s,ax,ay,az,mx,my,mz,temp_c,pose,ref_drift_deg,ref_azimuth_deg,ref_toolface_deg
+
+``t_s`` and the six sensor columns are required; the others may be absent (read as empty: not
+given) and all may come in any order (:func:`canonical_text` rewrites such a log in this layout,
+row for row); an unknown or repeated column is refused naming line 1.
 
 * ``ax..az``: accelerometer as REP-145 *specific force* in m/s², uncalibrated (a resting probe
   reads -gravity).  Converted once, where the samples enter the static detector
@@ -57,6 +61,8 @@ MAG_UNITS = {"nT": 1.0, "uT": 1e3, "mT": 1e6, "T": 1e9, "G": 1e5, "mG": 1e2}
 TURNTABLE_COLUMNS = ["mount", "table_deg"]
 #: The optional columns after :data:`HEADER`, in their order (any of them may be left out).
 OPTIONAL_COLUMNS = TURNTABLE_COLUMNS + ["md_m"]
+#: The columns every log has; the rest of :data:`HEADER` may be absent (read as empty: not given).
+REQUIRED_COLUMNS = HEADER[:7]
 MOUNT_NAMES = ("xy", "xz", "yz")
 UNIT_NAMES = {"nT": "nanotesla", "uT": "microtesla", "mT": "millitesla", "T": "tesla", "G": "gauss",
               "mG": "milligauss"}
@@ -207,6 +213,7 @@ def parse_csv(text: str, limits: Limits = Limits(), source: str = "<csv>", mag_u
     no data, unknown unit).
     """
     engine = _check_engine(engine)
+    text = canonical_text(text, source) or text
     if engine == "arrow":
         try:
             data = text.encode("utf-8")
@@ -223,6 +230,12 @@ def read_csv(path, limits: Limits = Limits(), mag_unit: str = "nT", engine: str 
     ``engine``: as for :func:`parse_csv`."""
     engine = _check_engine(engine)
     opener = gzip.open if str(path).endswith(".gz") else open
+    with opener(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
+        first = fh.readline()
+    if first.strip() and not _canonical_header(first):
+        # columns in another order, or optional ones absent: rewritten in the canonical layout
+        with opener(path, "rt", encoding="utf-8") as fh:
+            return parse_csv(fh.read(), limits, str(path), mag_unit, engine)
     if engine == "rows":
         with opener(path, "rt", encoding="utf-8") as fh:
             return _parse_rows(fh.read(), limits, str(path), mag_unit)
@@ -277,6 +290,56 @@ def _layout(first_line: str, source) -> _Layout:
     if turntable != ("table_deg" in extra):
         raise ValueError(f"{source}: line 1: a turntable log has both 'mount' and 'table_deg' columns")
     return _Layout(tuple(header), turntable, header.index("md_m") if "md_m" in extra else None)
+
+
+def _canonical_header(first_line: str) -> bool:
+    try:
+        _layout(first_line, "")
+    except ValueError:
+        return False
+    return True
+
+
+def canonical_text(text: str, source: str = "<csv>"):
+    """A log whose header names known columns in another order, or leaves optional ones out (a
+    turntable rig's ``t_s,ax,ay,az,mx,my,mz,temp_c,mount,table_deg``): its text in the canonical
+    layout — :data:`HEADER` then the optional columns it has, absent ones empty (not given), the
+    same rows on the same lines (a rejection names the row it names in the file).  None when the
+    header is canonical already.  ``ValueError`` naming line 1 when a required column
+    (:data:`REQUIRED_COLUMNS`) is missing, a column is unknown or given twice."""
+    first, _, rest = text.partition("\n")
+    if not first.strip() or _canonical_header(first):
+        return None
+    header = [h.strip() for h in first.lstrip("\ufeff").rstrip("\r").split(",")]
+    known = HEADER + OPTIONAL_COLUMNS
+    unknown = [h for h in header if h not in known]
+    twice = sorted({h for h in header if header.count(h) > 1})
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if unknown or twice or missing:
+        why = "; ".join(part for part in (
+            f"missing {', '.join(missing)}" if missing else "",
+            f"unknown {', '.join(map(repr, unknown))}" if unknown else "",
+            f"given twice: {', '.join(twice)}" if twice else "") if part)
+        raise ValueError(f"{source}: line 1: the columns are {','.join(REQUIRED_COLUMNS)} and any of "
+                         f"{','.join(HEADER[7:] + OPTIONAL_COLUMNS)}, in any order ({why})")
+    if ("mount" in header) != ("table_deg" in header):
+        raise ValueError(f"{source}: line 1: a turntable log has both 'mount' and 'table_deg' columns")
+    columns = HEADER + [c for c in OPTIONAL_COLUMNS if c in header]
+    where = [header.index(c) if c in header else None for c in columns]
+    out = io.StringIO()
+    out.write(",".join(columns) + "\n")
+    writer = csv.writer(out, lineterminator="\n")
+    lines = rest.split("\n")
+    if lines and lines[-1] == "":
+        lines.pop()                          # the newline that ends the file
+    for line in lines:
+        fields = next(csv.reader([line]), [])
+        if len(fields) != len(header):
+            out.write(line + "\n")          # blank, or a row of another length: rejected as it is
+            continue
+        writer.writerow(["" if k is None else fields[k] for k in where])
+    text_out = out.getvalue()
+    return text_out if text.endswith("\n") else text_out[:-1]
 
 
 def _empty_file(source):

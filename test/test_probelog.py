@@ -18,9 +18,35 @@ def test_header_line_is_literal():
                                 "ref_toolface_deg")
 
 
-def test_wrong_header_is_refused_with_line_1():
-    with pytest.raises(ValueError, match="line 1: header"):
+def test_wrong_header_is_refused_with_line_1_naming_what_is_missing_and_unknown():
+    with pytest.raises(ValueError, match=r"line 1: the columns are .* \(missing t_s; unknown 't', 'temp', 'a', 'b', "
+                                         r"'c'\)"):
         parse_csv("t,ax,ay,az,mx,my,mz,temp,pose,a,b,c\n" + GOOD)
+    with pytest.raises(ValueError, match=r"\(given twice: ax\)"):
+        parse_csv("t_s,ax,ay,az,mx,my,mz,ax\n1,0,0,-9.8,1,2,3,0\n")
+
+
+@pytest.mark.parametrize("engine", ["rows", "arrow"])
+def test_columns_are_read_by_name_in_any_order_and_optional_ones_may_be_absent(engine):
+    canonical = HEADER[:]
+    text = ",".join(canonical) + "\n" + GOOD
+    order = [3, 0, 11, 2, 1, 8, 4, 10, 5, 6, 7, 9]
+    rows = [line.split(",") for line in text.splitlines()]
+    shuffled = "\n".join(",".join(r[k] for k in order) for r in rows) + "\n"
+    a, ra = parse_csv(text, engine=engine)
+    b, rb = parse_csv(shuffled, engine=engine)
+    for name in ("t_s", "acc", "mag", "temp_c", "pose", "ref"):
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=True), name
+    assert [str(x) for x in ra] == [str(x) for x in rb]
+    # the columns a turntable rig writes: no pose, no stand reference (it used to be refused)
+    tt = ("t_s,ax,ay,az,mx,my,mz,temp_c,mount,table_deg\n"
+          "0.00,0.1,0.2,-9.8,20000,100,40000,25.0,xy,0\n"
+          "0.01,0.1,0.2,-9.8,20000,100,40000,25.0,xy,0\n"
+          "0.02,0.1,0.2,-9.8,20000,100,40000,,xy,\n")
+    log, rej = parse_csv(tt, engine=engine)
+    assert not rej and len(log) == 3 and list(log.mount) == ["xy"] * 3
+    assert np.array_equal(log.table_deg[:2], [0.0, 0.0]) and np.isnan(log.table_deg[2]) and np.isnan(log.temp_c[2])
+    assert not log.pose.any() and np.isnan(log.ref).all()
 
 
 def test_round_trip_through_csv_text():
@@ -166,3 +192,16 @@ def test_stations_name_the_files_rows_though_rows_before_them_were_rejected():
     stations, _ = segment_stations(back)
     rows = [r for r in range(1, len(log) + 1) if log.pose[r - 1] == 2]
     assert stations[1].pose == 2 and rows[0] <= stations[1].first_row and stations[1].last_row <= rows[-1] + 1
+
+
+@pytest.mark.parametrize("engine", ["rows", "arrow"])
+def test_a_log_file_with_its_columns_in_another_order_is_read_as_its_text_is(tmp_path, engine):
+    from inclinometer_calib.probelog import read_csv
+
+    text = "mz,my,mx,t_s,az,ay,ax,pose\n40000,1000,20000,0.00,-9.8,0.2,0.1,1\n40000,1000,20000,0.01,-9.8,0.2,0.1,1\n"
+    (tmp_path / "p.csv").write_text(text)
+    log, rej = read_csv(tmp_path / "p.csv", engine=engine)
+    ref, _ = parse_csv(text, engine=engine)
+    assert not rej and len(log) == 2 and np.array_equal(log.acc, ref.acc) and np.array_equal(log.mag, ref.mag)
+    assert np.array_equal(log.acc[0], [0.1, 0.2, -9.8]) and list(log.pose) == [1, 1]
+    assert np.isnan(log.temp_c).all()
