@@ -23,6 +23,7 @@ from .capture import CaptureSession
 from .gates import SettlingTally, apply_gates
 from .output import OutputError, atomic_write_bytes, atomic_write_text, check_output, output_folder, output_path
 from .probelog import MAG_UNITS, Limits, read_csv, report, segment_stations, write_csv
+from .progress import progress_bar
 from .model import ModelContextError
 from .pipeline import (NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note,
                        station_status, usable)
@@ -672,10 +673,14 @@ def cmd_reprocess(args):
     if args.coeffs_out:
         check_output(args.coeffs_out)
     try:
-        with output_path(args.output) as tmp:       # whole or not at all
+        with output_path(args.output) as tmp, progress_bar(None, "msg", "reprocess") as bar:   # whole or not at all
+            def advance(done, total):
+                bar.total = total
+                bar.update(done - bar.n)
+
             rep = reprocess(args.bag, tmp, cal, site, tol, det, compression=args.compression,
                             warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id, effects=args.effects,
-                            monitor=field_monitor(args), force_probe=args.force_probe)
+                            monitor=field_monitor(args), force_probe=args.force_probe, progress=advance)
     except ValueError as exc:   # ReprocessError, a bad --effects
         raise UserError(str(exc)) from None
     except FileExistsError as exc:
@@ -812,8 +817,9 @@ def cmd_bag_from_csv(args):
         logs.append(log)
     log = ProbeLog.concatenate(logs)
     try:
-        with output_path(args.output) as tmp:       # whole or not at all
-            counts = write_probe_bag(log, tmp, compression=args.compression, serial=args.probe_serial)
+        with output_path(args.output) as tmp, progress_bar(len(log), "sample", "bag") as bar:   # whole or not at all
+            counts = write_probe_bag(log, tmp, compression=args.compression, serial=args.probe_serial,
+                                     progress=lambda k: bar.update(k - bar.n))
     except FileExistsError as exc:
         raise UserError(str(exc)) from None
     print(f"wrote {args.output}: " + ", ".join(f"{n} {t}" for t, n in counts.items()))

@@ -45,7 +45,7 @@ import numpy as np
 
 from .bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
 from .capture import CaptureSession
-from .cdr import (DECODE_ERRORS, decode_float64, decode_imu, decode_imu_covariance, decode_mag_covariance,
+from .cdr import (DECODE_ERRORS, Patcher, decode_float64, decode_imu, decode_imu_covariance, decode_mag_covariance,
                   decode_string, decode_temperature, decode_vector3, header)
 from .deps import require
 from .frames import NT_PER_TESLA, Site
@@ -286,7 +286,8 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
               frame_id: str = "probe", copy_input: bool = True,
               warn: Optional[Callable[[str], None]] = None, calibrate: bool = False,
               probe_id: str = "probe", effects: str = "", monitor=None, force_probe: bool = False,
-              probe_serial: Optional[str] = None) -> ReprocessReport:
+              probe_serial: Optional[str] = None,
+              progress: Optional[Callable[[int, int], None]] = None) -> ReprocessReport:
     """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten;
     None: nothing is written, the report's stations are the result).
 
@@ -307,7 +308,8 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     node); ``calibration`` then
     only corrects the stations before the first solve.  ``warn`` is called with a message for
     each skipped topic as soon as it is seen.  Returns a :class:`ReprocessReport`; damage to
-    ``src`` is in ``report.bag_errors`` (not raised).  Raises :class:`FileExistsError` if
+    ``src`` is in ``report.bag_errors`` (not raised).  ``progress(messages read, messages in the
+    bag)`` every few thousand messages.  Raises :class:`FileExistsError` if
     ``dst`` exists, :class:`bag.BagError` if ``src`` is not a bag at all, :class:`ReprocessError`
     if it holds no probe samples.
     """
@@ -415,9 +417,12 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
             warn(f"{src}: skipped topic {m.topic} ({why})")
         return None
 
+    total = int(sum(counts.values()))
     try:
         for m in reader.messages(strict=False):
             report.messages_read += 1
+            if progress is not None and report.messages_read % 4096 == 0:
+                progress(report.messages_read, total)
             topic, log_time = m.topic, m.log_time
             cid = out_cid[topic] if topic in out_cid else register(m)
             if cid is None:
@@ -490,7 +495,7 @@ def _from_session(text: str, session) -> bool:
 
 def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, frame_id: str = "probe",
                     reference: bool = True, compression: str = "zstd", latency_ns: int = 0,
-                    serial: str = "") -> Dict[str, int]:
+                    serial: str = "", progress: Optional[Callable[[int], None]] = None) -> Dict[str, int]:
     """Write a :class:`probelog.ProbeLog` as a bag of ``/probe/imu``, ``/probe/mag``,
     ``/probe/temperature`` (one of each per sample, same header stamp ``epoch + t_s``), if
     ``reference``, ``/probe/reference`` at every change of the log's ``ref`` (NaN = none), and when
@@ -498,9 +503,12 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
     a depth that holds; while it runs at most every 0.5 s), and with a ``serial`` the probe's
     ``/probe/serial`` (latched) before everything else, as the probe node publishes it.
 
-    Serialized with the ``rosbags`` type store (no ROS needed).  Accelerometer as REP-145 specific
-    force (m/s², as in the log), magnetometer converted nT → tesla; the covariances state the noise
-    the log shows (:func:`noise.estimate_noise`), as the probe node does.  Returns messages per topic.
+    Serialized with the ``rosbags`` type store (no ROS needed): each sample's messages are the
+    bytes of the first one's, stamp and values patched (:class:`cdr.Patcher`, the same bytes).
+    Accelerometer as REP-145 specific force (m/s², as in the log), magnetometer converted nT →
+    tesla; the covariances state the noise the log shows (:func:`noise.estimate_noise`), as the
+    probe node does.  ``progress(samples written)`` every few thousand samples.  Returns messages
+    per topic.
     """
     for module in ("mcap.writer", "rosbags.typesys"):  # MissingDependency before any work
         require(module, "bag", "writing a probe log as a bag")
@@ -541,14 +549,24 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
             c_ser = w.add_topic(TOPIC_SERIAL, SERIAL_TYPE, qos_profiles=[dict(DEFAULT_QOS_PROFILE, depth=1,
                                                                               durability="transient_local")])
             w.write(c_ser, bytes(ser(T[SERIAL_TYPE](data=str(serial)), SERIAL_TYPE)), int(epoch_ns) + latency_ns)
+        hdr0 = Header(stamp=Time(sec=0, nanosec=0), frame_id=frame_id)
+        p_imu = Patcher.imu(bytes(ser(Imu(header=hdr0, orientation=q0, orientation_covariance=unknown_cov,
+                                          angular_velocity=v0, angular_velocity_covariance=unknown_cov,
+                                          linear_acceleration=v0, linear_acceleration_covariance=cov_acc), IMU_TYPE)))
+        p_mag = Patcher.vector3(bytes(ser(Mag(header=hdr0, magnetic_field=v0, magnetic_field_covariance=cov_mag),
+                                          MAG_TYPE)))
+        p_tmp = Patcher.temperature(bytes(ser(Temp(header=hdr0, temperature=0.0, variance=0.0), TEMPERATURE_TYPE)))
         last_md, md_sent = None, -np.inf
         stamps = epoch_ns + np.round(np.asarray(log.t_s, float) * 1e9).astype(np.int64)
         mag_t = np.asarray(log.mag, float) / NT_PER_TESLA
         last_ref = None
+        acc, temp = np.asarray(log.acc, float).tolist(), np.asarray(log.temp_c, float).tolist()
+        mag_l = mag_t.tolist()
         for i in range(len(log)):
+            if progress is not None and i % 4096 == 0:
+                progress(i)
             ns = int(stamps[i])
             sec, nsec = divmod(ns, 1_000_000_000)
-            hdr = Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=frame_id)
             lt = ns + latency_ns
             if c_dep is not None and np.isfinite(md[i]) and md[i] != last_md:
                 held = i + 1 >= len(md) or md[i + 1] == md[i]
@@ -558,16 +576,12 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
             if c_ref is not None:
                 r = tuple(float(x) for x in log.ref[i])
                 if last_ref is None or any(a != b and not (a != a and b != b) for a, b in zip(r, last_ref)):
+                    hdr = Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=frame_id)
                     w.write(c_ref, bytes(ser(V3S(header=hdr, vector=Vec(x=r[0], y=r[1], z=r[2])), REFERENCE_TYPE)), lt)
                     last_ref = r
-            f = log.acc[i]
-            w.write(c_imu, bytes(ser(Imu(header=hdr, orientation=q0, orientation_covariance=unknown_cov,
-                                         angular_velocity=v0, angular_velocity_covariance=unknown_cov,
-                                         linear_acceleration=Vec(x=float(f[0]), y=float(f[1]), z=float(f[2])),
-                                         linear_acceleration_covariance=cov_acc), IMU_TYPE)), lt)
-            b = mag_t[i]
-            w.write(c_mag, bytes(ser(Mag(header=hdr, magnetic_field=Vec(x=float(b[0]), y=float(b[1]), z=float(b[2])),
-                                         magnetic_field_covariance=cov_mag), MAG_TYPE)), lt)
-            w.write(c_tmp, bytes(ser(Temp(header=hdr, temperature=float(log.temp_c[i]), variance=0.0),
-                                     TEMPERATURE_TYPE)), lt)
+            w.write(c_imu, p_imu(sec, nsec, *acc[i]), lt)
+            w.write(c_mag, p_mag(sec, nsec, *mag_l[i]), lt)
+            w.write(c_tmp, p_tmp(sec, nsec, temp[i]), lt)
+        if progress is not None:
+            progress(len(log))
         return w.message_counts()

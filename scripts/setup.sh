@@ -121,16 +121,19 @@ else
         "${PIP[@]}" "$@" 2>&1 | { grep -v "^WARNING: Location 'file://.*' is ignored" || true; }
         return "${PIPESTATUS[0]}"
     }
+    # on a terminal pip shows what it fetches and installs, with its progress bars (the step takes
+    # about a minute on a fresh machine); in a log (CI) one line per step
+    if [ -t 1 ]; then PIPQ=(--progress-bar on); else PIPQ=(-q --progress-bar off); fi
     log "pip: upgrading pip"
     run_pip install -q --progress-bar off pip==26.3 || die "pip upgrade failed"
     log "pip: installing core, ROS 2 Jazzy runtime, build tools, mcap, test deps (pinned by jazzy.lock)"
-    run_pip install -q --progress-bar off -c "$REQ/jazzy.lock" \
+    run_pip install "${PIPQ[@]}" -c "$REQ/jazzy.lock" \
         -r "$REQ/core.txt" -r "$REQ/test.txt" \
         -r "$REQ/jazzy-runtime.in" -r "$REQ/jazzy-build.in" -r "$REQ/jazzy-mcap.in" \
         || die "pip install of the requirements failed"
     if [ ${#proj_files[@]} -gt 0 ]; then
         log "pip: installing this repo in editable mode (pip install -e .)"
-        run_pip install -q --progress-bar off -c "$REQ/jazzy.lock" -e "$REPO" \
+        run_pip install "${PIPQ[@]}" -c "$REQ/jazzy.lock" -e "$REPO" \
             || die "pip install -e . failed"
     else
         log "pip: WARNING no setup.py/pyproject.toml yet, skipping 'pip install -e .'"

@@ -220,3 +220,17 @@ def test_the_bags_probe_serial_is_every_stations_and_another_probes_record_is_re
     out = capsys.readouterr()
     assert "FORCED" in out.err and "probe SN-0815" in out.out
     assert all("FORCED" in " ".join(s.warnings) and s.probe_serial == "SN-0815" for s in _stations(tmp_path / "b.mcap"))
+
+
+def test_writing_and_reprocessing_a_bag_report_their_progress_up_to_the_whole(tmp_path):
+    """The CLI's progress bars follow these (bag from-csv, reprocess): counts that rise to the
+    samples written and to the messages in the bag."""
+    log = sim.run_session(sim.build_probe(3), SITE, sim.well_path_session(4), np.random.default_rng(0), rate_hz=200)
+    written = []
+    counts = write_probe_bag(log, tmp_path / "p.mcap", progress=written.append)
+    assert written[0] == 0 and written[-1] == len(log) and written == sorted(written) and len(written) >= 2
+    seen = []
+    reprocess(tmp_path / "p.mcap", tmp_path / "out.mcap", None, SITE, progress=lambda k, n: seen.append((k, n)))
+    total = sum(counts.values())
+    assert seen and all(n == total for _, n in seen) and [k for k, _ in seen] == sorted(k for k, _ in seen)
+    assert seen[-1][0] <= total

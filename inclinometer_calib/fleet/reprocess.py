@@ -59,6 +59,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 from .. import __version__
 from ..bag import BagError, open_bag
 from ..output import atomic_write_text
+from ..progress import progress_bar
 from ..survey import Tolerances
 from .manifest import BagEntry, dedupe, entries_from_paths
 
@@ -570,7 +571,7 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
                 index.save()
                 last_flush[0] = time.monotonic()
 
-        bar = _progress_bar(len(entries), progress)
+        bar = progress_bar(len(entries), "bag", "bags", progress)
         try:
             if client is None and scheduler is None and n_workers == 0:
                 engine = "in this process (no Dask)"
@@ -592,12 +593,6 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
         return summary
     finally:
         lock.release()
-
-
-def _progress_bar(total: int, enabled: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="bag", desc="bags", disable=not enabled, smoothing=0.1)
 
 
 def local_cluster(n_workers: int):
