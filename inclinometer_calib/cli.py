@@ -1242,8 +1242,9 @@ def cmd_fleet_reprocess(args):
         raise UserError(str(exc)) from None
     for line in summary.lines():
         print(line)
-    print(f"wrote {summary.paths['dataset']}/ (Parquet, by probe and survey date), {summary.paths['summary']}, "
-          f"{summary.paths['index']}")
+    print(f"wrote {summary.paths['dataset']}/ (Parquet, by probe and survey date: every run's), "
+          f"{summary.paths['summary']} (this run's bags only: it replaces the last run's), {summary.paths['index']} "
+          "(every bag done, and under what)")
     return 1 if summary.failed else 0
 
 

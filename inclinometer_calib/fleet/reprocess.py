@@ -108,11 +108,14 @@ class Settings:
         return Tolerances(field_nt=self.field_nt, dip_deg=self.dip_deg, gravity_mps2=self.gravity_mps2)
 
 
-def done_key(bag_sha256: str, record_id: str, serial: str, settings: Settings) -> str:
-    """The key a bag's result is done under: SHA-256 over the bag's content hash, the record id,
-    the serial it was filed under, the settings, this package's version and the layout version."""
-    blob = json.dumps({"bag": bag_sha256, "record": record_id, "serial": serial, "settings": asdict(settings),
-                       "package": __version__, "layout": LAYOUT_VERSION}, sort_keys=True)
+def done_key(bag_path: str, bag_sha256: str, record_id: str, serial: str, settings: Settings) -> str:
+    """The key a bag's result is done under (and its fragment's name): SHA-256 over the bag's
+    absolute path and content hash, the record id, the serial it was filed under, the settings,
+    this package's version and the layout version.  The path is in it: the same bytes surveyed
+    twice (two copies of a bag, under two names) are two surveys, two fragments."""
+    blob = json.dumps({"path": os.path.abspath(bag_path), "bag": bag_sha256, "record": record_id, "serial": serial,
+                       "settings": asdict(settings), "package": __version__, "layout": LAYOUT_VERSION},
+                      sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
@@ -360,7 +363,7 @@ def process_bag(entry: BagEntry, resolver: Resolver, out_dir: str, settings: Set
         except _lookup_errors() as exc:
             raise ValueError(f"no valid record in the registry: {exc}") from None
         res.record_id = cal.id
-        res.key = done_key(res.bag_sha256, cal.id, serial, settings)
+        res.key = done_key(entry.path, res.bag_sha256, cal.id, serial, settings)
         if done is not None and done == res.key:
             res.status, res.reason = "skipped", "done before with the same bag, record and settings"
             return res

@@ -309,3 +309,20 @@ def test_default_task_size_batches_short_bags_but_keeps_every_worker_busy():
     assert auto_bags_per_task(10_000, 50) == 10
     assert auto_bags_per_task(40, 2) == 5            # 8 tasks: 4 per worker
     assert auto_bags_per_task(13, 2) == 1 and auto_bags_per_task(3, 0) == 1
+
+
+@pytest.mark.parametrize("fleet", ["sqlite"], indirect=True)
+def test_two_copies_of_a_bag_under_two_names_are_two_surveys(fleet, tmp_path):
+    """The same bytes under two names: two surveys, two fragments, every row (they collapsed into
+    one fragment, the second overwriting the first)."""
+    src = fleet["good"][0]
+    copy = str(tmp_path / ("copy-" + os.path.basename(src)))
+    shutil.copyfile(src, copy)
+    out = tmp_path / "out"
+    summary = reprocess_fleet([src, copy], out_dir=out, registry_url=fleet["db"], n_workers=0, progress=False)
+    assert summary.count("ok") == 2, summary.lines()
+    table = read_stations(out)
+    a, b = rows_of(table, src), rows_of(table, copy)
+    assert len(a) == len(b) > 0 and table.num_rows == len(a) + len(b)
+    assert all(same(x[k], y[k]) for x, y in zip(a, b) for k in x if k != "bag")
+    assert len({r.fragment for r in summary.results}) == 2
