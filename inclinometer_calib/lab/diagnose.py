@@ -896,8 +896,13 @@ def noise_line(noise) -> str:
                          + f" {m.unit}/√s (from the {src})")
     segs = max((m.curve.n_segments for m in noise.values()), default=0)
     tau = max((float(m.curve.tau[-1]) for m in noise.values() if len(m.curve.tau)), default=float("nan"))
+    if not segs or not np.isfinite(tau):
+        # no Allan deviation to show: said why, not as "0 holds, τ up to nan s"
+        return ("Noise model: no Allan deviation — the data hold no samples of the holds (a recorded run keeps the "
+                "stations' means only); the noise is the stations' scatter" + (": " + "; ".join(parts) if parts else "")
+                + ".")
     return (f"Noise model (Allan deviation of {segs} holds, τ up to {tau:.3g} s; IEEE figures in the JSON and report): "
-            + ("; ".join(parts) or "no holds with samples (a bag keeps the stations' means only)") + ".")
+            + ("; ".join(parts) or "nothing resolved") + ".")
 
 
 #: What a diagnosis can find (:func:`finding`), the first that holds.

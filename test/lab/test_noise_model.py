@@ -66,3 +66,18 @@ def test_the_cli_prints_the_ieee_figures_of_static_logs_and_names_a_missing_file
     assert wn["resolved"] and wn["value"] == pytest.approx(probe["mag"].noise / np.sqrt(50.0), rel=0.05)
     assert main(["lab", "noise", str(tmp_path / "nowhere.csv")]) != 0
     assert "nowhere.csv" in capsys.readouterr().err
+
+
+def test_a_noise_model_without_holds_says_why_instead_of_zero_holds_and_nan():
+    """A recorded run keeps the stations' means only: no Allan deviation (it read "Allan deviation
+    of 0 holds, τ up to nan s")."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from inclinometer_calib.lab.diagnose import noise_line
+
+    empty = SimpleNamespace(terms=[], unit="m/s^2", curve=SimpleNamespace(n_segments=0, tau=np.zeros(0)))
+    line = noise_line({"acc": empty, "mag": empty})
+    assert "nan" not in line and "0 holds" not in line
+    assert line.startswith("Noise model: no Allan deviation — the data hold no samples of the holds")
