@@ -275,8 +275,8 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
         parts.append(f"<h3>Round {k + 1}</h3><pre>{html.escape(s.verdict)}</pre>")
         rows = [[html.escape(c.label), _fmt(c.val.get('drift_rms_deg'), 4), _fmt(c.val.get('azimuth_rms_deg'), 4),
                  _fmt(c.score, 4), f"{c.p:.1e}", f"{c.delta_bic:.0f}", "yes" if c.significant else "",
-                 html.escape(c.note)] for c in s.ranked[:8]]
-        parts.append(table_html(f"Candidates — errors {s.base_val.get('label', '')}",
+                 html.escape(c.note)] for c in s.ranked]        # every candidate tried, ranked
+        parts.append(table_html(f"Candidates ({len(s.ranked)} tried) — errors {s.base_val.get('label', '')}",
                                 ["effect", "drift RMS", "azimuth RMS", "pointing RMS", "Wald p", "ΔBIC", "significant",
                                  "note"], rows))
         for n in s.notes:

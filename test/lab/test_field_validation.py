@@ -515,6 +515,11 @@ def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_th
                  "Noise model", "white noise N", "nT/sqrt(Hz)"):
         assert text in page, text
     assert page.count("<img src='data:image/png;base64,") >= 6
+    # every candidate of every round is listed (the table kept 8 of 14)
+    for s in steps:
+        assert f"Candidates ({len(s.ranked)} tried)" in page and len(s.ranked) > 8
+        for c in s.ranked:
+            assert f"<td>{c.label}</td>" in page, c.label
 
 
 REMANENCE = '''
