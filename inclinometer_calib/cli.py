@@ -1202,7 +1202,7 @@ def _fleet_registry_parser(fsub):
     a.set_defaults(func=cmd_fleet_add)
     h = fsub.add_parser("history", help="a probe's parameters over time with 1σ; flags calibrations that moved beyond "
                                         "their combined uncertainty and an overdue probe")
-    h.add_argument("serial")
+    h.add_argument("serial", help="the probe's serial number")
     h.add_argument("--html", metavar="FILE", help="also write the history with plots as one HTML file")
     h.add_argument("--at", metavar="DATE", help="check the calibration interval at this date (default now)")
     h.add_argument("--k", type=float, default=3.0, help="flag a parameter that moved by more than k·sqrt(σ1²+σ2²) "
@@ -1300,7 +1300,7 @@ def _lab_parser(sub):
         p.add_argument("--plugin", action="append", help="Python file defining extra effects (repeatable)")
         p.add_argument("--site", help="site reference YAML")
         p.add_argument("--fit-heading", action="store_true", help="also fit the stand's heading offset")
-        p.add_argument("--json", action="store_true")
+        p.add_argument("--json", action="store_true", help="the result as JSON on standard output (no tables)")
         p.add_argument("--quiet", action="store_true", help="no progress lines")
 
     f = lsub.add_parser("fit", help="fit a model; parameters ± 1σ, identifiability, validation errors")
@@ -1334,7 +1334,7 @@ def _lab_parser(sub):
     n = lsub.add_parser("noise", help="the sensors' noise model from static logs: Allan deviation per axis, "
                                       "white noise, bias instability and random walk (IEEE Std 952 figures)")
     n.add_argument("logs", nargs="+", help="probe-log CSVs; every static hold counts (labels not needed)")
-    n.add_argument("--json", action="store_true")
+    n.add_argument("--json", action="store_true", help="the noise model as JSON")
     n.set_defaults(func=cmd_lab_noise)
 
 
@@ -1366,7 +1366,7 @@ def build_parser():
                    help="add a physical effect (repeatable), e.g. axial_interference=300, "
                         "temperature_bias:mag=2, stand_pose_error=0.1")
     s.add_argument("--plugin", action="append", help="Python file defining extra effects (repeatable)")
-    s.add_argument("--seed", type=int, default=1)
+    s.add_argument("--seed", type=int, default=1, help="random seed of the simulated probe and its noise (default 1)")
     s.add_argument("--severity", type=float, default=1.0, help="scale of the probe's base-model errors")
     s.add_argument("--noise-acc", type=float, default=0.002, help="accelerometer white noise, m/s^2 1σ")
     s.add_argument("--noise-mag", type=float, default=20.0, help="magnetometer white noise, nT 1σ")
@@ -1404,7 +1404,7 @@ def build_parser():
                                 "from gravity and field; labels are checked)")
     t.add_argument("-o", "--output", required=True, help="coefficient YAML to write")
     t.add_argument("--site", help="site reference YAML (total_field_nt, dip_deg, declination_deg, gravity_mps2)")
-    t.add_argument("--probe-id", default="probe")
+    t.add_argument("--probe-id", default="probe", help="the probe's id in the record")
     t.add_argument("--effects", default="", metavar="NAME[:sensor[:axes]][@scope],...",
                    help="effects to fit beyond the paper's model on the captured poses (the lab's fit, e.g. "
                         "temperature_bias:mag when the rounds span a temperature range)")
@@ -1419,10 +1419,10 @@ def build_parser():
     tt.add_argument("--site", help="site reference YAML (its total field makes k absolute)")
     tt.add_argument("--acc", help="a record (e.g. the twelve positions') whose accelerometer calibration joins "
                                   "this one in the record written")
-    tt.add_argument("--probe-id", default="probe")
+    tt.add_argument("--probe-id", default="probe", help="the probe's id in the record")
     tt.add_argument("--plugin", action="append", help="Python file (or module) defining plug-in effects the --acc "
                     "record uses: loaded only from these, after its SHA-256 matches (repeatable)")
-    tt.add_argument("--json", action="store_true")
+    tt.add_argument("--json", action="store_true", help="the result as JSON")
     _detector_options(tt)
     tt.set_defaults(func=cmd_turntable)
 
@@ -1469,7 +1469,7 @@ def build_parser():
     d = sub.add_parser("demo", help="offline demo: simulate, calibrate, correct, before/after tables")
     d.add_argument("--out", default="demo_offline",
                    help="output directory (default: ./demo_offline; scripts/demo.sh's live demo uses ./demo_out)")
-    d.add_argument("--seed", type=int, default=1)
+    d.add_argument("--seed", type=int, default=1, help="random seed of the simulated probe (default 1)")
     d.set_defaults(func=cmd_demo)
     r = sub.add_parser("reprocess", help="re-run station detection, calibration and correction on a recorded bag (MCAP)")
     r.add_argument("bag", help="recorded bag: .mcap file or bag directory (/probe/imu, /probe/mag, ...)")
@@ -1495,7 +1495,7 @@ def build_parser():
     r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist); "
                    "with --compare the directory of the comparison")
     r.add_argument("--site", help="site reference YAML overriding the calibration record's (which owns one)")
-    r.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    r.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression of the output bag (default zstd)")
     r.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     r.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
     r.add_argument("--gravity-tol", type=float, default=Tolerances.gravity_mps2, help="QC |ΔG| tolerance, m/s^2")
@@ -1538,7 +1538,7 @@ def build_parser():
     bc.add_argument("--mag-unit", choices=list(MAG_UNITS), default="nT", help="unit of the logs' magnetometer columns")
     bc.add_argument("--gap", type=float, default=2.0, help="pause inserted between logs whose times overlap, s")
     bc.add_argument("--probe-serial", default="", help="the probe's serial number, written as /probe/serial")
-    bc.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    bc.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression of the bag (default zstd)")
     bc.set_defaults(func=cmd_bag_from_csv)
     _lab_parser(sub)
     _fleet_parser(sub)

@@ -182,3 +182,22 @@ def test_correct_says_its_qc_counts_and_fails_when_most_stations_fail_against_th
     assert js["qc"]["out_of_tolerance"]["|B|"] == b_off and sum(js["qc"][k] for k in ("ok", "warn", "error")) == total
     # uncorrected figures (no record) are not held to the site
     assert main(["correct", str(simdir / "val.csv"), "--coeffs", "none", "--json"]) == 0
+
+
+def test_every_option_of_every_command_says_what_it_does():
+    import argparse
+
+    from inclinometer_calib.cli import build_parser
+
+    missing = []
+
+    def walk(parser, path):
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sub in a.choices.items():
+                    walk(sub, path + [name])
+            elif not isinstance(a, argparse._HelpAction) and not a.help:
+                missing.append(" ".join(path + [a.option_strings[0] if a.option_strings else a.dest]))
+
+    walk(build_parser(), [])
+    assert not missing, missing
