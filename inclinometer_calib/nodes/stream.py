@@ -10,7 +10,8 @@ The source (the probe node) announces itself on ``/graph/progress`` (``StreamPro
 local): the side streams it keeps current (a station then waits for them on the data's time
 alone), its flow-control window (a paced replay: no wall-clock patience at all — every message
 will come) and, at the end, how many messages it sent per topic; the stream ends here once all of
-them have arrived (or, after ``end_wait_s``, with what is missing said and counted).  A source
+them have arrived (or, after ``end_wait_s`` without a sample, with what is missing said and
+counted; a message after that is not used and not counted taken).  A source
 that announces nothing (a live driver) is taken as it comes: the side streams are waited for once
 seen, for at most ``reference_wait_s``; ``idle_flush_s`` without samples closes the open hold.
 
@@ -79,9 +80,9 @@ def declare_stream_params(p: c.Params, *, calibration_sync: bool):
                                   "arrived for this long (wall clock, s), close the open hold (and solve with what "
                                   "there is); data arriving later continue; 0 disables", read_only=True,
                                   range=(0.0, 60.0))
-    out["end_wait"] = p.declare("end_wait_s", END_WAIT_S, "After the source's end, wait at most this long (wall "
-                                "clock, s) for the messages it says it sent and that have not arrived; then end with "
-                                "what came (the loss said and counted)", read_only=True, range=(0.0, 3600.0))
+    out["end_wait"] = p.declare("end_wait_s", END_WAIT_S, "After the source's end, wait this long (wall clock, s) "
+                                "without a sample for the messages it says it sent and that have not arrived; then end "
+                                "with what came (the loss said and counted)", read_only=True, range=(0.0, 3600.0))
     out["resume"] = list(p.declare("resume.bags", [], "The run's recording (the recorder's bag parts, in order) to "
                                    "rebuild this node's state from at start-up: a node restarted mid-run takes up "
                                    "where the one that died left off (the launcher sets it at a restart)",
@@ -442,9 +443,11 @@ class StreamDriver:
         now = time.monotonic()
         paced = self.announced is not None and self.window > 0
         if self.source_end is not None and not eng.ended and self._end_seen is not None:
-            dropped = (self._best_effort and not paced
-                       and now - max(self._end_seen, self._last_wall or -math.inf) > UNPACED_QUIET_S)
-            if dropped or now - self._end_seen > self.end_wait:
+            # waited for since the end came, or since the last sample if samples still come (a loaded
+            # machine, a restarted node catching up): never given up while the data still flow
+            quiet = now - max(self._end_seen, self._last_wall or -math.inf)
+            dropped = self._best_effort and not paced and quiet > UNPACED_QUIET_S
+            if dropped or quiet > self.end_wait:
                 self._check_end(give_up=True)
         if eng.ended and not eng.done:       # the end came; stations still wait for the calibration node
             if self._end_seen is None:
