@@ -197,8 +197,20 @@ def ladder_figure(runs) -> str:
     return figure_png(fig)
 
 
+def residual_limits(values) -> tuple:
+    """Symmetric y-limits that show ``values`` (arrays of the corrected models' residuals): the
+    largest |value| among them, 8 % of margin; (-1, 1) when there is none."""
+    finite = np.concatenate([np.abs(np.asarray(v, float))[np.isfinite(v)] for v in values]) if values else np.zeros(0)
+    top = float(finite.max()) * 1.08 if len(finite) and finite.max() > 0 else 1.0
+    return -top, top
+
+
 def residual_figure(runs) -> str:
-    """Per-station errors (or QC residuals) against temperature and station order, model by model."""
+    """Per-station errors (or QC residuals) against temperature and station order, model by model.
+
+    Each panel is scaled to the corrected models it compares (their residuals are the point of
+    the page); the uncorrected run, degrees where the others are hundredths, is drawn on an axis
+    of its own (right, grey) rather than flattening them."""
     from .lab.report import figure_png, pyplot
 
     plt = pyplot()
@@ -206,21 +218,35 @@ def residual_figure(runs) -> str:
     items = ([("azimuth_err", "azimuth error (deg)"), ("drift_err", "drift error (deg)")] if ref else
              [("delta_b", "ΔB (nT)"), ("delta_dip", "Δdip (deg)")])
     fig, axs = plt.subplots(len(items), 2, figsize=(12, 3.2 * len(items)), squeeze=False)
-    colours = ("#888888", "#b5452a", "#1f5fa8", "#3a7d44", "#7a3a9d", "#c08a00")
-    for k, r in enumerate(runs):
-        e = station_errors(r.report.stations)
-        keep = ~e["moved"]
-        for row, (key, label) in enumerate(items):
-            y = e[key][keep]
-            for col, (xkey, xlabel) in enumerate((("temperature", "temperature (°C)"), ("index", "station"))):
-                a = axs[row, col]
-                a.scatter(e[xkey][keep], y, s=9, color=colours[k % len(colours)], label=r.name, alpha=0.8)
-                a.set_xlabel(xlabel)
-                a.set_ylabel(label)
-                a.axhline(0, color="k", lw=0.5)
-                a.grid(alpha=0.3)
+    colours = ("#b5452a", "#1f5fa8", "#3a7d44", "#7a3a9d", "#c08a00", "#555555")
+    errors = [(r, station_errors(r.report.stations)) for r in runs]
+    corrected = [(r, e) for r, e in errors if r.calibration is not None]
+    raw = [(r, e) for r, e in errors if r.calibration is None]
+    for row, (key, label) in enumerate(items):
+        lim = residual_limits([e[key][~e["moved"]] for _, e in corrected])
+        for col, (xkey, xlabel) in enumerate((("temperature", "temperature (°C)"), ("index", "station"))):
+            a = axs[row, col]
+            for k, (r, e) in enumerate(corrected):
+                keep = ~e["moved"]
+                a.scatter(e[xkey][keep], e[key][keep], s=9, color=colours[k % len(colours)], label=r.name, alpha=0.8)
+            if corrected:
+                a.set_ylim(*lim)
+            if raw:
+                side = a.twinx() if corrected else a
+                for r, e in raw:
+                    keep = ~e["moved"]
+                    side.scatter(e[xkey][keep], e[key][keep], s=7, color="#aaaaaa", marker="x", alpha=0.6,
+                                 label=f"{r.name} (right axis)" if corrected else r.name)
+                if corrected:
+                    side.set_ylabel(f"{r.name} (right)", color="#888888", fontsize=8)
+                    side.tick_params(axis="y", colors="#888888", labelsize=7)
+            a.set_xlabel(xlabel)
+            a.set_ylabel(label)
+            a.axhline(0, color="k", lw=0.5)
+            a.grid(alpha=0.3)
     axs[0, 0].legend(fontsize=8)
-    fig.suptitle("Residuals model by model")
+    fig.suptitle("Residuals model by model" + (" (each panel scaled to the corrected models; uncorrected on the "
+                                               "right axis)" if raw and corrected else ""))
     fig.tight_layout()
     return figure_png(fig)
 

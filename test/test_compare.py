@@ -2,6 +2,7 @@
 import contextlib
 import io
 
+import numpy as np
 import pytest
 
 from inclinometer_calib import compare
@@ -75,3 +76,13 @@ def test_an_existing_output_is_never_overwritten(run, capsys):
     assert main(["reprocess", str(d / "val.mcap"), "--compare", str(d / "base.yaml"), "-o", str(d / "cmp3")]) == 2
     assert "exists" in capsys.readouterr().err
     assert (d / "cmp3" / "base.mcap").read_text() == "good data"
+
+
+def test_residual_panels_are_scaled_to_the_corrected_models_not_to_the_uncorrected_degrees():
+    """The demo's residual plots were scaled to the uncorrected ±30°, the corrected residuals a flat
+    line: the limits come from the corrected models' values only."""
+    from inclinometer_calib.compare import residual_limits
+
+    lo, hi = residual_limits([np.array([0.01, -0.02, np.nan]), np.array([0.015])])
+    assert lo == -hi and 0.02 < hi < 0.025
+    assert residual_limits([]) == (-1.0, 1.0) and residual_limits([np.array([np.nan])]) == (-1.0, 1.0)
