@@ -10,8 +10,9 @@ Residuals (each divided by its noise, so the cost is a χ²):
 * a weak prior (100× the typical magnitude) on every extra-effect parameter, so that a parameter
   the data cannot see stays put instead of wandering (and is reported as not identifiable).
 
-Solved with ``scipy.optimize.least_squares`` (trust-region reflective, finite-difference Jacobian
-of a vectorised residual).  Uncertainties from the Jacobian at the solution, scaled by the
+Solved by undamped Gauss–Newton steps (:func:`gauss_newton`: the residuals are close to linear
+near a calibration), else by ``scipy.optimize.least_squares`` (Levenberg–Marquardt), both on
+finite-difference Jacobians of a vectorised residual.  Uncertainties from the Jacobian at the solution, scaled by the
 reduced χ² when that exceeds 1; identifiability from its singular values, with physical hints.
 """
 from __future__ import annotations
@@ -257,10 +258,10 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
         return residual_vector(model, data, full(x), cache=cache)
 
     def solve(x_start):
-        """Gauss–Newton on one Jacobian (:func:`chord`), else Levenberg–Marquardt, from ``x_start``
+        """Gauss–Newton (:func:`gauss_newton`), else Levenberg–Marquardt, from ``x_start``
         (with the stand's pose errors, the poses found off leave the gauge and the fit is repeated)."""
         for _ in range(3 if model.fit_poses else 1):
-            res = chord(fun, x_start, scale)
+            res = gauss_newton(fun, x_start, scale)
             if res is None:
                 res = least_squares(fun, x_start, x_scale=scale, method="lm", jac="2-point",
                                     max_nfev=max_nfev * (len(x_start) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
@@ -313,19 +314,16 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
                      covariance=cov, n_free=p_eff)
 
 
-#: Evaluations of the residuals a :func:`chord` fit may take for its steps before it falls back
-#: to Levenberg–Marquardt, and Jacobians it may take.
-CHORD_ITERATIONS = 20
-CHORD_JACOBIANS = 3
-#: Converged when the Gauss–Newton step at the Jacobian of the point itself promises a fall of χ²
-#: (noise-normalised) below this, or this share of χ² (Levenberg–Marquardt's ftol).
-CHORD_CHI2 = 1e-6
-CHORD_FTOL = 1e-10
-#: A step from a fresh Jacobian that promises a fall of χ² below this is the last one (taken
-#: without a Jacobian more: what remains after it is of the order of its square).
-CHORD_LAST = 1e-2
-#: A step that gains less than this share of the fall it promised re-linearises (a new Jacobian).
-CHORD_GAIN = 0.25
+#: Gauss–Newton steps (each on a Jacobian of its own point) before the fit falls back to
+#: Levenberg–Marquardt.
+GN_JACOBIANS = 3
+#: Converged when the step at the point's own Jacobian promises a fall of χ² (noise-normalised)
+#: below this, or this share of χ² (Levenberg–Marquardt's ftol).
+GN_CHI2 = 1e-6
+GN_FTOL = 1e-10
+#: A step that promises a fall of χ² below this is the last one, taken without a Jacobian more
+#: (what remains after it is of the order of its square: less than any test could see).
+GN_LAST = 1e-2
 
 
 class Solution:
@@ -349,69 +347,45 @@ def forward_jacobian(fun, x, r, scale) -> np.ndarray:
     return jac
 
 
-def chord(fun, x0, scale, max_iter: int = CHORD_ITERATIONS, max_jac: int = CHORD_JACOBIANS):
-    """Least squares by Gauss–Newton steps, the Jacobian kept while it serves (a chord method).
+def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS):
+    """Least squares by undamped Gauss–Newton steps, or None when they do not serve.
 
     The lab's residuals are close to linear in the parameters near a calibration (the base model
-    is linear, the effects small), so one finite-difference Jacobian serves several steps: each
-    costs one evaluation of the residuals, where Levenberg–Marquardt takes a new Jacobian (one
-    evaluation per parameter) at every step.  A step is solved by the SVD of the scaled Jacobian.
-    A new Jacobian is taken when a step gains less than :data:`CHORD_GAIN` of the fall of χ² it
-    promised, and always at the end: converged only when the Gauss–Newton step at the point's own
-    Jacobian promises a fall below :data:`CHORD_CHI2` (or :data:`CHORD_FTOL` of χ²) — so a
-    parameter the first Jacobian did not see (a time constant while its effect is zero) is
-    found at the second; a step from a fresh Jacobian promising less than :data:`CHORD_LAST` is
-    the last.  The last Jacobian is the solution's (its covariance).  Returns None —
-    the caller falls back to Levenberg–Marquardt — when a step from a fresh Jacobian raises χ²,
-    or after ``max_iter`` steps or ``max_jac`` Jacobians (a strongly nonlinear problem)."""
+    is linear, the effects small): a Gauss–Newton step from a finite-difference Jacobian lands at
+    the minimum, or next to it, where Levenberg–Marquardt's damped steps take three or four
+    Jacobians (one evaluation per parameter each).  A step is solved by the SVD of the scaled
+    Jacobian.  Converged when the step at the point's own Jacobian promises a fall of χ² below
+    :data:`GN_CHI2` (or :data:`GN_FTOL` of χ²) — so a parameter the first Jacobian did not see (a
+    time constant while its effect is still zero) is found at the second; a step promising less
+    than :data:`GN_LAST` is the last.  The last Jacobian is the solution's (its covariance).
+    Returns None — the caller falls back to Levenberg–Marquardt — when a step raises χ² or after
+    ``max_jac`` Jacobians (a strongly nonlinear problem)."""
     x = np.asarray(x0, dtype=float).copy()
     if not len(x):
         return None
     r = fun(x)
     cost = float(r @ r)
-    nfev, n_jac, steps = 1, 0, 0
-    fresh = False
-    while True:
-        if not fresh:
-            if n_jac == max_jac:
-                return None
-            jac = forward_jacobian(fun, x, r, scale)
-            nfev += len(x)
-            n_jac += 1
-            u, sv, vt = np.linalg.svd(jac * scale, full_matrices=False)
-            keep = sv > sv[0] * 1e-12 if len(sv) and sv[0] > 0 else sv > 0
-            fresh = True
+    nfev = 1
+    for n_jac in range(1, max_jac + 1):
+        jac = forward_jacobian(fun, x, r, scale)
+        nfev += len(x)
+        u, sv, vt = np.linalg.svd(jac * scale, full_matrices=False)
+        keep = sv > sv[0] * 1e-12 if len(sv) and sv[0] > 0 else sv > 0
         g = u[:, keep].T @ r
         promised = float(g @ g)
-        if promised <= max(CHORD_CHI2, CHORD_FTOL * cost):
-            if fresh:
-                return Solution(x, jac, f"chord: converged in {steps} steps, {n_jac} Jacobians", nfev)
-            fresh = False
-            continue
-        if steps == max_iter:
-            return None
-        ds = -(vt[keep].T @ (g / sv[keep]))
-        x_new = x + ds * scale
+        if promised <= max(GN_CHI2, GN_FTOL * cost):
+            return Solution(x, jac, f"Gauss-Newton: converged in {n_jac - 1} steps", nfev)
+        x_new = x + (-(vt[keep].T @ (g / sv[keep]))) * scale
         r_new = fun(x_new)
         nfev += 1
-        steps += 1
         cost_new = float(r_new @ r_new)
         gain = cost - cost_new if np.isfinite(cost_new) else -np.inf
-        if fresh and promised <= CHORD_LAST:
-            # a last step from a Jacobian of this point, promising less than any test could see:
-            # taken (if it gains) without a Jacobian more; that Jacobian is the solution's
-            if gain > 0:
-                x = x_new
-            return Solution(x, jac, f"chord: converged in {steps} steps, {n_jac} Jacobians", nfev)
+        if promised <= GN_LAST:
+            return Solution(x_new if gain > 0 else x, jac, f"Gauss-Newton: converged in {n_jac} steps", nfev)
         if gain <= 0:
-            if fresh:
-                return None          # the linearisation at this very point misleads: not for the chord
-            fresh = False            # re-linearise here and try again
-            continue
+            return None              # the linearisation misleads: not for Gauss–Newton
         x, r, cost = x_new, r_new, cost_new
-        fresh = fresh and False
-        if gain < CHORD_GAIN * promised:
-            fresh = False
+    return None
 
 
 def _group_inflation(r_data, data, n_params) -> np.ndarray:

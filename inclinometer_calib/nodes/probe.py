@@ -667,6 +667,9 @@ class ProbeNode(Node):
         return True
 
     def _init_messages(self):
+        """The sample messages as the probe sends them (``m_imu``, ``m_mag``, ``m_temp``: what a
+        reader receives, less stamp and values), serialized once: each sample goes out as these
+        bytes with its stamp and values patched in (:class:`cdr.Patcher`, the same bytes)."""
         cov_acc, cov_mag = self.cov
         self.m_imu = Imu()
         self.m_imu.header.frame_id = self.frame_id

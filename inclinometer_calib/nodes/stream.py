@@ -196,30 +196,30 @@ class StreamDriver:
         self._after((MagneticField, data))
 
     def _on_temp(self, data):
-        if self.engine.ended:
-            return self._late(c.TOPIC_TEMPERATURE)
-        try:
-            key, temp = cdr.decode_temperature(data)
-        except cdr.DECODE_ERRORS as exc:
-            return self._undecodable(c.TOPIC_TEMPERATURE, exc)
-        t = key[0] + 1e-9 * key[1]
-        if self._skip and self._resent(c.TOPIC_TEMPERATURE, t):
-            return
-        self.engine.temperature(t, temp)
-        self._after((Temperature, data))
+        got = self._stamped(c.TOPIC_TEMPERATURE, data, cdr.decode_temperature)
+        if got is not None:
+            self.engine.temperature(*got)
+            self._after((Temperature, data))
 
     def _on_reference(self, data):
+        got = self._stamped(c.TOPIC_REFERENCE, data, cdr.decode_vector3)
+        if got is not None:
+            self.engine.reference(*got)
+            self._after()
+
+    def _stamped(self, topic: str, data, decode):
+        """``(stamp s, value)`` of a stamped side message's bytes, or None when it is not to be used
+        (after the end, undecodable, or already in the recording a restarted node resumed from)."""
         if self.engine.ended:
-            return self._late(c.TOPIC_REFERENCE)
+            return self._late(topic)
         try:
-            key, v = cdr.decode_vector3(data)
+            key, value = decode(data)
         except cdr.DECODE_ERRORS as exc:
-            return self._undecodable(c.TOPIC_REFERENCE, exc)
+            return self._undecodable(topic, exc)
         t = key[0] + 1e-9 * key[1]
-        if self._skip and self._resent(c.TOPIC_REFERENCE, t):
-            return
-        self.engine.reference(t, v)
-        self._after()
+        if self._skip and self._resent(topic, t):
+            return None
+        return t, value
 
     def _late(self, topic: str) -> None:
         """A message after the node ended the data (it gave up waiting for the rest: see
