@@ -307,9 +307,11 @@ def canonical_text(text: str, source: str = "<csv>"):
     same rows on the same lines (a rejection names the row it names in the file).  None when the
     header is canonical already.  ``ValueError`` naming line 1 when a required column
     (:data:`REQUIRED_COLUMNS`) is missing, a column is unknown or given twice."""
-    first, _, rest = text.partition("\n")
+    end = text.find("\n")
+    first = text if end < 0 else text[:end]     # the header alone: a canonical log is not copied
     if not first.strip() or _canonical_header(first):
         return None
+    rest = "" if end < 0 else text[end + 1:]
     header = [h.strip() for h in first.lstrip("\ufeff").rstrip("\r").split(",")]
     known = HEADER + OPTIONAL_COLUMNS
     unknown = [h for h in header if h not in known]
