@@ -15,9 +15,10 @@ the end of the encapsulation header.  Every message here starts with a ``std_msg
 (``int32 sec``, ``uint32 nanosec``, ``string frame_id`` as ``uint32`` length with the NUL, the
 bytes), after which the float64 fields begin on the next 8-byte boundary.
 
-Costs (one core of the CI machine): a decode 1–2 µs, where ``rclpy``'s ``deserialize_message``
-or a subscription's take into a Python ``Imu`` costs about 19 µs; an encode (:class:`Patcher`) 1 µs,
-where ``publish`` of a Python message spends about 5 µs converting it.
+Costs (one core of the CI machine, measured): a decode of an ``Imu`` 0.4 µs, where ``rclpy``'s
+``deserialize_message`` (what a subscription's take into a Python ``Imu`` does) costs 18.5 µs; an
+encode (:class:`Patcher`) 0.6 µs, where ``publish`` of a Python ``Imu`` (no reader) takes 6.7 µs
+against 2.1 µs for the same bytes published raw.
 """
 from __future__ import annotations
 
@@ -143,8 +144,8 @@ def stamp_parts(t: float) -> tuple:
 class Patcher:
     """One stamped message serialized once (``data``: its CDR bytes, every other field as it is
     to be sent), then sent again and again with a new stamp and new values of one run of float64
-    fields ``offset`` bytes after the header: the bytes a serializer would write for that message,
-    at a twentieth of the cost."""
+    fields ``offset`` bytes after the header: the bytes a serializer would write for that message
+    (0.6 µs an ``Imu``; the module docstring compares)."""
 
     def __init__(self, data, offset: int, n: int):
         self._buf = bytearray(data)
