@@ -19,14 +19,15 @@ from .coeffs import Calibration, CoefficientError
 from . import __version__
 from .deps import MissingDependency, require
 from .frames import Site
+from .geomag import NORTH_CHOICES, resolve_north
 from .capture import CaptureSession
 from .gates import SettlingTally, apply_gates
 from .output import OutputError, atomic_write_bytes, atomic_write_text, check_output, output_folder, output_path
 from .probelog import MAG_UNITS, Limits, read_csv, report, segment_stations, write_csv
 from .progress import progress_bar
 from .model import ModelContextError
-from .pipeline import (NO_SITE, context_warnings, correct_stations, evaluate_stations, site_override_note,
-                       station_status, usable)
+from .pipeline import (NO_SITE, along_north, context_warnings, correct_stations, evaluate_stations,
+                       reference_along_north, site_override_note, station_status, usable)
 from .survey import Tolerances, format_table4, format_table5, summarize, table4, table5
 from .twelve_position import format_table2, format_table3
 
@@ -245,7 +246,7 @@ def cmd_wits(args):
     import datetime as dt
 
     from .launcher import read_bag
-    from .wits import encode
+    from .wits import describe, encode
 
     try:
         stations = read_bag(args.bag)[0]
@@ -255,11 +256,12 @@ def cmd_wits(args):
     if not survey:
         raise UserError(f"{args.bag}: no corrected survey station to export")
     data = b"".join(encode(s, k + 1, args.well_id, args.hole_section,
-                           dt.datetime.fromtimestamp(s["stamp"], dt.timezone.utc)) for k, s in enumerate(survey))
+                           dt.datetime.fromtimestamp(s["stamp"], dt.timezone.utc), units=args.units)
+                    for k, s in enumerate(survey))
     if args.output:
         atomic_write_bytes(args.output, data)
         print(f"wrote {args.output}: {len(survey)} WITS0 record 07 ({len(stations) - len(survey)} raw or error "
-              "stations not exported)")
+              f"stations not exported); {describe(survey, args.units)}")
     else:
         sys.stdout.buffer.write(data)
     return 0
@@ -394,8 +396,13 @@ def cmd_twelve_position(args):
     return 0
 
 
-def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT", detector=None, msa=None):
+def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT", detector=None, msa=None,
+                north="auto"):
     """Evaluate every static station of a log; returns (stations, result, summary).
+
+    Azimuths (and the reference azimuths, in the result's ``reference_azimuth_deg``) are along
+    ``north`` on ``site`` (:func:`pipeline.along_north`; the result's ``azimuth_reference`` names
+    it): a north the site cannot give is refused (:class:`UserError`).
 
     Stations are found by the live nodes' detector and checked by the gates (in-hold motion,
     flat axes): a station that fails is kept in the output, flagged and left out of the error
@@ -404,6 +411,9 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
     of the log's stations (:func:`msa.evaluate_with_msa`; stations that moved or have an unusable
     sensor stay out of the fit); the summary's ``msa`` is then the :class:`msa.MSAResult`.
     """
+    north, note = resolve_north(site, north)
+    if note:
+        raise UserError(f"--north: {note}")
     _, stations, _, _ = load_stations(log_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
     if not stations:
         raise UserError(f"{log_path}: no static stations found")
@@ -435,9 +445,19 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
             res, fit = evaluate_with_msa(g, b, site, tol, ref_used if has_ref.any() else None, msa, use=use)
         except ValueError as exc:
             raise UserError(f"{log_path}: {exc}") from None
+        _along(res, ref, site, north)
         return stations, res, {**_finish(stations, res), "msa": fit}
     res = evaluate_stations(g, b, site, tol, ref_used if has_ref.any() else None, axial)
+    _along(res, ref, site, north)
     return stations, res, _finish(stations, res)
+
+
+def _along(res, ref, site, north):
+    """The result's azimuths and the log's reference azimuths along ``north`` (the errors, against
+    the true reference, are unchanged)."""
+    along_north(res, site, north)
+    res["azimuth_reference"] = north
+    res["reference_azimuth_deg"] = reference_along_north(ref[:, 1], site, north)
 
 
 def _finish(stations, res) -> dict:
@@ -455,7 +475,8 @@ STATION_COLUMNS = ["station", "pose", "t_start_s", "t_end_s", "samples", "temp_c
                    "toolface_deg", "toolface_type", "gravity_toolface_deg", "magnetic_toolface_deg",
                    "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
                    "delta_dip_deg", "status", "flags", "ref_drift_deg", "ref_azimuth_deg",
-                   "ref_toolface_deg", "drift_err_deg", "azimuth_err_deg", "toolface_err_deg"]
+                   "ref_toolface_deg", "drift_err_deg", "azimuth_err_deg", "toolface_err_deg",
+                   "azimuth_reference", "azimuth_true_deg", "azimuth_magnetic_deg", "azimuth_grid_deg"]
 
 
 def format_station_csv(stations, res) -> str:
@@ -470,6 +491,10 @@ def format_station_csv(stations, res) -> str:
         flags += ["moved_during_capture"] if st.moved else []
         flags += [f"{s}_unusable" for s in st.unusable]
         err = (lambda n: res[n][k] if n in res else None)
+        ref = list(st.ref)
+        if "reference_azimuth_deg" in res:       # along the azimuths' north (correct_log)
+            ref[1] = res["reference_azimuth_deg"][k]
+        undefined = bool(res["azimuth_undefined"][k])
         row = [str(st.index), str(st.pose or ""), f(st.t_start, 3), f(st.t_end, 3), str(st.n), f(st.temp_c, 2),
                f(res["drift_deg"][k]), "" if res["azimuth_undefined"][k] else f(res["azimuth_deg"][k]),
                f(res["toolface_deg"][k]),
@@ -478,7 +503,10 @@ def format_station_csv(stations, res) -> str:
                f(res["total_gravity"][k], 5), f(res["total_field"][k], 1), f(res["dip_deg"][k]),
                f(res["delta_g"][k], 5), f(res["delta_b"][k], 1), f(res["delta_dip"][k]),
                ["ok", "warn", "error"][int(res["status"][k])], "|".join(flags),
-               *(f(v) for v in st.ref), f(err("drift_err")), f(err("azimuth_err")), f(err("toolface_err"))]
+               *(f(v) for v in ref), f(err("drift_err")), f(err("azimuth_err")), f(err("toolface_err")),
+               str(res.get("azimuth_reference", "")),
+               *("" if undefined or n not in res else f(res[n][k])
+                 for n in ("azimuth_true_deg", "azimuth_magnetic_deg", "azimuth_grid_deg"))]
         lines.append(",".join(row))
     return "\n".join(lines) + "\n"
 
@@ -508,7 +536,7 @@ def cmd_correct(args):
     site = site_for(args, cal, tol, args.log)
     msa = _msa_settings(args, site)
     stations, res, summ = correct_log(args.log, cal, site, tol, axial=args.axial_correction, mag_unit=args.mag_unit,
-                                      detector=detector_from_args(args), msa=msa)
+                                      detector=detector_from_args(args), msa=msa, north=args.north)
     fit = summ.pop("msa", None)
     if args.output:
         atomic_write_text(args.output, format_station_csv(stations, res))
@@ -524,7 +552,7 @@ def cmd_correct(args):
         summ["msa"]["stations"] = [st.index for st in stations]
     if site is not None:
         from .geomag import azimuth_reference
-        summ["azimuth_reference"] = azimuth_reference(site)
+        summ["azimuth_reference"] = azimuth_reference(site, args.north)
     status = np.asarray(res["status"], dtype=int)
     summ["qc"] = {name: int(np.sum(status == k)) for k, name in enumerate(("ok", "warn", "error"))}
     # the site checks themselves: |B|, dip, |G| against the site within the tolerances
@@ -680,7 +708,8 @@ def cmd_reprocess(args):
 
             rep = reprocess(args.bag, tmp, cal, site, tol, det, compression=args.compression,
                             warn=_warn, calibrate=args.calibrate, probe_id=args.probe_id, effects=args.effects,
-                            monitor=field_monitor(args), force_probe=args.force_probe, progress=advance)
+                            monitor=field_monitor(args), force_probe=args.force_probe, north=args.north,
+                            progress=advance)
     except ValueError as exc:   # ReprocessError, a bad --effects
         raise UserError(str(exc)) from None
     except FileExistsError as exc:
@@ -1431,6 +1460,8 @@ def build_parser():
     w.add_argument("-o", "--output", help="file to write (default: standard output)")
     w.add_argument("--well-id", default="WELL", help="item 0701")
     w.add_argument("--hole-section", type=int, default=0, help="item 0702")
+    w.add_argument("--units", choices=("m", "ft"), default="m",
+                   help="the WITS dictionary's metric (m, deg/100 m) or FPS units (ft, deg/100 ft); default m")
     w.set_defaults(func=cmd_wits)
 
     wx = sub.add_parser("witsml", help="export a recorded run's survey stations as a WITSML 2.1 Trajectory "
@@ -1448,6 +1479,8 @@ def build_parser():
     c.add_argument("-o", "--output", help="station CSV to write")
     c.add_argument("--json", action="store_true", help="print the summary as JSON")
     c.add_argument("--site", help="site reference YAML overriding the calibration record's (which owns one)")
+    c.add_argument("--north", choices=NORTH_CHOICES, default="auto", help="north of the azimuths and positions: grid, true or magnetic; auto (default): grid on a site with a grid "
+                   "(crs), else true with a declination, else magnetic")
     c.add_argument("--plugin", action="append", help="Python file (or module) defining plug-in effects the record "
                    "uses: a record's plug-in is loaded only from these, after its SHA-256 matches (repeatable)")
     c.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
@@ -1495,6 +1528,8 @@ def build_parser():
     r.add_argument("-o", "--output", required=True, help="bag to write (.mcap file or directory; must not exist); "
                    "with --compare the directory of the comparison")
     r.add_argument("--site", help="site reference YAML overriding the calibration record's (which owns one)")
+    r.add_argument("--north", choices=NORTH_CHOICES, default="auto", help="north of the azimuths and positions: grid, true or magnetic; auto (default): grid on a site with a grid "
+                   "(crs), else true with a declination, else magnetic")
     r.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd", help="chunk compression of the output bag (default zstd)")
     r.add_argument("--field-tol", type=float, default=Tolerances.field_nt, help="QC |ΔB| tolerance, nT")
     r.add_argument("--dip-tol", type=float, default=Tolerances.dip_deg, help="QC |Δdip| tolerance, deg")
@@ -1513,6 +1548,8 @@ def build_parser():
                     "the first solve)")
     rt.add_argument("--site", help="site reference YAML (overrides the record's; with --calibrate, the record's)")
     rt.add_argument("--effects", default="", help="with --calibrate: the model to fit beyond the paper's")
+    rt.add_argument("--north", choices=NORTH_CHOICES, default="auto", help="north of the azimuths and positions: grid, true or magnetic; auto (default): grid on a site with a grid "
+                   "(crs), else true with a declination, else magnetic")
     rt.add_argument("--plugin", action="append", help="Python file (or module) defining effects the records use")
     rt.add_argument("--param", action="append", metavar="NODE:NAME:=VALUE", help="extra node parameter (launcher)")
     rt.add_argument("--speed", type=float, default=50.0, help="the replay's speed ceiling (it is paced: never "

@@ -16,7 +16,10 @@ CRS named by EPSG code or PROJ string) comes from ``pyproj``'s meridian converge
 azimuth is the true azimuth minus it.
 
 Azimuths then exist in three references: magnetic (what the magnetometers give), true
-(magnetic + declination) and grid (true − convergence); :func:`azimuths` gives all three.
+(magnetic + declination) and grid (true − convergence); :func:`azimuths` gives all three.  A run
+reports every azimuth and every position along **one** of them (:func:`resolve_north`: the one
+asked for, by default grid on a site with a grid, else true on a site with a declination, else
+magnetic) and carries the others as separately named fields.
 """
 from __future__ import annotations
 
@@ -106,17 +109,56 @@ def azimuths(azimuth_true_deg, declination_deg: float, convergence_deg: float = 
             "grid": wrap360(t - convergence_deg) if np.isfinite(convergence_deg) else np.full_like(t, np.nan)}
 
 
-def azimuth_reference(site) -> str:
-    """What ``azimuth_deg`` of a site's stations is measured from, in words (with the grid)."""
-    ref = site.reference or {}
-    src = ref.get("sources", {}).get("declination_deg", "given")
-    if site.declination_deg == 0.0 and not ref:
-        out = "magnetic north (the site gives no declination)"
-    else:
-        out = f"true north (declination {site.declination_deg:+.3f}°, {src})"
+#: The norths an azimuth and a position can be measured from (``SurveyStation.AZIMUTH_REFERENCE_*``).
+NORTHS = ("grid", "true", "magnetic")
+#: What a run may ask for: one of :data:`NORTHS`, or ``auto`` (:func:`default_north`).
+NORTH_CHOICES = ("auto",) + NORTHS
+
+
+def _has_declination(site) -> bool:
+    # a declination typed in as 0 with nothing else says "magnetic"; one from a model or IFR is a value
+    return bool(site.declination_deg) or bool(site.reference)
+
+
+def default_north(site) -> str:
+    """The north of a run that asks for none: grid on a site with a grid (a projected CRS, its
+    convergence known), else true on a site with a declination, else magnetic (no site)."""
+    if site is None:
+        return "magnetic"
     if np.isfinite(site.grid_convergence_deg):
-        out += f"; grid azimuths for {ref.get('crs')} (convergence {site.grid_convergence_deg:+.3f}°)"
-    return out
+        return "grid"
+    return "true" if _has_declination(site) else "magnetic"
+
+
+def resolve_north(site, north: str = "auto") -> tuple:
+    """``(north, note)``: the north a run's azimuths and positions are along on ``site`` (None: no
+    site) when ``north`` (:data:`NORTH_CHOICES`) is asked for.  ``auto``: :func:`default_north`.
+    A north the site cannot give falls back to the default and ``note`` says why: grid on a site
+    without a grid; true or grid without a site (magnetic, no note: the stations say there is no site).
+    Raises ``ValueError`` for a name not in :data:`NORTH_CHOICES`."""
+    north = str(north or "auto")
+    if north not in NORTH_CHOICES:
+        raise ValueError(f"north {north!r}: one of {', '.join(NORTH_CHOICES)}")
+    if north == "auto" or site is None:
+        return default_north(site), ""
+    if north == "grid" and not np.isfinite(site.grid_convergence_deg):
+        return default_north(site), "grid north asked for, but the site has no grid (no projected CRS: give its crs)"
+    return north, ""
+
+
+def azimuth_reference(site, north: str = "auto") -> str:
+    """What a site's stations' ``azimuth_deg`` and north/east are measured from, in words, with
+    the corrections that take magnetic azimuths there (``north`` as for :func:`resolve_north`)."""
+    n, _ = resolve_north(site, north)
+    if site is None:
+        return "magnetic north (no site)"
+    ref = site.reference or {}
+    decl = f"declination {site.declination_deg:+.3f}°, {ref.get('sources', {}).get('declination_deg', 'given')}"
+    if n == "magnetic":
+        return "magnetic north" + ("" if _has_declination(site) else " (the site gives no declination)")
+    if n == "true":
+        return f"true north ({decl})"
+    return f"grid north of {ref.get('crs', 'the site')} (convergence {site.grid_convergence_deg:+.3f}°; {decl})"
 
 
 def site_parameters(d: dict) -> dict:

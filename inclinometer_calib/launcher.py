@@ -71,6 +71,7 @@ import numpy as np
 
 from .bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts as bag_parts
 from .deps import MissingDependency, require
+from .geomag import NORTH_CHOICES
 from .topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
@@ -294,6 +295,8 @@ def build_params(args, out):
         p["calibration"]["model.effects"] = args.model_effects
     if args.coeffs:
         p["correction"]["coeffs_file"] = os.path.abspath(args.coeffs)
+    if args.north != "auto":
+        p["correction"]["north"] = args.north
     if args.plugin:
         # the nodes' plug-in sources, named here too (the summary reads the run's records)
         from .plugins import PluginError, name_plugins
@@ -603,7 +606,9 @@ def run_graph(args, out, env) -> GraphResult:
 # --------------------------------------------------------------------------------------------
 def station_dict(msg) -> dict:
     """A ``SurveyStation`` message as a plain dict (Python numbers, lists): one conversion for a
-    bag's messages (``rosbags``, :func:`read_bag`) and live ones (``rclpy``, the wits node)."""
+    bag's messages (``rosbags``, :func:`read_bag`) and live ones (``rclpy``, the wits and live
+    nodes).  A station recorded before the stations had one north (no ``azimuth_true_deg``) is put
+    along its positions' north (:func:`_one_north`)."""
     d = {k: getattr(msg, k) for k in (
         "station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg",
         "magnetic_toolface_deg",
@@ -614,7 +619,7 @@ def station_dict(msg) -> dict:
         "moved_during_capture", "model_misfit", "model_diagnosis")}
     # depth and trajectory (NaN in a bag recorded before they existed)
     for k in ("measured_depth_m", "tvd_m", "north_m", "east_m", "dls_deg_per_30m",
-              "azimuth_magnetic_deg", "azimuth_grid_deg", "axial_field_nt"):
+              "azimuth_magnetic_deg", "azimuth_grid_deg", "azimuth_true_deg", "axial_field_nt"):
         d[k] = getattr(msg, k, float("nan"))
     # the azimuth's north and method ("" in a bag recorded before they existed)
     for k in ("azimuth_reference", "azimuth_method", "probe_serial", "uncorrected_reason"):
@@ -628,7 +633,28 @@ def station_dict(msg) -> dict:
         d[k] = [float(x) for x in getattr(msg, k, [float("nan")] * n)]
     d["warnings"] = list(msg.warnings)
     d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-    return {k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()}
+    d = {k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()}
+    if not hasattr(msg, "azimuth_true_deg"):
+        _one_north(d)
+    return d
+
+
+def _one_north(d: dict) -> None:
+    """A station dict of a bag recorded before the stations had one north, put along it (in place).
+    Then ``azimuth_deg`` and ``reference_azimuth_deg`` were true (``azimuth_reference`` "true", or
+    empty in older bags) while ``north_m``/``east_m`` were along grid north when the site had a grid
+    (``azimuth_grid_deg`` finite): such a station becomes a grid one (its true azimuth in
+    ``azimuth_true_deg``, its reference azimuth minus the convergence) — what its positions are."""
+    grid, az = d["azimuth_grid_deg"], d["azimuth_deg"]
+    if not (math.isfinite(grid) and math.isfinite(az)):
+        if d["azimuth_reference"] == "true":
+            d["azimuth_true_deg"] = az
+        return
+    d["azimuth_true_deg"] = az
+    convergence = az - grid
+    d["azimuth_deg"], d["azimuth_reference"] = grid, "grid"
+    if math.isfinite(d["reference_azimuth_deg"]):
+        d["reference_azimuth_deg"] = (d["reference_azimuth_deg"] - convergence) % 360.0
 
 
 #: StreamProgress fields read into the accounting (accounting.account).
@@ -695,7 +721,7 @@ def trajectory_summary(stations, coefficients_id=None) -> dict:
         import numpy as np
 
         last = max(placed, key=lambda s: s["measured_depth_m"])
-        out.update({k: last[k] for k in ("measured_depth_m", "tvd_m", "north_m", "east_m")})
+        out.update({k: last[k] for k in ("measured_depth_m", "tvd_m", "north_m", "east_m", "azimuth_reference")})
         cov = np.reshape(last.get("position_covariance_ned_m2", [math.nan] * 9), (3, 3))
         if np.all(np.isfinite(cov)):
             out["sigma_horizontal_major_m"] = float(np.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0)))
@@ -1125,7 +1151,7 @@ def format_summary(s) -> list:
     if tr.get("stations"):
         line = (f"trajectory: {tr['stations']} stations placed by minimum curvature; deepest MD "
                 f"{tr['measured_depth_m']:.1f} m: TVD {tr['tvd_m']:.1f} m, N {tr['north_m']:+.1f} m, "
-                f"E {tr['east_m']:+.1f} m")
+                f"E {tr['east_m']:+.1f} m" + (f" ({tr['azimuth_reference']} north)" if tr.get("azimuth_reference") else ""))
         if "sigma_vertical_m" in tr:
             line += (f"; ISCWSA 1σ there {tr['sigma_horizontal_major_m']:.2f} m horizontal (semi-major), "
                      f"{tr['sigma_vertical_m']:.2f} m vertical")
@@ -1170,6 +1196,10 @@ def parse_args(argv=None):
                                    "probe): values (total_field_nt, dip_deg, declination_deg, gravity_mps2) and/or a "
                                    "location (latitude_deg, longitude_deg, altitude_m, date, model WMM2025|IGRF-14, crs) "
                                    "looked up by each node; e.g. config/rig_site.yaml")
+    ap.add_argument("--north", choices=NORTH_CHOICES, default="auto",
+                    help="north of every azimuth and position the run puts out (stations, WITS0, WITSML, live view): "
+                         "grid, true or magnetic; auto (default): grid on a site with a grid (crs), else true with a "
+                         "declination, else magnetic")
     ap.add_argument("--no-calibration", action="store_true", help="no calibration node and no twelve-pose session")
     ap.add_argument("--no-recorder", action="store_true", help="do not record (no summary from the bag)")
     ap.add_argument("--wits-port", type=int, default=0, metavar="PORT",

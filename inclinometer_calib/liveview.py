@@ -11,7 +11,11 @@ field, the header as ``stamp`` in float seconds, arrays as lists), keeps the sta
 topic                     encoding/schema  content
 ========================  ===============  ====================================================
 ``/live/station``         JSON             the latest ``SurveyStation``, every field (its
-                                           station dict; NaN -> null, :func:`jsonable`)
+                                           station dict; NaN -> null, :func:`jsonable`):
+                                           ``azimuth_deg``, ``north_m``/``east_m`` along the
+                                           north ``azimuth_reference`` names, the azimuth from
+                                           each north in ``azimuth_true_deg``,
+                                           ``azimuth_magnetic_deg``, ``azimuth_grid_deg``
 ``/live/residuals``       JSON             the QC residual series of the corrected stations so
                                            far, one array per quantity (:meth:`LiveView.residuals`)
 ``/live/stations``        JSON             the station table, ``{"rows": [...]}`` (Table panel)
@@ -27,8 +31,9 @@ topic                     encoding/schema  content
 ========================  ===============  ====================================================
 
 Frames of the trajectory.  The stations' positions are the correction node's minimum-curvature
-``north_m``, ``east_m``, ``tvd_m`` (m, from the tie-in at the surface; north along grid north when
-the site has a grid).  They are drawn as they are, in NED, in the frame ``survey_ned`` (x north,
+``north_m``, ``east_m``, ``tvd_m`` (m, from the tie-in at the surface; north along the stations'
+one north, their ``azimuth_reference``, which the trajectory entity names in its metadata
+``north``).  They are drawn as they are, in NED, in the frame ``survey_ned`` (x north,
 y east, z down = TVD).  A 3D view needs z up, so :func:`frame_transforms` places ``survey_ned`` in
 ``survey_enu`` (x east, y north, z up; the same origin), the frame the layout's 3D panel displays:
 the rotation of 180° about (x + y)/√2, quaternion (x, y, z, w) = (√½, √½, 0, 0), which maps
@@ -240,9 +245,11 @@ class LiveView:
 
     def trajectory(self) -> list:
         """The trajectory's points: ``{"station_id", "measured_depth_m", "ned": (north, east, tvd) m,
-        "color": (r, g, b, a)}`` in measured depth order (frame :data:`FRAME_NED`)."""
+        "north": the north of ``ned`` (the station's ``azimuth_reference``), "color": (r, g, b, a)}``
+        in measured depth order (frame :data:`FRAME_NED`)."""
         return [{"station_id": int(s["station_id"]), "measured_depth_m": float(s["measured_depth_m"]),
-                 "ned": (float(s["north_m"]), float(s["east_m"]), float(s["tvd_m"])), "color": station_color(s)}
+                 "ned": (float(s["north_m"]), float(s["east_m"]), float(s["tvd_m"])),
+                 "north": s.get("azimuth_reference", ""), "color": station_color(s)}
                 for s in self.path]
 
 
@@ -278,7 +285,8 @@ def scene_update(points: list, stamp_s: float = math.nan, sphere_m: float = 5.0)
     """``foxglove.SceneUpdate`` of the trajectory (:meth:`LiveView.trajectory`): one entity
     ``trajectory`` in :data:`FRAME_NED` with a line strip through the stations (per-point status
     colours, 3 px wide) and a sphere of ``sphere_m`` metres at each; the points are (north, east,
-    tvd) in m as they are.  No points: the entity is deleted."""
+    tvd) in m as they are, and the entity's metadata ``north`` says which north (grid, true or
+    magnetic; several, comma-separated, if the stations differ).  No points: the entity is deleted."""
     fm = _fm()
     ts = _timestamp(fm, stamp_s)
     if not points:
@@ -291,8 +299,10 @@ def scene_update(points: list, stamp_s: float = math.nan, sphere_m: float = 5.0)
                                                orientation=fm.Quaternion(w=1.0)),
                                   size=fm.Vector3(x=sphere_m, y=sphere_m, z=sphere_m), color=c)
                for p, c in zip(points, colors)]
+    north = ",".join(sorted({p.get("north") or "" for p in points}))
     return fm.SceneUpdate(entities=[fm.SceneEntity(timestamp=ts, frame_id=FRAME_NED, id="trajectory",
-                                                   lines=[line], spheres=spheres)])
+                                                   lines=[line], spheres=spheres,
+                                                   metadata=[fm.KeyValuePair(key="north", value=north)])])
 
 
 def frame_transforms(stamp_s: float = math.nan):

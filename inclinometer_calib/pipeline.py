@@ -13,7 +13,11 @@ through here, so that a station means the same numbers wherever it is computed:
    overrides the record's, and says so at every record it overrides (:func:`site_override_note`);
    without a record and without a site there is no reference: the station's QC fields are NaN and
    it says why — never a default site;
-4. the field monitor (:class:`lab.field.FieldMonitor`), when there is one, tests the latest
+4. its azimuth, its reference azimuth and its position are put along the run's **one north**
+   (:func:`along_north`, the north from :func:`geomag.resolve_north`: grid, true or magnetic),
+   the azimuths from the other norths beside them, and it is placed in the trajectory by minimum
+   curvature from that azimuth;
+5. the field monitor (:class:`lab.field.FieldMonitor`), when there is one, tests the latest
    stations' residuals against the site for the trend a missing effect leaves, and says in words
    when the model stops explaining the data.
 
@@ -28,7 +32,7 @@ import numpy as np
 
 from .axial import evaluate_with_axial
 from .gates import apply_gates
-from .geomag import azimuths
+from .geomag import azimuths, resolve_north
 from .iscwsa import position_covariance, terms_from_calibration
 from .station import Station
 from .survey import Tolerances, evaluate
@@ -160,6 +164,28 @@ def evaluate_stations(g, b, site, tol: Tolerances = Tolerances(), ref=None, axia
     return evaluate(g, b, site, tol, ref=ref)
 
 
+def along_north(res: dict, site, north: str) -> dict:
+    """Evaluated stations (:func:`evaluate_stations`' result, whose ``azimuth_deg`` is true:
+    magnetic + the site's declination) with their azimuth from ``north`` (:data:`geomag.NORTHS`):
+    ``azimuth_deg`` becomes it, and ``azimuth_true_deg``, ``azimuth_magnetic_deg`` and
+    ``azimuth_grid_deg`` hold the azimuth from each north (true NaN without a site, grid NaN without
+    a grid; :func:`geomag.azimuths`: magnetic = true − D, grid = true − γ).  The one place a
+    station's azimuth is put along the run's north.  In place; returns ``res``."""
+    decl = site.declination_deg if site is not None else 0.0
+    refs = azimuths(res["azimuth_deg"], decl, site.grid_convergence_deg if site is not None else NAN)
+    res["azimuth_true_deg"] = refs["true"] if site is not None else np.full_like(refs["true"], np.nan)
+    res["azimuth_magnetic_deg"], res["azimuth_grid_deg"] = refs["magnetic"], refs["grid"]
+    res["azimuth_deg"] = refs[north]
+    return res
+
+
+def reference_along_north(azimuth_true_deg, site, north: str):
+    """A reference azimuth (deg, from the site's NED north: true) from ``north`` (:func:`along_north`'s
+    conversion), so that it compares with the station's ``azimuth_deg``."""
+    decl = site.declination_deg if site is not None else 0.0
+    return azimuths(azimuth_true_deg, decl, site.grid_convergence_deg if site is not None else NAN)[north]
+
+
 def station_status(st: Station, qc_status: int) -> int:
     """A station's status, the one rule for every path: 2 (error, not to be used) when the probe
     moved during the hold or a gate refused a sensor's data (a flat or clipped axis, an implausible
@@ -187,13 +213,20 @@ class SurveyProcessor:
     ``calibration``: the record to apply (:meth:`set_calibration` replaces it); ``site``: a user's
     site reference overriding the record's (None: the record's); ``axial``: azimuths from the
     short-collar correction of axial drill-string interference (:func:`axial.evaluate_with_axial`;
-    QC stays on the measured field); ``monitor``: a :class:`lab.field.FieldMonitor` or None.
+    QC stays on the measured field); ``monitor``: a :class:`lab.field.FieldMonitor` or None;
+    ``north``: the north of the azimuths and positions (:data:`geomag.NORTH_CHOICES`, resolved on
+    the site in force by :func:`geomag.resolve_north`: a north the site cannot give is said in every
+    station's warnings; with a site given, a ``ValueError`` at once).
     """
 
     def __init__(self, tolerances: Tolerances = Tolerances(), calibration=None, *, site=None,
                  axial: bool = False, monitor=None, tie_in=TIE_IN_SURFACE, probe_serial: str = "",
-                 force_probe: bool = False):
+                 force_probe: bool = False, north: str = "auto"):
         self.tolerances = tolerances
+        self.north = str(north)
+        _, note = resolve_north(site, self.north)     # ValueError: not a north
+        if site is not None and note:
+            raise ValueError(note)
         # the trajectory: (md, inclination, azimuth, tvd, north, east) of the stations with a depth,
         # in order of depth, from the tie-in (default: the surface, vertical)
         self.tie_in = tuple(float(x) for x in tie_in)
@@ -279,14 +312,16 @@ class SurveyProcessor:
         if site is None and NO_SITE not in st.warnings:
             st.warnings.append(NO_SITE)
         res = evaluate_stations(g, b, site, self.tolerances, None if ref is None else [ref], self.axial)
+        north, note = resolve_north(site, self.north)
+        note = f"{note}: azimuths and positions along {north} north" if note else ""
+        if note and note not in st.warnings:
+            st.warnings.append(note)
+        along_north(res, site, north)       # the azimuth reported (true, or short-collar) along the run's north
         values = {k: (v[0].item() if hasattr(v[0], "item") else v[0]) for k, v in res.items()}
-        # the azimuth reported (true, or short-collar) in the other references
-        refs = azimuths([values["azimuth_deg"]], site.declination_deg if site is not None else 0.0,
-                        site.grid_convergence_deg if site is not None else NAN)
-        values["azimuth_magnetic_deg"], values["azimuth_grid_deg"] = float(refs["magnetic"][0]), float(refs["grid"][0])
-        values.update(self._trajectory(st, values, site))
-        azimuth_reference = "true" if site is not None and site.declination_deg else "magnetic"
-        fields = station_fields(self._next_id, st, values, cal.id if cal is not None else "", ref, azimuth_reference,
+        values.update(self._trajectory(st, values))
+        if ref is not None:                 # the reference attitude's azimuth (site NED: true) along it too
+            ref = (ref[0], float(reference_along_north(ref[1], site, north)), ref[2])
+        fields = station_fields(self._next_id, st, values, cal.id if cal is not None else "", ref, north,
                                 have_temperature)
         fields["probe_serial"] = self.probe_serial
         self._next_id += 1
@@ -296,20 +331,19 @@ class SurveyProcessor:
             fields["model_diagnosis"] = verdict.text
         return fields
 
-    def _trajectory(self, st: Station, values: dict, site) -> dict:
+    def _trajectory(self, st: Station, values: dict) -> dict:
         """Depth and position of a station by minimum curvature from the station before it in depth
-        (:mod:`trajectory`; north/east along grid north when the site has a grid, else the site's
-        north).  A station at or above a depth already surveyed (a re-survey) replaces what lies
-        below it.  Without a depth (or a drift, or when the probe moved) the fields are NaN."""
+        (:mod:`trajectory`: from its measured depth, drift and ``azimuth_deg``, so north/east are
+        along the north of its azimuth, :func:`along_north`).  A station at or above a depth already
+        surveyed (a re-survey) replaces what lies below it.  Without a depth (or a drift, or when the probe moved) the fields are NaN."""
         out = {"measured_depth_m": NAN, "tvd_m": NAN, "north_m": NAN, "east_m": NAN, "dls_deg_per_30m": NAN,
                "position_covariance_ned_m2": [NAN] * 9}
         md, inc = float(st.md_m), float(values.get("drift_deg", NAN))
         if not (math.isfinite(md) and math.isfinite(inc)) or st.moved:
             out["measured_depth_m"] = md if math.isfinite(md) else NAN
             return out
-        grid = site is not None and math.isfinite(site.grid_convergence_deg)
-        azi = values["azimuth_grid_deg"] if grid else values["azimuth_deg"]
-        azi = float(azi) if math.isfinite(float(azi)) and not values.get("azimuth_undefined") else 0.0
+        azi = float(values["azimuth_deg"])
+        azi = azi if math.isfinite(azi) and not values.get("azimuth_undefined") else 0.0
         while len(self._path) > 1 and self._path[-1][0] >= md:      # a re-survey replaces what it overlaps
             self._path.pop()
             self._mag_azimuths.pop()
@@ -323,7 +357,7 @@ class SurveyProcessor:
         self._mag_azimuths.append(float(azi_mag) if math.isfinite(float(azi_mag)) else azi)
         out.update(measured_depth_m=md, tvd_m=float(t.tvd[-1]), north_m=float(t.north[-1]),
                    east_m=float(t.east[-1]), dls_deg_per_30m=float(t.dls[-1]),
-                   position_covariance_ned_m2=self._covariance(site))
+                   position_covariance_ned_m2=self._covariance(self.site))
         return out
 
     def _covariance(self, site) -> list:
@@ -399,6 +433,7 @@ def station_fields(station_id: int, seg: Station, v: dict, coefficients_id: str,
         dls_deg_per_30m=_finite_or_nan(v.get("dls_deg_per_30m", NAN)),
         azimuth_magnetic_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_magnetic_deg", NAN)),
         azimuth_grid_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_grid_deg", NAN)),
+        azimuth_true_deg=NAN if v["azimuth_undefined"] else _finite_or_nan(v.get("azimuth_true_deg", NAN)),
         raw_gravity_mps2=[_finite_or_nan(x) for x in np.asarray(seg.g, float).reshape(3)],
         raw_field_nt=[_finite_or_nan(x) for x in np.asarray(seg.b, float).reshape(3)],
         position_covariance_ned_m2=[_finite_or_nan(x) for x in v.get("position_covariance_ned_m2", [NAN] * 9)],

@@ -34,7 +34,7 @@ from pathlib import Path
 NUMBERS = {
     "drift_deg": ("deg", 1.0), "azimuth_deg": ("deg", 1.0), "toolface_deg": ("deg", 1.0),
     "gravity_toolface_deg": ("deg", 1.0), "magnetic_toolface_deg": ("deg", 1.0), "dip_deg": ("deg", 1.0),
-    "azimuth_magnetic_deg": ("deg", 1.0), "azimuth_grid_deg": ("deg", 1.0),
+    "azimuth_magnetic_deg": ("deg", 1.0), "azimuth_grid_deg": ("deg", 1.0), "azimuth_true_deg": ("deg", 1.0),
     "total_gravity_mps2": ("m/s^2", 1e-2), "total_field_nt": ("nT", 1e2), "delta_g_mps2": ("m/s^2", 1e-2),
     "delta_b_nt": ("nT", 1e2), "delta_dip_deg": ("deg", 1.0), "temperature_c": ("degC", 1.0),
     "measured_depth_m": ("m", 1.0), "tvd_m": ("m", 1e2), "north_m": ("m", 1e2), "east_m": ("m", 1e2),
@@ -42,7 +42,7 @@ NUMBERS = {
 }
 #: Compared exactly.
 EXACT = ("coefficients_id", "status", "samples_averaged", "azimuth_undefined", "interference_suspected",
-         "gravity_out_of_tolerance", "moved_during_capture", "model_misfit", "uncorrected_reason")
+         "gravity_out_of_tolerance", "moved_during_capture", "model_misfit", "uncorrected_reason", "azimuth_reference")
 #: Stations are matched by stamp (s) within this.
 STAMP_EPS = 1e-6
 
@@ -193,6 +193,8 @@ def run(args) -> int:
         cmd += ["--no-calibration"]
     if args.effects:
         cmd += ["--model-effects", args.effects]
+    if getattr(args, "north", "auto") != "auto":
+        cmd += ["--north", args.north]
     for plug in args.plugin or ():
         cmd += ["--plugin", plug]
     for p in args.param or ():
@@ -240,7 +242,7 @@ def _reprocessed(bag, out, args) -> list:
     try:
         # the correction node's own settings: its field monitor (30 stations), the default QC tolerances
         rep = reprocess(bag, None, calibration=cal, site=site, calibrate=args.calibrate, effects=args.effects or "",
-                        monitor=FieldMonitor(window=30))
+                        monitor=FieldMonitor(window=30), north=getattr(args, "north", "auto"))
     except (ReprocessError, ValueError, OSError) as exc:
         raise UserError(f"{bag}: reprocess: {exc}") from None
     print(f"expected: reprocess of {bag}: {len(rep.stations)} stations", flush=True)

@@ -286,7 +286,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
               frame_id: str = "probe", copy_input: bool = True,
               warn: Optional[Callable[[str], None]] = None, calibrate: bool = False,
               probe_id: str = "probe", effects: str = "", monitor=None, force_probe: bool = False,
-              probe_serial: Optional[str] = None,
+              probe_serial: Optional[str] = None, north: str = "auto",
               progress: Optional[Callable[[int, int], None]] = None) -> ReprocessReport:
     """Reprocess the bag ``src`` into a new bag ``dst`` (which must not exist: never overwritten;
     None: nothing is written, the report's stations are the result).
@@ -295,7 +295,9 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     reference overriding the record's (None: the record owns it; with ``calibrate`` and no site,
     the stand's measured one).  ``effects``: with ``calibrate``, the model to fit on the captures
     beyond the paper's (the package's effect grammar).  ``monitor``: a
-    :class:`lab.field.FieldMonitor` (the correction node's model check) or None.  ``detector``:
+    :class:`lab.field.FieldMonitor` (the correction node's model check) or None.  ``north``: the
+    north of the stations' azimuths and positions, as the correction node's ``north``
+    (:class:`pipeline.SurveyProcessor`).  ``detector``:
     a configured :class:`streaming.StaticDetector` (default: thresholds from the noise the data
     show).  The data's probe is the bag's ``/probe/serial`` (:func:`bag_probe_serial`; ``probe_serial``
     gives it for a bag without one): a record of another probe is refused (:class:`ReprocessError`)
@@ -329,7 +331,8 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     else:
         serial = str(probe_serial)
     report.probe_serial = serial or ""
-    proc = SurveyProcessor(tolerances, site=site, monitor=monitor, probe_serial=serial or "", force_probe=force_probe)
+    proc = SurveyProcessor(tolerances, site=site, monitor=monitor, probe_serial=serial or "", force_probe=force_probe,
+                           north=north)
     session = CaptureSession(site=site, probe_id=serial or probe_id, effects=effects) if calibrate else None
     engine = StreamEngine(det, proc, session, expect=Expect(reference=counts.get(TOPIC_REFERENCE, 0) > 0,
                                                                temperature=counts.get(TOPIC_TEMPERATURE, 0) > 0,

@@ -7,7 +7,7 @@ arc (the industry's standard, SPE 84246 / ISCWSA):
     β  = dogleg angle = angle between the unit tangents t₁, t₂,  t = (sin I cos A, sin I sin A, cos I)
     RF = (2/β)·tan(β/2)                           (ratio factor; 1 when β → 0)
     ΔN, ΔE, ΔTVD = (ΔMD/2)·RF·(t₁ + t₂)            (north, east, down)
-    DLS = β / ΔMD                                  (reported per 30 m, or per 100 ft)
+    DLS = β / ΔMD                                  (reported per 30 m, per 100 m or per 100 ft)
 
 ``β`` is computed as ``2·asin(|t₂ − t₁|/2)`` (exact, and accurate for tiny doglegs, where the
 ``acos`` form loses precision), and ``RF`` by its series below 10⁻⁴ rad.  The first station ties
@@ -19,8 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: The international foot, m.
+FOOT_M = 0.3048
 #: Dogleg severity reference lengths (m) by unit name.
-DLS_LENGTH = {"deg/30m": 30.0, "deg/100ft": 30.48}
+DLS_LENGTH = {"deg/30m": 30.0, "deg/100m": 100.0, "deg/100ft": 30.48}
 
 
 def tangents(inc_deg, azi_deg) -> np.ndarray:

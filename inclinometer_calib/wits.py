@@ -2,29 +2,46 @@
 
 WITS level 0 is ASCII: a record starts with ``&&`` CR LF, each data line is a four-digit code
 ``RRII`` (record 07, item II) followed at once by the value, and the record ends with ``!!`` CR LF.
-Items sent (an item whose value is undefined, NaN, is left out, as WITS readers expect):
+Items sent (an item whose value is undefined, NaN, is left out, as WITS readers expect), with the
+WITS dictionary's names and units — metric (``units="m"``) or FPS (``units="ft"``):
 
-====  ==========================================  ====================================
-0701  well identifier                              text
-0702  sidetrack / hole section number              integer
-0703  record identifier                            7
-0704  sequence identifier                          integer, one per record sent
-0705  date                                         YYMMDD (UTC)
-0706  time                                         HHMMSS (UTC)
-0707  activity code                                integer (0: survey)
-0708  survey depth, measured                       m
-0709  survey depth, vertical (TVD)                 m
-0711  hole depth, measured                         m
-0712  survey type                                  text (``MWD``)
-0713  inclination                                  deg
-0714  azimuth, uncorrected (magnetic north)        deg
-0715  azimuth, corrected (true or grid north)      deg
-0716  magnetic toolface                            deg
-0717  gravity toolface                             deg
-0718  north–south displacement (+ north)           m
-0719  east–west displacement (+ east)              m
-0720  dogleg severity                              deg/30 m
-====  ==========================================  ====================================
+====  ==========================================  =======  =======  ==================================
+item  WITS dictionary name (mnemonic)             metric   FPS      sent
+====  ==========================================  =======  =======  ==================================
+0701  Well Identifier (WID)                                         text
+0702  Sidetrack/Hole Sect No. (SKNO)                                integer
+0703  Record Identifier (RID)                                       7
+0704  Sequence Identifier (SQID)                                    integer, one per record sent
+0705  Date (DATE)                                                   YYMMDD (UTC)
+0706  Time (TIME)                                                   HHMMSS (UTC)
+0707  Activity Code (ACTC)                                          0 (survey)
+0708  Depth Svy/reading (meas) (DSVM)             M        F        measured depth
+0709  Depth Svy/reading (vert) (DSVV)             M        F        TVD
+0711  Depth Hole (meas) (DMEA)                    M        F        hole depth (the survey depth)
+0712  Svy Type (STYP)                                               ``MWD``
+0713  Svy Inclination (SINC)                      DEG      DEG      drift
+0714  Svy Azimuth (uncorrected) (SAZU)            DEG      DEG      azimuth from magnetic north
+0715  Svy Azimuth (corrected) (SAZC)              DEG      DEG      azimuth from the run's north
+0716  Svy Magnetic Toolface (SMTF)                DEG      DEG      magnetic toolface
+0717  Svy Gravity Toolface (SGTF)                 DEG      DEG      gravity toolface
+0718  Svy North-South Position (SNS)              M        F        north along the run's north
+0719  Svy East-West Position (SEW)                M        F        east, square to it
+0720  Svy Dog Leg Severity (SDLS)                 DGHM     DGHF     deg per 100 m / per 100 ft
+====  ==========================================  =======  =======  ==================================
+
+Source of the names and units: the WITS dictionary (W.I.T.S., record 7 "Survey/Directional") as
+vendored in ``mwdstd/mwdstdwits`` ``src/wits-dictionary.ts`` (items 0701–0726); ``DGHM``/``DGHF``
+are its codes for degrees per hundred metres / feet (so the metric dogleg is per **100 m**, not
+the 30 m the stations carry: ×100/30).  Feet are international feet (0.3048 m).
+
+**One north.**  0715 (corrected azimuth) and 0718/0719 (north/east) are along the same north, the
+station's ``azimuth_reference`` (the run's ``north``: grid by default on a site with a grid, else
+true, else magnetic); a receiver recomputing positions from 0708/0713/0715 by minimum curvature
+lands on 0718/0719.  Record 07 has no item for the north reference (items 0722–0726 are spares
+without a definition), so it is declared here, in the nodes' and CLI's log
+(:func:`describe`) and in docs/nodes.md.  0714 is always from magnetic north.  Angles are sent
+with three decimals (0.001°: rounding moves a position by well under a centimetre over a long
+well; with two a 1.5 km well can be a centimetre off), lengths with two.
 
 :class:`WitsServer` streams the records to any number of TCP clients (loopback by default): each
 client has its own outgoing buffer, written without blocking from one thread; a client that
@@ -41,12 +58,24 @@ import socket
 import threading
 from dataclasses import dataclass, field
 
-#: (item, field of a station dict, decimals) of the numeric items, in the order sent.
+from .trajectory import DLS_LENGTH, FOOT_M
+
+#: (item, field of a station dict, decimals, quantity) of the numeric items, in the order sent;
+#: quantity: ``length`` (m or ft), ``angle`` (deg) or ``dls`` (deg per 100 m or 100 ft).
 NUMERIC_ITEMS = (
-    (8, "measured_depth_m", 2), (9, "tvd_m", 2), (11, "hole_depth_m", 2), (13, "drift_deg", 2),
-    (14, "azimuth_magnetic_deg", 2), (15, "azimuth_deg", 2), (16, "magnetic_toolface_deg", 2),
-    (17, "gravity_toolface_deg", 2), (18, "north_m", 2), (19, "east_m", 2), (20, "dls_deg_per_30m", 2),
+    (8, "measured_depth_m", 2, "length"), (9, "tvd_m", 2, "length"), (11, "hole_depth_m", 2, "length"),
+    (13, "drift_deg", 3, "angle"), (14, "azimuth_magnetic_deg", 3, "angle"), (15, "azimuth_deg", 3, "angle"),
+    (16, "magnetic_toolface_deg", 3, "angle"), (17, "gravity_toolface_deg", 3, "angle"),
+    (18, "north_m", 2, "length"), (19, "east_m", 2, "length"), (20, "dls_deg_per_30m", 3, "dls"),
 )
+#: The WITS dictionary's units of record 07 (module docstring): units -> quantity -> (unit code,
+#: factor from the station dict's value: m, deg, deg/30 m).
+UNITS = {
+    "m": {"length": ("M", 1.0), "angle": ("DEG", 1.0),
+          "dls": ("DGHM", DLS_LENGTH["deg/100m"] / DLS_LENGTH["deg/30m"])},
+    "ft": {"length": ("F", 1.0 / FOOT_M), "angle": ("DEG", 1.0),
+           "dls": ("DGHF", DLS_LENGTH["deg/100ft"] / DLS_LENGTH["deg/30m"])},
+}
 RECORD = 7
 
 
@@ -55,25 +84,37 @@ def _line(item: int, value: str) -> str:
 
 
 def encode(station: dict, sequence: int, well_id: str = "WELL", hole_section: int = 0,
-           when: _dt.datetime | None = None, survey_type: str = "MWD") -> bytes:
-    """One WITS0 record 07 of a survey station (a dict with the fields of ``SurveyStation`` and
-    the trajectory's: ``measured_depth_m``, ``tvd_m``, ``north_m``, ``east_m``,
-    ``dls_deg_per_30m``, ``azimuth_magnetic_deg``; ``hole_depth_m`` defaults to the survey depth).
+           when: _dt.datetime | None = None, survey_type: str = "MWD", units: str = "m") -> bytes:
+    """One WITS0 record 07 of a survey station (a station dict, :func:`launcher.station_dict`:
+    ``azimuth_deg`` and ``north_m``/``east_m`` along its ``azimuth_reference``, the trajectory's
+    ``measured_depth_m``, ``tvd_m``, ``dls_deg_per_30m``, and ``azimuth_magnetic_deg``;
+    ``hole_depth_m`` defaults to the survey depth), in ``units`` (:data:`UNITS`: ``m`` or ``ft``).
     ``when``: the station's time (UTC)."""
+    if units not in UNITS:
+        raise ValueError(f"WITS0 units {units!r}: one of {', '.join(UNITS)}")
     t = when or _dt.datetime.now(_dt.timezone.utc)
     lines = ["&&\r\n", _line(1, str(well_id)), _line(2, str(int(hole_section))), _line(3, str(RECORD)),
              _line(4, str(int(sequence))), _line(5, t.strftime("%y%m%d")), _line(6, t.strftime("%H%M%S")),
              _line(7, "0")]
     vals = dict(station)
     vals.setdefault("hole_depth_m", vals.get("measured_depth_m", float("nan")))
-    for item, key, dec in NUMERIC_ITEMS:
+    for item, key, dec, quantity in NUMERIC_ITEMS:
         v = vals.get(key)
         if v is not None and math.isfinite(float(v)):
-            lines.append(_line(item, f"{float(v):.{dec}f}"))
+            lines.append(_line(item, f"{float(v) * UNITS[units][quantity][1]:.{dec}f}"))
         if item == 11:                     # the survey type follows the hole depth
             lines.append(_line(12, survey_type))
     lines.append("!!\r\n")
     return "".join(lines).encode("ascii")
+
+
+def describe(stations, units: str = "m") -> str:
+    """What a receiver of records 07 of ``stations`` (station dicts) must know, in words: the
+    north of 0715/0718/0719 and the units (the record cannot say it, module docstring)."""
+    norths = sorted({s.get("azimuth_reference") or "magnetic" for s in stations})
+    u = UNITS[units]
+    return (f"azimuth 0715 and north/east 0718/0719 along {' and '.join(norths)} north, 0714 from magnetic north; "
+            f"units {u['length'][0]}, {u['angle'][0]}, dogleg {u['dls'][0]}")
 
 
 @dataclass

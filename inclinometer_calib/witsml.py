@@ -29,9 +29,10 @@ What goes where (tool frame Z down-hole; units are the Energistics uom symbols):
 
 * ``Md``, ``Tvd`` (``eml:DatumVerticalDepth``), ``DispNs``, ``DispEw``: m.  ``Incl`` = drift,
   ``Azi``, ``Mtf``, ``Gtf``: ``dega``.  ``Dls``: ``1/30 dega/m`` (degree per 30 m).
-* ``Azi`` and the displacements are along one north, the trajectory's ``AziRef``: grid north
-  when the stations have a grid azimuth (the survey's north/east are then along grid north),
-  else the stations' ``azimuth_reference`` (``true north`` or ``magnetic north``).
+* ``Azi`` and the displacements are along one north, the trajectory's ``AziRef``: the stations'
+  ``azimuth_reference``, the one north of their ``azimuth_deg`` and ``north_m``/``east_m``
+  (a bag recorded before the stations had one north is put along its positions' north by
+  :func:`launcher.station_dict`).
 * ``RawData``: the station's raw means before calibration — ``GravAxialRaw``, ``GravTran1Raw``,
   ``GravTran2Raw`` = g_z, g_x, g_y of the gravity vector (down positive, m/s²), ``MagAxialRaw``,
   ``MagTran1Raw``, ``MagTran2Raw`` = b_z, b_x, b_y (nT); left out where not known (NaN, or a bag
@@ -39,9 +40,9 @@ What goes where (tool frame Z down-hole; units are the Energistics uom symbols):
 * ``Valid``: the corrected |G| (``GravTotalFieldCalc``, m/s²), |B| (``MagTotalFieldCalc``, nT),
   dip (``MagDipAngleCalc``, dega); the site's reference values (total − delta) in
   ``GravTotalFieldReference``, ``MagTotalFieldReference``, ``MagDipAngleReference``.
-* ``CorUsed``: ``StnMagDeclUsed`` = azimuth(true) − azimuth(magnetic) and ``StnGridConUsed`` =
-  azimuth(true) − azimuth(grid), wrapped to ±180° (WITSML's signs: true = magnetic + declination,
-  grid = true − convergence); with the short-collar azimuth ``MagAxialDrlstrCor`` = −(the axial
+* ``CorUsed``: ``StnMagDeclUsed`` = azimuth(true) − azimuth(magnetic) when the azimuths are
+  true or grid, and ``StnGridConUsed`` = azimuth(true) − azimuth(grid) when they are grid, wrapped
+  to ±180° (WITSML's signs: true = magnetic + declination, grid = true − convergence); with the short-collar azimuth ``MagAxialDrlstrCor`` = −(the axial
   interference field solved), nT, and ``AxialMagInterferenceCorUsed`` true.  ``GravAccelCorUsed``
   and ``MagXAxialCorUsed`` (alignment corrections) are true: the calibration record corrects both
   triads' misalignment.
@@ -168,25 +169,29 @@ def _azimuth_reference(s: dict) -> str:
 
 def _north(stations) -> str:
     """The one north of the document's azimuths and displacements (module docstring)."""
-    if any(_finite(s.get("azimuth_grid_deg")) for s in stations):
-        return "grid"
-    refs = {_azimuth_reference(s) for s in stations if _finite(s.get("azimuth_deg"))}
+    refs = ({_azimuth_reference(s) for s in stations if _finite(s.get("azimuth_deg"))}
+            or {_azimuth_reference(s) for s in stations if s.get("azimuth_reference")})
     if len(refs) > 1:
         raise WitsmlError(f"the stations' azimuths are against different norths ({', '.join(sorted(refs))}): one "
                           "trajectory has one azimuth reference")
     return refs.pop() if refs else "magnetic"
 
 
-def _declination(s: dict) -> float:
-    if _azimuth_reference(s) == "true" and _finite(s.get("azimuth_deg")) and _finite(s.get("azimuth_magnetic_deg")):
-        return _wrap180(float(s["azimuth_deg"]) - float(s["azimuth_magnetic_deg"]))
-    return math.nan
+def _azimuth_from(s: dict, north: str) -> float:
+    """A station's azimuth from ``north``: its ``azimuth_deg`` when that is the north it declares,
+    else its ``azimuth_<north>_deg``; NaN when not known."""
+    a = s.get("azimuth_deg") if _azimuth_reference(s) == north else s.get(f"azimuth_{north}_deg")
+    return float(a) if _finite(a) else math.nan
 
 
-def _convergence(s: dict) -> float:
-    if _azimuth_reference(s) == "true" and _finite(s.get("azimuth_deg")) and _finite(s.get("azimuth_grid_deg")):
-        return _wrap180(float(s["azimuth_deg"]) - float(s["azimuth_grid_deg"]))
-    return math.nan
+def _declination(s: dict, north: str) -> float:
+    """The declination applied to the azimuths (none when they are magnetic)."""
+    return math.nan if north == "magnetic" else _wrap180(_azimuth_from(s, "true") - _azimuth_from(s, "magnetic"))
+
+
+def _convergence(s: dict, north: str) -> float:
+    """The grid convergence applied to the azimuths (only when they are grid)."""
+    return _wrap180(_azimuth_from(s, "true") - _azimuth_from(s, "grid")) if north == "grid" else math.nan
 
 
 def _uuid(*parts) -> str:
@@ -251,8 +256,8 @@ def trajectory_document(stations, well: str = "WELL", wellbore: str = "WELLBORE"
     E(wb, "QualifiedType", "witsml21.Wellbore")
     E(wb, "Title", wellbore)
     # TrajectoryMetadata
-    decl = next((d for d in map(_declination, kept) if _finite(d)), math.nan)
-    conv = next((c for c in map(_convergence, kept) if _finite(c)), math.nan)
+    decl = next((d for d in (_declination(s, north) for s in kept) if _finite(d)), math.nan)
+    conv = next((c for c in (_convergence(s, north) for s in kept) if _finite(c)), math.nan)
     if _finite(decl):
         W(root, "MagDeclUsed", _num(decl), uom="dega")
     if kept:
@@ -296,7 +301,7 @@ def _station(W, E, root, s: dict, north: str, uids: dict) -> None:
     if _finite(s.get("tvd_m")):
         tvd = W(st, "Tvd", **{f"{{{NS_XSI}}}type": "eml:DatumVerticalDepth"})
         E(tvd, "VerticalDepth", _num(s["tvd_m"]), uom="m")
-    azi = s.get("azimuth_grid_deg") if north == "grid" else s.get("azimuth_deg")
+    azi = _azimuth_from(s, north)
 
     def measure(tag, value, uom):
         if _finite(value):
@@ -327,7 +332,7 @@ def _station(W, E, root, s: dict, north: str, uids: dict) -> None:
                                ("MagTran1Raw", b, 0, "nT"), ("MagTran2Raw", b, 1, "nT")):
             if v is not None:
                 W(raw, tag, _num(v[k]), uom=uom)
-    decl, conv = _declination(s), _convergence(s)
+    decl, conv = _declination(s, north), _convergence(s, north)
     axial = s.get("axial_field_nt")
     if _finite(decl) or _finite(conv) or (short_collar and _finite(axial)):
         cor = W(st, "CorUsed")

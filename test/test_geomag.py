@@ -127,13 +127,32 @@ def test_a_site_file_by_location_drives_the_cli_and_says_its_azimuth_reference(t
     (tmp_path / "rig.yaml").write_text("site:\n  latitude_deg: 57.1\n  longitude_deg: 2.1\n  date: 2026-11-23\n"
                                        "  model: IGRF-14\n  crs: 32631\n")
     capsys.readouterr()
-    assert main(["correct", str(tmp_path / "s" / "val.csv"), "--coeffs", str(tmp_path / "c.yaml"), "--site",
-                 str(tmp_path / "rig.yaml"), "--json"]) == 0
-    out = capsys.readouterr().out
+    val, coeffs, rig = str(tmp_path / "s" / "val.csv"), str(tmp_path / "c.yaml"), str(tmp_path / "rig.yaml")
+    assert main(["correct", val, "--coeffs", coeffs, "--site", rig, "--json", "-o", str(tmp_path / "st.csv")]) == 0
+    import csv
     import json
-    doc = json.loads(out)
-    assert doc["azimuth_reference"].startswith("true north (declination") and "IGRF-14 at 57.1, 2.1" in \
-        doc["azimuth_reference"] and "grid azimuths for 32631" in doc["azimuth_reference"]
+    doc = json.loads(capsys.readouterr().out)
+    # a site with a grid: the azimuths are grid azimuths, and the run says so with the corrections
+    assert doc["azimuth_reference"].startswith("grid north of 32631 (convergence ") and "declination " in \
+        doc["azimuth_reference"] and "IGRF-14 at 57.1, 2.1" in doc["azimuth_reference"]
+    conv = geomag.grid_convergence(57.1, 2.1, 32631)
+    with open(val) as fh:
+        logged = {round(float(r["t_s"]), 3): r for r in csv.DictReader(fh)}
+    with open(tmp_path / "st.csv") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["azimuth_deg"]]
+    assert rows and {r["azimuth_reference"] for r in rows} == {"grid"}
+    for r in rows:
+        assert r["azimuth_deg"] == r["azimuth_grid_deg"]
+        assert (float(r["azimuth_true_deg"]) - float(r["azimuth_grid_deg"])) % 360 == pytest.approx(conv % 360, abs=2e-4)
+        if r["ref_azimuth_deg"]:     # the log's (true) reference azimuth along grid north too
+            src = next(x for t, x in logged.items() if float(r["t_start_s"]) <= t <= float(r["t_end_s"]))
+            assert (float(src["ref_azimuth_deg"]) - float(r["ref_azimuth_deg"])) % 360 == pytest.approx(conv % 360,
+                                                                                                         abs=2e-4)
+    assert main(["correct", val, "--coeffs", coeffs, "--site", rig, "--json", "--north", "true"]) == 0
+    assert json.loads(capsys.readouterr().out)["azimuth_reference"].startswith("true north (declination ")
+    # a north the site cannot give is refused
+    assert main(["correct", val, "--coeffs", coeffs, "--north", "grid"]) != 0
+    assert "grid north asked for, but the site has no grid" in capsys.readouterr().err
     (tmp_path / "bad.yaml").write_text("site:\n  latitude_deg: 57.1\n  longitude_deg: 2.1\n  date: 2020-01-01\n")
     assert main(["correct", str(tmp_path / "s" / "val.csv"), "--coeffs", str(tmp_path / "c.yaml"), "--site",
                  str(tmp_path / "bad.yaml")]) != 0

@@ -200,6 +200,28 @@ def test_scene_update_carries_every_point_in_the_ned_frame():
     assert b"trajectory" in empty and lv.FRAME_NED.encode() not in empty          # a deletion
 
 
+@pytest.mark.parametrize("north", ["grid", "true", "magnetic"])
+def test_the_live_station_declares_the_one_north_of_its_azimuth_and_north_east_and_names_the_others(north):
+    from north_well import CONVERGENCE, projected_well, receiver_positions
+
+    _, _, stations = projected_well(north)
+    view = lv.LiveView()
+    sent = []
+    for s in stations:
+        d = lv.station_dict(station_msg(**{k: v for k, v in s.items() if k != "stamp"}))
+        view.add(d)
+        sent.append(json.loads(json.dumps(lv.jsonable(d), allow_nan=False)))     # what /live/station carries
+    last = sent[-1]
+    assert {p["azimuth_reference"] for p in sent} == {north} and last["azimuth_deg"] == last[f"azimuth_{north}_deg"]
+    assert (last["azimuth_true_deg"] - last["azimuth_grid_deg"]) % 360 == pytest.approx(CONVERGENCE)
+    rx = receiver_positions([p["measured_depth_m"] for p in sent], [p["drift_deg"] for p in sent],
+                            [p["azimuth_deg"] or 0.0 for p in sent])                # null: a vertical station
+    assert (last["north_m"], last["east_m"]) == pytest.approx(rx[-1], abs=0.01)
+    assert {r["azimuth_reference"] for r in view.table()["rows"]} == {north}
+    # the trajectory entity's metadata north = <north> (protobuf KeyValuePair: key field 1, value field 2)
+    assert b"\x05north\x12" + bytes([len(north)]) + north.encode() in lv.scene_update(view.trajectory()).encode()
+
+
 def test_the_ned_frame_is_drawn_z_up():
     """The rotation of survey_ned in survey_enu maps (north, east, down) to (east, north, up)."""
     x, y, z, w = lv.NED_IN_ENU

@@ -183,3 +183,53 @@ def test_a_record_of_another_probe_is_refused_and_a_later_serial_drops_it_saying
     forced = SurveyProcessor(calibration=theirs, probe_serial="SN-1", force_probe=True)
     f = forced.process(_one(probe, site, 30, 40, 0))
     assert f["coefficients_id"] == theirs.id and any(w.startswith("FORCED") for w in f["warnings"])
+
+
+def test_every_azimuth_and_position_of_a_station_is_along_the_one_north_asked_for_and_says_which():
+    from north_well import CONVERGENCE, DECLINATION, projected_well, receiver_positions
+
+    from inclinometer_calib.frames import wrap180
+
+    runs = {n: projected_well(n)[2] for n in ("auto", "grid", "true", "magnetic")}
+    assert repr(runs["auto"]) == repr(runs["grid"])           # a projected site: grid north by default
+    for north in ("grid", "true", "magnetic"):
+        fields = runs[north]
+        for f in fields:
+            assert f["azimuth_reference"] == north
+            if np.isfinite(f["azimuth_deg"]):
+                assert f["azimuth_deg"] == f[f"azimuth_{north}_deg"]
+                assert wrap180(f["azimuth_true_deg"] - f["azimuth_magnetic_deg"]) == pytest.approx(DECLINATION)
+                assert wrap180(f["azimuth_true_deg"] - f["azimuth_grid_deg"]) == pytest.approx(CONVERGENCE)
+                # the reference attitude (the simulator's, true) along the same north: errors stay errors
+                assert abs(wrap180(f["azimuth_deg"] - f["reference_azimuth_deg"])) < 0.1
+        # a receiver's own minimum curvature from MD, drift and azimuth_deg lands on north/east
+        rx = receiver_positions([f["measured_depth_m"] for f in fields], [f["drift_deg"] for f in fields],
+                                [np.nan_to_num(f["azimuth_deg"]) for f in fields])
+        for f, (n, e) in zip(fields, rx):
+            assert (f["north_m"], f["east_m"]) == pytest.approx((n, e), abs=1e-6)
+    # the same well along each north: a leg between stations with an azimuth is the true one turned by γ
+    # (a vertical station's undefined azimuth counts as 0 from whichever north: those legs are not turned)
+    g = np.radians(CONVERGENCE)
+    t, gr = runs["true"], runs["grid"]
+    legs = [k for k in range(1, len(t)) if np.isfinite(t[k - 1]["azimuth_deg"]) and np.isfinite(t[k]["azimuth_deg"])]
+    assert len(legs) >= 5
+    for k in legs:
+        n, e = t[k]["north_m"] - t[k - 1]["north_m"], t[k]["east_m"] - t[k - 1]["east_m"]
+        assert (gr[k]["north_m"] - gr[k - 1]["north_m"], gr[k]["east_m"] - gr[k - 1]["east_m"]) == pytest.approx(
+            (n * np.cos(g) + e * np.sin(g), -n * np.sin(g) + e * np.cos(g)), abs=1e-6)
+        assert gr[k]["tvd_m"] - gr[k - 1]["tvd_m"] == pytest.approx(t[k]["tvd_m"] - t[k - 1]["tvd_m"], abs=1e-9)
+    assert abs(runs["grid"][-1]["east_m"] - runs["true"][-1]["east_m"]) > 0.1     # the norths do differ here
+
+
+def test_a_north_the_site_cannot_give_is_refused_at_once_or_said_at_every_station():
+    probe = sim.build_probe(2)
+    plain = Site(declination_deg=2.0)                               # no grid
+    with pytest.raises(ValueError, match="no grid"):
+        SurveyProcessor(site=plain, north="grid")
+    with pytest.raises(ValueError, match="north 'geographic'"):
+        SurveyProcessor(north="geographic")
+    # the record's site (known only when the record comes): the station falls back and says so
+    f = SurveyProcessor(calibration=Calibration(probe.model, site=plain), north="grid").process(
+        _one(probe, plain, 45, 120, 30))
+    assert f["azimuth_reference"] == "true" and np.isnan(f["azimuth_grid_deg"])
+    assert any("grid north asked for" in w and "along true north" in w for w in f["warnings"])

@@ -71,14 +71,18 @@ def test_a_reprocessed_well_validates_and_parses_back_to_the_same_numbers(well):
         assert b["coefficients_id"] == s["coefficients_id"] and b["uid"] == f"station-{s['station_id']}"
         assert b["stamp"] == pytest.approx(s["stamp"], abs=1e-6)
         assert b["station_status"] == ("rejected" if s["status"] == 2 else "position")
-        # the site has a grid: azimuth and north/east are along grid north (the survey's north/east are)
-        assert b["azimuth_reference"] == "grid"
+        # the site has a grid: the stations' one north is grid, and the document's
+        assert b["azimuth_reference"] == s["azimuth_reference"] == "grid"
         if s["azimuth_grid_deg"] == s["azimuth_grid_deg"]:
-            assert b["azimuth_deg"] == s["azimuth_grid_deg"]
+            assert b["azimuth_deg"] == s["azimuth_deg"] == s["azimuth_grid_deg"]
             assert b["declination_deg"] == pytest.approx(DECLINATION, abs=1e-9)
             assert b["grid_convergence_deg"] == pytest.approx(CONVERGENCE, abs=1e-9)
-    # the pipeline's trajectory really is along grid north: azimuth true − grid = the convergence
-    assert any(s["azimuth_grid_deg"] == pytest.approx(s["azimuth_deg"] - CONVERGENCE) for s in stations)
+    assert any(s["azimuth_grid_deg"] == pytest.approx(s["azimuth_true_deg"] - CONVERGENCE) for s in stations)
+    # a receiver's minimum curvature from Md, Incl and Azi lands on DispNs/DispEw (the same north)
+    from north_well import receiver_positions
+    rx = receiver_positions([b["measured_depth_m"] for b in back], [b["drift_deg"] for b in back],
+                            [np.nan_to_num(b["azimuth_deg"]) for b in back])
+    assert (back[-1]["north_m"], back[-1]["east_m"]) == pytest.approx(rx[-1], abs=0.01)
 
 
 def test_the_same_input_gives_the_same_document_and_uuids_follow_well_wellbore_and_run(well):
@@ -281,3 +285,22 @@ def test_the_vendored_schema_set_is_complete_and_carries_the_energistics_notice(
     with open(os.path.join(witsml.SCHEMA_DIR, "README.md"), encoding="utf-8") as fh:
         readme = fh.read()
     assert "devfabiosilva/witsml21parser" in readme and "Product License Agreement" in readme
+
+
+@pytest.mark.parametrize("north", ["grid", "true", "magnetic"])
+def test_azi_and_displacements_are_along_the_stations_one_north_and_say_which(north):
+    from north_well import projected_well, receiver_positions
+
+    _, _, stations = projected_well(north)
+    export = witsml.trajectory_document(stations)
+    witsml.validate(export.xml)
+    back = witsml.read_trajectory(export.xml)
+    assert {b["azimuth_reference"] for b in back} == {north}
+    rx = receiver_positions([b["measured_depth_m"] for b in back], [b["drift_deg"] for b in back],
+                            [np.nan_to_num(b["azimuth_deg"]) for b in back])
+    assert (back[-1]["north_m"], back[-1]["east_m"]) == pytest.approx(rx[-1], abs=0.01)
+    # the corrections applied to the azimuths, and only those: declination unless magnetic, convergence for grid
+    assert (b"<MagDeclUsed" in export.xml) == (north != "magnetic")
+    assert (b"<GridConUsed" in export.xml) == (north == "grid")
+    if north != "magnetic":
+        assert back[-1]["declination_deg"] == pytest.approx(DECLINATION, abs=1e-9)

@@ -26,8 +26,11 @@ Outputs:
   the current record's model (its lab effects too, with the station's temperature and time),
   evaluated against the site reference **the record owns** (``site.given:=true`` overrides it
   with the ``site.*`` parameters, said at WARNING for every record it overrides; before any
-  record and without a given site there is no reference and the stations say so), and checked
-  by the field monitor (:class:`lab.field.FieldMonitor`, ``monitor.window`` stations): when the
+  record and without a given site there is no reference and the stations say so), with its
+  azimuth, reference azimuth and position along one north (``north``: ``grid``, ``true``,
+  ``magnetic`` or ``auto`` — grid on a site with a grid, else true, else magnetic; the azimuths
+  from the other norths in ``azimuth_true_deg``, ``azimuth_magnetic_deg``, ``azimuth_grid_deg``),
+  and checked by the field monitor (:class:`lab.field.FieldMonitor`, ``monitor.window`` stations): when the
   residuals against the site follow temperature, time or orientation beyond chance, the station
   carries ``model_misfit`` and ``model_diagnosis`` (the likely missing effect, in words);
 * ``/probe/imu_corrected``, ``/probe/mag_corrected`` (``publish_corrected``): the corrected
@@ -58,6 +61,7 @@ from sensor_msgs.msg import Imu, MagneticField, Temperature
 from ..coeffs import Calibration, CoefficientError
 from ..engine import StationOut, StreamEngine
 from ..frames import gravity_from_specific_force, specific_force_from_gravity
+from ..geomag import NORTH_CHOICES, azimuth_reference
 from ..lab.field import FieldMonitor
 from ..pipeline import NO_SITE, SurveyProcessor
 from ..plugins import NODE_PARAMETER, name_plugins
@@ -103,6 +107,10 @@ class CorrectionNode(Node):
                                       "reliable but volatile, and a reader the graph shows but DDS has not yet matched "
                                       "misses what is published before (the launcher sets it to the readers it "
                                       "starts)", read_only=True, range=(0, 100))
+        north = p.declare("north", "auto", "North of every station's azimuth_deg, reference azimuth, north_m/east_m "
+                          "and trajectory: grid, true or magnetic; auto: grid on a site with a grid (crs), else "
+                          "true with a declination, else magnetic (the other azimuths are carried beside it)",
+                          read_only=True, choices=NORTH_CHOICES)
         site = c.declare_site(p, given_flag="true: the site.* values are the site reference and override the one "
                               "the calibration record owns (said at WARNING for every record they override); "
                               "false: the record's site is used")
@@ -121,7 +129,8 @@ class CorrectionNode(Node):
         self.add_post_set_parameters_callback(self._after_set)
 
         monitor = FieldMonitor(window=window, materiality=materiality, tolerances=self.tol) if window else None
-        self.processor = SurveyProcessor(self.tol, site=site, axial=axial, monitor=monitor, force_probe=force_probe)
+        self.processor = SurveyProcessor(self.tol, site=site, axial=axial, monitor=monitor, force_probe=force_probe,
+                                         north=north)   # ValueError (one line, exit 2): grid asked, the site has none
         # station ids continue across restarts: from the state file, or rebuilt from the recording
         self._published_next = self._read_state()
         resuming = any(os.path.exists(b) for b in settings["resume"])
@@ -134,7 +143,10 @@ class CorrectionNode(Node):
                                    publish_short=publish_short)
         self.detector = self.engine.det
         if site is None:
-            self.get_logger().info("the site reference is the calibration record's (site.given is false)")
+            self.get_logger().info("the site reference is the calibration record's (site.given is false); azimuths "
+                                   f"and positions along north '{north}' on it")
+        else:
+            self.get_logger().info(f"azimuths and positions along {azimuth_reference(site, north)}")
         self._fallback_id = None     # id of the record applied from fallback_coeffs_file, until replaced
         self._temp = c.NAN           # the latest temperature (the corrected streams)
         self._outbox = collections.deque()   # (StationOut, monotonic time) waiting for their readers

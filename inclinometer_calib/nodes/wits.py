@@ -11,7 +11,11 @@ as one record 07 to:
 
 Record items: well ``well_id``, hole section ``hole_section``, a sequence number per record, date
 and time of the station's stamp (UTC), MD, TVD, inclination, magnetic and corrected azimuth,
-magnetic and gravity toolface, north/east, dogleg severity (``wits.NUMERIC_ITEMS``).
+magnetic and gravity toolface, north/east, dogleg severity (``wits.NUMERIC_ITEMS``), in the WITS
+dictionary's metric or FPS units (``units``: ``m`` or ``ft``).  The corrected azimuth and north/east
+are along the stations' one north (their ``azimuth_reference``, the correction node's ``north``):
+record 07 has no item to say which, so the node says it in its log at the first station and
+whenever it changes (:func:`wits.describe`).
 
 WITSML 2.1 (``witsml_file``, empty: off): after every survey station the node rewrites the run's
 ``Trajectory`` document (:mod:`witsml`: well ``well_id``, wellbore ``wellbore``) with every station
@@ -31,12 +35,9 @@ from rclpy.node import Node
 
 from .. import witsml
 from ..launcher import station_dict
-from ..wits import WitsServer, encode
+from ..wits import UNITS, WitsServer, describe, encode
 from . import common as c
 from inclinometer_calib.msg import SurveyStation
-
-FIELDS = ("measured_depth_m", "tvd_m", "drift_deg", "azimuth_magnetic_deg", "azimuth_deg", "magnetic_toolface_deg",
-          "gravity_toolface_deg", "north_m", "east_m", "dls_deg_per_30m")
 
 
 class WitsNode(Node):
@@ -52,6 +53,9 @@ class WitsNode(Node):
         self.well_id = p.declare("well_id", "WELL", "Well identifier (item 0701)", read_only=True)
         self.hole_section = p.declare("hole_section", 0, "Sidetrack / hole section number (item 0702)",
                                       read_only=True, range=(0, 99))
+        self.units = p.declare("units", "m", "Units of the records: m (the WITS dictionary's metric: M, DEG, "
+                               "dogleg DGHM = deg/100 m) or ft (FPS: F, DEG, DGHF = deg/100 ft)", read_only=True,
+                               choices=tuple(UNITS))
         max_buffer = p.declare("max_buffer_bytes", 1 << 20, "A client with more than this waiting is "
                                "dropped as stalled", read_only=True, range=(1024, 1 << 30))
         self.witsml_file = p.declare("witsml_file", "", "WITSML 2.1 Trajectory document rewritten (atomically) "
@@ -68,6 +72,7 @@ class WitsNode(Node):
             if self.port else None
         self.sink = open(self.output, "ab") if self.output else None   # noqa: SIM115 (closed in destroy_node)
         self.sequence = 0
+        self._said = ""              # the north and units last said (wits.describe)
         self._seen = set()           # (station id, stamp) of every station received: each sent once
         self.create_subscription(SurveyStation, c.TOPIC_STATION, self._on_station, c.reliable_qos(100))
         self.get_logger().info("WITS0 record 07 of the survey stations"
@@ -84,8 +89,9 @@ class WitsNode(Node):
                                    "already sent")
             return
         self._seen.add(key)
+        station = station_dict(msg)          # the one conversion (an older recording's too)
         if self.witsml_file:
-            self.stations.append(station_dict(msg))
+            self.stations.append(station)
             if witsml.select_stations(self.stations[-1:])[0]:
                 self._write_witsml(active=True)
         if not msg.coefficients_id:
@@ -95,8 +101,12 @@ class WitsNode(Node):
                                       "tolerance): not sent as a survey")
             return
         self.sequence += 1
-        when = dt.datetime.fromtimestamp(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec, dt.timezone.utc)
-        record = encode({k: getattr(msg, k) for k in FIELDS}, self.sequence, self.well_id, self.hole_section, when)
+        said = describe([station], self.units)
+        if said != self._said:
+            self.get_logger().info(f"WITS0 record 07 from station {msg.station_id} on: {said}")
+            self._said = said
+        when = dt.datetime.fromtimestamp(station["stamp"], dt.timezone.utc)
+        record = encode(station, self.sequence, self.well_id, self.hole_section, when, units=self.units)
         if self.server is not None:
             self.server.send(record)
         if self.sink is not None:

@@ -3,7 +3,9 @@ date (config/rig_site.yaml: WMM2025 and a grid), a WITS0 client on its TCP port,
 on its WebSocket, and the WITSML trajectory it writes.  Every node is a separate process over real
 DDS (own ROS_DOMAIN_ID, localhost discovery); both servers on loopback.  The stations must carry
 the model's reference field (declination, grid convergence), depth, position and its ISCWSA
-covariance; the rig's clients must get every one of them."""
+covariance; the rig's clients must get every one of them, all along one north (grid: the site has
+a grid), so that each client's own minimum curvature lands on the positions it was given and the
+three agree to the centimetre."""
 import json
 import math
 import os
@@ -22,6 +24,7 @@ pytest.importorskip("foxglove", reason="the live node needs foxglove-sdk (requir
 ws_client = pytest.importorskip("websockets.sync.client", reason="the test client needs websockets (test.txt)")
 
 from inclinometer_calib import liveview as lv  # noqa: E402
+from north_well import receiver_positions  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
 from inclinometer_calib.cli import load_site  # noqa: E402
 
@@ -106,11 +109,12 @@ def test_the_rig_run_stations_carry_the_models_field_depth_position_and_its_unce
     for s in stations:
         # QC against the model's field: the node looked the site up as the launcher did
         assert abs(s["total_field_nt"] - site.total_field_nt) < 300 and abs(s["delta_b_nt"]) < 300
-        assert s["azimuth_reference"] == "true"
+        assert s["azimuth_reference"] == "grid"                 # the site has a grid: grid north by default
         if math.isfinite(s["azimuth_deg"]):
-            assert (s["azimuth_deg"] - s["azimuth_magnetic_deg"]) % 360 == pytest.approx(
+            assert s["azimuth_deg"] == s["azimuth_grid_deg"]
+            assert (s["azimuth_true_deg"] - s["azimuth_magnetic_deg"]) % 360 == pytest.approx(
                 site.declination_deg % 360, abs=1e-6)
-            assert (s["azimuth_deg"] - s["azimuth_grid_deg"]) % 360 == pytest.approx(
+            assert (s["azimuth_true_deg"] - s["azimuth_grid_deg"]) % 360 == pytest.approx(
                 site.grid_convergence_deg % 360, abs=1e-6)
         assert math.isfinite(s["measured_depth_m"]) and math.isfinite(s["tvd_m"])
         cov = np.reshape(s["position_covariance_ned_m2"], (3, 3))
@@ -139,3 +143,19 @@ def test_the_rigs_wits_and_foxglove_clients_get_every_station_and_the_witsml_val
     witsml.validate(xml)
     back = witsml.read_trajectory(xml)
     assert [round(b["measured_depth_m"], 3) for b in back] == [round(s["measured_depth_m"], 3) for s in stations]
+    # one north everywhere: each client's own minimum curvature from MD, inclination and azimuth lands on the
+    # north/east it was given, and the three give the same position, to the centimetre
+    live = [got[s["station_id"]] for s in stations]
+    assert {m["azimuth_reference"] for m in live} == {"grid"} and {b["azimuth_reference"] for b in back} == {"grid"}
+    given = {"wits0": (float(records[-1][(7, 18)]), float(records[-1][(7, 19)])),
+             "live": (live[-1]["north_m"], live[-1]["east_m"]), "witsml": (back[-1]["north_m"], back[-1]["east_m"])}
+    recomputed = {
+        "wits0": receiver_positions([float(r[(7, 8)]) for r in records], [float(r[(7, 13)]) for r in records],
+                                    [float(r.get((7, 15), "0")) for r in records])[-1],
+        "live": receiver_positions([m["measured_depth_m"] for m in live], [m["drift_deg"] for m in live],
+                                   [m["azimuth_deg"] or 0.0 for m in live])[-1],
+        "witsml": receiver_positions([b["measured_depth_m"] for b in back], [b["drift_deg"] for b in back],
+                                     [np.nan_to_num(b["azimuth_deg"]) for b in back])[-1]}
+    for k in given:
+        assert given[k] == pytest.approx(recomputed[k], abs=0.01), k
+        assert given[k] == pytest.approx((stations[-1]["north_m"], stations[-1]["east_m"]), abs=0.01), k

@@ -64,6 +64,7 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
             m.north_m, m.east_m, m.dls_deg_per_30m = 1.5 * k, 2.5 * k, 3.0
             m.azimuth_reference, m.azimuth_method = "true", "standard"
             m.azimuth_grid_deg = m.axial_field_nt = float("nan")                # no grid, no short collar
+            m.azimuth_true_deg = m.azimuth_deg
             m.total_gravity_mps2, m.total_field_nt, m.dip_deg = 9.81 + 0.001 * k, 50_000.0 + k, 60.0 + 0.01 * k
             m.raw_gravity_mps2 = [0.1 * k, -0.2, 9.8]
             m.raw_field_nt = [1000.0 + k, -2000.0, 40_000.5]
@@ -124,6 +125,8 @@ def test_stations_leave_the_node_as_wits0_records_over_tcp_and_to_a_file(ros, ro
             log = proc.communicate(timeout=20)[0]
             pytest.fail(f"the node did not end within 20 s of SIGTERM; its log and stacks:\n{log[-8000:]}")
     assert "station 3: status error" in log and "Traceback" not in log, log
+    # record 07 cannot say its north and units: the node says them
+    assert "azimuth 0715 and north/east 0718/0719 along true north" in log and "units M, DEG, dogleg DGHM" in log
     final = traj.read_bytes()                                 # the node's last rewrite: the survey is over
     witsml.validate(final)
     assert b"<eml:ActiveStatus>inactive<" in final and len(witsml.read_trajectory(final)) == 5
