@@ -42,8 +42,9 @@ What goes where (tool frame Z down-hole; units are the Energistics uom symbols):
   ``GravTotalFieldReference``, ``MagTotalFieldReference``, ``MagDipAngleReference``.
 * ``CorUsed``: ``StnMagDeclUsed`` = azimuth(true) − azimuth(magnetic) when the azimuths are
   true or grid, and ``StnGridConUsed`` = azimuth(true) − azimuth(grid) when they are grid, wrapped
-  to ±180° (WITSML's signs: true = magnetic + declination, grid = true − convergence); with the short-collar azimuth ``MagAxialDrlstrCor`` = −(the axial
-  interference field solved), nT, and ``AxialMagInterferenceCorUsed`` true.  ``GravAccelCorUsed``
+  to ±180° (WITSML's signs: true = magnetic + declination, grid = true − convergence); with the
+  short-collar azimuth ``MagAxialDrlstrCor`` = −(the axial interference field solved), nT, and
+  ``AxialMagInterferenceCorUsed`` true.  ``GravAccelCorUsed``
   and ``MagXAxialCorUsed`` (alignment corrections) are true: the calibration record corrects both
   triads' misalignment.
 * The calibration record's id.  The schema has no element for it; it offers ``ExtensionNameValue``

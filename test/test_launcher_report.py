@@ -124,3 +124,34 @@ def test_a_bag_without_stations_coefficients_or_status_gives_an_empty_summary(tm
     assert [p["file"] for p in summary["bag_parts"]] == ["survey.mcap", "survey_1.mcap"]
     assert "bag: 0 survey stations, 0 coefficient message(s)" in said
     assert (out / "summary.json").is_file() and (out / "report.md").is_file()
+
+
+def _recorded_station(**fields):
+    """A SurveyStation as rosbags reads it from a bag recorded before azimuth_true_deg existed: the
+    fields station_dict reads, no azimuth_true_deg."""
+    from types import SimpleNamespace
+
+    names = ("station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg", "magnetic_toolface_deg",
+             "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt", "delta_dip_deg",
+             "status", "azimuth_undefined", "interference_suspected", "coefficients_id", "reference_drift_deg",
+             "reference_azimuth_deg", "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
+             "moved_during_capture", "model_misfit", "model_diagnosis", "measured_depth_m", "tvd_m", "north_m",
+             "east_m", "dls_deg_per_30m", "azimuth_magnetic_deg", "azimuth_grid_deg", "azimuth_reference")
+    values = {k: 0 for k in names}
+    values.update(fields)
+    return SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=1, nanosec=0)), warnings=[], **values)
+
+
+def test_a_station_recorded_before_the_one_north_is_read_along_its_positions_north():
+    # then: azimuth true, north/east along grid north (the site had a grid)
+    old = launcher.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=39.2,
+                                                  azimuth_reference="true", reference_azimuth_deg=40.25))
+    assert old["azimuth_reference"] == "grid" and old["azimuth_deg"] == 39.2 and old["azimuth_true_deg"] == 40.0
+    assert old["reference_azimuth_deg"] == pytest.approx(40.25 - 0.8)      # the reference along grid north too
+    # no grid: true (or magnetic) as recorded
+    plain = launcher.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+                                                    azimuth_reference="true", reference_azimuth_deg=40.25))
+    assert plain["azimuth_reference"] == "true" and plain["azimuth_deg"] == 40.0 and plain["azimuth_true_deg"] == 40.0
+    mag = launcher.station_dict(_recorded_station(azimuth_deg=37.5, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+                                                  azimuth_reference="magnetic"))
+    assert mag["azimuth_reference"] == "magnetic" and math.isnan(mag["azimuth_true_deg"])
