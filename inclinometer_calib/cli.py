@@ -285,6 +285,13 @@ def cmd_witsml(args):
         stations, records, _ = read_bag(args.bag)
     except (OSError, ValueError) as exc:
         raise UserError(f"{args.bag}: {exc}") from None
+    for path in args.coeffs or ():
+        try:
+            with open(path, encoding="utf-8") as fh:
+                text = fh.read()
+            records.append({"id": str((yaml.safe_load(text) or {})["id"]), "coefficients_yaml": text})
+        except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+            raise UserError(f"--coeffs {path}: not a calibration record ({type(exc).__name__}: {exc})") from None
     try:
         export = trajectory_document(stations, models=mag_models(records), **options)
         if not export.exported:
@@ -1471,6 +1478,9 @@ def build_parser():
     wx.add_argument("-o", "--output", help="file to write (default: standard output); the well and wellbore "
                                            "documents are written beside it (FILE's stem + .well.xml, ...)")
     _witsml_options(wx)
+    wx.add_argument("--coeffs", action="append", metavar="RECORD.yaml",
+                    help="a calibration record the stations were corrected with, when the bag does not carry it "
+                         "(reprocessed with --coeffs): its site names the geomagnetic model (repeatable)")
     wx.set_defaults(func=cmd_witsml)
 
     c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")

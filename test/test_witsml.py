@@ -39,8 +39,9 @@ def well(tmp_path_factory):
     probe = sim.build_probe(3)
     log = sim.run_session(probe, SITE, sim.well_path_session(8), np.random.default_rng(0), rate_hz=50)
     write_probe_bag(log, d / "well.mcap")
-    reprocess(d / "well.mcap", d / "run.mcap", Calibration(probe.model, site=SITE))
-    return {"dir": d, "bag": d / "run.mcap", "stations": read_bag(d / "run.mcap")[0]}
+    cal = Calibration(probe.model, site=SITE)
+    reprocess(d / "well.mcap", d / "run.mcap", cal)
+    return {"dir": d, "bag": d / "run.mcap", "stations": read_bag(d / "run.mcap")[0], "calibration": cal}
 
 
 def _station(k, **kw):
@@ -461,9 +462,18 @@ def test_the_cli_writes_1411_in_feet_beside_its_parents_and_refuses_a_bad_option
     assert main(args + ["--start-time", "2026-03-01T06:30:00Z"]) == 0
     capsys.readouterr()
     assert witsml.read_trajectory(out.read_bytes())[0]["stamp"] == witsml.parse_time("2026-03-01T06:30:00Z")
+    # a bag reprocessed with a record carries no record: --coeffs gives it, and its site's model
+    assert all(b["mag_model"] == "" for b in witsml.read_trajectory(out.read_bytes()))
+    record = yaml.safe_load(well["calibration"].to_yaml())
+    record["site"]["reference"]["model"] = "IGRF-14"      # the site the record names, looked up in IGRF-14
+    (tmp_path / "rec.yaml").write_text(yaml.safe_dump(record))
+    assert main(args + ["--coeffs", str(tmp_path / "rec.yaml")]) == 0
+    back = witsml.read_trajectory(out.read_bytes())
+    assert {(b["mag_model"], b["mag_model_valid"]) for b in back} == {("IGRF-14", "1900.0-2030.0")}
+    capsys.readouterr()
     before = out.read_bytes()
     for bad in (["--units", "yd"], ["--version", "1.3.1.1"], ["--start-time", "yesterday"],
-                ["--version", "2.1", "--well-uid", "W1", "--wellbore-uid", "WB1"]):
+                ["--version", "2.1", "--well-uid", "W1", "--wellbore-uid", "WB1"], ["--coeffs", str(tmp_path)]):
         assert main(args + bad) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: ") and err.count("\n") == 1, err
