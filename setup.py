@@ -51,13 +51,16 @@ setup(
                       # one BLAS thread around the lab's small fits (inclinometer_calib/lab/blas.py)
                       "threadpoolctl>=3.1",
                       "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6",
-                      # WITSML 2.1 out (inclinometer_calib/witsml.py): building/reading, schema validation
+                      # WITSML 2.1 / 1.4.1.1 out (inclinometer_calib/witsml.py): building/reading, schema validation
                       "lxml>=6.1", "xmlschema>=4.3",
                       "tqdm>=4.66"],
     data_files=INTERFACES,
-    # the Energistics schemas the WITSML documents are validated against (schemas/witsml21/README.md)
+    # the Energistics schemas the WITSML documents are validated against (schemas/witsml21/README.md,
+    # schemas/witsml1411/README.md)
     package_data={"inclinometer_calib": ["schemas/witsml21/README.md",
                                          "schemas/witsml21/energyml/data/*/*/xsd_schemas/*.xsd",
+                                         "schemas/witsml1411/README.md",
+                                         "schemas/witsml1411/*/xsd_schemas/*.xsd",
                                          # the fleet registry's Alembic environment and schema versions
                                          "fleet/migrations/README", "fleet/migrations/*.py",
                                          "fleet/migrations/script.py.mako", "fleet/migrations/versions/*.py"]},

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 
@@ -268,31 +269,57 @@ def cmd_wits(args):
 
 
 def cmd_witsml(args):
-    """Export the survey stations of a recorded run as a WITSML 2.1 Trajectory (:mod:`witsml`): validated
-    against the schema before it is written, and written atomically."""
+    """Export the survey stations of a recorded run as a WITSML 2.1 or 1.4.1.1 trajectory (:mod:`witsml`):
+    every document validated against its schema before it is written, and written atomically —
+    with ``-o``, the well, wellbore (and 2.1 datum) documents beside it unless they exist in the store."""
+    from .launcher import read_bag
+    from .witsml import (OPTION_HELP, Options, WitsmlError, mag_models, parent_path, trajectory_document,
+                         validate)
+
+    options = {name: getattr(args, name) for name in OPTION_HELP}
+    try:
+        Options(**options).check()       # a bad option: one line, before the bag is read
+    except WitsmlError as exc:
+        raise UserError(str(exc)) from None
     if args.output:
         check_output(args.output)        # said before the work, not after it
-    from .launcher import read_bag
-    from .witsml import WitsmlError, trajectory_document, validate
-
     try:
-        stations = read_bag(args.bag)[0]
+        stations, records, _ = read_bag(args.bag)
     except (OSError, ValueError) as exc:
         raise UserError(f"{args.bag}: {exc}") from None
+    for path in args.coeffs or ():
+        try:
+            with open(path, encoding="utf-8") as fh:
+                text = fh.read()
+            records.append({"id": str((yaml.safe_load(text) or {})["id"]), "coefficients_yaml": text})
+        except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+            raise UserError(f"--coeffs {path}: not a calibration record ({type(exc).__name__}: {exc})") from None
     try:
-        export = trajectory_document(stations, well=args.well, wellbore=args.wellbore, version=args.version)
+        export = trajectory_document(stations, models=mag_models(records), **options)
         if not export.exported:
             raise UserError(f"{args.bag}: no corrected survey station with a measured depth to export (left out: "
                             f"{export.skipped_text()})")
         validate(export.xml)
+        for _, xml in export.parents:
+            validate(xml)
     except WitsmlError as exc:
         raise UserError(f"{args.bag}: {exc}") from None
+    for note in export.notes:
+        print(f"note: {note}", file=sys.stderr)
     if args.output:
+        parents = [(parent_path(args.output, kind), xml) for kind, xml in export.parents]
+        for path, xml in parents:
+            atomic_write_text(path, xml.decode("utf-8"))
         atomic_write_text(args.output, export.xml.decode("utf-8"))
-        print(f"wrote {args.output}: WITSML {args.version} Trajectory of {export.exported} stations (left out: "
-              f"{export.skipped_text()})")
+        hung = (f"; load {', '.join(p for p, _ in parents)} first" if parents else
+                f"; it references the store's well {args.well_uid} and wellbore {args.wellbore_uid}")
+        print(f"wrote {args.output}: WITSML {export.version} trajectory of {export.exported} stations in "
+              f"{args.units} (left out: {export.skipped_text()}){hung}")
     else:
         sys.stdout.buffer.write(export.xml)
+        if export.parents:
+            print("note: the well and wellbore documents are written beside the trajectory with -o FILE",
+                  file=sys.stderr)
     return 0
 
 
@@ -1383,6 +1410,18 @@ def _detector_options(p, mag_unit=True):
                        help="unit of the log's magnetometer columns (default nT)")
 
 
+def _witsml_options(parser):
+    """The WITSML options (:data:`witsml.OPTION_HELP`), checked by :meth:`witsml.Options.check` (one line, exit 2)."""
+    from .witsml import OPTION_HELP, Options
+
+    defaults = Options()
+    for name, text in OPTION_HELP.items():
+        default = getattr(defaults, name)
+        shown = "" if default == "" or (isinstance(default, float) and math.isnan(default)) else f" (default {default})"
+        parser.add_argument("--" + name.replace("_", "-"), default=default, type=type(default), help=text + shown,
+                            metavar=name.split("_")[-1].upper())
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="inclinometer-calib",
                                 description="Calibrate magnetic borehole inclinometers and correct their surveys.")
@@ -1464,13 +1503,15 @@ def build_parser():
                    help="the WITS dictionary's metric (m, deg/100 m) or FPS units (ft, deg/100 ft); default m")
     w.set_defaults(func=cmd_wits)
 
-    wx = sub.add_parser("witsml", help="export a recorded run's survey stations as a WITSML 2.1 Trajectory "
-                                       "(validated against the Energistics schema)")
+    wx = sub.add_parser("witsml", help="export a recorded run's survey stations as a WITSML 2.1 or 1.4.1.1 "
+                                       "trajectory (validated against the Energistics schema)")
     wx.add_argument("bag", help="a recorded run (MCAP) with /survey/station")
-    wx.add_argument("-o", "--output", help="file to write (default: standard output)")
-    wx.add_argument("--well", default="WELL", help="well name (the wits node's well_id)")
-    wx.add_argument("--wellbore", default="WELLBORE", help="wellbore name")
-    wx.add_argument("--version", default="2.1", choices=["2.1"], help="WITSML version (2.1, the current release)")
+    wx.add_argument("-o", "--output", help="file to write (default: standard output); the well and wellbore "
+                                           "documents are written beside it (FILE's stem + .well.xml, ...)")
+    _witsml_options(wx)
+    wx.add_argument("--coeffs", action="append", metavar="RECORD.yaml",
+                    help="a calibration record the stations were corrected with, when the bag does not carry it "
+                         "(reprocessed with --coeffs): its site names the geomagnetic model (repeatable)")
     wx.set_defaults(func=cmd_witsml)
 
     c = sub.add_parser("correct", help="correct a log's static stations; errors against ref_* if present")

@@ -103,7 +103,7 @@ RESTART_MIN_FREE_BYTES = 1 << 20
 #: errno of a write refused for want of room: a full disk, a quota, a file size limit
 REFUSED_WRITES = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 STATE_FILE = "correction_state.json"
-WITSML_FILE = "trajectory.xml"  # the wits node's WITSML 2.1 Trajectory (--witsml or --wits-port)
+WITSML_FILE = "trajectory.xml"  # the wits node's WITSML trajectory (--witsml or --wits-port; its parents beside it)
 
 
 def config_dir():
@@ -961,7 +961,7 @@ def witsml_summary(path, stations) -> dict:
     try:
         with open(path, "rb") as fh:
             xml = fh.read()
-        witsml.validate(xml)
+        res["version"] = witsml.validate(xml)
         res["stations"] = len(witsml.read_trajectory(xml))
         res["valid"] = True
     except (OSError, witsml.WitsmlError) as exc:
@@ -1164,10 +1164,10 @@ def format_summary(s) -> list:
     wx = s.get("witsml")
     if wx:
         if wx.get("valid"):
-            lines.append(f"WITSML 2.1 trajectory: {wx['file']}: {wx['stations']} stations, valid against the "
-                         f"schema (the bag's stations export to {wx['bag_stations']})")
+            lines.append(f"WITSML {wx['version']} trajectory: {wx['file']}: {wx['stations']} stations, valid against "
+                         f"the schema (the bag's stations export to {wx['bag_stations']})")
         else:
-            lines.append(f"WITSML 2.1 trajectory: {wx['file']}: NOT valid: {wx['error']}")
+            lines.append(f"WITSML trajectory: {wx['file']}: NOT valid: {wx['error']}")
     return lines
 
 
@@ -1209,8 +1209,8 @@ def parse_args(argv=None):
                     help="also start the live node: the survey live in Foxglove on ws://127.0.0.1:PORT (stations, "
                          "QC residuals, trajectory, diagnostics; layout config/foxglove_layout.json; 0: no live node)")
     ap.add_argument("--witsml", action="store_true",
-                    help="start the wits node for <out>/trajectory.xml: the survey as a WITSML 2.1 Trajectory, "
-                         "rewritten after every station")
+                    help="start the wits node for <out>/trajectory.xml: the survey as a WITSML trajectory (2.1 unless "
+                         "config/wits.yaml's witsml.version says 1.4.1.1), rewritten after every station")
     ap.add_argument("--no-loop", action="store_true", help="no model loop in the summary (the lab's finding on the "
                     "recorded data and the field effect ladder)")
     ap.add_argument("--unpaced", action="store_true",
@@ -1264,8 +1264,10 @@ def _lock_out_dir(out):
 
 def run_files(out) -> list:
     """Files of an earlier run in ``out`` that a new run would mix with (refused without --overwrite)."""
+    from .witsml import PARENT_KINDS, parent_path
+
     names = ["coeffs.yaml", "summary.json", "truth.json", STATE_FILE, "lab_model.yaml", "report.html", "compare",
-             WITSML_FILE, "wits0.dat"]
+             WITSML_FILE, "wits0.dat"] + [parent_path(WITSML_FILE, kind) for kind in PARENT_KINDS]
     found = [os.path.basename(p) for p in bag_parts(out)]
     return found + [f for f in names if os.path.exists(os.path.join(out, f))]
 

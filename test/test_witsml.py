@@ -1,14 +1,18 @@
-"""WITSML 2.1 Trajectory out (:mod:`inclinometer_calib.witsml`): a simulated well reprocessed into a
-bag, exported, validated against the vendored Energistics schema (xmlschema) and parsed back (lxml)
-to the same numbers; documents the schema must refuse (a wrong uom, a missing Md, a status outside
-the enum) are refused; which stations go in and how; the CLI from a bag; the vendored schema set
-is complete and carries its notice."""
+"""WITSML out (:mod:`inclinometer_calib.witsml`): a simulated well reprocessed into a bag, exported as
+WITSML 2.1 and 1.4.1.1, validated against the vendored Energistics schemas (xmlschema) and parsed back
+(lxml) to the same numbers; both versions and both units give the same stations, positions that
+agree with their own declared north, the ISCWSA covariance, datums, well and wellbore; documents
+the schemas must refuse (a wrong uom, a missing Md, a status outside the enum) are refused; which
+stations go in and how; times shifted to the survey's start; the CLI from a bag; the vendored
+schema sets are complete and carry their notice."""
 import math
 import os
 import re
 
 import numpy as np
 import pytest
+import yaml
+from lxml import etree
 
 pytest.importorskip("mcap")
 pytest.importorskip("rosbags")
@@ -20,6 +24,7 @@ from inclinometer_calib.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.frames import Site  # noqa: E402
 from inclinometer_calib.launcher import read_bag, witsml_summary  # noqa: E402
 from inclinometer_calib.reprocess import reprocess, write_probe_bag  # noqa: E402
+from inclinometer_calib.trajectory import minimum_curvature  # noqa: E402
 
 DECLINATION, CONVERGENCE = 2.5, 0.8
 SITE = Site(total_field_nt=52000.0, dip_deg=50.0, declination_deg=DECLINATION,
@@ -34,8 +39,9 @@ def well(tmp_path_factory):
     probe = sim.build_probe(3)
     log = sim.run_session(probe, SITE, sim.well_path_session(8), np.random.default_rng(0), rate_hz=50)
     write_probe_bag(log, d / "well.mcap")
-    reprocess(d / "well.mcap", d / "run.mcap", Calibration(probe.model, site=SITE))
-    return {"dir": d, "bag": d / "run.mcap", "stations": read_bag(d / "run.mcap")[0]}
+    cal = Calibration(probe.model, site=SITE)
+    reprocess(d / "well.mcap", d / "run.mcap", cal)
+    return {"dir": d, "bag": d / "run.mcap", "stations": read_bag(d / "run.mcap")[0], "calibration": cal}
 
 
 def _station(k, **kw):
@@ -46,7 +52,8 @@ def _station(k, **kw):
              delta_b_nt=12.5, delta_dip_deg=0.25, status=0, measured_depth_m=500.0 + 30 * k,
              tvd_m=499.0 + 29.5 * k, north_m=1.5 * k, east_m=-2.5 * k, dls_deg_per_30m=3.0,
              coefficients_id="cafe0123", stamp=1_795_000_000.25 + 30 * k, warnings=[],
-             raw_gravity_mps2=[0.11, -0.22, 9.79], raw_field_nt=[1234.5, -2345.5, 40123.25])
+             raw_gravity_mps2=[0.11, -0.22, 9.79], raw_field_nt=[1234.5, -2345.5, 40123.25],
+             position_covariance_ned_m2=[NAN] * 9)
     s.update(kw)
     return s
 
@@ -247,28 +254,250 @@ def test_write_trajectory_is_atomic_and_refuses_to_replace_a_good_file_with_a_ba
     good = path.read_bytes()
     with pytest.raises(witsml.WitsmlError):
         witsml.write_trajectory(path, [_station(1), _station(2, azimuth_reference="magnetic")])
-    with pytest.raises(witsml.WitsmlError, match="only 2.1"):
+    with pytest.raises(witsml.WitsmlError, match="version '2.0': 2.1 or 1.4.1.1"):
         witsml.write_trajectory(path, [_station(1)], version="2.0")
-    assert path.read_bytes() == good and os.listdir(tmp_path) == ["t.xml"]
+    assert path.read_bytes() == good
+    # the well, datum and wellbore documents beside it, each valid
+    assert sorted(os.listdir(tmp_path)) == ["t.datum.xml", "t.well.xml", "t.wellbore.xml", "t.xml"]
+    for kind in ("well", "datum", "wellbore"):
+        assert witsml.validate((tmp_path / f"t.{kind}.xml").read_bytes()) == "2.1"
 
 
 def test_the_launcher_summary_checks_the_live_document(tmp_path):
     stations = [_station(k) for k in range(1, 4)]
     path = tmp_path / "trajectory.xml"
     witsml.write_trajectory(path, stations)
-    assert witsml_summary(str(path), stations) == {"file": str(path), "stations": 3, "valid": True, "bag_stations": 3}
+    assert witsml_summary(str(path), stations) == {"file": str(path), "stations": 3, "valid": True, "bag_stations": 3,
+                                                   "version": "2.1"}
+    witsml.write_trajectory(path, stations, version="1.4.1.1")
+    assert witsml_summary(str(path), stations)["version"] == "1.4.1.1"
     path.write_bytes(path.read_bytes().replace(b'uom="dega"', b'uom="deg"'))
     res = witsml_summary(str(path), stations)
     assert res["valid"] is False and "uom='deg'" in res["error"]
 
 
 # ---------------------------------------------------------------------------------------------
+# 2.1 and 1.4.1.1, metres and feet: one trajectory
+
+@pytest.fixture(scope="module")
+def exports(well):
+    """The well's stations exported in both versions and both units, with a datum 12.5 (m or ft)
+    above mean sea level: {(version, units): (export, read_document)}."""
+    out = {}
+    for version in witsml.VERSIONS:
+        for units in witsml.UNITS:
+            e = witsml.trajectory_document(well["stations"], well="W-7", wellbore="W-7 ST1", version=version,
+                                           units=units, datum="kelly bushing", datum_elevation=12.5)
+            out[version, units] = (e, witsml.read_document(e.xml))
+    return out
+
+
+def test_both_versions_validate_with_their_well_wellbore_and_datum_and_refuse_each_others_units(exports):
+    for (version, _), (e, doc) in exports.items():
+        assert witsml.validate(e.xml) == version == doc["version"] == e.version
+        kinds = [k for k, _ in e.parents]
+        assert kinds == (["well", "vertical_crs", "datum", "wellbore"] if version == "2.1" else ["well", "wellbore"])
+        for _, xml in e.parents:
+            assert witsml.validate(xml) == version
+        assert doc["wellbore"] == "W-7 ST1" and doc["datum"]
+    # 2.1: trajectory -> wellbore -> well, and trajectory and wellbore -> one datum of kind "kelly bushing",
+    # 12.5 ft up in EPSG:5714 (mean sea level height)
+    e, doc = exports["2.1", "ft"]
+    parents = {k: etree.fromstring(x) for k, x in e.parents}
+    x = witsml.XP
+    assert parents["wellbore"].get("uuid") == doc["wellbore_uid"]
+    assert parents["wellbore"].findtext("w:Well/eml:Uuid", namespaces=x) == parents["well"].get("uuid")
+    assert parents["datum"].get("uuid") == doc["datum_uid"] == parents["wellbore"].findtext(
+        "w:DefaultMdDatum/eml:Uuid", namespaces=x) == etree.fromstring(e.xml).findtext("w:DefaultTvdDatum/eml:Uuid",
+                                                                                         namespaces=x)
+    assert parents["datum"].findtext("eml:Kind", namespaces=x) == "kelly bushing"
+    assert parents["datum"].findtext("eml:VerticalCoordinate", namespaces=x) == "12.5"
+    assert parents["vertical_crs"].get("uom") == "ft"
+    assert parents["vertical_crs"].findtext("eml:AbstractVerticalCrs/eml:EpsgCode", namespaces=x) == "5714"
+    # 1.4.1.1: the trajectory's uids are the well's and wellbore's; every md/tvd is against the well's KB datum
+    e, doc = exports["1.4.1.1", "m"]
+    well_doc, wellbore_doc = (etree.fromstring(x) for _, x in e.parents)
+    y = witsml.XP14
+    assert well_doc.find("w:well", y).get("uid") == doc["well_uid"] == wellbore_doc.find("w:wellbore", y).get("uidWell")
+    assert wellbore_doc.find("w:wellbore", y).get("uid") == doc["wellbore_uid"]
+    kb = well_doc.find("w:well/w:wellDatum[w:code='KB']", y)
+    assert kb.get("uid") == doc["datum_uid"] and kb.findtext("w:elevation", namespaces=y) == "12.5"
+    assert kb.find("w:elevation", y).get("datum") == well_doc.find("w:well/w:wellDatum[w:code='SL']", y).get("uid")
+    traj = etree.fromstring(e.xml)
+    depths = traj.findall(".//w:md", y) + traj.findall(".//w:tvd", y) + traj.findall(".//w:mdMn", y)
+    assert len(depths) > 16 and {d.get("datum") for d in depths} == {doc["datum_uid"]}
+    # each version's uom symbols: the other's dogleg severity is refused
+    with pytest.raises(witsml.WitsmlError, match="dls"):
+        witsml.validate(e.xml.replace(b'uom="dega/30m"', b'uom="1/30 dega/m"'))
+    with pytest.raises(witsml.WitsmlError, match="Dls"):
+        witsml.validate(exports["2.1", "m"][0].xml.replace(b'uom="1/30 dega/m"', b'uom="dega/30m"'))
+
+
+def test_both_versions_and_units_read_back_to_the_same_stations(well, exports):
+    ref = exports["2.1", "m"][1]["stations"]
+    assert len(ref) == len(well["stations"]) == 8
+    for (version, units), (_, doc) in exports.items():
+        assert len(doc["stations"]) == 8 and doc["azimuth_reference"] == "grid"
+        for a, b in zip(ref, doc["stations"]):
+            for k, v in a.items():
+                if isinstance(v, list):
+                    np.testing.assert_allclose(b[k], v, rtol=1e-12, err_msg=f"{version} {units} {k}")
+                elif isinstance(v, float):
+                    # metres: bit for bit; feet: the conversion's rounding
+                    assert b[k] == pytest.approx(v, rel=0 if units == "m" else 1e-12, nan_ok=True), (version, units, k)
+                else:
+                    assert b[k] == v, (version, units, k)
+
+
+def test_matrixcov_is_the_stations_iscwsa_covariance_in_m2_and_ft2(well, exports):
+    stations = well["stations"]
+    assert all(np.all(np.isfinite(s["position_covariance_ned_m2"])) for s in stations)
+    for _, doc in exports.values():
+        for s, b in zip(stations, doc["stations"]):
+            np.testing.assert_allclose(b["position_covariance_ned_m2"], s["position_covariance_ned_m2"], rtol=1e-12)
+            assert b["tool_error_model"] == "ISCWSA MWD Rev4"
+    # the numbers as written: NN in ft² is m² / 0.3048², the biases 0 (rev 4 has none), 1σ (2.1 Sigma)
+    cov = np.reshape(stations[-1]["position_covariance_ned_m2"], (3, 3))
+    root = etree.fromstring(exports["2.1", "ft"][0].xml)
+    mc = root.findall("w:TrajectoryStation", witsml.XP)[-1].find("w:MatrixCov", witsml.XP)
+    nn = mc.find("w:VarianceNN", witsml.XP)
+    assert nn.get("uom") == "ft2" and float(nn.text) == pytest.approx(cov[0, 0] / 0.3048 ** 2, rel=1e-15)
+    assert float(mc.findtext("w:VarianceEVert", namespaces=witsml.XP)) == pytest.approx(cov[1, 2] / 0.3048 ** 2)
+    assert [mc.findtext(f"w:Bias{a}", namespaces=witsml.XP) for a in ("N", "E", "Vert")] == ["0.0"] * 3
+    assert mc.findtext("w:Sigma", namespaces=witsml.XP) == "1.0"
+
+
+def test_positions_agree_across_units_and_with_their_own_declared_north_to_the_centimetre(exports):
+    """Minimum curvature from the document's own Md, Incl and Azi (along its AziRef) from the tie-in
+    at the surface gives its Tvd, DispNs, DispEw; feet and metres agree after conversion."""
+    for (version, units), (e, doc) in exports.items():
+        b = doc["stations"]
+        t = minimum_curvature([0.0] + [s["measured_depth_m"] for s in b], [0.0] + [s["drift_deg"] for s in b],
+                              [0.0] + [s["azimuth_deg"] for s in b])
+        for k, got in (("tvd_m", t.tvd), ("north_m", t.north), ("east_m", t.east)):
+            np.testing.assert_allclose([s[k] for s in b], got[1:], atol=0.01, err_msg=f"{version} {units} {k}")
+        np.testing.assert_allclose([s["dls_deg_per_30m"] for s in b], t.dls[1:], atol=1e-6)
+        m = exports[version, "m"][1]["stations"]
+        for k in ("measured_depth_m", "tvd_m", "north_m", "east_m"):
+            np.testing.assert_allclose([s[k] for s in b], [s[k] for s in m], atol=0.01)
+    # what feet look like: Md in ft, DLS per 100 ft (30 m = 98.4 ft: 1.016 x the per-30 m value)
+    root = etree.fromstring(exports["1.4.1.1", "ft"][0].xml)
+    st = root.find(".//w:trajectoryStation", witsml.XP14)
+    m = exports["1.4.1.1", "m"][1]["stations"][0]
+    assert st.find("w:md", witsml.XP14).get("uom") == "ft"
+    assert float(st.findtext("w:md", namespaces=witsml.XP14)) == pytest.approx(m["measured_depth_m"] / 0.3048)
+    assert st.find("w:dls", witsml.XP14).get("uom") == "dega/100ft"
+    assert float(st.findtext("w:dls", namespaces=witsml.XP14)) == pytest.approx(m["dls_deg_per_30m"] * 30.48 / 30)
+
+
+@pytest.mark.parametrize("version", witsml.VERSIONS)
+def test_start_time_shifts_every_time_and_a_1970_clock_is_said(version):
+    stations = [_station(k, stamp=5.25 + 30 * k) for k in range(1, 4)]   # a replayed log's clock
+    old = witsml.trajectory_document(stations, version=version)
+    assert len(old.notes) == 1 and "1970-01-01T00:00:35.250000Z, before 1980" in old.notes[0]
+    new = witsml.trajectory_document(stations, version=version, start_time="2026-03-01T06:30:00+01:00")
+    witsml.validate(new.xml)
+    assert new.notes == []
+    pattern = rb"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{6}Z"
+    before = [witsml._stamp(t.decode()) for t in re.findall(pattern, old.xml)]
+    after = [witsml._stamp(t.decode()) for t in re.findall(pattern, new.xml)]
+    assert len(after) == len(before) >= 3 * 2 + 3                  # every station's, the trajectory's
+    shift = witsml.parse_time("2026-03-01T05:30:00Z") - 35.25
+    assert after == pytest.approx([t + shift for t in before], abs=1e-6)
+    assert witsml.read_trajectory(new.xml)[0]["stamp"] == pytest.approx(witsml.parse_time("2026-03-01T05:30:00Z"))
+
+
+def test_the_geomagnetic_model_is_the_one_of_the_site_each_station_was_evaluated_against():
+    site = Site(50000.0, 60.0, 2.5, 9.81, reference={"model": "WMM2025", "sources": {
+        "total_field_nt": "WMM2025 at 60, 5, 0 m, 2026.2", "declination_deg": "measured (IFR)"}})
+    records = [{"id": "cafe0123", "coefficients_yaml": yaml.safe_dump({"id": "cafe0123", "site": site.to_dict()})},
+               {"id": "typed", "coefficients_yaml": yaml.safe_dump({"site": Site(50000.0, 60.0).to_dict()})}]
+    models = witsml.mag_models(records)
+    assert list(models) == ["cafe0123"]                        # a site typed in names no model
+    stations = [_station(1), _station(2, delta_b_nt=40.0), _station(3, coefficients_id="typed")]
+    for version in witsml.VERSIONS:
+        e = witsml.trajectory_document(stations, models=models, version=version)
+        witsml.validate(e.xml)
+        back = witsml.read_trajectory(e.xml)
+        # the record's site (reference |B| = total − delta = 50000 nT, dip 60°): its model, IFR declination
+        assert (back[0]["mag_model"], back[0]["mag_model_valid"]) == ("WMM2025+IFR", "2025.0-2030.0")
+        assert etree.fromstring(e.xml).findtext(f".//w:{witsml.element_name('InfieldRefCorUsed', version)}",
+                                                namespaces=witsml.XP if version == "2.1" else witsml.XP14) == "true"
+        # evaluated against another reference (a site overridden in the correction node): not the record's
+        assert back[1]["mag_model"] == back[2]["mag_model"] == ""
+    named = witsml.read_trajectory(witsml.trajectory_document(stations, models=models, mag_model="IGRF-14").xml)
+    assert {(b["mag_model"], b["mag_model_valid"]) for b in named} == {("IGRF-14", "1900.0-2030.0")}
+
+
+def test_existing_well_and_wellbore_are_referenced_and_their_uids_checked():
+    wid, bid, did = (f"0b5d7c1e-22aa-4b3c-9d{k}e-0123456789ab" for k in "012")
+    e = witsml.trajectory_document([_station(1)], well_uid=wid, wellbore_uid=bid, datum_uid=did)
+    witsml.validate(e.xml)
+    doc = witsml.read_document(e.xml)
+    assert e.parents == [] and (doc["wellbore_uid"], doc["datum_uid"]) == (bid, did)
+    e = witsml.trajectory_document([_station(1)], version="1.4.1.1", well_uid="w-17", wellbore_uid="wb-17-1")
+    witsml.validate(e.xml)
+    doc = witsml.read_document(e.xml)
+    assert e.parents == [] and (doc["well_uid"], doc["wellbore_uid"], doc["datum_uid"]) == ("w-17", "wb-17-1", "")
+    assert b"datum=" not in e.xml                     # the wellbore's default datum applies
+    for kw, what in (({"well_uid": "w-17", "wellbore_uid": "wb-17-1"}, "uuid"), ({"well_uid": wid}, "both"),
+                     ({"datum_uid": did}, "needs well_uid"), ({"units": "yd"}, "units 'yd'"),
+                     ({"datum": "floor"}, "datum 'floor'"), ({"start_time": "yesterday"}, "ISO 8601"),
+                     ({"well_uid": wid, "wellbore_uid": bid, "datum_elevation": 3.0}, "datum_elevation")):
+        with pytest.raises(witsml.WitsmlError, match=what):
+            witsml.trajectory_document([_station(1)], **kw)
+
+
+def test_the_cli_writes_1411_in_feet_beside_its_parents_and_refuses_a_bad_option_in_one_line(well, tmp_path,
+                                                                                             capsys):
+    out = tmp_path / "traj.xml"
+    args = ["witsml", str(well["bag"]), "-o", str(out), "--version", "1.4.1.1", "--units", "ft", "--well", "W-7",
+            "--wellbore", "W-7 ST1", "--datum", "kelly bushing", "--datum-elevation", "12.5"]
+    assert main(args) == 0
+    said = capsys.readouterr()
+    assert "WITSML 1.4.1.1 trajectory of 8 stations in ft" in said.out and "traj.well.xml" in said.out
+    assert said.err == ""                                     # the bag's stamps are of 2023: nothing to say
+    assert witsml.validate(out.read_bytes()) == "1.4.1.1"
+    for kind in ("well", "wellbore"):
+        assert witsml.validate((tmp_path / f"traj.{kind}.xml").read_bytes()) == "1.4.1.1"
+    assert out.read_bytes() == witsml.trajectory_document(well["stations"], well="W-7", wellbore="W-7 ST1",
+                                                          version="1.4.1.1", units="ft", datum="kelly bushing",
+                                                          datum_elevation=12.5).xml
+    assert main(args + ["--start-time", "2026-03-01T06:30:00Z"]) == 0
+    capsys.readouterr()
+    assert witsml.read_trajectory(out.read_bytes())[0]["stamp"] == witsml.parse_time("2026-03-01T06:30:00Z")
+    # a bag reprocessed with a record carries no record: --coeffs gives it, and its site's model
+    assert all(b["mag_model"] == "" for b in witsml.read_trajectory(out.read_bytes()))
+    record = yaml.safe_load(well["calibration"].to_yaml())
+    record["site"]["reference"]["model"] = "IGRF-14"      # the site the record names, looked up in IGRF-14
+    (tmp_path / "rec.yaml").write_text(yaml.safe_dump(record))
+    assert main(args + ["--coeffs", str(tmp_path / "rec.yaml")]) == 0
+    back = witsml.read_trajectory(out.read_bytes())
+    assert {(b["mag_model"], b["mag_model_valid"]) for b in back} == {("IGRF-14", "1900.0-2030.0")}
+    capsys.readouterr()
+    before = out.read_bytes()
+    for bad in (["--units", "yd"], ["--version", "1.3.1.1"], ["--start-time", "yesterday"],
+                ["--version", "2.1", "--well-uid", "W1", "--wellbore-uid", "WB1"], ["--coeffs", str(tmp_path)]):
+        assert main(args + bad) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+    assert out.read_bytes() == before
+
+
+# ---------------------------------------------------------------------------------------------
 # the vendored schemas
 
-def test_the_vendored_schema_set_is_complete_and_carries_the_energistics_notice():
-    """Every include/import of Trajectory.xsd, followed file by file, is in the package; every file
-    keeps its licence notice; the README says where they come from."""
-    todo, seen = [os.path.abspath(witsml.TRAJECTORY_XSD)], set()
+@pytest.mark.parametrize("roots,directory,notice,count,source", [
+    ([witsml.TRAJECTORY_XSD], witsml.SCHEMA_DIR, "Energistics Product License Agreement", 27,
+     "devfabiosilva/witsml21parser"),          # Trajectory + 5 WITSML files it includes + 21 common
+    (list(witsml.XSD_1411), witsml.SCHEMA_DIR_1411, "Energistics License Agreement", 40,
+     "huangkai31/witsml_certification"),       # obj_trajectory/well/wellbore + 36 WITSML files + abstract
+])
+def test_the_vendored_schema_sets_are_complete_and_carry_the_energistics_notice(roots, directory, notice, count,
+                                                                               source):
+    """Every include/import of the root schemas, followed file by file, is in the package, and
+    nothing else is; every file keeps its licence notice; the README says where they come from."""
+    todo, seen = [os.path.abspath(r) for r in roots], set()
     while todo:
         path = todo.pop()
         if path in seen:
@@ -276,15 +505,17 @@ def test_the_vendored_schema_set_is_complete_and_carries_the_energistics_notice(
         seen.add(path)
         with open(path, encoding="utf-8") as fh:
             text = fh.read()
-        assert "Energistics Product License Agreement" in text, path
-        for loc in re.findall(r'<xs:(?:include|import)[^>]*schemaLocation="([^"]+)"', text):
+        assert notice in text, path
+        for loc in re.findall(r'<xsd?:(?:include|import)[^>]*schemaLocation="([^"]+)"', text):
             target = os.path.normpath(os.path.join(os.path.dirname(path), loc))
             assert os.path.exists(target), f"{path} needs {loc}"
             todo.append(target)
-    assert len(seen) == 27                       # Trajectory + 5 WITSML files it includes + 21 common
-    with open(os.path.join(witsml.SCHEMA_DIR, "README.md"), encoding="utf-8") as fh:
+    assert len(seen) == count
+    shipped = {os.path.join(d, f) for d, _, fs in os.walk(directory) for f in fs if f.endswith(".xsd")}
+    assert shipped == seen
+    with open(os.path.join(directory, "README.md"), encoding="utf-8") as fh:
         readme = fh.read()
-    assert "devfabiosilva/witsml21parser" in readme and "Product License Agreement" in readme
+    assert source in readme and "License Agreement" in readme
 
 
 @pytest.mark.parametrize("north", ["grid", "true", "magnetic"])

@@ -17,14 +17,19 @@ are along the stations' one north (their ``azimuth_reference``, the correction n
 record 07 has no item to say which, so the node says it in its log at the first station and
 whenever it changes (:func:`wits.describe`).
 
-WITSML 2.1 (``witsml_file``, empty: off): after every survey station the node rewrites the run's
-``Trajectory`` document (:mod:`witsml`: well ``well_id``, wellbore ``wellbore``) with every station
-so far, validated against the schema and written atomically (a temporary file renamed over it: a
-reader never sees half a document, and one that does not validate is not written, said at ERROR).
-``ActiveStatus`` is ``active`` while the node runs and ``inactive`` in the last rewrite when it
-stops.  The message becomes the same station dict as a recorded bag's
+WITSML (``witsml_file``, empty: off): after every survey station the node rewrites the run's
+trajectory document (:mod:`witsml`: well ``well_id``, wellbore ``wellbore``; ``witsml.version`` 2.1
+or 1.4.1.1, ``witsml.units`` m or ft, ``witsml.start_time``, the datum, the store's uids: the
+``witsml.*`` parameters are :data:`witsml.OPTION_HELP`) with every station so far, validated against
+the schema and written atomically (a temporary file renamed over it: a reader never sees half a
+document, and one that does not validate is not written, said at ERROR); the well, wellbore (and
+2.1 datum) documents beside it (:func:`witsml.parent_path`) unless ``witsml.well_uid`` names the
+store's.  The geomagnetic model of each station comes from the calibration records on
+``/calibration/coefficients`` (:func:`witsml.mag_models`), as the CLI takes it from the recorded
+ones.  2.1 ``ActiveStatus`` is ``active`` while the node runs and ``inactive`` in the last rewrite
+when it stops.  The message becomes the same station dict as a recorded bag's
 (:func:`launcher.station_dict`), so the live document equals ``inclinometer-calib witsml`` of the
-recorded run.
+recorded run with the same options.
 """
 from __future__ import annotations
 
@@ -37,7 +42,7 @@ from .. import witsml
 from ..launcher import station_dict
 from ..wits import UNITS, WitsServer, describe, encode
 from . import common as c
-from inclinometer_calib.msg import SurveyStation
+from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
 
 
 class WitsNode(Node):
@@ -58,16 +63,29 @@ class WitsNode(Node):
                                choices=tuple(UNITS))
         max_buffer = p.declare("max_buffer_bytes", 1 << 20, "A client with more than this waiting is "
                                "dropped as stalled", read_only=True, range=(1024, 1 << 30))
-        self.witsml_file = p.declare("witsml_file", "", "WITSML 2.1 Trajectory document rewritten (atomically) "
+        self.witsml_file = p.declare("witsml_file", "", "WITSML trajectory document rewritten (atomically) "
                                      "after every survey station (empty: none)", read_only=True)
         self.wellbore = p.declare("wellbore", "WELLBORE", "Wellbore name of the WITSML document (the well is "
                                   "well_id)", read_only=True)
+        defaults = witsml.Options()
+        version = p.declare("witsml.version", defaults.version, witsml.OPTION_HELP["version"], read_only=True,
+                            choices=witsml.VERSIONS)
+        self.witsml_options = {"well": self.well_id, "wellbore": self.wellbore, "version": version}
+        for name in witsml.OPTION_HELP:
+            if name not in self.witsml_options:
+                self.witsml_options[name] = p.declare(
+                    f"witsml.{name}", getattr(defaults, name), witsml.OPTION_HELP[name], read_only=True,
+                    check=lambda v, name=name: witsml.option_problem(name, v, version))
         if not self.port and not self.output and not self.witsml_file:
             raise ValueError("give a TCP port, an output file and/or a witsml_file: nothing to send the stations to")
         self.stations = []           # every station received (station dicts), for the WITSML document
         self.witsml_written = 0      # stations in the document on disk
+        self.mag_models = {}         # calibration record id -> its site's geomagnetic model (witsml.mag_models)
+        self._notes_said = set()
         if self.witsml_file:
-            witsml.schema()          # load the schema now (about a second), not at the first station
+            witsml.Options(**self.witsml_options).check()   # a bad combination: said now, not at the first station
+            witsml.load_schemas(version)  # load the schema now (about a second), not at the first station
+            self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_record, c.latched_qos())
         self.server = WitsServer(self.host, self.port, max_buffer=max_buffer, say=self.get_logger().info) \
             if self.port else None
         self.sink = open(self.output, "ab") if self.output else None   # noqa: SIM115 (closed in destroy_node)
@@ -78,7 +96,7 @@ class WitsNode(Node):
         self.get_logger().info("WITS0 record 07 of the survey stations"
                                + (f" on tcp://{self.host}:{self.server.port}" if self.server else "")
                                + (f" to {self.output}" if self.output else "")
-                               + (f"; WITSML 2.1 Trajectory in {self.witsml_file}" if self.witsml_file else ""))
+                               + (f"; WITSML {version} trajectory in {self.witsml_file}" if self.witsml_file else ""))
 
     def _on_station(self, msg):
         key = (msg.station_id, msg.header.stamp.sec, msg.header.stamp.nanosec)
@@ -113,16 +131,24 @@ class WitsNode(Node):
             self.sink.write(record)
             self.sink.flush()
 
+    def _on_record(self, msg):
+        """A calibration record: the geomagnetic model of its site, for the stations it corrects."""
+        self.mag_models.update(witsml.mag_models([{"id": msg.id, "coefficients_yaml": msg.coefficients_yaml}]))
+
     def _write_witsml(self, active: bool) -> None:
-        """Rewrite the WITSML document with every station so far (validated, atomic)."""
+        """Rewrite the WITSML documents with every station so far (validated, atomic)."""
         try:
-            export = witsml.write_trajectory(self.witsml_file, self.stations, well=self.well_id,
-                                             wellbore=self.wellbore, active=active)
+            export = witsml.write_trajectory(self.witsml_file, self.stations, active=active, models=self.mag_models,
+                                             **self.witsml_options)
         except (witsml.WitsmlError, OSError) as exc:
             self.get_logger().error(f"WITSML document {self.witsml_file} not rewritten (the previous one stays): "
                                     f"{exc}")
             return
         self.witsml_written = export.exported
+        for note in export.notes:
+            if note not in self._notes_said:
+                self._notes_said.add(note)
+                self.get_logger().warning(f"WITSML: {note}")
 
     def destroy_node(self):
         if self.witsml_file and self.witsml_written:

@@ -113,16 +113,33 @@ def test_a_rig_client_gets_every_survey_station_as_wits0_record_07(sim_run):
 
 def test_the_live_witsml_trajectory_is_the_export_of_the_recorded_run(sim_run):
     """The wits node's <out>/trajectory.xml (rewritten live after every station, inactive at the end)
-    validates and is byte for byte what ``inclinometer-calib witsml`` makes of the recorded bag."""
+    and the well, datum and wellbore documents beside it validate and are byte for byte what
+    ``inclinometer-calib witsml`` makes of the recorded bag; its positions are the WITS0 records' to
+    the centimetre, and it carries each station's ISCWSA covariance."""
+    from wits_parser import parse_wits0
+
     from inclinometer_calib import witsml
     from inclinometer_calib.launcher import read_bag
 
     out, proc, _ = sim_run
     live = (out / "trajectory.xml").read_bytes()
     witsml.validate(live)
-    export = witsml.trajectory_document(read_bag(out / "survey.mcap")[0], well="WELL", wellbore="WELLBORE")
+    stations, records, _ = read_bag(out / "survey.mcap")
+    export = witsml.trajectory_document(stations, well="WELL", wellbore="WELLBORE", models=witsml.mag_models(records))
     assert export.exported >= N_STATIONS and live == export.xml
+    assert [k for k, _ in export.parents] == ["well", "datum", "wellbore"]
+    for kind, xml in export.parents:
+        assert (out / f"trajectory.{kind}.xml").read_bytes() == xml and witsml.validate(xml) == "2.1"
     assert f"WITSML 2.1 trajectory: {out / 'trajectory.xml'}: {export.exported} stations, valid" in proc.stdout
+    back = witsml.read_trajectory(live)
+    records07 = parse_wits0((out / "wits0_tcp.dat").read_bytes())
+    assert len(records07) >= N_STATIONS
+    for r in records07:
+        b = min(back, key=lambda b, md=float(r[(7, 8)]): abs(b["measured_depth_m"] - md))
+        assert b["measured_depth_m"] == pytest.approx(float(r[(7, 8)]), abs=0.005 + 1e-9)
+        for item, key in ((9, "tvd_m"), (18, "north_m"), (19, "east_m")):
+            assert b[key] == pytest.approx(float(r[(7, item)]), abs=0.005 + 1e-9), (item, key)
+        assert np.all(np.isfinite(b["position_covariance_ned_m2"])) and b["tool_error_model"] == "ISCWSA MWD Rev4"
 
 
 def test_launcher_leaves_the_run_files(sim_run):
