@@ -147,15 +147,23 @@ def test_the_rigs_wits_and_foxglove_clients_get_every_station_and_the_witsml_val
     # north/east it was given, and the three give the same position, to the centimetre
     live = [got[s["station_id"]] for s in stations]
     assert {m["azimuth_reference"] for m in live} == {"grid"} and {b["azimuth_reference"] for b in back} == {"grid"}
+    # and the recorded run exported as WITSML 1.4.1.1 in feet (read back in metres), validated against its schema
+    doc = witsml.trajectory_document(read_bag(str(out / "survey.mcap"))[0], version="1.4.1.1", units="ft")
+    assert witsml.validate(doc.xml) == "1.4.1.1"
+    v1411 = witsml.read_trajectory(doc.xml)
+    assert {b["azimuth_reference"] for b in v1411} == {"grid"} and len(v1411) == len(back)
     given = {"wits0": (float(records[-1][(7, 18)]), float(records[-1][(7, 19)])),
-             "live": (live[-1]["north_m"], live[-1]["east_m"]), "witsml": (back[-1]["north_m"], back[-1]["east_m"])}
+             "live": (live[-1]["north_m"], live[-1]["east_m"]), "witsml": (back[-1]["north_m"], back[-1]["east_m"]),
+             "witsml 1.4.1.1 ft": (v1411[-1]["north_m"], v1411[-1]["east_m"])}
     recomputed = {
         "wits0": receiver_positions([float(r[(7, 8)]) for r in records], [float(r[(7, 13)]) for r in records],
                                     [float(r.get((7, 15), "0")) for r in records])[-1],
         "live": receiver_positions([m["measured_depth_m"] for m in live], [m["drift_deg"] for m in live],
                                    [m["azimuth_deg"] or 0.0 for m in live])[-1],
         "witsml": receiver_positions([b["measured_depth_m"] for b in back], [b["drift_deg"] for b in back],
-                                     [np.nan_to_num(b["azimuth_deg"]) for b in back])[-1]}
+                                     [np.nan_to_num(b["azimuth_deg"]) for b in back])[-1],
+        "witsml 1.4.1.1 ft": receiver_positions([b["measured_depth_m"] for b in v1411], [b["drift_deg"] for b in v1411],
+                                                [np.nan_to_num(b["azimuth_deg"]) for b in v1411])[-1]}
     for k in given:
         assert given[k] == pytest.approx(recomputed[k], abs=0.01), k
         assert given[k] == pytest.approx((stations[-1]["north_m"], stations[-1]["east_m"]), abs=0.01), k
