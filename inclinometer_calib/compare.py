@@ -51,29 +51,42 @@ def _max(x) -> float:
 
 def station_errors(stations) -> dict:
     """Per-station arrays of a run's ``SurveyStation`` fields: errors against the reference (NaN
-    where none), QC residuals, temperature, status flags."""
+    where none), QC residuals, temperature, time (min from the first station, by the stations'
+    ``stamp``, s; NaN without), the orientation (the reference azimuth and toolface where the
+    station has one, else the measured), status flags."""
     def col(key):
-        return np.array([s[key] for s in stations], dtype=float)
+        return np.array([s.get(key, np.nan) for s in stations], dtype=float)
 
     ref_i, ref_a = col("reference_drift_deg"), col("reference_azimuth_deg")
     drift_err = col("drift_deg") - ref_i
     az_err = np.where(np.isfinite(ref_a), wrap180(col("azimuth_deg") - ref_a), np.nan)
+    stamp = col("stamp")
+    t0 = stamp[np.isfinite(stamp)].min() if np.isfinite(stamp).any() else np.nan
+    ref_t = col("reference_toolface_deg")
     return {"drift_err": drift_err, "azimuth_err": az_err, "delta_g": col("delta_g_mps2"),
             "delta_b": col("delta_b_nt"), "delta_dip": col("delta_dip_deg"), "temperature": col("temperature_c"),
-            "ref_drift": ref_i, "index": np.arange(len(stations), dtype=float),
-            "moved": np.array([bool(s["moved_during_capture"]) for s in stations]),
-            "misfit": np.array([bool(s.get("model_misfit", False)) for s in stations]),
-            "interference": np.array([bool(s["interference_suspected"]) for s in stations])}
+            "ref_drift": ref_i, "index": np.arange(len(stations), dtype=float), "time_min": (stamp - t0) / 60.0,
+            "azimuth": np.where(np.isfinite(ref_a), ref_a, col("azimuth_deg")) % 360.0,
+            "toolface": np.where(np.isfinite(ref_t), ref_t, col("toolface_deg")) % 360.0,
+            "moved": np.array([bool(s["moved_during_capture"]) for s in stations], dtype=bool),
+            "misfit": np.array([bool(s.get("model_misfit", False)) for s in stations], dtype=bool),
+            "interference": np.array([bool(s["interference_suspected"]) for s in stations], dtype=bool),
+            "out_of_tolerance": np.array([bool(s["interference_suspected"] or s.get("gravity_out_of_tolerance"))
+                                          for s in stations], dtype=bool)}
 
 
 def metrics(stations) -> dict:
-    """The run's figures over its stations (those in which the probe moved left out)."""
+    """The run's figures over its stations (those in which the probe moved left out).
+    ``out_of_tolerance``: stations outside the QC tolerances (|ΔG|, |ΔB| or Δdip), None when the
+    run has no QC residuals (an uncorrected run without a site reference)."""
     e = station_errors(stations)
     use = ~e["moved"] if len(stations) else np.zeros(0, bool)
     has_ref = use & np.isfinite(e["drift_err"])
-    out = {"stations": int(use.sum()), "with_reference": int(has_ref.sum()),
+    qc = use & np.isfinite(e["delta_b"])
+    out = {"stations": int(use.sum()), "with_reference": int(has_ref.sum()), "moved": int(e["moved"].sum()),
            "delta_g_rms_mps2": _rms(e["delta_g"][use]), "delta_b_rms_nt": _rms(e["delta_b"][use]),
            "delta_dip_rms_deg": _rms(e["delta_dip"][use]),
+           "out_of_tolerance": int(e["out_of_tolerance"][qc].sum()) if qc.any() else None,
            "interference_flagged": int(e["interference"][use].sum()), "model_misfit_flagged": int(e["misfit"][use].sum())}
     if has_ref.any():
         out.update(drift_rms_deg=_rms(e["drift_err"][has_ref]), drift_max_abs_deg=_max(e["drift_err"][has_ref]),
@@ -101,7 +114,7 @@ def compare(bag, models, outdir, *, site=None, tolerances=None, make_detector=No
         monitor = FieldMonitor(window=monitor_window, tolerances=tol) if monitor_window else None
         rep = reprocess(bag, dst, cal, site, tol, make_detector() if make_detector else None, warn=warn,
                         copy_input=False, monitor=monitor)
-        runs.append(ModelRun(name, cal, rep, metrics(rep.stations), dst))
+        runs.append(ModelRun(name, cal, rep, metrics(rep.stamped_stations()), dst))
     sites = {r.calibration.site.to_dict().__repr__() for r in runs if r.calibration is not None}
     if site is None and len(sites) > 1 and warn:
         warn("the records own different site references: their QC residuals are against different sites "
@@ -115,6 +128,24 @@ def has_reference(runs) -> bool:
 
 def _f(v, spec) -> str:
     return format(v, spec) if v is not None and isinstance(v, (int, float)) and math.isfinite(v) else "—"
+
+
+def _finite(v) -> bool:
+    return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def missing(run) -> str:
+    """Why a run has no QC residuals or no errors ("" when it has them): what the report says in
+    place of a figure."""
+    m = run.metrics
+    if not m["stations"]:
+        moved = m.get("moved")
+        return f"{run.name}: no station" + (f" ({moved} where the probe moved, left out)" if moved else "")
+    if not _finite(m["delta_b_rms_nt"]):
+        return (f"{run.name}: no QC residuals (ΔG, ΔB, Δdip) — " +
+                ("the uncorrected values have no site reference to be compared with (give --site)"
+                 if run.calibration is None else "the record has no site reference"))
+    return ""
 
 
 def table_rows(runs) -> tuple:
@@ -137,6 +168,67 @@ def table_rows(runs) -> tuple:
     return header, rows
 
 
+def _diagnosis(run) -> str:
+    """The field monitor's verdict at the run's last flagged station, cut to its headline."""
+    from .lab.field import headline
+
+    said = [s["model_diagnosis"] for s in run.report.stations if s.get("model_misfit") and s.get("model_diagnosis")]
+    return headline(said[-1]) if said else ""
+
+
+def summary(runs) -> tuple:
+    """What the report says first: (sentences, header, rows) — the ladder's figure of merit model
+    by model in one sentence, the best record's stations outside the QC tolerances, what the field
+    monitor says of each record; a small table of the same.  A figure that is missing is said why."""
+    from .lab.report import in_words
+
+    ref = has_reference(runs)
+    corrected = [r for r in runs if r.calibration is not None]
+    if ref:
+        key, words, unit = "azimuth_rms_deg", "Azimuth RMS", "°"
+        second, words2 = "drift_rms_deg", "drift RMS"
+        basis = f"over {max(r.metrics.get('with_reference', 0) for r in runs)} stations with a reference attitude"
+    else:
+        key, words, unit = "delta_b_rms_nt", "ΔB RMS", " nT"
+        second, words2 = "delta_dip_rms_deg", "Δdip RMS"
+        basis = "the QC residuals against the site reference (the bag has no reference attitude)"
+    shown = [r for r in runs if _finite(r.metrics.get(key))]
+    sentences = []
+    if shown:
+        sentences.append(f"{words} " + " → ".join(f"{in_words(r.metrics[key], unit)} {r.name}" for r in shown)
+                         + f"; {words2} " + " → ".join(in_words(r.metrics.get(second)) for r in shown)
+                         + f", {basis}.")
+    sentences += [m + "." for m in map(missing, runs) if m]
+    best = min((r for r in corrected if _finite(r.metrics.get(key))), key=lambda r: r.metrics[key], default=None)
+    if best is not None:
+        m = best.metrics
+        out = m["out_of_tolerance"]
+        text = (f"Lowest: {best.name} — {out} of {m['stations']} stations outside the QC tolerances (|ΔG|, |ΔB|, "
+                "Δdip)" if out is not None else f"Lowest: {best.name}")
+        diag = _diagnosis(best)
+        sentences.append(text + (f"; its field monitor flags {m['model_misfit_flagged']} of {m['stations']} "
+                                 f"stations: {diag}." if diag else
+                                 "; its field monitor flags no station: the model explains the survey."))
+    for r in corrected:
+        if r is not best and r.metrics["model_misfit_flagged"]:
+            sentences.append(f"With {r.name} the field monitor flags {r.metrics['model_misfit_flagged']} of "
+                             f"{r.metrics['stations']} stations: {_diagnosis(r)}.")
+    moved = max((r.metrics.get("moved", 0) for r in runs), default=0)
+    if moved:
+        sentences.append(f"{moved} station(s) left out: the probe moved during the hold.")
+    header = ["model", f"{words[0].lower() + words[1:] if ref else words} {unit.strip()}", f"{words2} °",
+              "outside QC tolerance", "field monitor"]
+    rows = []
+    for r in runs:
+        m = r.metrics
+        out = m["out_of_tolerance"]
+        monitor = ("— (no model to check)" if r.calibration is None else
+                   f"flags {m['model_misfit_flagged']}" if m["model_misfit_flagged"] else "explains the survey")
+        rows.append([r.name, _f(m.get(key), ".4g"), _f(m.get(second), ".4g"),
+                     f"{out} of {m['stations']}" if out is not None else "— (no QC residuals)", monitor])
+    return sentences, header, rows
+
+
 def describe(runs, bag) -> list:
     """Plain-text lines of the ladder (what the CLI prints)."""
     header, rows = table_rows(runs)
@@ -157,7 +249,8 @@ def to_markdown(runs, bag, title: str = "Field effect ladder") -> str:
     header, rows = table_rows(runs)
     basis = ("Errors against the bag's reference attitudes." if has_reference(runs) else
              "The bag has no reference attitude: QC residuals (corrected |G|, |B| and dip minus the site reference).")
-    out = [f"# {title}", "", f"Bag: `{bag}`. The same stations (the same detector), one run per record. {basis}", "",
+    out = [f"# {title}", "", " ".join(summary(runs)[0]), "",
+           f"Bag: `{bag}`. The same stations (the same detector), one run per record. {basis}", "",
            "| " + " | ".join(header) + " |", "|" + "|".join("---" if k == 0 else "---:" for k in range(len(header))) + "|"]
     out += ["| " + " | ".join(r) + " |" for r in rows]
     out += ["", "Models:", ""]
@@ -179,13 +272,15 @@ def ladder_figure(runs) -> str:
     ref = has_reference(runs)
     keys = ([("drift_rms_deg", "drift RMS (deg)"), ("azimuth_rms_deg", "azimuth RMS (deg)")] if ref else
             [("delta_b_rms_nt", "ΔB RMS (nT)"), ("delta_dip_rms_deg", "Δdip RMS (deg)")])
-    fig, ax = plt.subplots(1, len(keys), figsize=(11, 3.6))
+    fig, ax = plt.subplots(1, len(keys), figsize=(11, 3.8))
     x = np.arange(len(runs))
     for a, (key, label) in zip(np.atleast_1d(ax), keys):
-        y = [r.metrics.get(key, np.nan) for r in runs]
+        y = np.array([r.metrics.get(key, np.nan) for r in runs], dtype=float)
         a.plot(x, y, "o-", color="#1f5fa8")
-        if all(v > 0 for v in y if np.isfinite(v)):
+        ok = np.isfinite(y)
+        if ok.any() and (y[ok] > 0).all():
             a.set_yscale("log")
+        a.margins(x=0.12, y=0.18)      # room for the values written above the points
         a.set_xticks(x)
         a.set_xticklabels([r.name for r in runs], rotation=20, ha="right", fontsize=8)
         a.set_title(label)
@@ -193,7 +288,11 @@ def ladder_figure(runs) -> str:
         for xi, yi in zip(x, y):
             if np.isfinite(yi):
                 a.annotate(f"{yi:.3g}", (xi, yi), textcoords="offset points", xytext=(0, 6), ha="center", fontsize=8)
+            else:
+                a.annotate("no figure", (xi, 0.5), xycoords=("data", "axes fraction"), ha="center", fontsize=8,
+                           color="#888888")
     fig.suptitle("Field effect ladder: the same stations through each record")
+    fig.tight_layout()
     return figure_png(fig)
 
 
@@ -205,8 +304,12 @@ def residual_limits(values) -> tuple:
     return -top, top
 
 
-def residual_figure(runs) -> str:
-    """Per-station errors (or QC residuals) against temperature and station order, model by model.
+COLOURS = ("#b5452a", "#1f5fa8", "#3a7d44", "#7a3a9d", "#c08a00", "#555555")
+
+
+def _residual_panels(runs, columns, title) -> str:
+    """Per-station errors (or QC residuals, without a reference) of each run against the x of each
+    of ``columns`` ((key of :func:`station_errors`, label)), one row per residual.
 
     Each panel is scaled to the corrected models it compares (their residuals are the point of
     the page); the uncorrected run, degrees where the others are hundredths, is drawn on an axis
@@ -217,18 +320,17 @@ def residual_figure(runs) -> str:
     ref = has_reference(runs)
     items = ([("azimuth_err", "azimuth error (deg)"), ("drift_err", "drift error (deg)")] if ref else
              [("delta_b", "ΔB (nT)"), ("delta_dip", "Δdip (deg)")])
-    fig, axs = plt.subplots(len(items), 2, figsize=(12, 3.2 * len(items)), squeeze=False)
-    colours = ("#b5452a", "#1f5fa8", "#3a7d44", "#7a3a9d", "#c08a00", "#555555")
-    errors = [(r, station_errors(r.report.stations)) for r in runs]
+    fig, axs = plt.subplots(len(items), len(columns), figsize=(12, 3.3 * len(items)), squeeze=False)
+    errors = [(r, station_errors(r.report.stamped_stations())) for r in runs]
     corrected = [(r, e) for r, e in errors if r.calibration is not None]
     raw = [(r, e) for r, e in errors if r.calibration is None]
     for row, (key, label) in enumerate(items):
         lim = residual_limits([e[key][~e["moved"]] for _, e in corrected])
-        for col, (xkey, xlabel) in enumerate((("temperature", "temperature (°C)"), ("index", "station"))):
+        for col, (xkey, xlabel) in enumerate(columns):
             a = axs[row, col]
             for k, (r, e) in enumerate(corrected):
                 keep = ~e["moved"]
-                a.scatter(e[xkey][keep], e[key][keep], s=9, color=colours[k % len(colours)], label=r.name, alpha=0.8)
+                a.scatter(e[xkey][keep], e[key][keep], s=9, color=COLOURS[k % len(COLOURS)], label=r.name, alpha=0.8)
             if corrected:
                 a.set_ylim(*lim)
             if raw:
@@ -238,31 +340,69 @@ def residual_figure(runs) -> str:
                     side.scatter(e[xkey][keep], e[key][keep], s=7, color="#aaaaaa", marker="x", alpha=0.6,
                                  label=f"{r.name} (right axis)" if corrected else r.name)
                 if corrected:
-                    side.set_ylabel(f"{r.name} (right)", color="#888888", fontsize=8)
+                    side.set_ylabel(f"{raw[0][0].name} (right)", color="#888888", fontsize=8)
                     side.tick_params(axis="y", colors="#888888", labelsize=7)
+            if xkey in ("azimuth", "toolface"):
+                a.set_xlim(-12, 372)          # a pose at 0° is not drawn on the frame
+                a.set_xticks(np.arange(0, 361, 60))
             a.set_xlabel(xlabel)
             a.set_ylabel(label)
             a.axhline(0, color="k", lw=0.5)
             a.grid(alpha=0.3)
-    axs[0, 0].legend(fontsize=8)
-    fig.suptitle("Residuals model by model" + (" (each panel scaled to the corrected models; uncorrected on the "
-                                               "right axis)" if raw and corrected else ""))
-    fig.tight_layout()
+    handles = [h for a in fig.axes for h in a.get_legend_handles_labels()[0]]
+    names = [n for a in fig.axes for n in a.get_legend_handles_labels()[1]]
+    seen = {}
+    for h, n in zip(handles, names):
+        seen.setdefault(n, h)
+    fig.suptitle(title + (" — each panel scaled to the corrected models, the uncorrected on the right axis"
+                          if raw and corrected else ""), fontsize=10)
+    fig.legend(list(seen.values()), list(seen), loc="lower center", ncol=len(seen), fontsize=8, frameon=False)
+    # a fixed layout (the labels are the same every time; a tight_layout of the twin axes measured
+    # every tick label and took half the figure's time): room for the twin axis and the legend,
+    # checked by test/report_layout.figure_collisions
+    fig.subplots_adjust(left=0.07, right=0.93, bottom=0.14 if len(items) > 1 else 0.2, top=0.91, wspace=0.4,
+                        hspace=0.32)
     return figure_png(fig)
 
 
-def to_html(runs, bag, title: str = "Field effect ladder", intro=()) -> str:
-    """A self-contained HTML page of the ladder (plots embedded); ``intro``: text lines put first."""
-    from .lab.report import CSS, table_html
+def residual_figure(runs) -> str:
+    """The residuals against temperature and time (a temperature or time effect the model misses);
+    time from the stations' stamps, the station order without them."""
+    times = [station_errors(r.report.stamped_stations())["time_min"] for r in runs]
+    timed = all(np.isfinite(t).all() and len(t) for t in times)
+    return _residual_panels(runs, [("temperature", "temperature (°C)"),
+                                   ("time_min", "time (min)") if timed else ("index", "station")],
+                            "Residuals against temperature and time")
+
+
+def orientation_figure(runs) -> str:
+    """The residuals against azimuth and toolface (the reference attitude where known): a
+    misalignment, a cross-axial bias or a heading-dependent interference leaves a sinusoid in the
+    orientation — one cycle per turn for a bias or misalignment, two for a scale or soft-iron error."""
+    ref = has_reference(runs)
+    return _residual_panels(runs, [("azimuth", "set azimuth (deg)" if ref else "azimuth (deg)"),
+                                   ("toolface", "set toolface (deg)" if ref else "toolface (deg)")],
+                            "Residuals against orientation")
+
+
+def to_html(runs, bag, title: str = "Field effect ladder", intro=(), findings=()) -> str:
+    """A self-contained HTML page of the ladder (plots embedded): the summary first
+    (:func:`summary`, after ``findings``: sentences of the caller's), then the full verdict —
+    ``intro`` (text lines), the ladder's table, its plots, the models and what the field monitor said."""
+    from .lab.report import page_head, summary_html, table_html
 
     header, rows = table_rows(runs)
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-             f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1>"]
+    parts = [page_head(title), summary_html(*summary(runs), extra=findings), "<h2>The full verdict</h2>"]
     if intro:
         parts.append("<pre>" + html.escape("\n".join(intro)) + "</pre>")
-    parts += [f"<p>Bag: <code>{html.escape(str(bag))}</code>. The same stations, one run per record.</p>",
-             table_html("Model by model", header, [[html.escape(c) for c in r] for r in rows]),
-             f"<img src='{ladder_figure(runs)}'>", f"<img src='{residual_figure(runs)}'>", "<h2>Models</h2><ul>"]
+    notes = [m for m in map(missing, runs) if m]
+    parts += [(f"<p>Bag: <code>{html.escape(str(bag))}</code>. " if bag else "<p>")
+              + "The same stations, one run per record.</p>",
+              table_html("Model by model", header, [[html.escape(c) for c in r] for r in rows])
+              + ("<p>— : " + html.escape("; ".join(notes)) + ".</p>" if notes else ""),
+              f"<img alt='the field effect ladder' src='{ladder_figure(runs)}'>",
+              f"<img alt='residuals against temperature and time' src='{residual_figure(runs)}'>",
+              f"<img alt='residuals against orientation' src='{orientation_figure(runs)}'>", "<h2>Models</h2><ul>"]
     for r in runs:
         model = r.calibration.model.describe() if r.calibration is not None else "uncorrected"
         diag = r.report.stations[-1].get("model_diagnosis") if r.report.stations else ""

@@ -1023,6 +1023,25 @@ def loop_summary(loop) -> dict:
     return out
 
 
+def loop_findings(loop) -> list:
+    """The lab's finding in a sentence, for the top of the run report: the effect the live record
+    misses and the lab's record, or why the lab found nothing or did not look."""
+    from .lab.diagnose import FINDING_SUMMARY
+
+    if loop.skipped:
+        return [f"The lab did not look for a missing effect: {loop.skipped}."]
+    dg = loop.diagnosis
+    if dg is None:
+        return []
+    rec = dg.recommended
+    if rec is None:
+        return ["The lab finds nothing missing from the live record: "
+                + FINDING_SUMMARY.get(dg.finding, dg.finding).format(effect="", refused=dg.refused) + "."]
+    return [f"The lab finds {rec.label} missing from the live record"
+            + (f"; its record {loop.record.id} (lab_model.yaml) is lab_model below, fitted on this run's stations "
+               "(in-sample)." if loop.record is not None else ".")]
+
+
 def write_html_report(out, summary, cal, loop, print_fn, not_written=None):
     """``report.html``: the run's figures with plots (the field effect ladder, residuals model by
     model).  None (said) without matplotlib or a loop, or when the disk refuses it (said, and added
@@ -1033,7 +1052,7 @@ def write_html_report(out, summary, cal, loop, print_fn, not_written=None):
 
     try:
         page = compare.to_html(loop.runs, os.path.basename(bag_parts(out)[0]) if bag_parts(out) else "",
-                               title="Survey run report: the model loop",
+                               title="Survey run report: the model loop", findings=loop_findings(loop),
                                intro=[ln for ln in format_summary(summary) if ln and not ln.startswith("===")]
                                + ([loop.skipped] if loop.skipped else [])
                                + ([loop.diagnosis.verdict] if loop.diagnosis is not None else []))

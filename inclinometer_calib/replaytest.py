@@ -246,4 +246,4 @@ def _reprocessed(bag, out, args) -> list:
     except (ReprocessError, ValueError, OSError) as exc:
         raise UserError(f"{bag}: reprocess: {exc}") from None
     print(f"expected: reprocess of {bag}: {len(rep.stations)} stations", flush=True)
-    return [dict(s, stamp=float(st.t_end)) for s, st in zip(rep.stations, rep.raw_stations)]
+    return rep.stamped_stations()

@@ -244,6 +244,11 @@ class ReprocessReport:
     captures: List[object] = field(default_factory=list)   # calibrate: the capture session's accepted poses
     counts: Dict[str, int] = field(default_factory=dict)    # what came in and what became of it (engine.Counts)
 
+    def stamped_stations(self) -> list:
+        """The stations as the written bag reads them back: the ``SurveyStation`` fields and their
+        ``stamp`` (s, the data time of the hold's end, as in the header)."""
+        return [dict(s, stamp=float(st.t_end)) for s, st in zip(self.stations, self.raw_stations)]
+
     def _issue(self, kind: str, where: str, n: int = 1) -> None:
         self.issues.setdefault(kind, _Issue()).add(where, n)
 

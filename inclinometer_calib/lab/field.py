@@ -40,6 +40,10 @@ CHANNELS = (("delta_g_mps2", "ΔG", "m/s²", "gravity_mps2"), ("delta_b_nt", "Δ
             ("delta_dip_deg", "Δdip", "°", "dip_deg"))
 
 
+#: Where a verdict's text names the likely missing effect (:func:`headline` reads it back).
+MISSING_EFFECT = ". Likely missing effect: "
+
+
 @dataclass
 class Verdict:
     """The monitor's verdict after a station: ``misfit`` and the text saying it (empty while the
@@ -219,7 +223,7 @@ class FieldMonitor:
             est = ", ".join(f"{n.split('.')[-1]} {_fmt(v)} {u}" for n, v, u in
                             zip(best["names"], best["estimate"], best["units"]))
             chans = ", ".join(f"{c['channel']} (R² {c['r2']:.2f})" for c in best["channels"])
-            text += (f". Likely missing effect: {best['label']} — {cls.summary().rstrip('.')} (its residuals follow "
+            text += (f"{MISSING_EFFECT}{best['label']} — {cls.summary().rstrip('.')} (its residuals follow "
                      f"{follows}; it explains {chans}; estimated {est}). Fit it in the lab "
                      f"(inclinometer-calib lab fit --effects {cls.name}:{best['label'].split(':')[1]} -o model.yaml) "
                      "and apply that record")
@@ -228,6 +232,15 @@ class FieldMonitor:
         else:
             text += ". No catalogue effect explains it: a plug-in effect, or interference"
         return text + "."
+
+
+def headline(text: str) -> str:
+    """The verdict's text (:meth:`FieldMonitor._text`, a station's ``model_diagnosis``) cut to what a
+    summary says: that the model no longer explains the survey, and the likely missing effect."""
+    head = text.split(": over the last", 1)[0]
+    if MISSING_EFFECT in text:
+        head += "; likely missing: " + text.split(MISSING_EFFECT, 1)[1].split(" ", 1)[0]
+    return head
 
 
 def _joint_estimate(y, cols, sigma):

@@ -1,6 +1,7 @@
 """One self-contained HTML report of a model-lab run (plots embedded as PNG data URIs).
 
-Sections: the diagnosis text (with the data left out); the effect ladder (the field validation
+Sections: first a summary in words and a small table (:func:`summary`), then the full verdict —
+the diagnosis text (with the data left out); the effect ladder (the field validation
 error after each added effect, as each rung's diagnosis labels it); the noise model (Allan
 deviation per axis and its IEEE figures); residuals of the base and final models against orientation, temperature and time; the
 paper-style before/after tables (Tables 4 and 5 layout); the fitted parameters with uncertainties.
@@ -51,7 +52,8 @@ def ladder_figure(steps, uncorrected: dict) -> str:
         a.set_ylim(0, max(np.nanmax(y) if np.isfinite(np.nanmax(y)) else 1, floor if np.isfinite(floor) else 0) * 1.15)
         a.set_xticks(x)
         a.set_xticklabels(labels, rotation=25, ha="right", fontsize=8)
-        a.set_title(f"{t} — uncorrected {uncorrected.get(key, float('nan')):.3g}°", fontsize=10)
+        unc = uncorrected.get(key, float("nan"))
+        a.set_title(f"{t} — uncorrected " + (f"{unc:.3g}°" if np.isfinite(unc) else "not known"), fontsize=10)
         a.grid(True, alpha=0.3)
         a.legend(fontsize=8)
         for xi, yi in zip(x, y):
@@ -128,13 +130,21 @@ def sensor_residual_figure(model, data, title) -> str:
         a.legend(fontsize=8)
         a.grid(alpha=0.3)
     fig.suptitle(title)
+    fig.tight_layout()
     return figure_png(fig)
 
 
 def table_html(title, header, rows) -> str:
     h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
     body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<h3>{html.escape(title)}</h3><table><tr>{h}</tr>{body}</table>"
+    return (f"<h3>{html.escape(title)}</h3>" if title else "") + f"<table><tr>{h}</tr>{body}</table>"
+
+
+def summary_html(sentences, header, rows, extra=()) -> str:
+    """The report's first section: the verdict in a few sentences (``extra`` first), and a small table."""
+    text = "".join(f"<p>{html.escape(t)}</p>" for t in [*extra, *sentences])
+    return (f"<section class='summary'><h2>Summary</h2>{text}"
+            + table_html("", header, [[html.escape(c) for c in r] for r in rows]) + "</section>")
 
 
 def _fmt(v, p=3):
@@ -205,6 +215,8 @@ def losses_html(losses) -> str:
 
 def noise_figure(noise: dict) -> str:
     """The pooled Allan deviation per axis of each sensor (log–log), with the fitted IEEE model."""
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
     from ..allan import FLICKER
 
     plt = pyplot()
@@ -224,6 +236,11 @@ def noise_figure(noise: dict) -> str:
         ax.set_title(f"{sensor}: {c.n_segments} holds at {c.rate_hz:.0f} Hz")
         ax.legend(fontsize=8)
         ax.grid(True, which="both", alpha=0.3)
+        # τ spans about a decade: 1-2-5 ticks in plain numbers (the minor 2×10⁻², 3×10⁻², … collide)
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+    fig.tight_layout()
     return figure_png(fig)
 
 
@@ -244,7 +261,7 @@ def noise_html(noise: dict) -> str:
             rows.append([r["axis"], cell(r["white_noise"]) + " " + html.escape(r["white_noise"]["unit"]),
                          cell(r["bias_instability"]) + " " + html.escape(r["bias_instability"]["unit"]),
                          cell(r["random_walk"]) + " " + html.escape(r["random_walk"]["unit"])])
-    return table_html("Noise model (IEEE Std 952 figures from the Allan deviation of the holds; '&lt;': not resolved, "
+    return table_html("Noise model (IEEE Std 952 figures from the Allan deviation of the holds; '<': not resolved, "
                       "one-sided 95 % bound; '(stations)': the random walk across the station sequence, which short "
                       "holds cannot see)", ["axis", "white noise N", "bias instability B", "random walk K"], rows)
 
@@ -259,16 +276,94 @@ def uncertainty_html(dg) -> str:
                       ["angle", "stations", "RMS of error/σ", "within 1σ", "within 2σ", "median σ (deg)"], rows)
 
 
-CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;color:#222}
+CSS = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
 table{border-collapse:collapse;font-size:12px;margin:0.5em 0 1.5em}td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}
-pre{background:#f4f4f4;padding:0.8em;white-space:pre-wrap}img{max-width:100%}h2{border-bottom:1px solid #ddd}"""
+td:first-child,th:first-child{text-align:left}
+pre{background:#f4f4f4;padding:0.8em;white-space:pre-wrap;overflow-wrap:anywhere}
+img{max-width:100%;display:block;margin:0.5em 0}
+h2{border-bottom:1px solid #ddd}li{overflow-wrap:anywhere}
+section.summary{background:#f3f7fb;border:1px solid #c9d8e8;padding:0.2em 1em 0.5em;margin-bottom:1.5em}
+section.summary p{font-size:15px;margin:0.5em 0}section.summary table{font-size:13px}"""
+
+
+def page_head(title) -> str:
+    """The start of a report page: its head (the CSS) and its title."""
+    return (f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1>")
+
+
+def in_words(v, unit="°") -> str:
+    """A figure in a summary's sentence: three significant digits, "not known" where there is none."""
+    return f"{v:.3g}{unit}" if v is not None and np.isfinite(v) else "not known"
+
+
+def summary(steps, uncorrected: dict, methods=None) -> tuple:
+    """What the lab report says first: (sentences, header, rows) — what the lab added and what it
+    gained on the validation data, the candidates tried, what the last rung finds, whether the
+    predicted uncertainty holds; a table of the rungs."""
+    from .diagnose import FINDING_SUMMARY
+
+    base, final = steps[0], steps[-1]
+    kind = {"field": "the references never fitted", "in-sample": "in-sample"}.get(base.validation_kind,
+                                                                                   base.validation_kind or "")
+    added = [s.recommended.label for s in steps[:-1] if s.recommended]
+    figures = (f"azimuth RMS {in_words(base.base_val.get('azimuth_rms_deg'))} → "
+               f"{in_words(final.base_val.get('azimuth_rms_deg'))}, drift RMS "
+               f"{in_words(base.base_val.get('drift_rms_deg'))} → {in_words(final.base_val.get('drift_rms_deg'))}")
+    where = f"on the validation data{f', {kind}' if kind else ''}"
+    if not base.base_val.get("stations"):
+        head = (f"The lab adds {', '.join(added) or 'nothing'} to the paper's model; the validation data have no "
+                "station with a reference attitude, so there are no angle errors to show")
+    elif added:
+        head = f"The lab adds {', '.join(added)} to the paper's model: {figures} {where}"
+    else:
+        head = (f"The lab adds nothing to {base.model.describe()}: azimuth RMS "
+                f"{in_words(base.base_val.get('azimuth_rms_deg'))}, drift RMS "
+                f"{in_words(base.base_val.get('drift_rms_deg'))} {where}")
+    if uncorrected.get("stations"):
+        head += (f" (uncorrected: azimuth {in_words(uncorrected.get('azimuth_rms_deg'))}, drift "
+                 f"{in_words(uncorrected.get('drift_rms_deg'))})")
+    sentences = [head + "."]
+    tried = [len(s.ranked) for s in steps]
+    sig = [sum(1 for c in s.ranked if c.significant) for s in steps]
+    sentences.append("Candidates tried round by round: " + ", ".join(map(str, tried)) + "; significant: "
+                     + ", ".join(map(str, sig)) + "." if len(steps) > 1 else
+                     f"{tried[0]} candidates tried, {sig[0]} significant.")
+    rec = final.recommended
+    sentences.append("After the last rung " + FINDING_SUMMARY.get(final.finding, final.finding).format(
+        effect=rec.label if rec is not None else "", refused=final.refused) + ".")
+    unc = {k: v for k, v in (final.uncertainty or {}).items() if v.get("stations")}
+    if unc:
+        # 1 and 95 % within 2σ when it holds exactly; an RMS up to 1.5 with 90 % within 2σ still
+        # bounds the errors usefully (a σ too large holds, conservatively)
+        holds = all(v["rms"] <= 1.5 and v["within_2"] >= 0.9 for v in unc.values())
+        sentences.append("Errors over their predicted 1σ, RMS: "
+                         + ", ".join(f"{k} {v['rms']:.2f}" for k, v in unc.items())
+                         + (" — the predicted uncertainty holds." if holds else
+                            " — the predicted uncertainty does not hold (RMS 1 and 95 % within 2σ when it does)."))
+    real = [r for r in methods or () if r["method"] != "truth" and np.isfinite(r["azimuth_rms_deg"])]
+    if real:
+        best = min(real, key=lambda r: r["azimuth_rms_deg"])
+        truth = [r for r in methods if r["method"] == "truth"]
+        sentences.append("Calibration methods on the validation log, azimuth RMS: "
+                         + ", ".join(f"{r['method']} {in_words(r['azimuth_rms_deg'])}" for r in real)
+                         + f"; lowest: {best['method']}"
+                         + (f" (the simulator's true model: {in_words(truth[0]['azimuth_rms_deg'])})." if truth
+                            else "."))
+    header = ["model", "drift RMS °", "azimuth RMS °", "finding"]
+    rows = [["uncorrected", _fmt(uncorrected.get("drift_rms_deg"), 4), _fmt(uncorrected.get("azimuth_rms_deg"), 4),
+             "raw sensors"]] if uncorrected.get("stations") else []
+    labels = ["base (paper)"] + ["+ " + a for a in added]
+    for label, s in zip(labels, steps):
+        rows.append([label, _fmt(s.base_val.get("drift_rms_deg"), 4), _fmt(s.base_val.get("azimuth_rms_deg"), 4),
+                     s.finding])
+    return sentences, header, rows
 
 
 def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib model lab", methods=None) -> str:
     """HTML for a ladder of diagnoses (``diagnose.ladder``) on ``data``."""
     base, final = steps[0], steps[-1]
-    parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-             f"<style>{CSS}</style></head><body><h1>{html.escape(title)}</h1>",
+    parts = [page_head(title), summary_html(*summary(steps, uncorrected, methods)), "<h2>The full verdict</h2>",
              f"<p>Data: {html.escape(data.describe())}</p>",
              "<h2>Diagnosis</h2>"]
     for k, s in enumerate(steps):

@@ -7,7 +7,7 @@ import pytest
 
 from inclinometer_calib.cli import main
 from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.lab.field import FieldMonitor
+from inclinometer_calib.lab.field import FieldMonitor, headline
 from inclinometer_calib.pipeline import SurveyProcessor
 from inclinometer_calib.probelog import read_csv, segment_stations
 
@@ -45,6 +45,9 @@ def test_a_missing_temperature_effect_is_named_with_its_size(tmp_path):
     v = monitor.last
     assert v.candidates[0]["label"] == "temperature_bias:mag:xyz", v.text
     assert "no longer explains the survey" in v.text and "temperature" in v.text
+    # a report's summary says it in one line: the record, and the effect the candidates name
+    assert headline(v.text) == (f"the model of record {base.id} no longer explains the survey; likely missing: "
+                                f"{v.candidates[0]['label']}")
     est = np.array(v.candidates[0]["estimate"])
     np.testing.assert_allclose(est, 3.0, rtol=0.35)      # a window's estimate of the 3 nT/°C
     # the true model explains the same survey: no alarm

@@ -15,6 +15,7 @@ from inclinometer_calib.lab.uncertainty import normalised_errors
 from inclinometer_calib.survey import evaluate, summarize
 
 import independent as ind
+import report_layout
 
 
 def _site(gen):
@@ -504,7 +505,8 @@ def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_th
     pytest.importorskip("matplotlib")
     gen, data, site = _session(tmp_path, 3, _up_down(20, 45, 400.0), lambda t: 30 + 0.02 * (t - 400), cal_hold_s=6.0,
                                offsets={5: (0.2, 0.0, 0.1)}, mag={"temp_coef": [0.0, 0.0, 3.0]})
-    steps = lab.write_report(tmp_path / "report.html", data, site)
+    with report_layout.FiguresChecked() as figures:
+        steps = lab.write_report(tmp_path / "report.html", data, site)
     found = [s.recommended.label for s in steps if s.recommended]
     assert set(found) == {"stand_pose_error", "temperature_bias:mag:z"}, [s.verdict for s in steps]
     true = _true_level(gen, data, site)
@@ -520,6 +522,12 @@ def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_th
         assert f"Candidates ({len(s.ranked)} tried)" in page and len(s.ranked) > 8
         for c in s.ranked:
             assert f"<td>{c.label}</td>" in page, c.label
+    # read in a browser: the summary (the two effects added, what they gained) first, every plot
+    # drawn, nothing on top of anything, no nan; inside the plots no text on another
+    assert figures.collisions == []
+    lay = report_layout.layout(tmp_path / "report.html")
+    report_layout.check(lay, images=figures.figures)
+    assert f"The lab adds {', '.join(found)} to the paper's model: azimuth RMS" in lay["summary"]["text"]
 
 
 REMANENCE = '''

@@ -5,6 +5,7 @@ import copy
 
 import numpy as np
 import pytest
+import report_layout
 
 from inclinometer_calib import effects as fx
 from inclinometer_calib import simulate as sim
@@ -79,10 +80,19 @@ def test_the_lab_report_shows_the_comparison(tmp_path):
     out = tmp_path / "sim"
     assert main(["simulate", "--out", str(out), "--seed", "4", "--effect", "misalignment:mag=0.004,-0.003,0.005",
                  "--turntable", "10", "--rate", "50", "--no-survey-effects", "--station-seconds", "2"]) == 0
-    assert main(["lab", "report", "--cal", str(out / "cal.csv"), "--val", str(out / "val.csv"), "--site",
-                 str(out / "site.yaml"), "--turntable", str(out / "turntable.csv"), "--truth",
-                 str(out / "truth_coeffs.yaml"), "--max-steps", "1", "--quiet", "-o", str(tmp_path / "r.html")]) == 0
+    with report_layout.FiguresChecked() as figures:
+        assert main(["lab", "report", "--cal", str(out / "cal.csv"), "--val", str(out / "val.csv"), "--site",
+                     str(out / "site.yaml"), "--turntable", str(out / "turntable.csv"), "--truth",
+                     str(out / "truth_coeffs.yaml"), "--max-steps", "1", "--quiet", "-o",
+                     str(tmp_path / "r.html")]) == 0
     page = (tmp_path / "r.html").read_text()
     assert "Calibration methods compared" in page and "mag α error" in page
     for m in ("twelve-position", "turntable", "lab, both logs", "truth"):
         assert f"<td>{m}</td>" in page
+    # read in a browser: the summary first, the widest table (the methods') on the page, no nan
+    lay = report_layout.layout(tmp_path / "r.html")
+    report_layout.check(lay, images=figures.figures)
+    assert figures.collisions == []
+    said = lay["summary"]["text"]
+    assert "Calibration methods on the validation log, azimuth RMS: twelve-position" in said
+    assert "(the simulator's true model:" in said

@@ -15,6 +15,7 @@ Run with the environment of scripts/env.sh.  Takes about a minute.
 """
 import json
 import math
+import re
 import socket
 import subprocess
 import sys
@@ -28,6 +29,7 @@ pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` an
 pytest.importorskip("mcap_ros2")
 
 from inclinometer_calib.coeffs import Calibration  # noqa: E402
+import report_layout  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
 from inclinometer_calib.frames import wrap180  # noqa: E402
 
@@ -167,9 +169,23 @@ def test_the_summarys_model_loop_finds_the_effect_and_its_record_meets_the_truth
     assert lab <= 1.2 * truth < live, (live, lab, truth)
     assert Calibration.load(out / "lab_model.yaml").id == loop["lab_record"]
     page = (out / "report.html").read_text()
-    assert page.count("<img src='data:image/png;base64,") >= 2 and "lab_model" in page
+    assert page.count("src='data:image/png;base64,") == 3 and "lab_model" in page
     report = (out / "report.md").read_text()
     assert "## The model loop" in report and "temperature_bias:mag:xyz" in report
+
+
+def test_the_run_report_reads_at_a_glance_in_a_browser(sim_run):
+    """The demo's report.html laid out by Chromium and read back: first the lab's finding and the
+    ladder in words and a table, then the full verdict; every plot drawn, nothing on top of
+    anything, no nan."""
+    out, _, _ = sim_run
+    lay = report_layout.layout(out / "report.html")
+    report_layout.check(lay, images=3)
+    said = lay["summary"]["text"]
+    assert "The lab finds temperature_bias:mag:xyz missing from the live record" in said, said
+    ladder = r"Azimuth RMS \S+° uncorrected → \S+° live_record → \S+° lab_model → \S+° simulator_truth"
+    assert re.search(ladder, said), said
+    assert "With live_record the field monitor flags" in said
 
 
 def test_the_recorder_has_every_temperature_message_from_the_first_on(sim_run):
