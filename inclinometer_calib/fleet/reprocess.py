@@ -64,7 +64,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 from .. import __version__
 from ..bag import BagError, open_bag
-from ..output import atomic_write_text
+from ..output import OutputError, atomic_write_text, check_output
 from ..progress import progress_bar
 from ..survey import Tolerances
 from .manifest import BagEntry, dedupe, entries_from_paths
@@ -644,7 +644,9 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
     :class:`Settings` (``settings`` gives them all). ``progress``: a progress bar of bags done on
     stderr. Writes ``OUT/stations/``, ``OUT/done-index.json`` and ``OUT/summary.csv``; returns the
     :class:`FleetSummary`. Raises ``ValueError`` for bad arguments, an unreadable done-index or a
-    run already writing to ``out_dir``; a bag's own failure is in the summary, never raised.
+    run already writing to ``out_dir``, :class:`output.OutputError` when ``out_dir`` cannot be written
+    (its parent folder missing, read-only, a full disk: a new ``out_dir`` is then not left behind
+    empty); a bag's own failure is in the summary, never raised.
     A Dask worker lost while on a bag is put on that bag (:attr:`BagResult.workers_lost`): retried
     and done, or failed when Dask gave up (:func:`_run_dask`). ``before_bag(entry)``: called before
     each bag where it runs (for tests: a worker that dies on a bag; it must pickle).
@@ -658,10 +660,15 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
     settings = settings or Settings(force_probe=force_probe)
     entries = dedupe(b if isinstance(b, BagEntry) else entries_from_paths([b])[0] for b in bags)
     out_dir = os.path.abspath(os.fspath(out_dir))
-    os.makedirs(out_dir, exist_ok=True)
+    check_output(out_dir, folder=True)    # its folder missing, read-only or not ours: said before the work
     if resolver is None:
         resolver = RegistryResolver(registry_url)
         resolver.registry()          # created and migrated here, once, before workers open it
+    made = not os.path.isdir(out_dir)
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        raise OutputError.from_os(out_dir, exc) from None
     lock = _RunLock(out_dir)
     try:
         index = DoneIndex(out_dir)
@@ -700,8 +707,26 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
                          "summary": os.path.join(out_dir, SUMMARY_FILE)}
         atomic_write_text(summary.paths["summary"], summary.to_csv())
         return summary
+    except BaseException:
+        if made:                     # a new folder a run wrote nothing into (a full disk, say) is not left
+            _remove_if_nothing_written(out_dir)
+        raise
     finally:
         lock.release()
+
+
+def _remove_if_nothing_written(out_dir: str) -> None:
+    """Remove the lock and the empty folders of ``out_dir``, and so ``out_dir`` itself when it holds
+    nothing else (``rmdir`` removes only empty folders: no file of a run is ever removed)."""
+    try:
+        os.unlink(os.path.join(out_dir, LOCK_FILE))
+    except OSError:
+        return
+    for folder, _, _ in os.walk(out_dir, topdown=False):
+        try:
+            os.rmdir(folder)
+        except OSError:
+            pass
 
 
 def local_cluster(n_workers: int):

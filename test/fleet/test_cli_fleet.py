@@ -166,7 +166,9 @@ print(json.dumps(out))
 def test_a_registry_on_a_full_or_read_only_disk_is_one_line_and_left_as_it_was(full_disk, records, tmp_path):
     """``fleet register``/``fleet add`` on a registry whose file system is full (a real full tmpfs)
     or read-only, and ``fleet register`` making a new registry there: one line naming the file and
-    the cause, exit 2, the registry byte for byte as it was, no new file (they were a traceback)."""
+    the cause, exit 2, the registry byte for byte as it was, no new file (they were a traceback).
+    ``fleet reprocess`` into a new folder there, or into a folder whose parent is missing: the same,
+    and no folder left behind (it said the path twice, or errno words, and left its folder)."""
     import sys
 
     paths, _ = records
@@ -174,13 +176,18 @@ def test_a_registry_on_a_full_or_read_only_disk_is_one_line_and_left_as_it_was(f
     seed.mkdir()
     assert cli.main(["fleet", "register", "SN-C", "--db", str(seed / "fleet.db")]) == 0
     assert cli.main(["fleet", "add", paths[0], "--date", "2026-01-10", "--db", str(seed / "fleet.db")]) == 0
+    reprocess = ["fleet", "reprocess", paths[1], "--db", "fleet.db", "--workers", "0", "--no-progress", "-o"]
     commands = [["fleet", "register", "SN-D", "--db", "fleet.db"],
                 ["fleet", "add", paths[1], "--date", "2026-02-09", "--db", "fleet.db"],
-                ["fleet", "register", "SN-D", "--db", "new.db"]]
-    for ro, cause in ((False, "no space left on the device (ENOSPC)"), (True, "the file system is read-only (EROFS)")):
+                ["fleet", "register", "SN-D", "--db", "new.db"],
+                reprocess + ["out"], reprocess + ["sub/out"]]
+    mnt = full_disk.mnt
+    for ro, cause, index in ((False, "no space left on the device (ENOSPC)", "/done-index.json"),
+                             (True, "the file system is read-only (EROFS)", "")):
         r = full_disk.run([sys.executable, "-c", _IN_THE_FOLDER, seed, json.dumps(commands)], ro=ro, seed=seed)
         assert r.returncode == 0 and r.stderr.strip().splitlines()[-1] == "LEFT:fleet.db", r.stderr
-        for got, db in zip(json.loads(r.stdout), ("fleet.db", "fleet.db", "new.db"), strict=True):
-            assert got["rc"] == 2, got
-            assert got["err"] == f"error: cannot write {full_disk.mnt / db}: {cause}\n"
+        want = [f"{mnt / 'fleet.db'}: {cause}", f"{mnt / 'fleet.db'}: {cause}", f"{mnt / 'new.db'}: {cause}",
+                f"{mnt / 'out'}{index}: {cause}", f"{mnt / 'sub' / 'out'}: the folder {mnt / 'sub'} does not exist"]
+        for got, line in zip(json.loads(r.stdout), want, strict=True):
+            assert (got["rc"], got["err"]) == (2, f"error: cannot write {line}\n"), got
             assert got["same"] and got["left"] == ["fleet.db"], got
