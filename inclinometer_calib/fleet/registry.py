@@ -192,7 +192,9 @@ def _check_serial(serial) -> str:
 
 class Registry:
     """The probe registry and calibration history in the database at ``url`` (see the module's
-    docstring): created if absent, migrated to the newest schema on opening."""
+    docstring): created if absent, migrated to the newest schema on opening.  Writers run one at a
+    time (:func:`write_lock`).  A write the SQLite file's disk or folder refuses raises
+    :class:`output.OutputError` (the file and the cause), anything else :class:`RegistryError`."""
 
     def __init__(self, url: str = DEFAULT_URL, *, echo: bool = False, create: bool = True):
         """``create=False`` (a command that only reads): a SQLite file that does not exist is an
