@@ -1292,7 +1292,9 @@ def cmd_fleet_reprocess(args):
         summary = reprocess_fleet(entries, out_dir=args.output, registry_url=args.db or DEFAULT_URL,
                                   scheduler=args.scheduler, n_workers=args.workers, progress=not args.no_progress,
                                   bags_per_task=args.bags_per_task, settings=settings)
-    except OSError as exc:          # the scheduler cannot be reached, the output folder cannot be made
+    except OutputError:             # the output folder refused: "cannot write PATH: CAUSE"
+        raise
+    except OSError as exc:          # the scheduler cannot be reached
         raise UserError(f"{args.scheduler or args.output}: {exc}") from None
     except ValueError as exc:       # RegistryError (the registry cannot be opened), a run already there, bad options
         raise UserError(str(exc)) from None

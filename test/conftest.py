@@ -1,7 +1,60 @@
 """Shared fixtures.  Tests never depend on the working directory."""
 import os
+import shutil
+import subprocess
 import sys
+
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
+
+
+FULL_DISK = r"""
+set -u
+mnt="$1"; ro="$2"; seed="$3"; shift 3
+mount -t tmpfs -o size=256k tmpfs "$mnt" || exit 97
+cd "$mnt"
+if [ -n "$seed" ]; then
+    cp -a "$seed"/. . || exit 97              # what is there before the command runs
+fi
+if [ "$ro" = ro ]; then
+    mount -o remount,ro "$mnt" || exit 97     # a read-only file system (root may write anywhere else)
+else
+    cat /dev/zero > .fill 2>/dev/null         # every block taken: the command's first write fails
+fi
+"$@"
+rc=$?
+rm -f .fill 2>/dev/null
+echo "LEFT:$(ls -A | tr '\n' ' ')" >&2
+exit $rc
+"""
+
+
+class FullDisk:
+    """A real full, or read-only, file system for one command: a tmpfs mounted on ``mnt`` in a
+    mount namespace of the command's own (``unshare --mount``), holding a copy of ``seed``'s
+    files (if given), then filled to the last block (or remounted read-only); the command runs in
+    it and the last line of its stderr is ``LEFT:`` and the names left there.  The mount goes
+    with the namespace: ``mnt`` is empty again afterwards."""
+
+    def __init__(self, mnt):
+        self.mnt = mnt
+
+    def run(self, command, *, ro=False, seed=None, timeout=180):
+        return subprocess.run(["unshare", "--mount", "sh", "-c", FULL_DISK, "sh", str(self.mnt), "ro" if ro else "rw",
+                               str(seed or ""), *map(str, command)], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture(scope="session")
+def full_disk(tmp_path_factory):
+    """A :class:`FullDisk` (skips, saying what is missing, without ``unshare`` or the right to mount)."""
+    if shutil.which("unshare") is None:
+        pytest.skip("unshare (util-linux) is not installed")
+    mnt = tmp_path_factory.mktemp("mnt")
+    r = subprocess.run(["unshare", "--mount", "sh", "-c", f"mount -t tmpfs -o size=64k tmpfs {mnt}"],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"a tmpfs in a mount namespace of its own needs root or CAP_SYS_ADMIN: {r.stderr.strip()}")
+    return FullDisk(mnt)

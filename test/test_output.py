@@ -2,11 +2,11 @@
 
 The full disk is real: a tmpfs mounted in a mount namespace of the command's own
 (``unshare --mount``, which needs root or CAP_SYS_ADMIN; without it those tests are skipped and
-say what is missing), filled before the command runs.  A missing folder needs nothing."""
+say what is missing), filled before the command runs (``full_disk``, test/conftest.py).  A missing
+folder needs nothing."""
 import errno
 import os
 import re
-import shutil
 import subprocess
 import sys
 
@@ -104,57 +104,25 @@ def test_an_output_in_a_missing_folder_is_one_line_and_nothing_is_written(logs, 
     assert list(tmp_path.iterdir()) == []
 
 
-FULL_DISK = r"""
-set -u
-mnt="$1"; ro="$2"; shift 2
-mount -t tmpfs -o size=64k tmpfs "$mnt" || exit 97
-cd "$mnt"
-if [ "$ro" = ro ]; then
-    mount -o remount,ro "$mnt" || exit 97     # a read-only file system (root may write anywhere else)
-else
-    cat /dev/zero > .fill 2>/dev/null         # every block taken: the command's first write fails
-fi
-"$@"
-rc=$?
-rm -f .fill 2>/dev/null
-echo "LEFT:$(ls -A | tr '\n' ' ')" >&2
-exit $rc
-"""
-
-
-def _full_disk_run(argv, mnt, ro=False):
-    return subprocess.run(["unshare", "--mount", "sh", "-c", FULL_DISK, "sh", str(mnt), "ro" if ro else "rw",
-                           sys.executable, "-m", "inclinometer_calib.cli", *argv], capture_output=True, text=True,
-                          timeout=180)
-
-
-@pytest.fixture(scope="module")
-def full_disk_ok(tmp_path_factory):
-    if shutil.which("unshare") is None:
-        pytest.skip("unshare (util-linux) is not installed")
-    mnt = tmp_path_factory.mktemp("mnt")
-    r = subprocess.run(["unshare", "--mount", "sh", "-c", f"mount -t tmpfs -o size=64k tmpfs {mnt}"],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"a tmpfs in a mount namespace of its own needs root or CAP_SYS_ADMIN: {r.stderr.strip()}")
-    return mnt
+def _cli(argv):
+    return [sys.executable, "-m", "inclinometer_calib.cli", *argv]
 
 
 @pytest.mark.parametrize("name", list(OUTPUT_NAME))
-def test_a_full_disk_is_one_line_and_leaves_no_partial_file(logs, full_disk_ok, name):
+def test_a_full_disk_is_one_line_and_leaves_no_partial_file(logs, full_disk, name):
     argv = _argv(_commands(logs)[name], OUTPUT_NAME[name])
-    r = _full_disk_run(argv, full_disk_ok)
+    r = full_disk.run(_cli(argv))
     assert r.returncode != 97, r.stderr
     first = OUTPUT_NAME[name] + ("/cal.csv" if name == "simulate" else "")
     _assert_one_line(r, f"error: cannot write {first}: no space left on the device (ENOSPC)")
     assert r.stderr.strip().splitlines()[-1] == "LEFT:", r.stderr      # nothing under the name, no temporary
-    assert not os.listdir(full_disk_ok)                                   # (the namespace's mount is gone)
+    assert not os.listdir(full_disk.mnt)                                  # (the namespace's mount is gone)
 
 
 @pytest.mark.parametrize("name", list(OUTPUT_NAME))
-def test_a_read_only_folder_is_said_before_the_work(logs, full_disk_ok, name):
+def test_a_read_only_folder_is_said_before_the_work(logs, full_disk, name):
     argv = _argv(_commands(logs)[name], OUTPUT_NAME[name])
-    r = _full_disk_run(argv, full_disk_ok, ro=True)
+    r = full_disk.run(_cli(argv), ro=True)
     assert r.returncode != 97, r.stderr
     _assert_one_line(r, f"error: cannot write {OUTPUT_NAME[name]}: the file system is read-only (EROFS)")
     assert r.stderr.strip().splitlines()[-1] == "LEFT:", r.stderr

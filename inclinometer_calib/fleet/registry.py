@@ -30,8 +30,10 @@ registry does not guess a time zone); they come back in UTC.
 from __future__ import annotations
 
 import datetime as _dt
+import errno
 import os
 import re
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import List, Optional
 
@@ -42,6 +44,7 @@ from sqlalchemy.exc import ArgumentError, DBAPIError, IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
 from ..coeffs import Calibration, CoefficientError
+from ..output import OutputError, check_output, refused_write_words
 
 #: Where the Alembic environment and versions of the registry's schema live (shipped with the package).
 MIGRATIONS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "migrations")
@@ -50,6 +53,8 @@ DEFAULT_INTERVAL_DAYS = 90.0
 #: A serial: letters, digits and ``-_.:/``, 1–64 characters (it names Parquet partitions and files too).
 SERIAL_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.:/-]{0,63}$")
 _SHA256_RE = re.compile(r"^[0-9a-f]{64}$")
+#: The key of the registry's write lock on PostgreSQL (a transaction-scoped advisory lock).
+PG_WRITE_LOCK = 7213411
 
 
 class RegistryError(ValueError):
@@ -187,7 +192,9 @@ def _check_serial(serial) -> str:
 
 class Registry:
     """The probe registry and calibration history in the database at ``url`` (see the module's
-    docstring): created if absent, migrated to the newest schema on opening."""
+    docstring): created if absent, migrated to the newest schema on opening.  Writers run one at a
+    time (:func:`write_lock`).  A write the SQLite file's disk or folder refuses raises
+    :class:`output.OutputError` (the file and the cause), anything else :class:`RegistryError`."""
 
     def __init__(self, url: str = DEFAULT_URL, *, echo: bool = False, create: bool = True):
         """``create=False`` (a command that only reads): a SQLite file that does not exist is an
@@ -196,7 +203,10 @@ class Registry:
             self.url = make_url(normalize_url(url))
         except ArgumentError as exc:
             raise RegistryError(f"registry URL {url!r} is not valid: {exc}") from None
+        #: The SQLite file (None for a server or an in-memory database): named by a write it refuses.
+        self.path = None
         if self.url.get_backend_name() == "sqlite" and self.url.database not in (None, "", ":memory:"):
+            self.path = self.url.database
             if not create and not os.path.isfile(self.url.database):
                 raise RegistryError(f"registry {self.url.database} does not exist (fleet register creates one; "
                                     "check --db)")
@@ -209,11 +219,14 @@ class Registry:
             raise RegistryError(f"registry {_display(self.url)}: cannot use this database: {exc}") from None
         if self.engine.dialect.name == "sqlite":
             event.listen(self.engine, "connect", _sqlite_pragmas)
+        new_file = self.path is not None and not os.path.exists(self.path)
         try:
             migrate(self.engine)
-        except DBAPIError as exc:   # cannot connect, no such database, no permission ...
-            raise RegistryError(f"registry {_display(self.url)}: cannot open the database: "
-                                f"{' '.join(str(exc.orig if exc.orig is not None else exc).split())}") from None
+        except DBAPIError as exc:   # cannot connect, no such database, no permission, a full disk ...
+            self.engine.dispose()
+            if new_file and os.path.isfile(self.path) and os.path.getsize(self.path) == 0:
+                os.unlink(self.path)     # the empty file SQLite made before the schema was refused
+            raise self._refused(exc, "cannot open the database") from None
 
     def __repr__(self):
         return f"Registry({_display(self.url)!r})"
@@ -226,6 +239,44 @@ class Registry:
 
     def __exit__(self, *exc):
         self.close()
+
+    def _refused(self, exc: DBAPIError, what: str) -> Exception:
+        """What the database refused, in one line: a write an SQLite file's disk or folder refuses
+        (full, read-only, not permitted, an I/O error) is an :class:`output.OutputError` naming the
+        file and the cause; anything else a :class:`RegistryError` with the database's own words."""
+        orig = exc.orig if exc.orig is not None else exc
+        code = getattr(orig, "sqlite_errorcode", None)
+        if self.path is not None and code is not None:
+            primary = code & 0xFF       # extended result codes carry the primary one in their low byte
+            if primary == 13:                                       # SQLITE_FULL
+                return OutputError(self.path, refused_write_words(OSError(errno.ENOSPC, ""))[1], errno.ENOSPC)
+            if primary in (8, 14, 3):                               # SQLITE_READONLY, _CANTOPEN, _PERM
+                try:
+                    check_output(self.path)     # names a missing or unwritable folder, a read-only file system
+                except OutputError as refusal:
+                    return refusal
+                if os.path.exists(self.path) and not os.access(self.path, os.W_OK):
+                    return OutputError(self.path, refused_write_words(OSError(errno.EACCES, ""))[1], errno.EACCES)
+            if primary == 10:                                       # SQLITE_IOERR
+                return OutputError(self.path, f"{refused_write_words(OSError(errno.EIO, ''))[1]}: {orig}", errno.EIO)
+        return RegistryError(f"registry {_display(self.url)}: {what}: {' '.join(str(orig).split())}")
+
+    @contextmanager
+    def _writing(self, what: str):
+        """A session whose transaction holds the registry's write lock (:func:`write_lock`) from its
+        start: a registration reads what is there and writes what is not, and no other writer comes
+        between (two processes registering the same probe at once both saw none, and the second
+        insert failed).  A refusal of the database becomes one line (:meth:`_refused`); ``what``
+        names the request in it."""
+        try:
+            with Session(self.engine) as s, s.begin():
+                write_lock(s.connection())
+                yield s
+        except IntegrityError as exc:   # a client that does not take the lock wrote the same key meanwhile
+            raise RegistryError(f"{what}: conflicts with a row another client of {_display(self.url)} wrote "
+                                f"meanwhile: {' '.join(str(exc.orig).split())}") from None
+        except DBAPIError as exc:
+            raise self._refused(exc, what) from None
 
     # ---- probes ---------------------------------------------------------------------------
     def add_probe(self, serial: str, model: str = "", note: str = "",
@@ -240,7 +291,7 @@ class Registry:
                 from None
         if not (interval > 0 and interval < 1e6):
             raise RegistryError(f"probe {serial}: calibration interval must be a positive number of days, got {interval}")
-        with Session(self.engine) as s, s.begin():
+        with self._writing(f"probe {serial}") as s:
             row = s.get(ProbeRow, serial)
             if row is None:
                 row = ProbeRow(serial=serial, model=str(model), note=str(note), calibration_interval_days=interval,
@@ -259,7 +310,7 @@ class Registry:
     def update_probe(self, serial: str, *, model: Optional[str] = None, note: Optional[str] = None,
                      calibration_interval_days: Optional[float] = None) -> ProbeInfo:
         """Change a registered probe's model, note or calibration interval (days)."""
-        with Session(self.engine) as s, s.begin():
+        with self._writing(f"probe {serial}") as s:
             row = self._probe_row(s, serial)
             if model is not None:
                 row.model = str(model)
@@ -305,7 +356,7 @@ class Registry:
         if raw and not _SHA256_RE.match(raw):
             raise RegistryError(f"calibration {cal.id}: raw log SHA-256 {raw_log_sha256!r} is not 64 hex digits")
         rid = cal.id
-        with Session(self.engine) as s, s.begin():
+        with self._writing(f"calibration {rid} of probe {cal.probe_id}") as s:
             probe = s.get(ProbeRow, cal.probe_id)
             if probe is None:
                 raise RegistryError(f"calibration {rid}: probe {cal.probe_id!r} is not registered in "
@@ -329,11 +380,6 @@ class Registry:
                 model_description=cal.model.describe(), site=cal.site.to_dict(), record_yaml=cal.to_yaml(),
                 operator_note=str(operator_note or ""), raw_log_sha256=raw,
                 uncertainty=_jsonable(cal.uncertainty), created=_dt.datetime.now(_dt.timezone.utc)))
-            try:
-                s.flush()
-            except IntegrityError as exc:   # a concurrent writer stored the same id or instant first
-                raise RegistryError(f"calibration {rid} of probe {cal.probe_id}: conflicts with a record stored "
-                                    f"meanwhile: {exc.orig}") from None
         return rid
 
     def valid_record(self, serial: str, at: _dt.datetime) -> Calibration:
@@ -439,8 +485,9 @@ def current_revision(engine) -> Optional[str]:
 def migrate(engine, revision: str = "head") -> None:
     """Bring the database to ``revision`` (default the newest) with the shipped migrations.  A
     database already there is left untouched (no lock, no write); one written by a newer version of
-    this package (a revision this one does not know) is refused.  On PostgreSQL the upgrade holds an
-    advisory lock, so that several processes opening a fresh registry at once migrate it once."""
+    this package (a revision this one does not know) is refused.  The upgrade is one transaction
+    holding the registry's write lock (:func:`write_lock`), so that several processes opening a
+    fresh registry at once migrate it once, and a failed upgrade leaves the schema as it was."""
     from alembic import command
     from alembic.script import ScriptDirectory
     from alembic.util import CommandError
@@ -457,6 +504,19 @@ def migrate(engine, revision: str = "head") -> None:
             raise RegistryError(f"registry {_display(engine.url)} has schema revision {current!r}, unknown to this "
                                 f"version of inclinometer_calib (newest known: {head}): upgrade the package") from None
     with engine.begin() as conn:
-        if conn.dialect.name == "postgresql":
-            conn.execute(sa.text("SELECT pg_advisory_xact_lock(7213411)"))   # released at commit
-        command.upgrade(alembic_config(conn), revision)
+        write_lock(conn)
+        command.upgrade(alembic_config(conn), revision)   # reads the revision again, under the lock
+
+
+def write_lock(conn) -> None:
+    """Take the registry's write lock for the rest of ``conn``'s transaction (its first statement):
+    writers of the registry — migrations, registrations — then run one at a time, each seeing what
+    the one before committed; readers are not held up.  PostgreSQL: a transaction-scoped advisory
+    lock (:data:`PG_WRITE_LOCK`, released at commit or rollback).  SQLite: ``BEGIN IMMEDIATE``, its
+    database write lock taken now rather than at the first write (the driver would begin the
+    transaction only at the first INSERT, and run DDL outside any), waiting up to the busy timeout."""
+    name = conn.dialect.name
+    if name == "postgresql":
+        conn.execute(sa.text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_WRITE_LOCK})
+    elif name == "sqlite":
+        conn.exec_driver_sql("BEGIN IMMEDIATE")

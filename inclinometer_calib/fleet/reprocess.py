@@ -40,6 +40,12 @@ few seconds and at the end) and ``OUT/summary.csv`` (this run, one row per bag).
 under a new key (new record, new content, new settings) replaces its old fragment. One run at a
 time per output folder (``OUT/.lock``, released when the run's process ends, however it ends).
 
+A Dask worker lost while on a bag (its process died: out of memory, a crash in native code, a
+kill) is put on that bag: each task notes the bag it begins (``OUT/.running/``), and a note its
+worker could not remove names the bag. Dask retries the task on another worker; the bag then says
+it was retried and how it ended, or, when the bag was on as many lost workers as Dask allows, fails
+as lost with its workers while the rest of its batch is done in a new task (:func:`_run_dask`).
+
 The output folder, the bags and the registry must be reachable from every worker (on a cluster: a
 shared file system and a shared database URL such as PostgreSQL).
 """
@@ -58,7 +64,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 
 from .. import __version__
 from ..bag import BagError, open_bag
-from ..output import atomic_write_text
+from ..output import OutputError, atomic_write_text, check_output
 from ..progress import progress_bar
 from ..survey import Tolerances
 from .manifest import BagEntry, dedupe, entries_from_paths
@@ -69,6 +75,9 @@ DATASET_DIR = "stations"
 INDEX_FILE = "done-index.json"
 SUMMARY_FILE = "summary.csv"
 LOCK_FILE = ".lock"
+#: Where each Dask task notes the bags it begins (``OUT/.running/<task key>@<worker address>``): a note
+#: left behind is a worker process that died while on its last bag (see :func:`dask_batch`).
+RUNNING_DIR = ".running"
 INDEX_FORMAT = "inclinometer_calib/fleet-done-index"
 #: Partition keys of the dataset (hive style, values URI-encoded), in folder order.
 PARTITION_KEYS = ("probe", "survey_date")
@@ -81,6 +90,8 @@ MAX_BAGS_PER_TASK = 10
 TASKS_PER_WORKER = 4
 #: Seconds between rewrites of the done-index while a run goes on (and once at its end).
 INDEX_FLUSH_S = 5.0
+#: How the reason of a bag whose workers were lost begins (Dask gave up on its task: KilledWorker).
+LOST_REASON = "lost with its worker"
 
 Resolver = Callable[[str, _dt.datetime], object]   # (serial, survey time UTC) -> coeffs.Calibration
 
@@ -319,6 +330,9 @@ class BagResult:
     key: str = ""
     fragment: str = ""
     probe_forced: bool = False
+    #: The Dask workers (addresses) that were lost — their process died — while on this bag. With a
+    #: status ``ok`` (or ``skipped``) it was retried and done; ``failed``, Dask gave up (KilledWorker).
+    workers_lost: List[str] = field(default_factory=list)
 
 
 def _serial_for(entry: BagEntry, recorded: Optional[str], settings: Settings):
@@ -394,16 +408,78 @@ def process_bag(entry: BagEntry, resolver: Resolver, out_dir: str, settings: Set
 
 
 def process_batch(entries: Sequence[BagEntry], resolver: Resolver, out_dir: str, settings: Settings,
-                  done: Sequence[Optional[str]]) -> List[BagResult]:
+                  done: Sequence[Optional[str]], begin: Optional[Callable[[int, BagEntry], None]] = None
+                  ) -> List[BagResult]:
     """One task: the bags of ``entries`` one after the other. A bag that raises (a bug, not an
     expected failure) is reported failed with the exception and does not take its batch-mates
-    down with it."""
+    down with it. ``begin(i, entry)`` is called before the ``i``-th bag."""
     out = []
-    for entry, key in zip(entries, done):
+    for i, (entry, key) in enumerate(zip(entries, done)):
+        if begin is not None:
+            begin(i, entry)
         try:
             out.append(process_bag(entry, resolver, out_dir, settings, key))
         except Exception as exc:  # noqa: BLE001 - task boundary: one bag's bug must not fail the others
             out.append(BagResult(bag=entry.path, status="failed", reason=f"internal error: {type(exc).__name__}: {exc}"))
+    return out
+
+
+def _running_note(out_dir: str, task_key, worker: str) -> str:
+    q = lambda v: urllib.parse.quote(str(v), safe="")  # noqa: E731
+    return os.path.join(out_dir, RUNNING_DIR, f"{q(task_key)}@{q(worker)}")
+
+
+def dask_batch(entries: Sequence[BagEntry], resolver: Resolver, out_dir: str, settings: Settings,
+               done: Sequence[Optional[str]], before_bag: Optional[Callable[[BagEntry], None]] = None
+               ) -> List[BagResult]:
+    """:func:`process_batch` as a Dask task, noting the bags it begins: ``OUT/.running/<task
+    key>@<worker address>`` gets the batch index of each bag as it begins (flushed to the OS before
+    the bag starts) and is removed when the task ends.  A worker process that dies — out of memory,
+    a crash in native code, a kill — cannot remove it: a note left behind names the worker and the
+    bag it was on (:func:`lost_attempts`), which Dask's own retry or ``KilledWorker`` do not say.
+    ``before_bag(entry)``: called before each bag (a test's hook: a worker that dies on a bag)."""
+    from distributed import get_worker
+
+    worker = get_worker()
+    note = _running_note(out_dir, worker.get_current_task(), worker.address)
+    os.makedirs(os.path.dirname(note), exist_ok=True)
+
+    def begin(i, entry):
+        fh.write(f"{i}\n")
+        fh.flush()
+        if before_bag is not None:
+            before_bag(entry)
+
+    with open(note, "w", encoding="ascii") as fh:
+        try:
+            return process_batch(entries, resolver, out_dir, settings, done, begin=begin)
+        finally:
+            os.unlink(note)
+
+
+def lost_attempts(out_dir: str, task_key=None) -> List[tuple]:
+    """The notes of task attempts whose worker was lost (:func:`dask_batch`), removed as they are
+    read: ``(task key, worker address, index in the batch of the bag it was on, or None when it had
+    begun none)``, of ``task_key`` only when given. Read when no attempt of the task can still run."""
+    folder = os.path.join(out_dir, RUNNING_DIR)
+    try:
+        names = sorted(os.listdir(folder))
+    except FileNotFoundError:
+        return []
+    out = []
+    for name in names:
+        key, sep, worker = name.rpartition("@")
+        key, worker = urllib.parse.unquote(key), urllib.parse.unquote(worker)
+        if not sep or (task_key is not None and key != str(task_key)):
+            continue
+        path = os.path.join(folder, name)
+        try:
+            with open(path, encoding="ascii") as fh:
+                begun = fh.read().split()
+            os.unlink(path)
+        except FileNotFoundError:
+            continue
+        out.append((key, worker, int(begun[-1]) if begun and begun[-1].isdigit() else None))
     return out
 
 
@@ -453,7 +529,7 @@ class DoneIndex:
 
 
 SUMMARY_COLUMNS = ("bag", "status", "reason", "serial", "survey_start", "record_id", "stations", "seconds",
-                   "probe_forced", "bag_sha256", "fragment")
+                   "probe_forced", "bag_sha256", "fragment", "workers_lost")
 
 
 @dataclass
@@ -475,6 +551,16 @@ class FleetSummary:
     def failed(self) -> List[BagResult]:
         return [r for r in self.results if r.status == "failed"]
 
+    @property
+    def lost(self) -> List[BagResult]:
+        """The bags that failed because their workers were lost (Dask gave up: KilledWorker)."""
+        return [r for r in self.results if r.status == "failed" and r.reason.startswith(LOST_REASON)]
+
+    @property
+    def retried(self) -> List[BagResult]:
+        """The bags done (or skipped) on a retry after a worker was lost while on them."""
+        return [r for r in self.results if r.status != "failed" and r.workers_lost]
+
     def to_csv(self) -> str:
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -482,6 +568,7 @@ class FleetSummary:
         for r in self.results:
             d = asdict(r)
             d["seconds"] = f"{r.seconds:.3f}"
+            d["workers_lost"] = " ".join(r.workers_lost)
             w.writerow([d[c] for c in SUMMARY_COLUMNS])
         return buf.getvalue()
 
@@ -491,15 +578,28 @@ class FleetSummary:
         for r in self.results:
             what = (f"{r.stations} stations, record {r.record_id} ({r.serial}"
                     + (", FORCED onto this bag" if r.probe_forced else "") + f"), {r.seconds:.2f} s")
-            out.append(f"{r.status:7s} {r.bag}: " + (what if r.status == "ok" else
-                                                     f"{r.reason}" + (f" [{r.record_id}]" if r.record_id else "")))
+            line = f"{r.status:7s} {r.bag}: " + (what if r.status == "ok" else
+                                                 f"{r.reason}" + (f" [{r.record_id}]" if r.record_id else ""))
+            if r.workers_lost and r.status != "failed":
+                line += f"; RETRIED: {_lost_words(r.workers_lost)} while on this bag"
+            elif r.workers_lost and not r.reason.startswith(LOST_REASON):
+                line += f"; retried after {_lost_words(r.workers_lost)} while on this bag"
+            out.append(line)
         n = len(self.results)
         rate = n / self.seconds if self.seconds > 0 else float("inf")
+        lost, retried = len(self.lost), len(self.retried)
         out.append(f"{n} bags: {self.count('ok')} ok, {self.count('skipped')} skipped (done), "
-                   f"{self.count('failed')} failed; {sum(r.stations for r in self.results if r.status == 'ok')} "
+                   f"{self.count('failed')} failed" + (f" ({lost} lost with their workers)" if lost else "")
+                   + (f", {retried} retried after a worker was lost" if retried else "")
+                   + f"; {sum(r.stations for r in self.results if r.status == 'ok')} "
                    f"stations written in {self.seconds:.1f} s ({rate:.1f} bags/s, {self.engine}, "
                    f"{self.bags_per_task} bag(s) per task)")
         return out
+
+
+def _lost_words(workers: Sequence[str]) -> str:
+    return (f"worker {workers[0]} was lost" if len(workers) == 1 else
+            f"{len(workers)} workers were lost ({', '.join(workers)})")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -532,7 +632,7 @@ def default_workers() -> int:
 def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolver: Optional[Resolver] = None,
                     scheduler: Optional[str] = None, n_workers: Optional[int] = None, progress: bool = True,
                     force_probe: bool = False, bags_per_task: Optional[int] = None, settings: Optional[Settings] = None,
-                    client=None) -> FleetSummary:
+                    client=None, before_bag: Optional[Callable[[BagEntry], None]] = None) -> FleetSummary:
     """Reprocess ``bags`` (paths or :class:`manifest.BagEntry`) into the dataset in ``out_dir``.
 
     The record of each bag comes from the registry at ``registry_url`` or from ``resolver``
@@ -544,7 +644,12 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
     :class:`Settings` (``settings`` gives them all). ``progress``: a progress bar of bags done on
     stderr. Writes ``OUT/stations/``, ``OUT/done-index.json`` and ``OUT/summary.csv``; returns the
     :class:`FleetSummary`. Raises ``ValueError`` for bad arguments, an unreadable done-index or a
-    run already writing to ``out_dir``; a bag's own failure is in the summary, never raised.
+    run already writing to ``out_dir``, :class:`output.OutputError` when ``out_dir`` cannot be written
+    (its parent folder missing, read-only, a full disk: a new ``out_dir`` is then not left behind
+    empty); a bag's own failure is in the summary, never raised.
+    A Dask worker lost while on a bag is put on that bag (:attr:`BagResult.workers_lost`): retried
+    and done, or failed when Dask gave up (:func:`_run_dask`). ``before_bag(entry)``: called before
+    each bag where it runs (for tests: a worker that dies on a bag; it must pickle).
     """
     if (registry_url is None) == (resolver is None):
         raise ValueError("give either registry_url or resolver")
@@ -555,10 +660,15 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
     settings = settings or Settings(force_probe=force_probe)
     entries = dedupe(b if isinstance(b, BagEntry) else entries_from_paths([b])[0] for b in bags)
     out_dir = os.path.abspath(os.fspath(out_dir))
-    os.makedirs(out_dir, exist_ok=True)
+    check_output(out_dir, folder=True)    # its folder missing, read-only or not ours: said before the work
     if resolver is None:
         resolver = RegistryResolver(registry_url)
         resolver.registry()          # created and migrated here, once, before workers open it
+    made = not os.path.isdir(out_dir)
+    try:
+        os.makedirs(out_dir, exist_ok=True)
+    except OSError as exc:
+        raise OutputError.from_os(out_dir, exc) from None
     lock = _RunLock(out_dir)
     try:
         index = DoneIndex(out_dir)
@@ -579,12 +689,15 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
             if client is None and scheduler is None and n_workers == 0:
                 engine = "in this process (no Dask)"
                 bags_per_task = bags_per_task or 1
+                begin = None if before_bag is None else (lambda i, entry: before_bag(entry))
                 for batch in _batches(entries, bags_per_task):
-                    take(process_batch(batch, resolver, out_dir, settings, [index.key(e.path) for e in batch]))
+                    take(process_batch(batch, resolver, out_dir, settings, [index.key(e.path) for e in batch], begin))
                     bar.update(len(batch))
             else:
-                engine, bags_per_task = _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take,
-                                                  bar, client, scheduler, n_workers)
+                engine, bags_per_task, lost_on = _run_dask(entries, bags_per_task, resolver, out_dir, settings, index,
+                                                           take, bar, client, scheduler, n_workers, before_bag)
+                for bag, workers in lost_on.items():
+                    results[bag].workers_lost = list(workers)
         finally:
             bar.close()
             index.save()
@@ -594,8 +707,26 @@ def reprocess_fleet(bags, *, out_dir, registry_url: Optional[str] = None, resolv
                          "summary": os.path.join(out_dir, SUMMARY_FILE)}
         atomic_write_text(summary.paths["summary"], summary.to_csv())
         return summary
+    except BaseException:
+        if made:                     # a new folder a run wrote nothing into (a full disk, say) is not left
+            _remove_if_nothing_written(out_dir)
+        raise
     finally:
         lock.release()
+
+
+def _remove_if_nothing_written(out_dir: str) -> None:
+    """Remove the lock and the empty folders of ``out_dir``, and so ``out_dir`` itself when it holds
+    nothing else (``rmdir`` removes only empty folders: no file of a run is ever removed)."""
+    try:
+        os.unlink(os.path.join(out_dir, LOCK_FILE))
+    except OSError:
+        return
+    for folder, _, _ in os.walk(out_dir, topdown=False):
+        try:
+            os.rmdir(folder)
+        except OSError:
+            pass
 
 
 def local_cluster(n_workers: int):
@@ -622,11 +753,24 @@ def _batches(entries, size):
     return [entries[i:i + size] for i in range(0, len(entries), size)]
 
 
-def _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take, bar, client, scheduler, n_workers):
-    """Submit one task per batch and take results as they complete; a task that errors (a worker
-    died, say) fails its bags with the reason and the others go on. Returns the engine's name and
-    the task size used."""
+def _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take, bar, client, scheduler, n_workers,
+              before_bag):
+    """Submit one task per batch (:func:`dask_batch`) and take results as they complete; a task that
+    errors fails its bags with the reason and the others go on.
+
+    A worker lost while on a task — its process died: out of memory, a crash in native code, a kill —
+    is retried by Dask on another worker until ``distributed.scheduler.allowed-failures`` + 1 workers
+    (4 by default) were lost with the task on them, then Dask gives up (``KilledWorker``). Dask
+    counts the workers lost while the task only waited its turn on them too; the notes the tasks
+    leave (:func:`lost_attempts`) say which bag each lost worker was running. So when Dask gives up,
+    a bag that allowed-failures + 1 workers, over all its tasks, were lost on fails
+    (:data:`LOST_REASON`, its workers named), and the rest of its batch is submitted again as a new
+    task: a failed bag never stops the others, and a bag is not given up for workers its batch-mates
+    or its neighbours in a worker's queue killed (it may then cost more workers than the limit, up to
+    twice).  A batch given up before any of its bags began is submitted again once.  Returns the
+    engine's name, the task size used, and the workers lost while on each bag (path → addresses)."""
     from distributed import Client, as_completed
+    from distributed.scheduler import KilledWorker
 
     cluster = own = None
     try:
@@ -642,22 +786,64 @@ def _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take, 
             engine = f"local Dask cluster, {n} worker process(es)"
         if bags_per_task is None:
             bags_per_task = auto_bags_per_task(len(entries), len(client.nthreads()))
-        futures = {}
+        futures, batches = {}, {}      # future -> (batch, submitted again blind); task key -> batch
+        lost_on: Dict[str, List[str]] = {}
+        running = as_completed()
+
+        def submit(batch, blind=False):
+            fut = client.submit(dask_batch, batch, resolver, out_dir, settings, [index.key(e.path) for e in batch],
+                                before_bag, pure=False)
+            futures[fut], batches[fut.key] = (batch, blind), batch
+            running.add(fut)
+
+        def note_losses(key=None):
+            """Put the lost attempts' workers on their bags; the task keys they were of."""
+            keys = set()
+            for k, worker, i in lost_attempts(out_dir, key):
+                if k in batches and i is not None:
+                    lost_on.setdefault(batches[k][i].path, []).append(worker)
+                    keys.add(k)
+            return keys
+
         for batch in _batches(entries, bags_per_task):
-            fut = client.submit(process_batch, batch, resolver, out_dir, settings,
-                                [index.key(e.path) for e in batch], pure=False)
-            futures[fut] = batch
-        for fut in as_completed(futures):
-            batch = futures.pop(fut)
+            submit(batch)
+        for fut in running:
+            batch, blind = futures.pop(fut)
             if fut.status == "finished":
                 take(fut.result())
-            else:
-                exc = fut.exception()
+                bar.update(len(batch))
+                continue
+            exc = fut.exception()
+            if not isinstance(exc, KilledWorker):
                 take([BagResult(bag=e.path, status="failed", reason=f"task failed: {type(exc).__name__}: {exc}")
                       for e in batch])
-            bar.update(len(batch))
-        return engine, bags_per_task
+                bar.update(len(batch))
+                continue
+            began = bool(note_losses(fut.key))
+            limit = exc.allowed_failures + 1
+            if began or not blind:
+                gone = [e for e in batch if len(lost_on.get(e.path, ())) >= limit]
+                rest = [e for e in batch if e not in gone]
+                reason = (f"{LOST_REASON}: {{}} while on this bag, given up after {limit} "
+                          f"(distributed.scheduler.allowed-failures {exc.allowed_failures}, + 1); a worker process "
+                          "that dies ran out of memory, crashed in native code or was killed: see the workers' logs")
+                failed = [BagResult(bag=e.path, status="failed", workers_lost=list(lost_on[e.path]),
+                                    reason=reason.format(_lost_words(lost_on[e.path]))) for e in gone]
+            else:       # given up twice before any of its bags began: not for ever
+                failed = [BagResult(bag=e.path, status="failed", reason=f"{LOST_REASON}s before it began: Dask gave "
+                                    f"up on its task twice ({limit} workers lost with it each time)") for e in batch]
+                rest = []
+            take(failed)
+            bar.update(len(failed))
+            if rest:
+                submit(rest, blind=not began)
+        note_losses()         # attempts lost, then retried by Dask and done
+        return engine, bags_per_task, lost_on
     finally:
+        try:
+            os.rmdir(os.path.join(out_dir, RUNNING_DIR))
+        except OSError:      # absent, or a note of an attempt that still runs somewhere
+            pass
         if own is not None:
             own.close()
         if cluster is not None:

@@ -2,6 +2,8 @@
 import datetime as dt
 import hashlib
 import json
+import threading
+import traceback
 
 import pytest
 
@@ -94,3 +96,98 @@ def test_a_command_that_reads_the_registry_never_creates_one(tmp_path, capsys, m
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == f"error: registry {tmp_path / 'typo.db'} does not exist (fleet register creates one; check --db)"
     assert list(tmp_path.iterdir()) == []
+
+
+def _at_once(argvs):
+    """Each command line in a thread of its own (each opens the registry: its own engine and
+    connection), all released at once; returns each one's exit status, or its traceback."""
+    start = threading.Barrier(len(argvs))
+    got = [None] * len(argvs)
+
+    def one(i):
+        start.wait()
+        try:
+            got[i] = cli.main(argvs[i])
+        except BaseException:   # noqa: BLE001 - a traceback is what the test looks for
+            got[i] = traceback.format_exc()
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(len(argvs))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return got
+
+
+def test_concurrent_first_registrations_and_additions_are_safe(request, db_url, records, capsys, tmp_path):
+    """Six registrations at once on a fresh registry — three of one probe, three of others — then six
+    additions at once, two of each of three records; three times over.  They used to fail 3 times in
+    8 on PostgreSQL (an IntegrityError traceback: both saw no probe, the second insert collided)."""
+    paths, _ = records
+    for round_ in range(3):
+        url = db_url if round_ == 0 else (f"sqlite:///{tmp_path / f'fleet{round_}.db'}" if db_url.startswith("sqlite")
+                                          else request.getfixturevalue("pg_cluster").new_database())
+        serials = ["SN-C", "SN-C", "SN-C", "SN-D", "SN-E", "SN-F"]
+        got = _at_once([["fleet", "register", s, "--model", "MX-3", "--db", url] for s in serials])
+        _, err = capsys.readouterr()
+        assert got == [0] * 6 and err == "", (got, err)
+        dates = ["2026-01-10", "2026-02-09", "2026-03-11"]
+        got = _at_once([["fleet", "add", paths[k % 3], "--date", dates[k % 3], "--db", url] for k in range(6)])
+        _, err = capsys.readouterr()
+        assert got == [0] * 6 and err == "", (got, err)
+        with Registry(url) as reg:
+            assert [(p.serial, p.model) for p in reg.probes()] == [(s, "MX-3") for s in ("SN-C", "SN-D", "SN-E", "SN-F")]
+            assert [e.date.date().isoformat() for e in reg.history("SN-C")] == dates
+            with reg.engine.connect() as c:
+                assert c.exec_driver_sql("SELECT count(*) FROM calibrations").scalar() == 3
+
+
+#: Runs each command line of argv[2] (JSON) in this one interpreter, in the current folder, and prints
+#: for each its exit status (None: it raised, and err is the traceback), its stderr, the files left
+#: there, and whether fleet.db is byte for byte the copy in the folder argv[1].
+_IN_THE_FOLDER = r"""
+import contextlib, io, json, os, sys, traceback
+from inclinometer_calib import cli
+seed, out = sys.argv[1], []
+for argv in json.loads(sys.argv[2]):
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            rc = cli.main(argv)
+    except BaseException:
+        rc, err = None, io.StringIO(traceback.format_exc())
+    with open("fleet.db", "rb") as now, open(os.path.join(seed, "fleet.db"), "rb") as before:
+        same = now.read() == before.read()
+    out.append({"rc": rc, "err": err.getvalue(), "left": sorted(set(os.listdir(".")) - {".fill"}), "same": same})
+print(json.dumps(out))
+"""
+
+
+def test_a_registry_on_a_full_or_read_only_disk_is_one_line_and_left_as_it_was(full_disk, records, tmp_path):
+    """``fleet register``/``fleet add`` on a registry whose file system is full (a real full tmpfs)
+    or read-only, and ``fleet register`` making a new registry there: one line naming the file and
+    the cause, exit 2, the registry byte for byte as it was, no new file (they were a traceback).
+    ``fleet reprocess`` into a new folder there, or into a folder whose parent is missing: the same,
+    and no folder left behind (it said the path twice, or errno words, and left its folder)."""
+    import sys
+
+    paths, _ = records
+    seed = tmp_path / "seed"
+    seed.mkdir()
+    assert cli.main(["fleet", "register", "SN-C", "--db", str(seed / "fleet.db")]) == 0
+    assert cli.main(["fleet", "add", paths[0], "--date", "2026-01-10", "--db", str(seed / "fleet.db")]) == 0
+    reprocess = ["fleet", "reprocess", paths[1], "--db", "fleet.db", "--workers", "0", "--no-progress", "-o"]
+    commands = [["fleet", "register", "SN-D", "--db", "fleet.db"],
+                ["fleet", "add", paths[1], "--date", "2026-02-09", "--db", "fleet.db"],
+                ["fleet", "register", "SN-D", "--db", "new.db"],
+                reprocess + ["out"], reprocess + ["sub/out"]]
+    mnt = full_disk.mnt
+    for ro, cause, index in ((False, "no space left on the device (ENOSPC)", "/done-index.json"),
+                             (True, "the file system is read-only (EROFS)", "")):
+        r = full_disk.run([sys.executable, "-c", _IN_THE_FOLDER, seed, json.dumps(commands)], ro=ro, seed=seed)
+        assert r.returncode == 0 and r.stderr.strip().splitlines()[-1] == "LEFT:fleet.db", r.stderr
+        want = [f"{mnt / 'fleet.db'}: {cause}", f"{mnt / 'fleet.db'}: {cause}", f"{mnt / 'new.db'}: {cause}",
+                f"{mnt / 'out'}{index}: {cause}", f"{mnt / 'sub' / 'out'}: the folder {mnt / 'sub'} does not exist"]
+        for got, line in zip(json.loads(r.stdout), want, strict=True):
+            assert (got["rc"], got["err"]) == (2, f"error: cannot write {line}\n"), got
+            assert got["same"] and got["left"] == ["fleet.db"], got

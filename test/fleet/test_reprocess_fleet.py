@@ -22,7 +22,9 @@ from inclinometer_calib import cli
 from inclinometer_calib import simulate as sim
 from inclinometer_calib.fleet.manifest import ManifestError, read_manifest
 from inclinometer_calib.fleet.registry import Registry
-from inclinometer_calib.fleet.reprocess import DATASET_DIR, INDEX_FILE, read_stations, reprocess_fleet, write_fragment
+from inclinometer_calib.fleet.reprocess import (DATASET_DIR, INDEX_FILE, LOST_REASON, RUNNING_DIR, _running_note,
+                                                local_cluster, lost_attempts, read_stations, reprocess_fleet,
+                                                write_fragment)
 from inclinometer_calib.frames import Site
 from inclinometer_calib.launcher import read_bag
 from inclinometer_calib.reprocess import reprocess, write_probe_bag
@@ -326,3 +328,76 @@ def test_two_copies_of_a_bag_under_two_names_are_two_surveys(fleet, tmp_path):
     assert len(a) == len(b) > 0 and table.num_rows == len(a) + len(b)
     assert all(same(x[k], y[k]) for x, y in zip(a, b) for k in x if k != "bag")
     assert len({r.fragment for r in summary.results}) == 2
+
+
+@pytest.mark.parametrize("fleet", ["sqlite"], indirect=True)
+def test_a_worker_lost_on_a_bag_is_put_on_that_bag_retried_or_failed(fleet, tmp_path):
+    """A real local cluster whose worker process dies (``os._exit``, by a test's hook passed in, as an
+    out-of-memory kill or a crash in native code would) on two bags: on ``once`` the first time only
+    — Dask retries it on a new worker, it is done, and it says so; on ``always`` every time — Dask
+    gives up (KilledWorker, allowed-failures 1): that bag fails as lost with its workers, named, and
+    its batch-mate ``mate`` (after it in the task; a file that is not a bag, which fails quickly for
+    its own reason) is done in a new task.  They were a bare ``task failed: KilledWorker`` for the
+    whole batch, or nothing at all when retried.  (``always`` first in its task: the workers it kills
+    die before they import the pipeline, which is what costs here.)"""
+    import dask
+    from distributed import Client
+
+    mate = str(tmp_path / "notes.mcap")
+    with open(mate, "w") as fh:
+        fh.write("not a bag\n")
+    always, once = fleet["good"][:2]
+    flag = str(tmp_path / "died-once")
+
+    def die_on(entry):          # runs on the worker, before each bag
+        if entry.path == always:
+            os._exit(70)
+        if entry.path == once:
+            try:
+                os.close(os.open(flag, os.O_CREAT | os.O_EXCL))
+            except FileExistsError:
+                return
+            os._exit(70)
+
+    out = tmp_path / "out"
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        cluster = local_cluster(1)
+    try:
+        with Client(cluster) as client:
+            summary = reprocess_fleet([always, mate, once], out_dir=out, registry_url=fleet["db"], client=client,
+                                      bags_per_task=2, progress=False, before_bag=die_on)
+    finally:
+        cluster.close()
+    r = {x.bag: x for x in summary.results}
+    assert (r[once].status, r[once].stations, len(r[once].workers_lost)) == ("ok", 4, 1), r[once]
+    assert r[always].status == "failed" and r[always].reason.startswith(LOST_REASON), r[always]
+    assert len(r[always].workers_lost) >= 2 and "given up after 2 (distributed.scheduler.allowed-failures 1" \
+        in r[always].reason
+    assert all(w in r[always].reason for w in r[always].workers_lost)
+    assert r[mate].status == "failed" and "not" in r[mate].reason and r[mate].workers_lost == [], r[mate]
+    assert [x.bag for x in summary.lost] == [always] and [x.bag for x in summary.retried] == [once]
+    lines = summary.lines()
+    assert lines[2].startswith(f"ok      {once}: 4 stations") and \
+        lines[2].endswith(f"; RETRIED: worker {r[once].workers_lost[0]} was lost while on this bag")
+    assert lines[0].startswith(f"failed  {always}: {LOST_REASON}: ")
+    assert "3 bags: 1 ok, 0 skipped (done), 2 failed (1 lost with their workers), 1 retried after a worker was " \
+           "lost;" in lines[-1]
+    csv_rows = (out / "summary.csv").read_text().splitlines()
+    assert csv_rows[0].endswith(",workers_lost") and csv_rows[3].endswith("," + r[once].workers_lost[0])
+    assert set(read_stations(out).column("bag").to_pylist()) == {once}
+    assert not (out / RUNNING_DIR).exists()
+
+
+def test_the_note_a_lost_worker_leaves_names_the_bag_it_was_on(tmp_path):
+    """``lost_attempts`` reads the notes of ``dask_batch``: the last bag begun, per task and worker;
+    none begun is None; each note read once."""
+    (tmp_path / RUNNING_DIR).mkdir()
+    for key, worker, text in (("dask_batch-1", "tcp://10.0.0.7:4001", "0\n1\n2\n"),
+                              ("dask_batch-1", "tcp://10.0.0.8:4002", ""), ("dask_batch-2", "tcp://[::1]:4003", "0\n")):
+        with open(_running_note(str(tmp_path), key, worker), "w") as fh:
+            fh.write(text)
+    assert lost_attempts(str(tmp_path), "dask_batch-1") == [("dask_batch-1", "tcp://10.0.0.7:4001", 2),
+                                                             ("dask_batch-1", "tcp://10.0.0.8:4002", None)]
+    assert lost_attempts(str(tmp_path), "dask_batch-1") == []
+    assert lost_attempts(str(tmp_path)) == [("dask_batch-2", "tcp://[::1]:4003", 0)]
+    assert os.listdir(tmp_path / RUNNING_DIR) == []
