@@ -36,8 +36,6 @@ from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
-from scipy.optimize import brentq, minimize_scalar, nnls
 
 #: (2·ln2/π): the Allan variance of flicker noise of bias instability B is this times B².
 FLICKER = 2.0 * math.log(2.0) / math.pi
@@ -159,6 +157,7 @@ def fit_terms(curve: AllanCurve) -> list:
     the model's, iterated);
     the standard deviations from the weighted normal matrix, scaled by the fit's reduced χ² when
     it exceeds 1 (a process the three terms do not describe)."""
+    from scipy.optimize import nnls   # here, as below: scipy.optimize is 0.2 s of every process importing the lab
     out = []
     tau = curve.tau
     a = np.column_stack([1.0 / tau, np.full(len(tau), FLICKER), tau / 3.0]) if len(tau) else np.zeros((0, 3))
@@ -218,6 +217,7 @@ def _walk_nll(k2, dt, shared, d, s1, s2, chained) -> float:
     (``Δt − (T₁+T₂)/6`` on the diagonal, ``T/6`` of a shared station beside it), ``T`` the noise's
     (``σ₁² + σ₂²`` on the diagonal, ``−σ²`` of a shared station beside it); by the banded Cholesky
     factor."""
+    from scipy.linalg import cho_solve_banded, cholesky_banded
     diag = k2 * dt + s1 + s2
     off = np.where(chained[:-1], k2 * shared[:-1] - s2[:-1], 0.0)
     ab = np.zeros((2, len(d)))
@@ -245,6 +245,7 @@ def sequence_walk(time_s, residual, sigma, group=None, duration=None) -> list:
     likelihood; resolved when the likelihood ratio against ``K = 0`` exceeds 9 (≈ 3σ, one-sided),
     its 1σ from the likelihood's curvature, the upper bound where the profile likelihood drops
     by 1.35 (one-sided 95 %).  Returns per axis a :class:`NoiseTerm` (source ``stations``)."""
+    from scipy.optimize import brentq, minimize_scalar
     t = np.asarray(time_s, dtype=float)
     r = np.asarray(residual, dtype=float)
     s = np.asarray(sigma, dtype=float)

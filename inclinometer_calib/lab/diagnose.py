@@ -203,17 +203,17 @@ def fit_data(data: Stations) -> Stations:
 
 
 def field_fit(model: LabModel, data: Stations, uncertainty: bool = True, progress=None, max_nfev: int = 200,
-              survey_invariants: bool = True, fixed=None):
+              survey_invariants: bool = True, fixed=None, hint=None):
     """Fit ``model`` (in place) as for a survey; returns the :class:`fit.FitResult`.
 
     The fit sees what a rig has: the calibration stations, and (``survey_invariants``) the survey
     stations' |g|, |B| and dip against the site — never their reference angles
     (:func:`fit_data`).  With ``survey_invariants=False`` it sees the calibration logs only (an
-    effect acting on the survey alone then stays at its prior, zero).  ``fixed``: parameters held
-    (:func:`fit.fit`)."""
+    effect acting on the survey alone then stays at its prior, zero).  ``fixed``: parameters held,
+    ``hint``: the base model's :class:`fit.JacobianHint` (:func:`fit.fit`)."""
     fd = fit_data(data)
     use = fd if survey_invariants or not (fd.role == "cal").any() else fd.subset(fd.role == "cal")
-    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty, fixed=fixed)
+    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty, fixed=fixed, hint=hint)
 
 
 def validation(model: LabModel, data: Stations, survey_invariants: bool = True) -> dict:
@@ -417,7 +417,7 @@ def _param_rows(fit_result, idx) -> list:
             for i in idx]
 
 
-def _test_term(trial: LabModel, label: str, data, n_tests: int):
+def _test_term(trial: LabModel, label: str, data, n_tests: int, hint=None):
     """Field-fit ``trial`` and test the term ``label``: (fit, Wald χ², adjusted p, per-axis tests).
 
     An effect's parameters that the data say nothing of until the effect is there
@@ -425,7 +425,8 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
     the test (and the per-axis tests) is of the others in that fit — held at its start, not tested
     against zero, and not made to share the others' evidence (with it free, a settling's share and
     its time constant trade off and neither alone looks significant); when they are significant the
-    term is fitted again with all free for its values."""
+    term is fitted again with all free for its values.  ``hint``: the base model's
+    :class:`fit.JacobianHint` (the trial is the base with the term added, absent at its start)."""
     idx = trial.param_index(label)
     eff = next((t.effect for t in trial.probe.terms if t.label == label), None)
     held = np.zeros(len(trial.get_vector()), bool)
@@ -434,7 +435,7 @@ def _test_term(trial: LabModel, label: str, data, n_tests: int):
         for k, spec in enumerate(eff.specs):
             if spec.name in eff.held_in_test:
                 held[idx[k * per:(k + 1) * per]] = True
-    f = field_fit(trial, data, fixed=held if held.any() else None)
+    f = field_fit(trial, data, fixed=held if held.any() else None, hint=hint)
     if held.any():
         idx = idx[~held[idx]]
     axis_tests = []
@@ -576,7 +577,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
 
         def test(tr, lb):
             return _test_stochastic(tr, lb, data, n_tests, base_fit, noise) if stochastic else \
-                _test_term(tr, lb, data, n_tests)
+                _test_term(tr, lb, data, n_tests, hint=base_fit.hint)
 
         f, wchi2, p, axis_tests = test(trial, label)
         if axis_tests and p < a_level and label not in (HEADING, POSES_LABEL):

@@ -21,7 +21,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.special import chdtrc
 
 from .. import effects as fx
@@ -159,6 +158,54 @@ class Identifiability:
 
 
 @dataclass
+class JacobianHint:
+    """The derivatives of a fitted model's data residuals (the data rows of its last Jacobian,
+    unscaled, one column per free parameter ``names``) and those residuals, at its solution
+    (``values`` over ``all_names``, every parameter of the model).
+
+    A candidate effect starts absent — its parameters at values that leave the residuals as they
+    were — from the base model's solution, so there the base model's derivatives are the
+    candidate's for the parameters they share: the candidate fit's first Jacobian takes those
+    columns and evaluates only the new ones (:func:`fit`'s ``hint``; most of a diagnosis's
+    evaluations were these).  Taken only where every shared parameter has the solution's value
+    and the residuals at the start are the solution's (else the Jacobian is evaluated whole).  The
+    last Jacobian may be one Gauss–Newton step behind the solution (:func:`gauss_newton`): a
+    first step from it is as good; every later Jacobian is the candidate's own."""
+
+    names: list
+    all_names: list
+    values: np.ndarray
+    r_data: np.ndarray
+    jac: np.ndarray
+
+    def columns(self, model: LabModel, free, x_all, n_data: int):
+        """``known(r, x, h) -> {column: derivative}`` for :func:`forward_jacobian`, or None when
+        the model does not start at this solution."""
+        at = dict(zip(self.all_names, self.values))
+        names = model.param_names()
+        if any(n in at and at[n] != v for n, v in zip(names, x_all)):
+            return None
+        col = {n: k for k, n in enumerate(self.names)}
+        shared = {j: col[names[i]] for j, i in enumerate(np.flatnonzero(free)) if names[i] in col}
+        if not shared:
+            return None
+        r_ref, jac = self.r_data, self.jac
+
+        def known(r, x, h, fun_prior):
+            if len(r) < n_data or n_data != len(r_ref) or \
+                    np.max(np.abs(r[:n_data] - r_ref), initial=0.0) > 1e-9 * (1.0 + np.max(np.abs(r_ref), initial=0.0)):
+                return {}         # the candidate is not absent at its start: no column is known
+            out = {}
+            for j, k in shared.items():
+                xj = x.copy()
+                xj[j] += h[j]
+                # the prior rows by their own (cheap) finite difference; the data rows known
+                out[j] = np.concatenate([jac[:, k], (fun_prior(xj) - r[n_data:]) / (xj[j] - x[j])])
+            return out
+        return known
+
+
+@dataclass
 class FitResult:
     model: LabModel
     names: list
@@ -176,6 +223,8 @@ class FitResult:
     not_identifiable: list = field(default_factory=list)
     covariance: np.ndarray | None = None
     n_free: float = -1
+    #: the data rows of the fit's last Jacobian, for the fits of this model with one effect more
+    hint: "JacobianHint | None" = None
 
     @property
     def z_rms(self) -> float:
@@ -229,13 +278,14 @@ class FitResult:
 
 @one_thread
 def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: bool = True,
-        fixed=None) -> FitResult:
+        fixed=None, hint: JacobianHint | None = None) -> FitResult:
     """Fit ``model`` (in place, starting from its current parameters) to ``data``.
 
     Levenberg–Marquardt (MINPACK, QR-based: faster than the SVD-based trust region for these
     tall, narrow problems), parameters scaled by their typical magnitudes.  ``fixed``: a boolean
     mask over :meth:`LabModel.param_names` of parameters held at their current values (their
-    σ is 0).  ``uncertainty=False`` skips the covariance and identifiability analysis.
+    σ is 0).  ``uncertainty=False`` skips the covariance and identifiability analysis.  ``hint``:
+    the :attr:`FitResult.hint` of the model this one extends (:class:`JacobianHint`).
     """
     t0 = time.perf_counter()
     x_all = model.get_vector()
@@ -257,12 +307,22 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
             progress(f"fit: {calls[0]} evaluations")
         return residual_vector(model, data, full(x), cache=cache)
 
+    def prior_at(x):
+        model.set_vector(full(x))
+        return _prior_residual(model, cache)
+
+    stochastic = bool(stochastic_terms(model))
+    first = [None if hint is None or stochastic else hint.columns(model, free, x_all, n_data)]
+
     def solve(x_start):
         """Gauss–Newton (:func:`gauss_newton`), else Levenberg–Marquardt, from ``x_start``
         (with the stand's pose errors, the poses found off leave the gauge and the fit is repeated)."""
         for _ in range(3 if model.fit_poses else 1):
-            res = gauss_newton(fun, x_start, scale)
+            res = gauss_newton(fun, x_start, scale,
+                               known=(lambda r, x, h: first[0](r, x, h, prior_at)) if first[0] else None)
+            first[0] = None          # the hint is of the start point: the first Jacobian only
             if res is None:
+                from scipy.optimize import least_squares   # here: 0.2 s of every process that imports the lab
                 res = least_squares(fun, x_start, x_scale=scale, method="lm", jac="2-point",
                                     max_nfev=max_nfev * (len(x_start) + 1), xtol=1e-10, ftol=1e-10, gtol=1e-10)
             model.set_vector(full(res.x))
@@ -271,7 +331,6 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
             x_start = res.x
         return res
 
-    stochastic = bool(stochastic_terms(model))
     if stochastic:
         clear_paths(model)
         cache.forget()      # the paths are the model's, outside its parameter vector
@@ -308,10 +367,14 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     elif not uncertainty:
         std[:] = np.nan
         cov[:] = np.nan
+    hint = None
+    if p and not stochastic and jac.ndim == 2 and jac.shape[0] >= n_data and jac.shape[1] == p:
+        hint = JacobianHint(names=[n for n, f in zip(model.param_names(), free) if f], all_names=model.param_names(),
+                            values=model.get_vector().copy(), r_data=r_data, jac=np.array(jac[:n_data]))
     return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=model.get_vector(),
                      std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=ok,
                      message=msg, seconds=time.perf_counter() - t0, nfev=nfev, not_identifiable=notid,
-                     covariance=cov, n_free=p_eff)
+                     covariance=cov, n_free=p_eff, hint=hint)
 
 
 #: Gauss–Newton steps (each on a Jacobian of its own point) before the fit falls back to
@@ -334,20 +397,26 @@ class Solution:
         self.x, self.jac, self.success, self.message, self.nfev = x, jac, True, message, nfev
 
 
-def forward_jacobian(fun, x, r, scale) -> np.ndarray:
+def forward_jacobian(fun, x, r, scale, known=None) -> tuple:
     """Forward differences of ``fun`` at ``x`` (``r = fun(x)``), the step of each parameter
     ``√ε·max(|x|, scale)`` (ε the float64 resolution): relative to the parameter, or to its
-    typical magnitude where it is near zero."""
+    typical magnitude where it is near zero.  ``known(r, x, h)``: the columns known without
+    evaluating ``fun`` (:class:`JacobianHint`).  Returns (Jacobian, evaluations of ``fun``)."""
     h = np.sqrt(np.finfo(float).eps) * np.maximum(np.abs(x), scale)
     jac = np.empty((len(r), len(x)))
+    have = known(r, x, h) if known is not None else {}
+    for j, column in have.items():
+        jac[:, j] = column
     for j in range(len(x)):
+        if j in have:
+            continue
         xj = x.copy()
         xj[j] += h[j]
         jac[:, j] = (fun(xj) - r) / (xj[j] - x[j])
-    return jac
+    return jac, len(x) - len(have)
 
 
-def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS):
+def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS, known=None):
     """Least squares by undamped Gauss–Newton steps, or None when they do not serve.
 
     The lab's residuals are close to linear in the parameters near a calibration (the base model
@@ -359,7 +428,8 @@ def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS):
     time constant while its effect is still zero) is found at the second; a step promising less
     than :data:`GN_LAST` is the last.  The last Jacobian is the solution's (its covariance).
     Returns None — the caller falls back to Levenberg–Marquardt — when a step raises χ² or after
-    ``max_jac`` Jacobians (a strongly nonlinear problem)."""
+    ``max_jac`` Jacobians (a strongly nonlinear problem).  ``known``: the first Jacobian's known
+    columns (:func:`forward_jacobian`)."""
     x = np.asarray(x0, dtype=float).copy()
     if not len(x):
         return None
@@ -367,8 +437,8 @@ def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS):
     cost = float(r @ r)
     nfev = 1
     for n_jac in range(1, max_jac + 1):
-        jac = forward_jacobian(fun, x, r, scale)
-        nfev += len(x)
+        jac, evaluations = forward_jacobian(fun, x, r, scale, known if n_jac == 1 else None)
+        nfev += evaluations
         u, sv, vt = np.linalg.svd(jac * scale, full_matrices=False)
         keep = sv > sv[0] * 1e-12 if len(sv) and sv[0] > 0 else sv > 0
         g = u[:, keep].T @ r

@@ -26,8 +26,6 @@ its hat matrix, per axis) go into the fit's parameter count and the lab's likeli
 from __future__ import annotations
 
 import numpy as np
-from scipy import sparse
-from scipy.sparse.linalg import spsolve
 
 #: Above this many path states the posterior covariance (for the path's σ and the degrees of
 #: freedom) is not formed densely: the path is still solved, its σ and edf left NaN.
@@ -146,6 +144,9 @@ def smooth(model, data) -> float:
                 add([int(col[k + 1]), int(col[k])], [w, -w], 0.0)
             add([int(c) for c in col], [1.0 / (nk * GAUGE * dens[j] * np.sqrt(span))] * nk, 0.0)
         prior_rows.append(slice(first, n_row[0]))
+    from scipy import sparse                      # here: scipy.sparse is 0.1 s of every process importing the lab
+    from scipy.sparse.linalg import spsolve
+
     a = sparse.csr_matrix((vals, (rows, cols)), shape=(n_row[0], n_state))
     rhs = np.asarray(rhs)
     normal = (a.T @ a).tocsc()

@@ -119,3 +119,56 @@ def test_the_per_triad_cache_gives_the_residuals_of_a_full_evaluation_bit_for_bi
     for x in steps:
         fresh = residual_vector(copy.deepcopy(model), data, x)
         np.testing.assert_array_equal(residual_vector(model, data, x, cache=cache), fresh)
+
+
+def test_a_candidates_first_jacobian_takes_the_base_fits_columns_where_the_effect_starts_absent(sim_factory):
+    """lab.fit.JacobianHint: from the base model's solution, a candidate effect at its start values
+    leaves the residuals as they were, so the base fit's derivatives are the candidate's for the
+    parameters they share — equal to the evaluated columns (to the finite difference's resolution;
+    the base fit's last Jacobian may be one step behind its solution) and only the new columns are
+    evaluated; a candidate that does not start absent takes none."""
+    import copy
+
+    fitmod = __import__("sys").modules["inclinometer_calib.lab.fit"]
+    from inclinometer_calib.lab.diagnose import fit_data
+    from inclinometer_calib.lab.fit import ResidualCache, forward_jacobian, residual_vector
+
+    data, _, site = sim_factory(22, ["axial_interference=300"])
+    fd = fit_data(data)
+    base = lab.LabModel.base(site)
+    hint = lab.fit(base, fd).hint
+    assert hint is not None and hint.jac.shape == (len(hint.r_data), len(hint.names))
+    trial = base.with_effect(lab.effect("axial_interference", "mag", "z"), "val")
+    x = trial.get_vector()
+    free = np.ones(len(x), bool)
+    cache = ResidualCache(trial, fd)
+    n_data = len(residual_vector(trial, fd, x, prior=False, cache=cache))
+
+    def fun(v):
+        return residual_vector(trial, fd, v, cache=cache)
+
+    def prior_at(v):
+        trial.set_vector(v)
+        return fitmod._prior_residual(trial, cache)
+
+    known = hint.columns(trial, free, x, n_data)
+    r = fun(x)
+    hinted, evaluations = forward_jacobian(fun, x, r, trial.param_scale(), lambda r_, x_, h: known(r_, x_, h, prior_at))
+    full, all_evaluations = forward_jacobian(fun, x, r, trial.param_scale())
+    new = [i for i, n in enumerate(trial.param_names()) if n not in hint.names]
+    assert evaluations == len(new) == 1 and all_evaluations == len(x)
+    scale = np.abs(full).max(axis=0) + 1e-300
+    assert np.max(np.abs(hinted - full) / scale) < 1e-4
+    # a candidate that starts present (its field at 300 nT) is not at the base solution's residuals
+    present = copy.deepcopy(trial)
+    v = x.copy()
+    v[new[0]] = 300.0
+    present.set_vector(v)
+    cache2 = ResidualCache(present, fd)
+    known2 = hint.columns(present, free, v, n_data)
+    r2 = residual_vector(present, fd, v, cache=cache2)
+    assert known2(r2, v, np.full(len(v), 1e-6), prior_at) == {}
+    # nor one whose shared parameters are not at the solution
+    moved = x.copy()
+    moved[0] += 1e-3 * trial.param_scale()[0]
+    assert hint.columns(trial, free, moved, n_data) is None
