@@ -29,7 +29,8 @@ import _common  # noqa: F401  (sys.path)
 
 from _common import ROOT, machine, table
 from inclinometer_calib import lab
-from inclinometer_calib.cli import load_site, main as cli_main
+from inclinometer_calib.cli import main as cli_main
+from inclinometer_calib.common import load_site
 from inclinometer_calib.lab.diagnose import candidate_effects
 from inclinometer_calib.lab.model import LabModel
 from inclinometer_calib.probelog import read_csv, segment_stations

@@ -116,7 +116,7 @@ def _sample(i, careful, f, m, negate, linear, coef, qc, wrap_big, drift_o, az_o,
     px = m[3 * i + 0]
     py = m[3 * i + 1]
     pz = m[3 * i + 2]
-    if linear:   # v = C·(h − B), each row (x·C[r,0] + y·C[r,1]) + z·C[r,2] (effects.rotate)
+    if linear:   # v = C·(h − B), each row (x·C[r,0] + y·C[r,1]) + z·C[r,2] (frames.rotate)
         ux = hx - ba0
         uy = hy - ba1
         uz = hz - ba2

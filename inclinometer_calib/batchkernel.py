@@ -48,7 +48,6 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .frames import Site
-from .survey import BATCH_KEYS, Tolerances
 
 BACKEND_ENV = "INCLINOMETER_CALIB_BATCH_BACKEND"
 BACKENDS = ("auto", "numba", "numpy")
@@ -109,12 +108,17 @@ def _kernels():
     return _kernel_module
 
 
-def warm_up() -> float:
-    """Compile the kernel (or load it from the disk cache) now; returns the seconds it took."""
+def warm_up(tol) -> float:
+    """Compile the kernel (or load it from the disk cache) now, for QC tolerances ``tol`` (a
+    :class:`survey.Tolerances`); returns the seconds it took."""
     t0 = time.perf_counter()
-    _run(np.zeros(3), np.zeros(3), True, True, (np.eye(3), np.zeros(3)), (np.eye(3), np.zeros(3)), Site(), Tolerances(),
+    _run(np.zeros(3), np.zeros(3), True, True, (np.eye(3), np.zeros(3)), (np.eye(3), np.zeros(3)), Site(), tol,
          _alloc(1))
     return time.perf_counter() - t0
+
+
+#: The per-sample outputs of a batch (:func:`survey.correct_samples`), besides ``flags`` and ``status``.
+BATCH_KEYS = ("drift_deg", "azimuth_deg", "toolface_deg", "total_gravity", "total_field", "dip_deg")
 
 
 def _alloc(n):

@@ -391,7 +391,7 @@ class CaptureSession:
         cal = self.calibration
         if cal is None:
             return True
-        from .pipeline import correct_stations   # the one correction path, with the station's temperature
+        from .station import correct_stations   # the one correction path, with the station's temperature
 
         g, b = (v[0] for v in correct_stations([st], cal))
         if not angle_between_deg(g, pose_reference(pose, [0.0, 0.0, 1.0])) <= ROUND_GRAVITY_TOL_DEG:

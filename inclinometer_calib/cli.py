@@ -16,7 +16,8 @@ import numpy as np
 import yaml
 
 from . import simulate as sim
-from .coeffs import Calibration, CoefficientError
+from .coeffs import Calibration
+from .common import UserError, load_calibration, load_site
 from . import __version__
 from .deps import MissingDependency, require
 from .frames import Site
@@ -25,16 +26,13 @@ from .capture import CaptureSession
 from .gates import SettlingTally, apply_gates
 from .output import OutputError, atomic_write_bytes, atomic_write_text, check_output, output_folder, output_path
 from .probelog import MAG_UNITS, Limits, read_csv, report, segment_stations, write_csv
+from .station import correct_stations
 from .progress import progress_bar
 from .model import ModelContextError
-from .pipeline import (NO_SITE, along_north, context_warnings, correct_stations, evaluate_stations,
+from .pipeline import (NO_SITE, along_north, context_warnings, evaluate_stations,
                        reference_along_north, site_override_note, station_status, usable)
 from .survey import Tolerances, format_table4, format_table5, summarize, table4, table5
 from .twelve_position import format_table2, format_table3
-
-
-class UserError(Exception):
-    """An error in the user's input: printed without a traceback."""
 
 
 def _warn(msg):
@@ -42,17 +40,6 @@ def _warn(msg):
 
 
 # --------------------------------------------------------------------------------------------
-def load_site(path) -> Site:
-    if path is None:
-        return Site()
-    try:
-        with open(path, encoding="utf-8") as fh:
-            d = yaml.safe_load(fh)
-        return Site.from_dict(d.get("site", d) if isinstance(d, dict) else {})
-    except (OSError, yaml.YAMLError, ValueError, TypeError) as exc:
-        raise UserError(f"{path}: cannot read site reference: {exc}") from None
-
-
 def detector_from_args(args):
     """A :class:`streaming.StaticDetector` from the common detector options (defaults: noise from
     the data)."""
@@ -82,17 +69,6 @@ def load_stations(path, quiet=False, mag_unit="nT", detector=None, labels=True):
         _warn(f"{path}: {len(rejections)} of {len(rejections) + len(log)} rows rejected; "
               f"{len(log)} rows kept")
     return log, stations, rejections, problems
-
-
-def load_calibration(spec):
-    if spec is None or str(spec).lower() == "none":
-        return None
-    try:
-        return Calibration.load(spec)
-    except OSError as exc:
-        raise UserError(f"{spec}: {exc.strerror}") from None
-    except CoefficientError as exc:
-        raise UserError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------------------------

@@ -37,6 +37,7 @@ import yaml
 from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
 from .frames import Site, specific_force_from_gravity
+from .geomag import site_from_config
 from .model import CorrectionPlan, ProbeModel
 from .plugins import PluginError
 from .output import atomic_write_text
@@ -275,7 +276,7 @@ class Calibration:
                         fail(f"{key}.uncertainty.{k} must be three finite non-negative numbers, got {unc.get(k)!r}")
                 uncertainty[sensor] = dict(unc)
         try:
-            site = Site.from_dict(rec.get("site", {}))
+            site = site_from_config(rec.get("site", {}))
         except (TypeError, ValueError) as exc:
             fail(str(exc))
         mod = rec.get("model") or {}

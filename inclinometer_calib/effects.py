@@ -44,6 +44,7 @@ from typing import ClassVar
 import numpy as np
 
 from .errormodel import E_TERMS
+from .frames import rotate
 
 T_REF_C = 25.0
 #: Reference input magnitude per sensor (used to express nonlinearity in dimensionless form).
@@ -117,19 +118,6 @@ class Context:
     temperature_c: np.ndarray
     time_s: np.ndarray
     history: History | None = None
-
-
-def rotate(m, v) -> np.ndarray:
-    """``v @ m`` for (N, 3) ``v`` and a 3×3 ``m``, written out element by element.
-
-    Not through BLAS: each output element is the same three products added in the same order
-    whatever N is, so one sample corrected alone (a node) and the same sample in a block of a
-    million (the batch path) give the same bits.
-    """
-    x, y, z = v[:, 0], v[:, 1], v[:, 2]
-    return np.stack([x * m[0, 0] + y * m[1, 0] + z * m[2, 0],
-                     x * m[0, 1] + y * m[1, 1] + z * m[2, 1],
-                     x * m[0, 2] + y * m[1, 2] + z * m[2, 2]], axis=1)
 
 
 @dataclass
@@ -718,7 +706,7 @@ class Settling(Effect):
     and lets it go with a time constant ``τ`` of about a second; with ``τ`` long against the holds
     it is the remanence of the previous field.  Needs the station sequence and where in its hold
     each station lies (:class:`History`): the lab's stations have them, and stations corrected in
-    order get them (:func:`pipeline.correct_stations`); a correction without them (a node's sample
+    order get them (:func:`station.correct_stations`); a correction without them (a node's sample
     streams) refuses the model (:class:`model.ModelContextError`), never guesses."""
 
     name: ClassVar[str] = "settling"

@@ -105,11 +105,11 @@ class TriadModel:
 
         A building block of :meth:`model.ProbeModel.correct`, the one correction path (which
         adds the effects beyond the paper); the twelve-position solver also uses it on its own
-        triad before any record exists.  Written out element by element (:func:`effects.rotate`)
+        triad before any record exists.  Written out element by element (:func:`frames.rotate`)
         so that every batch size gives the same bits.  ``c_t``: ``C`` transposed, when the
         caller keeps it (:class:`model.CorrectionPlan`: the lab's fits correct a triad thousands
         of times, and inverting ``K·E`` again each time was 3% of their CPU)."""
-        from .effects import rotate
+        from .frames import rotate
 
         h = np.asarray(h, dtype=float)
         c_t = self.correction_matrix.T if c_t is None else c_t

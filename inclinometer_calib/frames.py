@@ -154,17 +154,13 @@ class Site:
 
     @classmethod
     def from_dict(cls, d: dict) -> "Site":
-        """A site from its values (a record's, a site file's); a site file may instead give a
-        location to look the values up (:func:`geomag.site_from_config`)."""
-        from .geomag import LOCATION_KEYS, site_from_config
-
-        if any(k in d for k in LOCATION_KEYS):
-            return site_from_config(d)
+        """A site from its values (a record's); a site section that may give a location to look
+        the values up instead is read by :func:`geomag.site_from_config` (which comes here)."""
         known = {"total_field_nt", "dip_deg", "declination_deg", "gravity_mps2"}
         unknown = set(d) - known - {"reference"}
         if unknown:
-            raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected {sorted(known)} or a location "
-                             f"({', '.join(LOCATION_KEYS)})")
+            raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected {sorted(known)} (a location: "
+                             "geomag.site_from_config)")
         site = cls(**{k: float(v) for k, v in d.items() if k != "reference"},
                    reference=dict(d.get("reference") or {}))
         if not (site.total_field_nt > 0 and site.gravity_mps2 > 0 and -90 <= site.dip_deg <= 90):
@@ -308,3 +304,40 @@ def tool_vectors(site: Site, drift, azimuth, toolface):
     r = orientation_matrix(drift, azimuth, toolface)
     rt = np.swapaxes(r, -1, -2)
     return rt @ site.gravity_ned(), rt @ site.field_ned()
+
+
+def rotate(m, v) -> np.ndarray:
+    """``v @ m`` for (N, 3) ``v`` and a 3×3 ``m``, written out element by element.
+
+    Not through BLAS: each output element is the same three products added in the same order
+    whatever N is, so one sample corrected alone (a node) and the same sample in a block of a
+    million (the batch path) give the same bits.
+    """
+    x, y, z = v[:, 0], v[:, 1], v[:, 2]
+    return np.stack([x * m[0, 0] + y * m[1, 0] + z * m[2, 0],
+                     x * m[0, 1] + y * m[1, 1] + z * m[2, 1],
+                     x * m[0, 2] + y * m[1, 2] + z * m[2, 2]], axis=1)
+
+
+_DIR = {
+    "N": (1.0, 0.0, 0.0),
+    "S": (-1.0, 0.0, 0.0),
+    "E": (0.0, 1.0, 0.0),
+    "W": (0.0, -1.0, 0.0),
+    "D": (0.0, 0.0, 1.0),
+    "U": (0.0, 0.0, -1.0),
+}
+
+#: Table 1: the stand direction (N/S/E/W/D=down/U=up) of tool X, Y, Z in each of the 12 poses.
+TABLE1 = {
+    1: "DWN", 2: "DES", 3: "UEN", 4: "UWS",
+    5: "EDN", 6: "WDS", 7: "EUS", 8: "WUN",
+    9: "NED", 10: "SWD", 11: "SEU", 12: "NWU",
+}
+
+
+def pose_matrix(pose: int) -> np.ndarray:
+    """Tool→stand(NED) rotation of a Table 1 pose: its columns are the NED directions of X, Y, Z."""
+    if pose not in TABLE1:
+        raise ValueError(f"pose {pose!r} is not one of the twelve poses of Table 1 (1..12)")
+    return np.array([_DIR[c] for c in TABLE1[pose]]).T

@@ -72,7 +72,8 @@ import numpy as np
 from .bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts as bag_parts
 from .deps import MissingDependency, require
 from .geomag import NORTH_CHOICES
-from .topics import TOPIC_STATION
+from .liveview import station_label
+from .topics import TOPIC_STATION, station_dict
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
 STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder")  # the recorder last: it records the others
@@ -345,7 +346,7 @@ def build_params(args, out):
         # the site reference of the run (total field, dip, declination, gravity): the calibration
         # and correction nodes use it, the simulated probe lives in it
         # (a location is looked up by each node, in the same geomagnetic model: geomag.site_parameters)
-        from .cli import UserError, load_site
+        from .common import UserError, load_site
         import yaml
 
         from .geomag import site_parameters
@@ -604,59 +605,6 @@ def run_graph(args, out, env) -> GraphResult:
 # --------------------------------------------------------------------------------------------
 # Summary (independent reader: rosbags)
 # --------------------------------------------------------------------------------------------
-def station_dict(msg) -> dict:
-    """A ``SurveyStation`` message as a plain dict (Python numbers, lists): one conversion for a
-    bag's messages (``rosbags``, :func:`read_bag`) and live ones (``rclpy``, the wits and live
-    nodes).  A station recorded before the stations had one north (no ``azimuth_true_deg``) is put
-    along its positions' north (:func:`_one_north`)."""
-    d = {k: getattr(msg, k) for k in (
-        "station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg",
-        "magnetic_toolface_deg",
-        "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
-        "delta_dip_deg", "status", "azimuth_undefined", "interference_suspected",
-        "coefficients_id", "reference_drift_deg", "reference_azimuth_deg",
-        "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
-        "moved_during_capture", "model_misfit", "model_diagnosis")}
-    # depth and trajectory (NaN in a bag recorded before they existed)
-    for k in ("measured_depth_m", "tvd_m", "north_m", "east_m", "dls_deg_per_30m",
-              "azimuth_magnetic_deg", "azimuth_grid_deg", "azimuth_true_deg", "axial_field_nt"):
-        d[k] = getattr(msg, k, float("nan"))
-    # the azimuth's north and method ("" in a bag recorded before they existed)
-    for k in ("azimuth_reference", "azimuth_method", "probe_serial", "uncorrected_reason"):
-        d[k] = getattr(msg, k, "")
-    # the rest of the message, so that the dict has every field (the live view shows them all)
-    for k, default in (("toolface_type", ""), ("azimuth_sigma_deg", float("nan")), ("axial_degenerate", False),
-                       ("is_static", True), ("gravity_out_of_tolerance", False)):
-        d[k] = getattr(msg, k, default)
-    # raw means and the position's covariance (NaN in a bag recorded before they existed)
-    for k, n in (("raw_gravity_mps2", 3), ("raw_field_nt", 3), ("position_covariance_ned_m2", 9)):
-        d[k] = [float(x) for x in getattr(msg, k, [float("nan")] * n)]
-    d["warnings"] = list(msg.warnings)
-    d["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-    d = {k: (v.item() if hasattr(v, "item") else v) for k, v in d.items()}
-    if not hasattr(msg, "azimuth_true_deg"):
-        _one_north(d)
-    return d
-
-
-def _one_north(d: dict) -> None:
-    """A station dict of a bag recorded before the stations had one north, put along it (in place).
-    Then ``azimuth_deg`` and ``reference_azimuth_deg`` were true (``azimuth_reference`` "true", or
-    empty in older bags) while ``north_m``/``east_m`` were along grid north when the site had a grid
-    (``azimuth_grid_deg`` finite): such a station becomes a grid one (its true azimuth in
-    ``azimuth_true_deg``, its reference azimuth minus the convergence) — what its positions are."""
-    grid, az = d["azimuth_grid_deg"], d["azimuth_deg"]
-    if not (math.isfinite(grid) and math.isfinite(az)):
-        if d["azimuth_reference"] == "true":
-            d["azimuth_true_deg"] = az
-        return
-    d["azimuth_true_deg"] = az
-    convergence = az - grid
-    d["azimuth_deg"], d["azimuth_reference"] = grid, "grid"
-    if math.isfinite(d["reference_azimuth_deg"]):
-        d["reference_azimuth_deg"] = (d["reference_azimuth_deg"] - convergence) % 360.0
-
-
 #: StreamProgress fields read into the accounting (accounting.account).
 PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_depth", "window", "imu", "mag",
                    "temperature", "reference", "depth", "pairs_used", "pairs_dropped", "stations",
@@ -1043,17 +991,6 @@ def write_html_report(out, summary, cal, loop, print_fn, not_written=None):
     path = os.path.join(out, "report.html")
     written = write_text(path, page, not_written if not_written is not None else [], print_fn)
     return path if written else None
-
-
-def station_label(s) -> str:
-    """The report's status of a station: QC verdict and flags for a corrected one; a station
-    published before the calibration solved (empty ``coefficients_id``: raw sensor values, e.g. the
-    stand poses themselves) is labelled uncorrected, without QC flags — its |B| and dip are off
-    the reference because it is uncorrected, not because of interference."""
-    if not s["coefficients_id"]:
-        return f"uncorrected ({(s.get('uncorrected_reason') or 'before calibration').split(':')[0]})"
-    flags = [n for n in ("azimuth_undefined", "interference_suspected") if s.get(n)]
-    return ["ok", "warn", "error"][min(int(s["status"]), 2)] + (f" ({', '.join(flags)})" if flags else "")
 
 
 def format_report(summary, summary_lines, cal, stations, loop=None) -> str:

@@ -1,7 +1,7 @@
 """The live view of a survey in Foxglove: what the ``live`` node (:mod:`.nodes.live`) sends — ROS-free.
 
 The node turns each ``SurveyStation`` into the station dict every other path uses
-(:func:`launcher.station_dict`: the same for a recorded bag's messages and live ones; every
+(:func:`topics.station_dict`: the same for a recorded bag's messages and live ones; every
 field, the header as ``stamp`` in float seconds, arrays as lists), keeps the stations in a
 :class:`LiveView` and sends, over the Foxglove SDK's WebSocket server, the channels of
 :data:`CHANNELS`.  Diagnostics and the calibration status are passed on as they are
@@ -50,6 +50,8 @@ import dataclasses
 import math
 import re
 from typing import Callable, Mapping
+
+from .topics import station_dict  # noqa: F401  (the one conversion, lv.station_dict to the live node)
 
 TOPIC_STATION = "/live/station"
 TOPIC_RESIDUALS = "/live/residuals"
@@ -112,15 +114,9 @@ def message_dict(msg) -> dict:
     """Every field of a ROS message as plain Python values: nested messages as dicts (a header as
     ``{"stamp": {"sec", "nanosec"}, "frame_id"}``), arrays as lists, a ``byte`` as an int; floats
     unchanged (NaN stays NaN — :func:`jsonable` makes it null).  Works for rclpy messages and
-    ``rosbags`` dataclasses.  (A ``SurveyStation`` becomes :func:`launcher.station_dict` instead:
+    ``rosbags`` dataclasses.  (A ``SurveyStation`` becomes :func:`topics.station_dict` instead:
     the one station dict of every path.)"""
     return {name: _plain(getattr(msg, name)) for name in _field_names(msg)}
-
-
-def station_dict(msg) -> dict:
-    """The station dict of a ``SurveyStation`` (:func:`launcher.station_dict`, the one conversion)."""
-    from .launcher import station_dict as convert
-    return convert(msg)
 
 
 def station_fields(message_fields: Mapping[str, str]) -> dict:
@@ -180,9 +176,19 @@ def _finite(*xs) -> bool:
 
 
 def status_text(s: Mapping) -> str:
-    """The table's status of a station (:func:`launcher.station_label`: the run report's words)."""
-    from .launcher import station_label
+    """The table's status of a station (:func:`station_label`: the run report's words)."""
     return station_label(s)
+
+
+def station_label(s) -> str:
+    """The report's status of a station: QC verdict and flags for a corrected one; a station
+    published before the calibration solved (empty ``coefficients_id``: raw sensor values, e.g. the
+    stand poses themselves) is labelled uncorrected, without QC flags — its |B| and dip are off
+    the reference because it is uncorrected, not because of interference."""
+    if not s["coefficients_id"]:
+        return f"uncorrected ({(s.get('uncorrected_reason') or 'before calibration').split(':')[0]})"
+    flags = [n for n in ("azimuth_undefined", "interference_suspected") if s.get(n)]
+    return ["ok", "warn", "error"][min(int(s["status"]), 2)] + (f" ({', '.join(flags)})" if flags else "")
 
 
 def station_color(s: Mapping) -> tuple:

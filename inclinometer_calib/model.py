@@ -30,6 +30,7 @@ import numpy as np
 
 from . import effects as fx
 from .errormodel import TriadModel
+from .frames import rotate
 
 SENSORS = ("acc", "mag")
 #: The data an effect's scope selects: the calibration stand (cal) or the survey (val).
@@ -330,7 +331,7 @@ class CorrectionPlan:
             chain = self.chains[sensor]
             ctx = fx.chain_context(chain, ctx)          # once, not at every Newton step
             for _ in range(CORRECTION_ITERATIONS):
-                x = x + fx.rotate(m, h2 - fx.apply_chain(x, chain, ctx, prepared=True))
+                x = x + rotate(m, h2 - fx.apply_chain(x, chain, ctx, prepared=True))
         return x.reshape(h.shape)
 
     def correct_sample(self, sensor: str, h, temperature_c=None, time_s=None) -> tuple:
@@ -339,7 +340,7 @@ class CorrectionPlan:
 
         A node corrects its streams sample by sample; numpy on one 3-vector costs ≈ 30 µs a call.
         For a triad with nothing beyond the base model this is ``v = C·(h − B)`` in plain floats,
-        each row's three products added in :func:`effects.rotate`'s order (≈ 1 µs); a triad with
+        each row's three products added in :func:`frames.rotate`'s order (≈ 1 µs); a triad with
         effects goes through :meth:`correct_triad` (which raises ValueError as it does)."""
         floats = self._floats[sensor]
         if floats is None:

@@ -82,7 +82,7 @@ def _wrapped(name, a, b) -> float:
 
 
 def compare(got, expected, tolerance: float = 1e-6) -> Comparison:
-    """Compare station dicts (``launcher.station_dict``) ``got`` with ``expected``, matched by stamp."""
+    """Compare station dicts (``topics.station_dict``) ``got`` with ``expected``, matched by stamp."""
     from .accounting import unique_stations
 
     got, _ = unique_stations(got)
@@ -164,7 +164,7 @@ def junit_xml(c: Comparison, problems, name: str) -> str:
 
 def run(args) -> int:
     """The ``replay-test`` command (see the module docstring)."""
-    from .cli import UserError
+    from .common import UserError
     from .launcher import read_bag, readable_parts
 
     bag = Path(args.bag)
@@ -233,7 +233,7 @@ def run(args) -> int:
 
 def _reprocessed(bag, out, args) -> list:
     """The stations ``reprocess`` makes of the bag with the replay's calibration options."""
-    from .cli import UserError, load_calibration, load_site
+    from .common import UserError, load_calibration, load_site
     from .lab.field import FieldMonitor
     from .reprocess import ReprocessError, reprocess
 

@@ -23,11 +23,11 @@ import numpy as np
 
 from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
-from .frames import Site, attitude_angles, orientation_matrix, specific_force_from_gravity
+from .frames import Site, attitude_angles, orientation_matrix, pose_matrix, specific_force_from_gravity
 from .model import ProbeModel
 from .probelog import ProbeLog
 from .station import Station
-from .twelve_position import POSES, pose_matrix
+from .twelve_position import POSES
 
 
 @dataclass

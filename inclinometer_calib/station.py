@@ -384,9 +384,8 @@ class Stations:
         field) keeps the samples for effects that need them (:class:`effects.History`).
         """
         from .effects import T_REF_C
-        from .frames import orientation_matrix
+        from .frames import orientation_matrix, pose_matrix
         from .survey import Tolerances, in_vertical_cone
-        from .twelve_position import pose_matrix
 
         if role not in ("cal", "val"):
             raise ValueError(f"role must be 'cal' or 'val', got {role!r}")
@@ -432,3 +431,64 @@ class Stations:
             prev_b=np.concatenate([np.full((min(n, 1), 3), np.nan), np.array([st.b for st in stations]).reshape(n, 3)[:-1]]),
             samples=_object_array(samples, n), settled_s=np.array([st.settled_s for st in stations], dtype=float),
             duration_s=np.array([st.duration_s for st in stations], dtype=float))
+
+
+def correct_stations(stations, cal, strict: bool = False, previous=None):
+    """Corrected gravity vectors (m/s²) and fields (nT) of stations, (N, 3) each, with each
+    station's temperature and time (``cal`` None: the raw vectors).  A station without the
+    temperature the model needs comes out NaN (:func:`context_warnings` says why); ``strict``:
+    raise :class:`model.ModelContextError` instead when no station has one (a log without a
+    temperature column).
+
+    A model with effects that depend on the sequence of holds (a sensor settling after the move,
+    :class:`effects.Settling`) corrects the stations one after another, in the order given, each
+    with its place in its hold and the previous hold's corrected vectors as that hold's input
+    and the earlier stations' times and temperatures (a sensor feeling the temperature late);
+    ``previous``: the :class:`StationSequence` before the first (None: none — a stream's first)."""
+    g = np.array([s.g for s in stations], dtype=float).reshape(-1, 3)
+    b = np.array([s.b for s in stations], dtype=float).reshape(-1, 3)
+    if cal is None:
+        return g, b
+    temps = np.array([s.temp_c for s in stations], dtype=float)
+    times = np.array([s.time_s for s in stations], dtype=float)
+    if strict and "temperature" in cal.needs and len(temps) and not np.isfinite(temps).any():
+        return cal.correct(g, b, None, times)   # raises: the model needs a temperature, the data give none
+    if "history" not in cal.needs:
+        return cal.correct(g, b, temps, times)
+    out_g, out_b = np.empty_like(g), np.empty_like(b)
+    prev = previous if previous is not None else StationSequence()
+    for i, st in enumerate(stations):
+        h = prev.history(st)
+        out_g[i:i + 1], out_b[i:i + 1] = cal.correct(g[i:i + 1], b[i:i + 1], temps[i:i + 1], times[i:i + 1], history=h)
+        prev = prev.after(st, out_g[i], out_b[i])
+    return out_g, out_b
+
+
+#: Earlier stations a :class:`StationSequence` keeps (their times and temperatures).
+STATIONS_KEPT = 5000
+
+
+class StationSequence:
+    """What a station corrected on its own needs of the ones before it (:class:`effects.History`):
+    the previous hold's corrected vectors (a settling's input) and the earlier stations' times and
+    temperatures (a sensor feeling the temperature late).  Immutable: :meth:`after` gives the next."""
+
+    def __init__(self, g=None, b=None, times=(), temps=()):
+        self.g = np.full(3, np.nan) if g is None else np.asarray(g, dtype=float)
+        self.b = np.full(3, np.nan) if b is None else np.asarray(b, dtype=float)
+        self.times, self.temps = tuple(times), tuple(temps)
+
+    def after(self, st: Station, g, b) -> "StationSequence":
+        keep = STATIONS_KEPT - 1      # a lag forgets what lies many time constants back
+        if not (math.isfinite(st.temp_c) and math.isfinite(st.time_s)):     # nothing to feel late
+            return StationSequence(g, b, self.times, self.temps)
+        return StationSequence(g, b, self.times[-keep:] + (st.time_s,), self.temps[-keep:] + (st.temp_c,))
+
+    def history(self, st: Station):
+        from . import effects as fx
+
+        return fx.History(source=np.zeros(1, dtype=int), order=np.array([st.index]),
+                          previous_g=self.g.reshape(1, 3), previous_b=self.b.reshape(1, 3),
+                          settled_s=np.array([st.settled_s]), duration_s=np.array([st.duration_s]),
+                          n=np.array([st.n]), earlier_time_s=np.array(self.times, dtype=float),
+                          earlier_temp_c=np.array(self.temps, dtype=float))

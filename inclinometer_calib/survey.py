@@ -18,6 +18,8 @@ import numpy as np
 from . import frames
 from .frames import Site, gravity_from_specific_force, wrap180, wrap360
 from .geomag import azimuths
+from . import batchkernel
+from .batchkernel import BATCH_KEYS
 
 
 @dataclass(frozen=True)
@@ -213,9 +215,6 @@ FLAG_GRAVITY_OUT_OF_TOLERANCE = 4
 FLAG_TOOLFACE_IS_GRAVITY = 8
 FLAG_NOT_FINITE = 16
 
-BATCH_KEYS = ("drift_deg", "azimuth_deg", "toolface_deg", "total_gravity", "total_field", "dip_deg")
-
-
 def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
                     temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None,
                     backend: str | None = None, threads: int | None = None) -> dict:
@@ -266,8 +265,6 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
     tim = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=float), (n,))
     if calibration is not None:
         calibration.model.context(0, temp, tim, "val", "correct_samples: ")   # what the model needs: said up front
-    from . import batchkernel
-
     kernel = batchkernel.resolve_backend(backend) == "numba"
     if out is None:
         out = {k: np.empty(n) for k in BATCH_KEYS}

@@ -23,30 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errormodel import TriadModel
+from .frames import pose_matrix
 
-_DIR = {
-    "N": (1.0, 0.0, 0.0),
-    "S": (-1.0, 0.0, 0.0),
-    "E": (0.0, 1.0, 0.0),
-    "W": (0.0, -1.0, 0.0),
-    "D": (0.0, 0.0, 1.0),
-    "U": (0.0, 0.0, -1.0),
-}
-
-#: Table 1: the stand direction (N/S/E/W/D=down/U=up) of tool X, Y, Z in each of the 12 poses.
-TABLE1 = {
-    1: "DWN", 2: "DES", 3: "UEN", 4: "UWS",
-    5: "EDN", 6: "WDS", 7: "EUS", 8: "WUN",
-    9: "NED", 10: "SWD", 11: "SEU", 12: "NWU",
-}
 POSES = tuple(range(1, 13))
-
-
-def pose_matrix(pose: int) -> np.ndarray:
-    """Tool→stand(NED) rotation of a Table 1 pose: its columns are the NED directions of X, Y, Z."""
-    if pose not in TABLE1:
-        raise ValueError(f"pose {pose!r} is not one of the twelve poses of Table 1 (1..12)")
-    return np.array([_DIR[c] for c in TABLE1[pose]]).T
 
 
 def pose_reference(pose: int, ref_ned) -> np.ndarray:

@@ -91,21 +91,21 @@ def test_grid_convergence_matches_the_projection_itself():
 
 
 def test_a_site_by_location_takes_the_model_and_measured_values_win():
-    site = Site.from_dict({"latitude_deg": 57.1, "longitude_deg": 2.1, "altitude_m": 0, "date": "2026-11-23",
-                           "model": "IGRF-14", "crs": 32631})
+    site = geomag.site_from_config({"latitude_deg": 57.1, "longitude_deg": 2.1, "altitude_m": 0, "date": "2026-11-23",
+                                    "model": "IGRF-14", "crs": 32631})
     m = geomag.model_field(57.1, 2.1, 0.0, dt.date(2026, 11, 23), "IGRF-14")
     assert site.total_field_nt == pytest.approx(m["f"]) and site.declination_deg == pytest.approx(m["declination_deg"])
     assert site.gravity_mps2 == pytest.approx(geomag.normal_gravity(57.1))
     assert site.reference["sources"]["dip_deg"].startswith("IGRF-14 at 57.1, 2.1")
     assert np.isfinite(site.grid_convergence_deg)
-    ifr = Site.from_dict({"latitude_deg": 57.1, "longitude_deg": 2.1, "date": "2026-11-23", "total_field_nt": 50123.0})
+    ifr = geomag.site_from_config({"latitude_deg": 57.1, "longitude_deg": 2.1, "date": "2026-11-23", "total_field_nt": 50123.0})
     assert ifr.total_field_nt == 50123.0 and ifr.reference["sources"]["total_field_nt"] == "measured (IFR)"
     assert ifr.reference["sources"]["declination_deg"].startswith("WMM2025")
     # a record keeps where its site came from, and reads it back the same
     again = Site.from_dict(ifr.to_dict())
     assert again == ifr and again.reference == ifr.reference
     with pytest.raises(ValueError, match="date"):
-        Site.from_dict({"latitude_deg": 57.1, "longitude_deg": 2.1})
+        geomag.site_from_config({"latitude_deg": 57.1, "longitude_deg": 2.1})
     # typed-in values alone stay as they were (no reference key, the record id unchanged)
     assert "reference" not in Site(50000.0, 60.0, 1.0).to_dict()
 

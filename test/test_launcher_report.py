@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from inclinometer_calib import launcher, rosenv
+from inclinometer_calib import launcher, rosenv, topics
 
 NAN = float("nan")
 
@@ -144,14 +144,14 @@ def _recorded_station(**fields):
 
 def test_a_station_recorded_before_the_one_north_is_read_along_its_positions_north():
     # then: azimuth true, north/east along grid north (the site had a grid)
-    old = launcher.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=39.2,
+    old = topics.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=39.2,
                                                   azimuth_reference="true", reference_azimuth_deg=40.25))
     assert old["azimuth_reference"] == "grid" and old["azimuth_deg"] == 39.2 and old["azimuth_true_deg"] == 40.0
     assert old["reference_azimuth_deg"] == pytest.approx(40.25 - 0.8)      # the reference along grid north too
     # no grid: true (or magnetic) as recorded
-    plain = launcher.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+    plain = topics.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
                                                     azimuth_reference="true", reference_azimuth_deg=40.25))
     assert plain["azimuth_reference"] == "true" and plain["azimuth_deg"] == 40.0 and plain["azimuth_true_deg"] == 40.0
-    mag = launcher.station_dict(_recorded_station(azimuth_deg=37.5, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+    mag = topics.station_dict(_recorded_station(azimuth_deg=37.5, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
                                                   azimuth_reference="magnetic"))
     assert mag["azimuth_reference"] == "magnetic" and math.isnan(mag["azimuth_true_deg"])

@@ -257,6 +257,6 @@ def test_launcher_plugin_is_the_nodes_plugins_parameter_and_is_not_executed(tmp_
 
 def test_table_status_is_the_run_reports_wording():
     s = {"coefficients_id": "", "status": 0}
-    assert lv.status_text(s) == launcher.station_label(s)
+    assert lv.status_text(s) == lv.station_label(s)
     assert lv.station_color(s) == lv.UNCORRECTED_COLOR
     assert lv.station_color({"coefficients_id": "x", "status": 1}) == lv.STATUS_COLORS[1]

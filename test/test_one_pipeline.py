@@ -2,7 +2,7 @@
 
 Read from the source (``ast``), so that a copy coming back fails here whatever it is called by:
 one station type (:mod:`station`), one correction path (:meth:`model.ProbeModel.correct` through
-:meth:`coeffs.Calibration.correct` and :func:`pipeline.correct_stations`), the specific-force
+:meth:`coeffs.Calibration.correct` and :func:`station.correct_stations`), the specific-force
 sign flip in :mod:`frames` only, effect metadata on the effect classes, one effect grammar.
 """
 import ast
@@ -48,7 +48,7 @@ def test_each_station_and_model_type_is_defined_once(name):
 
 def test_the_paths_import_the_one_station_type_and_the_one_correction_path():
     uses = {
-        "cli.py": {("pipeline", "correct_stations"), ("pipeline", "evaluate_stations")},
+        "cli.py": {("station", "correct_stations"), ("pipeline", "evaluate_stations")},
         "reprocess.py": {("pipeline", "SurveyProcessor")},
         "nodes/correction.py": {("pipeline", "SurveyProcessor")},
         "lab/model.py": {("model", "ProbeModel")},
@@ -69,13 +69,13 @@ def test_only_the_model_inverts_a_triad_and_only_the_pipeline_feeds_it_stations(
     # TriadModel.inverse: the model's correction (model.py) and the twelve-position solver's own triad
     callers = sorted(m for m, t in MODULES.items() if _calls(t, "inverse"))
     assert callers == ["model.py", "twelve_position.py"], callers
-    # .correct(...): Calibration -> ProbeModel (coeffs, model), of stations (pipeline.correct_stations), of
+    # .correct(...): Calibration -> ProbeModel (coeffs, model), of stations (station.correct_stations), of
     # samples (the batch path, survey.py), the lab's model, fit, wander smoother and predicted uncertainty
     # (LabModel.correct -> ProbeModel.correct; the fit one triad at a time, correct_triad)
     callers = sorted(m for m, t in MODULES.items()
                      if (_calls(t, "correct") or _calls(t, "correct_triad")) and m != "axial.py")
     assert callers == ["coeffs.py", "lab/fit.py", "lab/model.py", "lab/uncertainty.py", "lab/wander.py", "model.py",
-                       "pipeline.py", "survey.py"], callers
+                       "station.py", "survey.py"], callers
 
 
 def test_the_specific_force_sign_flip_lives_in_frames_only():

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import effects as fx
-from ..frames import angles_from_vectors
+from ..frames import angles_from_vectors, rotate
 from ..survey import Tolerances
 from .stats import regress
 
@@ -187,7 +187,7 @@ class FieldMonitor:
                 v = np.zeros(term.n_params)
                 v[j] = typ[j]
                 term.set_vector(v)
-                dx = -fx.rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
+                dx = -rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
                 inv = _invariants(x["acc"] + dx, x["mag"]) if sensor == "acc" else _invariants(x["acc"], x["mag"] + dx)
                 for k, c in enumerate(CHANNELS):
                     cols[c[0]][:, j] = (inv[k] - base_inv[k]) / typ[j]

@@ -27,16 +27,9 @@ from scipy.special import chdtrc
 from .. import effects as fx
 from .blas import one_thread
 from .model import LabModel
-from .wander import clear_paths, edf_total, smooth, stochastic_terms
+from .wander import _free_sigmas, clear_paths, edf_total, smooth, stochastic_terms
 
 PRIOR_FACTOR = 100.0
-
-
-def _free_sigmas(data, model):
-    sg = np.linalg.norm(data.g_sigma, axis=1)
-    sb = np.linalg.norm(data.b_sigma, axis=1)
-    sdip = np.degrees(sb / model.site.total_field_nt + sg / model.site.gravity_mps2)
-    return sg, sb, sdip
 
 
 def split_oriented(data) -> tuple:

@@ -79,7 +79,7 @@ def survey_errors(cal, val) -> dict:
     """Drift and azimuth RMS (deg) of ``cal`` on a validation log's stations with a reference
     (``val``: the log's path, or its stations from :func:`_stations` when several records are
     compared on it — read and segmented once)."""
-    from ..pipeline import correct_stations
+    from ..station import correct_stations
     from ..survey import evaluate, summarize
 
     stations = _stations(val)[1] if isinstance(val, (str, bytes, os.PathLike)) else val

@@ -46,12 +46,17 @@ def clear_paths(model) -> None:
         t.effect.clear_path()
 
 
+def _free_sigmas(data, model):
+    sg = np.linalg.norm(data.g_sigma, axis=1)
+    sb = np.linalg.norm(data.b_sigma, axis=1)
+    sdip = np.degrees(sb / model.site.total_field_nt + sg / model.site.gravity_mps2)
+    return sg, sb, sdip
+
+
 def smooth(model, data) -> float:
     """Estimate the paths of ``model``'s stochastic effects from ``data`` (in place); the other
     parameters are held.  Returns the largest change of a path, in units of its density over the
     mean station spacing (0 when the model has no stochastic effect)."""
-    from .fit import _free_sigmas
-
     terms = stochastic_terms(model)
     if not terms or not len(data):
         return 0.0

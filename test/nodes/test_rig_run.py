@@ -26,7 +26,7 @@ ws_client = pytest.importorskip("websockets.sync.client", reason="the test clien
 from inclinometer_calib import liveview as lv  # noqa: E402
 from north_well import receiver_positions  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
-from inclinometer_calib.cli import load_site  # noqa: E402
+from inclinometer_calib.common import load_site  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SITE_FILE = os.path.join(ROOT, "config", "rig_site.yaml")
