@@ -41,7 +41,7 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
-from ..coeffs import Calibration, CoefficientError
+from ..core.coeffs import Calibration, CoefficientError
 
 #: Where the Alembic environment and versions of the registry's schema live (shipped with the package).
 MIGRATIONS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "migrations")

@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import effects as fx
-from ..frames import angles_from_vectors, rotate
-from ..survey import Tolerances
+from ..core import effects as fx
+from ..core.frames import angles_from_vectors, rotate
+from ..core.survey import Tolerances
 from .stats import regress
 
 #: The residual channels: (field of a SurveyStation, name in words, unit, tolerance attribute).
@@ -154,7 +154,7 @@ class FieldMonitor:
         (a Newton step of :meth:`model.ProbeModel.correct`, which is what the full correction
         would add up to for an effect this small)."""
         from .diagnose import candidate_effects
-        from .model import LabModel
+        from ..calibrate.labmodel import LabModel
 
         cal = self.calibration
         if cal is None or "history" in cal.needs:

@@ -18,8 +18,8 @@ import copy
 
 import numpy as np
 
-from ..allan import SensorNoise, sensor_noise
-from .wander import clear_paths
+from ..detect.allan import SensorNoise, sensor_noise
+from ..calibrate.wander import clear_paths
 
 #: Columns of a station's samples (time, gravity vector, field) per sensor.
 COLUMNS = {"acc": [0, 1, 2, 3], "mag": [0, 4, 5, 6]}

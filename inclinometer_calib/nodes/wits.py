@@ -38,9 +38,9 @@ import sys
 
 from rclpy.node import Node
 
-from .. import witsml
-from ..topics import station_dict
-from ..wits import UNITS, WitsServer, describe, encode
+from ..rig import witsml
+from ..io.topics import station_dict
+from ..rig.wits import UNITS, WitsServer, describe, encode
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
 

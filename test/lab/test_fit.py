@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from inclinometer_calib.station import Station, Stations
+from inclinometer_calib.core.station import Station, Stations
 from inclinometer_calib import lab
 from inclinometer_calib.lab.spec import build_model
 
@@ -74,8 +74,8 @@ def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(
     """A hand-turned log: labels dropped, static intervals found by the detector."""
     import numpy as np
 
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.probelog import write_csv
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.io.probelog import write_csv
 
     data, truth, site = sim_factory(21)
     probe = sim.build_probe(21)
@@ -98,7 +98,7 @@ def test_the_per_triad_cache_gives_the_residuals_of_a_full_evaluation_bit_for_bi
     in acc, mag and shared parameters, on oriented and free stations, before and after a step."""
     import copy
 
-    from inclinometer_calib.lab.fit import ResidualCache, residual_vector
+    from inclinometer_calib.calibrate.fit import ResidualCache, residual_vector
 
     data, _, site = sim_factory(22, ["axial_interference=300"])
     data = copy.deepcopy(data)
