@@ -24,8 +24,9 @@ def _module(path: pathlib.Path) -> tuple:
     return ".".join(parts[:-1] if is_pkg else parts), is_pkg
 
 
-def _targets(name: str, is_pkg: bool, tree, modules) -> set:
-    """The package's modules ``name`` imports (each import resolved to the deepest module that exists)."""
+def _imported(name: str, is_pkg: bool, tree, modules) -> list:
+    """Every name of the package that ``name`` imports, absolute (``from .x import y``: ``pkg.x.y``
+    when ``y`` is a module, else ``pkg.x``)."""
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -41,10 +42,13 @@ def _targets(name: str, is_pkg: bool, tree, modules) -> set:
               and getattr(node.func, "attr", getattr(node.func, "id", "")) in ("import_module", "find_spec")
               and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)):
             found.append(node.args[0].value)
+    return [t for t in found if t == NAME or t.startswith(NAME + ".")]
+
+
+def _targets(name: str, is_pkg: bool, tree, modules) -> set:
+    """The package's modules ``name`` imports (each import resolved to the deepest module that exists)."""
     out = set()
-    for t in found:
-        if t != NAME and not t.startswith(NAME + "."):
-            continue
+    for t in _imported(name, is_pkg, tree, modules):
         while t not in modules and "." in t:
             t = t.rsplit(".", 1)[0]
         if t != name and t != NAME and t in modules:
@@ -58,6 +62,51 @@ def graph() -> dict:
     files = {_module(p): p for p in PKG.rglob("*.py") if "__pycache__" not in p.parts}
     modules = {name for name, _ in files}
     return {name: _targets(name, is_pkg, ast.parse(p.read_text()), modules) for (name, is_pkg), p in files.items()}
+
+
+def _defined(tree) -> set:
+    """The names a module's top level binds (assignments, definitions, imports)."""
+    out = set()
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            out.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            for t in (node.targets if isinstance(node, ast.Assign) else [node.target]):
+                out |= {n.id for n in ast.walk(t) if isinstance(n, ast.Name)}
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            out |= {(a.asname or a.name).split(".")[0] for a in node.names}
+    return out
+
+
+def test_every_import_of_the_package_names_a_module_of_the_tree():
+    # the ROS install tree merges into the package (extend_path) and may hold an older copy of it:
+    # an import of a path that moved would still work there, from the stale copy
+    files = {_module(p): p for p in PKG.rglob("*.py") if "__pycache__" not in p.parts}
+    trees = {name: ast.parse(p.read_text()) for (name, _), p in files.items()}
+    generated = (NAME + ".msg", NAME + ".srv")
+    stale = []
+    for (name, is_pkg), p in files.items():
+        for node in ast.walk(trees[name]):
+            if isinstance(node, ast.Import):
+                wanted = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = name.split(".") if is_pkg else name.split(".")[:-1]
+                    base = ".".join(base[:len(base) - node.level + 1] + ([node.module] if node.module else []))
+                else:
+                    base = node.module or ""
+                if not (base == NAME or base.startswith(NAME + ".")) or base.startswith(generated):
+                    continue
+                if base not in trees:
+                    wanted = [base]
+                else:   # a submodule, or a name the module defines
+                    wanted = [f"{base}.{a.name}" for a in node.names
+                              if f"{base}.{a.name}" not in trees and a.name not in _defined(trees[base])]
+            else:
+                continue
+            stale += [f"{name}: {t}" for t in wanted
+                      if (t == NAME or t.startswith(NAME + ".")) and t not in trees and not t.startswith(generated)]
+    assert stale == [], stale
 
 
 def _layer(module: str) -> str:
