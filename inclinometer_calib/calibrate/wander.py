@@ -20,7 +20,7 @@ path interpolated between the knots is exact.  What each station says about ``w`
   axis visible in turn.
 
 The smoother alternates with the least-squares fit of the model's other parameters
-(:func:`lab.fit.fit`), each holding the other.  Its effective degrees of freedom (the trace of
+(:func:`calibrate.fit.fit`), each holding the other.  Its effective degrees of freedom (the trace of
 its hat matrix, per axis) go into the fit's parameter count and the lab's likelihood-ratio test.
 """
 from __future__ import annotations

@@ -173,7 +173,7 @@ class Effect(abc.ABC):
     #: a temperature effect of the same sensor; empty: nothing) — the lab tries it only then.
     requires: ClassVar[str] = ""
     #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
-    #: estimates from the data (:mod:`lab.wander`), not values a least-squares fit moves.
+    #: estimates from the data (:mod:`calibrate.wander`), not values a least-squares fit moves.
     stochastic: ClassVar[bool] = False
 
     def __post_init__(self):
@@ -595,7 +595,7 @@ class BiasWander(Effect):
     Stochastic: its parameter is the walk's density ``K`` (unit/√s, the *rate random walk* of
     IEEE Std 952), which the lab takes from the noise model (:mod:`allan`: the Allan deviation of
     the holds, or the station sequence when the holds are too short to see it).  The path ``w`` is
-    estimated from the data by a smoother over the stations (:mod:`lab.wander`: the posterior mean
+    estimated from the data by a smoother over the stations (:mod:`calibrate.wander`: the posterior mean
     under that random-walk prior, piecewise linear between the stations' times ``knots_s``); its
     mean over the data is held at zero (the constant bias carries it).  Outside the data the best
     prediction of a random walk is its last value, so the path is held constant beyond its ends;
@@ -854,7 +854,7 @@ class StandPoseError(WholeProbeEffect):
       its size as an equivalent pose error;
     * **systematic**, a worn or badly set stand holding some pose a few tenths of a degree off the
       same way in every round: a fittable signature.  The lab fits it per pose (three small
-      rotations in the tool frame, :attr:`lab.model.LabModel.fit_poses`; their mean over the poses
+      rotations in the tool frame, :attr:`calibrate.labmodel.LabModel.fit_poses`; their mean over the poses
       is the base model's own rotation freedom and is held at zero) and says which poses are off.
     """
 

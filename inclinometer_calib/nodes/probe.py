@@ -414,7 +414,7 @@ class ProbeNode(Node):
         # generator then runs as in one whole simulation (:meth:`simulate.SessionPlan.chunks`).
         plans, pieces, t0, lead_in = [], [], 0.0, None
         if self.calibrate:
-            # The stand faces true north (the lab's convention for Table 1's poses, lab.model: a
+            # The stand faces true north (the lab's convention for Table 1's poses, calibrate.labmodel: a
             # surveyed reference line); a stand facing elsewhere is the lab's heading offset.
             stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s)
             plans.append(sim.SessionPlan(probe, self.site, stations, rng, rate_hz=self.rate_hz,

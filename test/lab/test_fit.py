@@ -94,7 +94,7 @@ def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(
 
 def test_the_per_triad_cache_gives_the_residuals_of_a_full_evaluation_bit_for_bit(sim_factory):
     """A finite-difference step in one triad's parameter takes the other triad's outputs from the
-    cache (lab.fit.ResidualCache): every residual must be the bits of a full evaluation, for steps
+    cache (calibrate.fit.ResidualCache): every residual must be the bits of a full evaluation, for steps
     in acc, mag and shared parameters, on oriented and free stations, before and after a step."""
     import copy
 
