@@ -57,11 +57,16 @@ def _targets(name: str, is_pkg: bool, tree, modules) -> set:
 
 
 @pytest.fixture(scope="module")
-def graph() -> dict:
+def sources() -> dict:
+    """(module, is a package) -> its parsed source, for every module of the tree."""
+    return {_module(p): ast.parse(p.read_text()) for p in PKG.rglob("*.py") if "__pycache__" not in p.parts}
+
+
+@pytest.fixture(scope="module")
+def graph(sources) -> dict:
     """module -> the package's modules it imports (the generated msg/srv are not in the source tree)."""
-    files = {_module(p): p for p in PKG.rglob("*.py") if "__pycache__" not in p.parts}
-    modules = {name for name, _ in files}
-    return {name: _targets(name, is_pkg, ast.parse(p.read_text()), modules) for (name, is_pkg), p in files.items()}
+    modules = {name for name, _ in sources}
+    return {name: _targets(name, is_pkg, tree, modules) for (name, is_pkg), tree in sources.items()}
 
 
 def _defined(tree) -> set:
@@ -78,14 +83,14 @@ def _defined(tree) -> set:
     return out
 
 
-def test_every_import_of_the_package_names_a_module_of_the_tree():
+def test_every_import_of_the_package_names_a_module_of_the_tree(sources):
     # the ROS install tree merges into the package (extend_path) and may hold an older copy of it:
     # an import of a path that moved would still work there, from the stale copy
-    files = {_module(p): p for p in PKG.rglob("*.py") if "__pycache__" not in p.parts}
-    trees = {name: ast.parse(p.read_text()) for (name, _), p in files.items()}
+    trees = {name: tree for (name, _), tree in sources.items()}
+    defined = {name: _defined(tree) for name, tree in trees.items()}
     generated = (NAME + ".msg", NAME + ".srv")
     stale = []
-    for (name, is_pkg), p in files.items():
+    for name, is_pkg in sources:
         for node in ast.walk(trees[name]):
             if isinstance(node, ast.Import):
                 wanted = [a.name for a in node.names]
@@ -101,7 +106,7 @@ def test_every_import_of_the_package_names_a_module_of_the_tree():
                     wanted = [base]
                 else:   # a submodule, or a name the module defines
                     wanted = [f"{base}.{a.name}" for a in node.names
-                              if f"{base}.{a.name}" not in trees and a.name not in _defined(trees[base])]
+                              if f"{base}.{a.name}" not in trees and a.name not in defined[base]]
             else:
                 continue
             stale += [f"{name}: {t}" for t in wanted
