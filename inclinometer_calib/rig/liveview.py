@@ -51,8 +51,6 @@ import math
 import re
 from typing import Callable, Mapping
 
-from ..io.topics import station_dict  # noqa: F401  (the one conversion, lv.station_dict to the live node)
-
 TOPIC_STATION = "/live/station"
 TOPIC_RESIDUALS = "/live/residuals"
 TOPIC_TABLE = "/live/stations"
@@ -197,7 +195,7 @@ def station_color(s: Mapping) -> tuple:
 
 
 class LiveView:
-    """The stations received so far (station dicts, :func:`station_dict`), oldest first, at
+    """The stations received so far (station dicts, :func:`topics.station_dict`), oldest first, at
     most ``max_stations`` (the oldest dropped), and the trajectory through them."""
 
     def __init__(self, max_stations: int = 2000):
