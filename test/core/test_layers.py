@@ -5,7 +5,9 @@ Read from the source (``ast``): every import counts, at module level or inside a
 form (``import a.b``, ``from . import x``, ``from ..core.frames import Site``, and the module names
 given to ``importlib.import_module`` / ``importlib.util.find_spec``) — a lazy import is still a
 dependency, and the cycles this replaced all hid inside functions.  (import-linter would say the
-same with a ``layers`` contract; it is not in the environment, this needs nothing.)
+same with a ``layers`` contract; it is not in the environment, this needs nothing.)  And every
+import of the package, in it and in the tests, benchmarks, scripts and examples, names a module of
+the tree: the ROS install tree's copy of the package would otherwise answer a path that moved.
 """
 import ast
 import pathlib
@@ -85,13 +87,17 @@ def _defined(tree) -> set:
 
 def test_every_import_of_the_package_names_a_module_of_the_tree(sources):
     # the ROS install tree merges into the package (extend_path) and may hold an older copy of it:
-    # an import of a path that moved would still work there, from the stale copy
+    # an import of a path that moved would still work there, from the stale copy — in the package,
+    # and in the tests, benchmarks, scripts and examples that import it
     trees = {name: tree for (name, _), tree in sources.items()}
     defined = {name: _defined(tree) for name, tree in trees.items()}
     generated = (NAME + ".msg", NAME + ".srv")
+    users = {(str(p.relative_to(PKG.parent)), False): ast.parse(p.read_text())
+             for folder in ("test", "benchmarks", "scripts", "examples", "launch")
+             for p in (PKG.parent / folder).rglob("*.py") if "__pycache__" not in p.parts}
     stale = []
-    for name, is_pkg in sources:
-        for node in ast.walk(trees[name]):
+    for (name, is_pkg), tree in {**sources, **users}.items():
+        for node in ast.walk(tree):
             if isinstance(node, ast.Import):
                 wanted = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom):
