@@ -32,7 +32,8 @@ def test_no_module_below_the_nodes_names_ros_even_inside_a_function():
     """Read from the source: an import inside a function is not run by the import above."""
     import ast
 
-    ros = ("rclpy", "rosidl", "rcl_interfaces", "builtin_interfaces", "inclinometer_calib.msg", "inclinometer_calib.srv")
+    ros = ("rclpy", "rosidl", "rcl_interfaces", "builtin_interfaces", "inclinometer_calib.msg",
+           "inclinometer_calib.srv")
     found = []
     for m in CORE:
         path = os.path.join(PKG, *m.split("."))
