@@ -13,7 +13,7 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIG = os.path.join(ROOT, "config")
 sys.path.insert(0, ROOT)
-from inclinometer_calib.rosenv import isolated_env, reserve_domain_id  # noqa: E402
+from inclinometer_calib.apps.rosenv import isolated_env, reserve_domain_id  # noqa: E402
 _CLK_TCK = os.sysconf("SC_CLK_TCK")
 _PAGE = os.sysconf("SC_PAGE_SIZE")
 

@@ -26,12 +26,12 @@ import _common  # noqa: F401  (sys.path)
 import numpy as np
 
 from _common import ROOT, interleaved, machine, table
-from inclinometer_calib import batchkernel
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.frames import Site, tool_vectors
-from inclinometer_calib.frames import wrap180
-from inclinometer_calib.survey import BATCH_KEYS, Tolerances, correct_samples, evaluate
+from inclinometer_calib.core import batchkernel
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.coeffs import Calibration
+from inclinometer_calib.core.frames import Site, tool_vectors
+from inclinometer_calib.core.frames import wrap180
+from inclinometer_calib.core.survey import BATCH_KEYS, Tolerances, correct_samples, evaluate
 
 TARGET = 0.7
 
@@ -87,7 +87,7 @@ def baseline_threads(f, m, out, threads):
 def first_call_times():
     """Seconds of the kernel's first call in a new process: compiling into an empty cache
     directory, then loading from that cache (numba import included)."""
-    code = "from inclinometer_calib import batchkernel as b; print(b.warm_up())"
+    code = "from inclinometer_calib.core import batchkernel as b, survey as s; print(b.warm_up(s.Tolerances()))"
     with tempfile.TemporaryDirectory() as d:
         env = dict(os.environ, NUMBA_CACHE_DIR=d, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
         return [float(subprocess.run([sys.executable, "-c", code], env=env, check=True, capture_output=True,
@@ -118,7 +118,7 @@ def main(argv=None):
     cold, warm = first_call_times()
     print(f"kernel first call in a new process: compile {cold:.2f} s (empty cache), load {warm:.2f} s (disk cache, "
           f"numba import included); cache dir here: {batchkernel.cache_dir()}")
-    batchkernel.warm_up()
+    batchkernel.warm_up(Tolerances())
     rows = []
     tol = Tolerances()
     for n in sizes:

@@ -172,9 +172,9 @@ def role_receiver() -> int:
 # Orchestration
 # --------------------------------------------------------------------------------------------
 def _coeffs_file(d: str) -> str:
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.frames import Site
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.coeffs import Calibration
+    from inclinometer_calib.core.frames import Site
 
     probe = sim.build_probe(3)
     path = os.path.join(d, "coeffs.yaml")

@@ -29,12 +29,13 @@ import _common  # noqa: F401  (sys.path)
 
 from _common import ROOT, machine, table
 from inclinometer_calib import lab
-from inclinometer_calib.cli import load_site, main as cli_main
+from inclinometer_calib.apps.cli import main as cli_main
+from inclinometer_calib.apps.common import load_site
 from inclinometer_calib.lab.diagnose import candidate_effects
-from inclinometer_calib.lab.model import LabModel
-from inclinometer_calib.probelog import read_csv, segment_stations
-from inclinometer_calib.capture import CaptureSession
-from inclinometer_calib.streaming import StaticDetector
+from inclinometer_calib.calibrate.labmodel import LabModel
+from inclinometer_calib.io.probelog import read_csv, segment_stations
+from inclinometer_calib.calibrate.capture import CaptureSession
+from inclinometer_calib.detect.streaming import StaticDetector
 
 ROWS_PER_HZ = 442          # rows of cal.csv + val.csv per Hz of rate with 1 s stations
 
@@ -137,7 +138,7 @@ def main(argv=None):
                     t, _ = timed(lambda: lab.diagnose(data, LabModel.base(site), candidates=sub))
                     cand_rows.append([label, k, pairs, f"{t:.3f}", f"{t / max(pairs, 1):.3f}"])
             if abs(n - 100_000) <= 20_000 or n == sizes[-1]:
-                cmd = [sys.executable, "-m", "inclinometer_calib.cli", "lab", "diagnose", "--cal", cal, "--val", val,
+                cmd = [sys.executable, "-m", "inclinometer_calib.apps.cli", "lab", "diagnose", "--cal", cal, "--val", val,
                        "--site", os.path.join(d, "site.yaml"), "--quiet"]
                 t, r = timed(lambda: subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT))
                 status = "ok" if r.returncode == 0 else f"exit {r.returncode}"

@@ -25,9 +25,9 @@ import _common  # noqa: F401  (sys.path)
 import numpy as np
 
 from _common import ROOT, interleaved, machine, table
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.frames import Site
-from inclinometer_calib.probelog import format_csv, read_csv
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.frames import Site
+from inclinometer_calib.io.probelog import format_csv, read_csv
 
 TARGET = 20.0
 BAD_EVERY = 10_000
@@ -75,7 +75,7 @@ def same(a, b) -> bool:
 
 PEAK = """
 import sys
-from inclinometer_calib.probelog import read_csv
+from inclinometer_calib.io.probelog import read_csv
 import pyarrow.csv, pyarrow.compute
 
 

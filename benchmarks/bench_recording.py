@@ -22,10 +22,10 @@ import _common  # noqa: F401  (sys.path)
 import numpy as np
 
 from _common import interleaved, machine, table
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.bag import BagWriter, open_bag
-from inclinometer_calib.frames import Site
-from inclinometer_calib.reprocess import write_probe_bag
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.io.bag import BagWriter, open_bag
+from inclinometer_calib.core.frames import Site
+from inclinometer_calib.correct.reprocess import write_probe_bag
 
 try:  # the node's own callback factory (needs rclpy); fall back to the same three lines
     from inclinometer_calib.nodes.recorder import _make_callback

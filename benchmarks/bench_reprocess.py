@@ -23,11 +23,11 @@ import _common  # noqa: F401  (sys.path)
 import numpy as np
 
 from _common import interleaved, machine, table
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.bag import BagWriter, open_bag
-from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.frames import Site
-from inclinometer_calib.reprocess import reprocess, write_probe_bag
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.io.bag import BagWriter, open_bag
+from inclinometer_calib.core.coeffs import Calibration
+from inclinometer_calib.core.frames import Site
+from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
 
 
 def make_bag(path, minutes: float):

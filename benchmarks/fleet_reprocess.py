@@ -32,12 +32,12 @@ import _common  # noqa: F401  (sys.path)
 import numpy as np
 
 from _common import machine, table
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.coeffs import Calibration
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.coeffs import Calibration
 from inclinometer_calib.fleet.registry import Registry
 from inclinometer_calib.fleet.reprocess import RegistryResolver, local_cluster, reprocess_fleet
-from inclinometer_calib.frames import Site
-from inclinometer_calib.reprocess import reprocess, write_probe_bag
+from inclinometer_calib.core.frames import Site
+from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
 
 T0 = dt.datetime(2026, 1, 5, tzinfo=dt.timezone.utc)
 

@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     logs = {n: open(p.log_path).read() for n, p in procs.items()}
     m = re.search(r"end of script: (\d+) samples published", logs["probe"])
     published = int(m.group(1)) if m else None
-    from inclinometer_calib import bag
+    from inclinometer_calib.io import bag
     topics = bag.open_bag(bag_path).topics
     counts = {t: topics[t].count for t in sorted(topics)}
     stations_expected = 12 + n_well

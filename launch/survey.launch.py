@@ -1,12 +1,12 @@
 """Calibration + survey graph for a real ROS 2 install (``ros2 launch inclinometer_calib survey.launch.py``).
 
-Equivalent of ``inclinometer-calib-launch`` (inclinometer_calib/launcher.py, used where ``launch``
+Equivalent of ``inclinometer-calib-launch`` (inclinometer_calib/apps/launcher.py, used where ``launch``
 and ``launch_ros`` are not available, e.g. PyPI wheels): probe, calibration, correction and recorder
 with the package's config/<node>.yaml, the run's outputs in ``out``, and the whole launch shut down
 when the probe finishes.  The probe publishes ``/clock`` (its log time); calibration and correction
 run on it (``use_sim_time``).  Unlike the launcher, nothing here restarts a node that dies, reserves
 a ROS_DOMAIN_ID, or turns failures into an exit status.  The launcher additionally prints the summary; here run
-``python -c "from inclinometer_calib.launcher import summarize_run; summarize_run('<out>')"``.
+``python -c "from inclinometer_calib.apps.launcher import summarize_run; summarize_run('<out>')"``.
 
 Arguments: out (output directory), source (simulate|csv|mcap), input (file for csv/mcap),
 speed, survey (stand_grid|well_path|none), seed, record (true|false).

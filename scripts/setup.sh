@@ -248,7 +248,7 @@ fi
 #    the batch correction's compiled kernel (numba's disk cache; a few CPU-seconds the first time)
 "$VPY" -m compileall -q "$REPO/inclinometer_calib" "$REPO/test" "$REPO/benchmarks" >/dev/null \
     || log "WARNING: compileall failed (the bytecode is then compiled on first import)"
-"$VPY" -c "from inclinometer_calib import batchkernel; batchkernel.warm_up()" \
+"$VPY" -c "from inclinometer_calib.core import batchkernel, survey; batchkernel.warm_up(survey.Tolerances())" \
     || log "WARNING: the batch kernel did not compile now (it compiles at its first use)"
 
 log "setup complete in $((SECONDS - T0)) s. Next: source scripts/env.sh && python -m pytest test -q"

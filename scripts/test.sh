@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Set up everything (idempotent) and run the whole test suite.  Extra arguments go to pytest (then
-# one pytest run of what they name, e.g. ./scripts/test.sh test/test_turntable.py -x).
+# one pytest run of what they name, e.g. ./scripts/test.sh test/calibrate/test_turntable.py -x).
 #
 # Without arguments, two pytest runs at once (the exit status is the numerics' failure, else the
 # graph tests'; the wall time of each is printed at the end):

@@ -3,7 +3,7 @@ each north, and a rig receiver's own minimum curvature — for the tests that ev
 azimuth and north/east agree with each other along the one north they declare.
 
 ``receiver_positions`` is written here from the textbook form (SPE 84246: the dogleg by the
-arc-cosine, the ratio factor ``2/β·tan(β/2)``), not with :mod:`inclinometer_calib.trajectory`
+arc-cosine, the ratio factor ``2/β·tan(β/2)``), not with :mod:`inclinometer_calib.correct.trajectory`
 (which takes the dogleg by the arc-sine of the chord), as a receiver of WITS0 or WITSML would.
 """
 import copy
@@ -17,7 +17,7 @@ EPOCH_S = 1_795_000_000.0
 
 
 def projected_site():
-    from inclinometer_calib.frames import Site
+    from inclinometer_calib.core.frames import Site
 
     return Site(total_field_nt=52000.0, dip_deg=50.0, declination_deg=DECLINATION,
                 reference={"grid_convergence_deg": CONVERGENCE, "crs": "EPSG:23031"})
@@ -45,9 +45,9 @@ def receiver_positions(md, inc_deg, azi_deg):
 def projected_survey():
     """(site, probe log, its stations, the probe's calibration record) of a simulated 8-station
     well (500–710 m MD, 30 m apart) on :func:`projected_site` (made once per session)."""
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.probelog import segment_stations
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.coeffs import Calibration
+    from inclinometer_calib.io.probelog import segment_stations
 
     site = projected_site()
     probe = sim.build_probe(3)
@@ -59,7 +59,7 @@ def projected_survey():
 def projected_well(north):
     """(site, probe log, station dicts) of :func:`projected_survey`'s well processed along
     ``north`` (the pipeline's ``north`` setting); each dict with a ``stamp`` as a bag's has."""
-    from inclinometer_calib.pipeline import SurveyProcessor
+    from inclinometer_calib.correct.pipeline import SurveyProcessor
 
     site, log, stations, cal = projected_survey()
     proc = SurveyProcessor(calibration=cal, north=north)

@@ -14,10 +14,10 @@ import json
 import numpy as np
 import yaml
 
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.frames import Site
-from inclinometer_calib.probelog import ProbeLog, write_csv
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.coeffs import Calibration
+from inclinometer_calib.core.frames import Site
+from inclinometer_calib.io.probelog import ProbeLog, write_csv
 
 SITE = Site(total_field_nt=50500.0, dip_deg=45.1, declination_deg=0.0, gravity_mps2=9.7913)
 
@@ -81,7 +81,7 @@ def make(case: Case, out) -> dict:
 def stations_of_bag(path):
     """``/survey/station`` and ``/calibration/coefficients`` of a bag, read with rosbags (the run
     summary's reader, independent of our writer)."""
-    from inclinometer_calib.launcher import read_bag
+    from inclinometer_calib.apps.launcher import read_bag
 
     stations, coefficients = read_bag(path)[:2]
     return stations, coefficients
@@ -104,7 +104,7 @@ def stranger_truth():
     to the gravity vector ``g = -f``, ``g_out = K·E·g - B_f``: the same K and E, the bias negated.
     Its ``e`` keys ``ab`` are our ``e_ab`` (the coefficient of component a in sensor b's output).
     """
-    from inclinometer_calib.errormodel import TriadModel
+    from inclinometer_calib.core.errormodel import TriadModel
 
     t = json.loads((STRANGER_DIR / "truth.json").read_text())
 
@@ -122,7 +122,7 @@ def stranger_files(out, val_stations: int | None = None):
     """The stranger's logs as the tests use them: ``cal`` and ``val`` (the compressed originals),
     ``both`` (one CSV, validation after calibration; only its first ``val_stations`` stations if
     given), ``site`` (its site as our YAML)."""
-    from inclinometer_calib.probelog import label_runs, read_csv
+    from inclinometer_calib.io.probelog import label_runs, read_csv
 
     out.mkdir(parents=True, exist_ok=True)
     cal, _ = read_csv(STRANGER_DIR / "calibration.csv.gz")

@@ -22,10 +22,10 @@ import pytest
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
-from inclinometer_calib import cli
-from inclinometer_calib.deps import MissingDependency, require
-from inclinometer_calib.probelog import read_csv
-from inclinometer_calib.reprocess import write_probe_bag
+from inclinometer_calib.apps import cli
+from inclinometer_calib.core.deps import MissingDependency, require
+from inclinometer_calib.io.probelog import read_csv
+from inclinometer_calib.correct.reprocess import write_probe_bag
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = os.path.join(ROOT, "inclinometer_calib")
@@ -185,7 +185,7 @@ sys.meta_path.insert(0, NotInstalled())
 for name in [m for m in sys.modules if m.split(".")[0] in blocked]:
     del sys.modules[name]
 sys.argv = ["inclinometer-calib"] + sys.argv[2:]
-from inclinometer_calib.cli import main
+from inclinometer_calib.apps.cli import main
 
 sys.exit(main())
 """
@@ -311,10 +311,10 @@ def test_the_wheel_carries_the_message_definitions_and_reprocess_finds_them_wher
     probe = textwrap.dedent(f"""
         import sys
         sys.prefix = {str(prefix)!r}                 # as if the wheel were installed in this environment
-        import inclinometer_calib, inclinometer_calib.bag as bag
+        import inclinometer_calib, inclinometer_calib.io.bag as bag
         assert inclinometer_calib.__file__.startswith({str(site)!r}), inclinometer_calib.__file__
         bag._REPO_MSG_DIR = bag.Path("/nonexistent")   # this repository's msg/ out of reach
-        from inclinometer_calib.cli import main
+        from inclinometer_calib.apps.cli import main
         sys.exit(main(["reprocess", {str(logs / "val.mcap")!r}, "--coeffs", "none", "-o", "out.mcap"]))
     """)
     # -S: no .pth files, so not this environment's editable install of the source tree either

@@ -18,7 +18,7 @@ Lines that are not run, and why:
   metadata it reads is checked by test/test_extras.py.
 
 A launcher command (``inclinometer-calib-launch``) would run with discovery on this machine only
-and a ROS_DOMAIN_ID reserved for it (:mod:`inclinometer_calib.rosenv`); the README keeps the
+and a ROS_DOMAIN_ID reserved for it (:mod:`inclinometer_calib.apps.rosenv`); the README keeps the
 launcher in prose (its runs are in docs/nodes.md), so today none is run.
 
 A failing command fails the test with its README line, exit status and stderr; the remaining
@@ -31,7 +31,7 @@ import shutil
 import subprocess
 import time
 
-from inclinometer_calib import rosenv
+from inclinometer_calib.apps import rosenv
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 README = os.path.join(ROOT, "README.md")

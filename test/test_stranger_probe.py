@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import strangers as S
-from inclinometer_calib.cli import main
-from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.probelog import read_csv, segment_stations
-from inclinometer_calib.survey import evaluate, summarize
+from inclinometer_calib.apps.cli import main
+from inclinometer_calib.core.coeffs import Calibration
+from inclinometer_calib.io.probelog import read_csv, segment_stations
+from inclinometer_calib.core.survey import evaluate, summarize
 
 # one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
 # fixtures, which build the data every test reads, run once, not once per worker

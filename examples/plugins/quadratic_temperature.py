@@ -7,7 +7,7 @@ Not in the catalogue (whose ``temperature_bias`` is linear).  Use it with::
     inclinometer-calib lab diagnose --cal sim/cal.csv --val sim/val.csv \
         --plugin examples/plugins/quadratic_temperature.py
 """
-from inclinometer_calib.effects import T_REF_C, Effect, ParamSpec
+from inclinometer_calib.core.effects import T_REF_C, Effect, ParamSpec
 
 
 class QuadraticTemperatureBias(Effect):

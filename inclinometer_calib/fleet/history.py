@@ -29,8 +29,8 @@ from typing import List, Optional
 
 import numpy as np
 
-from ..coeffs import UNITS
-from ..errormodel import E_TERMS
+from ..core.coeffs import UNITS
+from ..core.errormodel import E_TERMS
 from .registry import HistoryEntry, ProbeInfo, aware
 
 #: Default threshold of :func:`analyse`, in combined 1σ.

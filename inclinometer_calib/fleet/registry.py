@@ -43,8 +43,8 @@ from sqlalchemy.engine import make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, IntegrityError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column
 
-from ..coeffs import Calibration, CoefficientError
-from ..output import OutputError, check_output, refused_write_words
+from ..core.coeffs import Calibration, CoefficientError
+from ..core.output import OutputError, check_output, refused_write_words
 
 #: Where the Alembic environment and versions of the registry's schema live (shipped with the package).
 MIGRATIONS_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "migrations")

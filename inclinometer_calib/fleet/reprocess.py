@@ -7,14 +7,14 @@ chosen from the measurement in ``docs/fleet.md``), run on a Dask cluster — a l
 the scheduler address given, unchanged. A task:
 
 1. hashes the bag (SHA-256 of its MCAP file) and reads the probe serial it records
-   (:func:`inclinometer_calib.reprocess.bag_probe_serial`) and its survey time (the log time of
+   (:func:`inclinometer_calib.correct.reprocess.bag_probe_serial`) and its survey time (the log time of
    its first message, UTC);
 2. looks up the calibration record valid for that probe at that time
    (:meth:`registry.Registry.valid_record`: never guessed; an unknown probe, no record before
    the survey, or an overdue one fails the bag with the registry's reason);
 3. if the bag is in the done-index with the same key — bag content, record id, the pipeline
    settings and this package's version — it is skipped;
-4. otherwise runs the one pipeline, :func:`inclinometer_calib.reprocess.reprocess` (no output
+4. otherwise runs the one pipeline, :func:`inclinometer_calib.correct.reprocess.reprocess` (no output
    bag), with the same defaults as the single-bag ``reprocess`` command (static detector from the
    data's noise, default QC tolerances, field monitor over 30 stations), so its stations are the
    single-bag command's exactly;
@@ -63,10 +63,10 @@ from dataclasses import asdict, dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence
 
 from .. import __version__
-from ..bag import BagError, open_bag
-from ..output import OutputError, atomic_write_text, check_output
-from ..progress import progress_bar
-from ..survey import Tolerances
+from ..io.bag import BagError, open_bag
+from ..core.output import OutputError, atomic_write_text, check_output
+from ..io.progress import progress_bar
+from ..core.survey import Tolerances
 from .manifest import BagEntry, dedupe, entries_from_paths
 
 #: Version of the dataset's layout and of the key: a change redoes every bag.
@@ -231,8 +231,8 @@ def station_schema():
     global _SCHEMA
     if _SCHEMA is None:
         import pyarrow as pa
-        from ..bag import MessageDefinitions
-        from ..topics import STATION_TYPE
+        from ..io.bag import MessageDefinitions
+        from ..io.topics import STATION_TYPE
 
         defs = MessageDefinitions()
         name = defs.register(STATION_TYPE)
@@ -361,7 +361,7 @@ def process_bag(entry: BagEntry, resolver: Resolver, out_dir: str, settings: Set
     (not a bag, damage, no serial, no valid record, no probe samples) come back as a ``failed``
     result with the reason; anything else is a bug and raises."""
     from ..lab.field import FieldMonitor
-    from ..reprocess import ReprocessError, bag_probe_serial, reprocess
+    from ..correct.reprocess import ReprocessError, bag_probe_serial, reprocess
 
     t0 = time.perf_counter()
     res = BagResult(bag=entry.path, status="failed")

@@ -20,9 +20,9 @@ import re
 
 import numpy as np
 
-from ..gates import SettlingTally, apply_gates
-from ..probelog import read_csv, report, segment_stations
-from ..station import Loss, Stations
+from ..detect.gates import SettlingTally, apply_gates
+from ..io.probelog import read_csv, report, segment_stations
+from ..core.station import Loss, Stations
 
 
 def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Stations:
@@ -120,7 +120,7 @@ def load_bag(path, warn=None):
     site invariants.  Time-dependent effects count from the stream's first sample.  Returns
     ``(stations, calibration)``.
     """
-    from ..reprocess import reprocess
+    from ..correct.reprocess import reprocess
 
     rep = reprocess(path, None, calibrate=True, copy_input=False)
     for w in rep.warnings():

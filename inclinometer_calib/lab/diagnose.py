@@ -35,13 +35,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import chdtrc
 
-from .. import effects as fx
-from ..station import Stations
-from .blas import one_thread
-from .fit import fit, physical_hints, residual_groups, residual_vector
-from .model import N_POSES, POSES_LABEL, LabModel
+from ..core import effects as fx
+from ..core.station import Stations
+from ..calibrate.blas import one_thread
+from ..calibrate.fit import fit, physical_hints, residual_groups, residual_vector
+from ..calibrate.labmodel import N_POSES, POSES_LABEL, LabModel
 from .noise import noise_json, noise_model, walk_axes
-from .wander import penalty_total
+from ..calibrate.wander import penalty_total
 from .stats import regress
 from .uncertainty import noise_floor, normalised_errors
 

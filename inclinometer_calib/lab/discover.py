@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import effects as fx
+from ..core import effects as fx
 
 #: Time constants (s) of the lagged temperatures tried.
 LAGS_S = (15.0, 30.0, 60.0, 120.0, 240.0, 480.0)
@@ -328,7 +328,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from inclinometer_calib import effects as fx
+from inclinometer_calib.core import effects as fx
 from inclinometer_calib.lab.discover import rate  # noqa: F401  (a feature may use it)
 
 FULL_SCALE = {full_scale!r}   # {unit_out}: the scale of the input² feature

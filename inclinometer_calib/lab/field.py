@@ -30,9 +30,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import effects as fx
-from ..frames import angles_from_vectors
-from ..survey import Tolerances
+from ..core import effects as fx
+from ..core.frames import angles_from_vectors, rotate
+from ..core.survey import Tolerances
 from .stats import regress
 
 #: The residual channels: (field of a SurveyStation, name in words, unit, tolerance attribute).
@@ -158,7 +158,7 @@ class FieldMonitor:
         (a Newton step of :meth:`model.ProbeModel.correct`, which is what the full correction
         would add up to for an effect this small)."""
         from .diagnose import candidate_effects
-        from .model import LabModel
+        from ..calibrate.labmodel import LabModel
 
         cal = self.calibration
         if cal is None or "history" in cal.needs:
@@ -191,7 +191,7 @@ class FieldMonitor:
                 v = np.zeros(term.n_params)
                 v[j] = typ[j]
                 term.set_vector(v)
-                dx = -fx.rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
+                dx = -rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
                 inv = _invariants(x["acc"] + dx, x["mag"]) if sensor == "acc" else _invariants(x["acc"], x["mag"] + dx)
                 for k, c in enumerate(CHANNELS):
                     cols[c[0]][:, j] = (inv[k] - base_inv[k]) / typ[j]

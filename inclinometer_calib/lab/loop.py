@@ -23,7 +23,7 @@ import copy
 import os
 from dataclasses import dataclass, field
 
-from .. import effects as fx
+from ..core import effects as fx
 
 
 @dataclass
@@ -41,11 +41,11 @@ class LoopResult:
 def run_loop(bag, live, out_dir, *, truth=None, warn=None, progress=None) -> LoopResult:
     """The loop of the module docstring on ``bag`` with the live record ``live``; writes
     ``out_dir/lab_model.yaml`` and ``out_dir/compare/``.  ``truth``: the simulator's true record."""
-    from .. import compare
+    from . import compare
     from .data import load_bag
     from .diagnose import HEADING, diagnose
-    from .fit import fit
-    from .model import LabModel
+    from ..calibrate.fit import fit
+    from ..calibrate.labmodel import LabModel
 
     res = LoopResult()
     data, _ = load_bag(bag, warn=warn)

@@ -28,8 +28,8 @@ BLIND = {
 
 
 def _stations(path, labels=True):
-    from ..gates import apply_gates
-    from ..probelog import read_csv, segment_stations
+    from ..detect.gates import apply_gates
+    from ..io.probelog import read_csv, segment_stations
 
     log, _ = read_csv(path)
     stations, _ = segment_stations(log, use_labels=labels)
@@ -40,7 +40,7 @@ def _stations(path, labels=True):
 
 def twelve_position_record(path, site):
     """The live node's twelve-position solve of a log (:class:`capture.CaptureSession`)."""
-    from ..capture import CaptureSession
+    from ..calibrate.capture import CaptureSession
 
     _, stations = _stations(path)
     session = CaptureSession(site=site)
@@ -54,8 +54,8 @@ def twelve_position_record(path, site):
 
 def turntable_record(path, site, acc_cal=None):
     """The turntable's record (:func:`turntable.record`) and result."""
-    from .. import turntable as tt
-    from ..probelog import read_csv
+    from ..calibrate import turntable as tt
+    from ..io.probelog import read_csv
 
     log, _ = read_csv(path)
     steps, _ = tt.steps_from_log(log, str(path))
@@ -66,8 +66,8 @@ def turntable_record(path, site, acc_cal=None):
 def lab_record(cal_path, turntable_path, site):
     """The lab's base model fitted on the twelve-pose log with the turntable's steps as free stations."""
     from .data import load_logs
-    from .fit import fit
-    from .model import LabModel
+    from ..calibrate.fit import fit
+    from ..calibrate.labmodel import LabModel
 
     data = load_logs(cal_path, free_paths=[turntable_path])
     model = LabModel.base(site)
@@ -79,8 +79,8 @@ def survey_errors(cal, val) -> dict:
     """Drift and azimuth RMS (deg) of ``cal`` on a validation log's stations with a reference
     (``val``: the log's path, or its stations from :func:`_stations` when several records are
     compared on it — read and segmented once)."""
-    from ..pipeline import correct_stations
-    from ..survey import evaluate, summarize
+    from ..core.station import correct_stations
+    from ..core.survey import evaluate, summarize
 
     stations = _stations(val)[1] if isinstance(val, (str, bytes, os.PathLike)) else val
     ref = np.array([s.ref for s in stations], float)
@@ -93,7 +93,7 @@ def linear_triad(cal, sensor: str):
     """``(A, bias)`` of a record's whole model of one triad at 25 °C and t = 0 — the base model and
     any linear effects (a misalignment) together: its outputs for zero and for full-scale inputs
     along each axis."""
-    from ..effects import FULL_SCALE
+    from ..core.effects import FULL_SCALE
 
     fs = FULL_SCALE[sensor]
     v = np.vstack([np.zeros(3), fs * np.eye(3)])
@@ -105,7 +105,7 @@ def parameter_errors(cal, truth) -> dict:
     """Each triad's whole matrix and bias against the truth (:func:`linear_triad`): largest entry
     error of the matrix (ppm of its diagonal), largest bias error, and the largest error of the
     magnetometer's misalignment angles α (deg)."""
-    from ..turntable import angles_from_matrix
+    from ..calibrate.turntable import angles_from_matrix
 
     out = {}
     for s in ("mag", "acc"):

@@ -18,8 +18,8 @@ import copy
 
 import numpy as np
 
-from ..allan import SensorNoise, sensor_noise
-from .wander import clear_paths
+from ..detect.allan import SensorNoise, sensor_noise
+from ..calibrate.wander import clear_paths
 
 #: Columns of a station's samples (time, gravity vector, field) per sensor.
 COLUMNS = {"acc": [0, 1, 2, 3], "mag": [0, 4, 5, 6]}
@@ -27,7 +27,7 @@ COLUMNS = {"acc": [0, 1, 2, 3], "mag": [0, 4, 5, 6]}
 
 def noise_model(model, data) -> dict:
     """``{"acc": SensorNoise, "mag": SensorNoise}`` of ``data`` (the lab's :class:`station.Stations`)
-    with the residuals of ``model`` (a :class:`lab.model.LabModel`) for the sequence."""
+    with the residuals of ``model`` (a :class:`calibrate.labmodel.LabModel`) for the sequence."""
     samples = holds(data)
     m = copy.deepcopy(model)
     clear_paths(m)

@@ -14,7 +14,7 @@ import io
 
 import numpy as np
 
-from ..deps import require
+from ..core.deps import require
 
 
 def figure_png(fig) -> str:
@@ -217,7 +217,7 @@ def noise_figure(noise: dict) -> str:
     """The pooled Allan deviation per axis of each sensor (log–log), with the fitted IEEE model."""
     from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
-    from ..allan import FLICKER
+    from ..detect.allan import FLICKER
 
     plt = pyplot()
     fig, axes = plt.subplots(1, len(noise), figsize=(5.5 * len(noise), 3.8))
@@ -407,7 +407,7 @@ def render(steps, data, uncorrected: dict, final_fit, title="inclinometer_calib 
         d = data.subset(has)
         parts.append("<h2>Before / after on the validation grid</h2><p>before: uncorrected sensors; after: the final "
                      f"model ({html.escape(final.base_val.get('label', ''))}).</p>")
-        from ..survey import evaluate
+        from ..core.survey import evaluate
         before = evaluate(d.g, d.b, final.model.site, ref=d.ref)
         parts.append(grid_tables_html(before, final.model.angle_errors(d), d.ref))
     if final_fit is not None:

@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import effects as fx
-from ..output import atomic_write_text, check_output
-from ..survey import evaluate, summarize
-from .model import LabModel
+from ..core import effects as fx
+from ..core.output import atomic_write_text, check_output
+from ..core.survey import evaluate, summarize
+from ..calibrate.labmodel import LabModel
 
 
 def effect(name: str, sensor: str | None = None, axes: str | None = None) -> fx.Effect:
@@ -37,7 +37,7 @@ def write_report(path, data, site, effects_text: str | None = None, max_steps: i
     ``methods``: rows of :func:`lab.methods.compare` (the seed methods side by side) for a section.
 
     Raises :class:`deps.MissingDependency` before any fitting if matplotlib is not installed."""
-    from ..deps import require
+    from ..core.deps import require
     from .diagnose import ladder
     from .report import render
 
@@ -58,7 +58,7 @@ def model_from_truth(truth: dict) -> LabModel:
 
     Gives the 'true-model' figures: the validation errors a perfect model reaches on the same data.
     """
-    from ..frames import Site
-    from ..simulate import SimulatedProbe
+    from ..core.frames import Site
+    from ..calibrate.simulate import SimulatedProbe
 
     return LabModel(site=Site(**truth["site"]), probe=SimulatedProbe.from_dict(truth["probe"]).model)

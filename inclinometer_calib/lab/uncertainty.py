@@ -22,8 +22,8 @@ import copy
 
 import numpy as np
 
-from ..frames import Site, wrap180
-from ..survey import compared_toolface_deg, evaluate
+from ..core.frames import Site, wrap180
+from ..core.survey import compared_toolface_deg, evaluate
 
 ANGLES = ("drift", "azimuth", "toolface")
 

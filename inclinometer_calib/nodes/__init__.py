@@ -9,4 +9,7 @@ Each module has a ``main()`` (``python -m inclinometer_calib.nodes.<name>``):
 * :mod:`.recorder` — records the graph into an MCAP (rosbag2) file.
 
 Shared helpers live in :mod:`.common`.  Nothing in the core imports this package.
+
+May import: every layer below (``core`` … ``fleet``) and rclpy and the messages; not ``apps``
+(the launcher starts the nodes, the nodes never import the launcher).
 """

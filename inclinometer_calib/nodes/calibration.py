@@ -48,13 +48,13 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from std_srvs.srv import Trigger
 
-from ..capture import CaptureSession
-from ..effects import parse_effects, split_model_options
-from ..engine import RecordOut, StreamEngine
-from ..frames import gravity_from_specific_force
-from ..plugins import NODE_PARAMETER, name_plugins
-from ..turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
-from ..twelve_position import POSES
+from ..calibrate.capture import CaptureSession
+from ..core.effects import parse_effects, split_model_options
+from ..correct.engine import RecordOut, StreamEngine
+from ..core.frames import gravity_from_specific_force
+from ..core.plugins import NODE_PARAMETER, name_plugins
+from ..calibrate.turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
+from ..calibrate.twelve_position import POSES
 from . import common as c
 from .stream import StreamDriver, declare_stream_params, make_detector
 from inclinometer_calib.msg import CalibrationCoefficients, CalibrationStatus
@@ -124,7 +124,7 @@ class CalibrationNode(Node):
         if self.method == "turntable":
             acc_cal = None
             if acc_record:
-                from ..coeffs import Calibration
+                from ..core.coeffs import Calibration
                 try:
                     acc_cal = Calibration.load(acc_record)
                 except (OSError, ValueError) as exc:

@@ -24,16 +24,16 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from ..cdr import stamp_parts
-from ..coeffs import Calibration, message_fields
-from ..frames import NT_PER_TESLA, Site
-from ..survey import Tolerances
+from ..io.cdr import stamp_parts
+from ..core.coeffs import Calibration, message_fields
+from ..core.frames import NT_PER_TESLA, Site
+from ..core.survey import Tolerances
 from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
 
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
 
-from ..topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_DIAGNOSTICS, TOPIC_IMU, TOPIC_PROGRESS,  # noqa: F401,E402,E501
+from ..io.topics import (TOPIC_CLOCK, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_DIAGNOSTICS, TOPIC_IMU, TOPIC_PROGRESS,  # noqa: F401,E402,E501
                       TOPIC_IMU_CORRECTED, TOPIC_MAG, TOPIC_MAG_CORRECTED, TOPIC_REFERENCE, TOPIC_SERIAL, TOPIC_STATION,
                       TOPIC_STATUS, TOPIC_TEMPERATURE)   # the graph's names, one place (re-exported)
 
@@ -186,7 +186,7 @@ def declare_site(params: Params, site: Site = Site(), prefix: str = "site", give
     measured = params.declare(f"{p}.measured", "", "Comma-separated site.* values that are measured (IFR) and win "
                               "over the model's, e.g. 'total_field_nt,dip_deg'", read_only=True)
     if math.isfinite(lat) or math.isfinite(lon):
-        from inclinometer_calib.geomag import site_from_config
+        from inclinometer_calib.core.geomag import site_from_config
 
         names = [x.strip() for x in measured.split(",") if x.strip()]
         values = s.to_dict()

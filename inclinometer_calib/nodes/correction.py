@@ -58,14 +58,14 @@ from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 
-from ..coeffs import Calibration, CoefficientError
-from ..engine import StationOut, StreamEngine
-from ..frames import gravity_from_specific_force, specific_force_from_gravity
-from ..geomag import NORTH_CHOICES, azimuth_reference
+from ..core.coeffs import Calibration, CoefficientError
+from ..correct.engine import StationOut, StreamEngine
+from ..core.frames import gravity_from_specific_force, specific_force_from_gravity
+from ..core.geomag import NORTH_CHOICES, azimuth_reference
 from ..lab.field import FieldMonitor
-from ..pipeline import NO_SITE, SurveyProcessor
-from ..plugins import NODE_PARAMETER, name_plugins
-from ..output import atomic_write_text
+from ..correct.pipeline import NO_SITE, SurveyProcessor
+from ..core.plugins import NODE_PARAMETER, name_plugins
+from ..core.output import atomic_write_text
 from . import common as c
 from .stream import StreamDriver, declare_stream_params, make_detector
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation

@@ -29,7 +29,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from foxglove.channels import FrameTransformsChannel, LogChannel, SceneUpdateChannel
 from rclpy.node import Node
 
-from .. import liveview as lv
+from ..io.topics import station_dict
+from ..rig import liveview as lv
 from . import common as c
 from inclinometer_calib.msg import CalibrationStatus, SurveyStation
 
@@ -102,7 +103,7 @@ class LiveNode(Node):
                                "Foxglove WebSocket; layout config/foxglove_layout.json)")
 
     def _on_station(self, msg):
-        s = lv.station_dict(msg)
+        s = station_dict(msg)
         self.view.add(s)
         self._last_stamp = t = s["stamp"]
         self.ch_station.log(lv.jsonable(s))

@@ -77,16 +77,16 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 
-from .. import cdr
-from .. import effects as fx
-from .. import simulate as sim
-from ..cdr import stamp_parts
-from ..coeffs import Calibration
-from ..noise import estimate_noise
-from ..output import atomic_write_text
-from ..probelog import MAG_UNITS, ProbeLog, label_runs, read_csv
-from ..streaming import depth_per_sample
-from ..topics import GRAPH_OUTPUTS, PROBE_TOPICS
+from ..io import cdr
+from ..core import effects as fx
+from ..calibrate import simulate as sim
+from ..io.cdr import stamp_parts
+from ..core.coeffs import Calibration
+from ..detect.noise import estimate_noise
+from ..core.output import atomic_write_text
+from ..io.probelog import MAG_UNITS, ProbeLog, label_runs, read_csv
+from ..detect.streaming import depth_per_sample
+from ..io.topics import GRAPH_OUTPUTS, PROBE_TOPICS
 from . import common as c
 from inclinometer_calib.msg import StreamProgress
 
@@ -414,7 +414,7 @@ class ProbeNode(Node):
         # generator then runs as in one whole simulation (:meth:`simulate.SessionPlan.chunks`).
         plans, pieces, t0, lead_in = [], [], 0.0, None
         if self.calibrate:
-            # The stand faces true north (the lab's convention for Table 1's poses, lab.model: a
+            # The stand faces true north (the lab's convention for Table 1's poses, calibrate.labmodel: a
             # surveyed reference line); a stand facing elsewhere is the lab's heading offset.
             stations = sim.twelve_pose_session(self.cal_temps, duration_s=self.station_s)
             plans.append(sim.SessionPlan(probe, self.site, stations, rng, rate_hz=self.rate_hz,
@@ -509,7 +509,7 @@ class ProbeNode(Node):
         another type, are skipped with a warning naming them; a message that does not decode is
         skipped with a warning naming topic and log time.
         """
-        from ..bag import BagError, open_bag
+        from ..io.bag import BagError, open_bag
 
         try:
             reader = open_bag(path)
@@ -534,7 +534,7 @@ class ProbeNode(Node):
                                     f"{path}: topic {m.topic} has type {m.type or '?'}, expected {want}: skipped")
                 skipped[m.topic] += 1
                 continue
-            # decoded where reprocess decodes the same bytes (inclinometer_calib.cdr)
+            # decoded where reprocess decodes the same bytes (inclinometer_calib.io.cdr)
             try:
                 if m.topic == c.TOPIC_DEPTH:
                     depth.append((m.publish_time, cdr.decode_float64(m.data)))   # the send order (as reprocess)

@@ -9,7 +9,7 @@ that passes ``topics`` / ``exclude`` and has at least one publisher is subscribe
 ``ros2 bag record`` does: reliable only if every publisher is reliable, transient-local only if
 every publisher is (so latched messages such as calibration coefficients published before the
 recorder started are still delivered). The callback hands the bytes straight to
-:class:`inclinometer_calib.bag.BagWriter` (log time = the wall-clock receive time, publish time =
+:class:`inclinometer_calib.io.bag.BagWriter` (log time = the wall-clock receive time, publish time =
 the publisher's source timestamp); as a process, the node serves these subscriptions on a wait set
 of their own (:class:`.executor.HotPathExecutor`: every message waiting is written per wake-up).
 Log times stay wall-clock time even when the graph runs on the
@@ -22,7 +22,7 @@ recorded topics are listed with their message counts.
 
 SIGINT/SIGTERM finalize the file (summary, statistics, ``rosbag2`` metadata; ``metadata.yaml``
 for a directory output). A crash or SIGKILL leaves a file whose complete chunks are readable
-(``inclinometer_calib.bag.open_bag`` / ``recover``); chunks are closed at least every
+(``inclinometer_calib.io.bag.open_bag`` / ``recover``); chunks are closed at least every
 ``max_chunk_s`` seconds, so at most that much data is lost. An existing output is never
 overwritten: the node refuses to start (exit status 1).
 
@@ -63,10 +63,10 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from ..bag import (BagError, BagWriter, UnknownTypeError, normalize_type, open_bag, run_parts,
+from ..io.bag import (BagError, BagWriter, UnknownTypeError, normalize_type, open_bag, run_parts,
                    type_hash)
-from ..output import refused_write_words
-from ..topics import (TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE,
+from ..core.output import refused_write_words
+from ..io.topics import (TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE,
                       TOPIC_STATION, TOPIC_TEMPERATURE)
 from .executor import HotPathExecutor, spin
 
@@ -561,7 +561,7 @@ class Recorder(Node):
                     f"{len(counts)} topic(s)\n" + "\n".join(lines))
         else:
             said = [f"{b.path} " + ("NOT finalized (a write was refused): " + self._holds(b) + ", its complete "
-                                    "chunks readable (inclinometer_calib.bag.open_bag / recover)"
+                                    "chunks readable (inclinometer_calib.io.bag.open_bag / recover)"
                                     if b.error is not None else
                                     f"finalized: {sum(b.committed_counts().values())} messages") for b in self.parts]
             text = (f"bag parts ({len(self.parts)}): " + ("; ".join(said) or f"none: {self.output} never created")

@@ -31,13 +31,13 @@ from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import Imu, MagneticField, Temperature
 from std_msgs.msg import Float64, String
 
-from .. import cdr
-from ..engine import Expect, Say, StreamEngine
-from ..frames import NT_PER_TESLA
-from ..gates import GateLimits
-from ..streaming import StaticDetector
+from ..io import cdr
+from ..correct.engine import Expect, Say, StreamEngine
+from ..core.frames import NT_PER_TESLA
+from ..detect.gates import GateLimits
+from ..detect.streaming import StaticDetector
 from . import common as c
-from ..topics import PROGRESS_TYPE, STATION_TYPE
+from ..io.topics import PROGRESS_TYPE, STATION_TYPE
 from inclinometer_calib.msg import StreamProgress
 
 #: The progress goes out at least this often while something changed (wall time, s).
@@ -143,7 +143,7 @@ class StreamDriver:
         self.pub_progress = node.create_publisher(StreamProgress, c.TOPIC_PROGRESS, c.latched_qos(depth=1))
         self.msg = StreamProgress()
         self.msg.node = node.get_name()
-        # the samples are taken raw and decoded where reprocess decodes a bag's (inclinometer_calib.cdr):
+        # the samples are taken raw and decoded where reprocess decodes a bag's (inclinometer_calib.io.cdr):
         # the same numbers by the same code, without building a Python message of each (19 µs a message)
         self.hot_subscriptions = [
             node.create_subscription(Imu, c.TOPIC_IMU, self._on_imu, qos, raw=True),
@@ -284,8 +284,8 @@ class StreamDriver:
         the engine too (the correction node).  Returns False when there is nothing to resume from."""
         from types import SimpleNamespace
 
-        from ..bag import BagError, open_bag
-        from ..reprocess import BagFeeder
+        from ..io.bag import BagError, open_bag
+        from ..correct.reprocess import BagFeeder
 
         paths = [p for p in paths if os.path.exists(p)]
         if not paths:

@@ -122,10 +122,10 @@ def _calibrate(probe, serial, seed):
     node solves it (detector + capture session); the record carries the fit's 1σ."""
     import numpy as np
 
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.capture import CaptureSession
-    from inclinometer_calib.frames import Site
-    from inclinometer_calib.streaming import StaticDetector
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.calibrate.capture import CaptureSession
+    from inclinometer_calib.core.frames import Site
+    from inclinometer_calib.detect.streaming import StaticDetector
 
     log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0), np.random.default_rng(seed))
     session = CaptureSession(site=Site(), probe_id=serial)

@@ -7,8 +7,8 @@ import traceback
 
 import pytest
 
-from inclinometer_calib import cli
-from inclinometer_calib import simulate as sim
+from inclinometer_calib.apps import cli
+from inclinometer_calib.calibrate import simulate as sim
 from inclinometer_calib.fleet.registry import Registry
 
 from test_history import JUMP_NT, with_mag_bias_jump

@@ -8,11 +8,11 @@ import re
 
 import pytest
 
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.errormodel import TriadModel
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.errormodel import TriadModel
 from inclinometer_calib.fleet import history as hi
 from inclinometer_calib.fleet.registry import Registry
-from inclinometer_calib.model import ProbeModel
+from inclinometer_calib.core.model import ProbeModel
 
 UTC = dt.timezone.utc
 T0 = dt.datetime(2026, 1, 10, tzinfo=UTC)

@@ -6,7 +6,7 @@ import datetime as dt
 import pytest
 import sqlalchemy as sa
 
-from inclinometer_calib import simulate as sim
+from inclinometer_calib.calibrate import simulate as sim
 from inclinometer_calib.fleet import registry as rg
 from inclinometer_calib.fleet.registry import Registry, RegistryError
 
@@ -107,7 +107,7 @@ def test_adding_the_same_record_is_idempotent_and_conflicts_are_refused(reg, cal
 
 
 def _cal_of(probe, serial):
-    from inclinometer_calib.coeffs import Calibration
+    from inclinometer_calib.core.coeffs import Calibration
     return Calibration(acc=probe.acc, mag=probe.mag, probe_id=serial, method="simulator truth")
 
 

@@ -18,16 +18,16 @@ import numpy as np
 import pyarrow.compute as pc
 import pytest
 
-from inclinometer_calib import cli
-from inclinometer_calib import simulate as sim
+from inclinometer_calib.apps import cli
+from inclinometer_calib.calibrate import simulate as sim
 from inclinometer_calib.fleet.manifest import ManifestError, read_manifest
 from inclinometer_calib.fleet.registry import Registry
 from inclinometer_calib.fleet.reprocess import (DATASET_DIR, INDEX_FILE, LOST_REASON, RUNNING_DIR, _running_note,
                                                 local_cluster, lost_attempts, read_stations, reprocess_fleet,
                                                 write_fragment)
-from inclinometer_calib.frames import Site
-from inclinometer_calib.launcher import read_bag
-from inclinometer_calib.reprocess import reprocess, write_probe_bag
+from inclinometer_calib.core.frames import Site
+from inclinometer_calib.apps.launcher import read_bag
+from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
 
 # one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
 # fixtures, which build the data every test reads, run once, not once per worker
@@ -286,7 +286,7 @@ def test_cli_on_a_separately_started_scheduler_and_worker(fleet, tmp_path):
         man.write_text("\n".join(fleet["good"][:3] + [p for p, why in fleet["bad"].items() if "damaged" in why]) + "\n")
         out = tmp_path / "out"
         t = time.monotonic()
-        res = subprocess.run([sys.executable, "-m", "inclinometer_calib.cli", "fleet", "reprocess", "--manifest",
+        res = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.cli", "fleet", "reprocess", "--manifest",
                               str(man), "--scheduler", addr, "--db", fleet["db"], "-o", str(out), "--no-progress"],
                              capture_output=True, text=True, timeout=120)
         assert res.returncode == 1, res.stderr         # one bag failed, the others were done

@@ -5,8 +5,8 @@ import json
 
 import pytest
 
-from inclinometer_calib.cli import main
-from inclinometer_calib.frames import Site
+from inclinometer_calib.apps.cli import main
+from inclinometer_calib.core.frames import Site
 from inclinometer_calib.lab import load_logs
 
 

@@ -1,7 +1,7 @@
 """`inclinometer-calib lab fit|diagnose|report` on data with a hidden effect."""
 import json
 
-from inclinometer_calib.cli import main
+from inclinometer_calib.apps.cli import main
 
 
 def _run(capsys, argv):

@@ -103,8 +103,8 @@ def test_declination_missing_from_the_site_is_found_as_a_heading_offset(tmp_path
     import contextlib
     import io
 
-    from inclinometer_calib.cli import main
-    from inclinometer_calib.frames import Site
+    from inclinometer_calib.apps.cli import main
+    from inclinometer_calib.core.frames import Site
 
     with contextlib.redirect_stdout(io.StringIO()):
         assert main(["simulate", "--out", str(tmp_path), "--seed", "44", "--declination", "2"]) == 0

@@ -5,11 +5,11 @@ import io
 import numpy as np
 import pytest
 
-from inclinometer_calib.cli import main
-from inclinometer_calib.coeffs import Calibration
+from inclinometer_calib.apps.cli import main
+from inclinometer_calib.core.coeffs import Calibration
 from inclinometer_calib.lab.field import FieldMonitor, headline
-from inclinometer_calib.pipeline import SurveyProcessor
-from inclinometer_calib.probelog import read_csv, segment_stations
+from inclinometer_calib.correct.pipeline import SurveyProcessor
+from inclinometer_calib.io.probelog import read_csv, segment_stations
 
 
 def _survey(tmp_path, effects=(), val_temp="25:60:40"):

@@ -8,11 +8,11 @@ import pytest
 import yaml
 
 from inclinometer_calib import lab
-from inclinometer_calib.cli import main
-from inclinometer_calib.frames import Site
+from inclinometer_calib.apps.cli import main
+from inclinometer_calib.core.frames import Site
 from inclinometer_calib.lab.diagnose import field_fit, validation
 from inclinometer_calib.lab.uncertainty import normalised_errors
-from inclinometer_calib.survey import evaluate, summarize
+from inclinometer_calib.core.survey import evaluate, summarize
 
 import independent as ind
 import report_layout
@@ -154,7 +154,7 @@ def test_a_wandering_accelerometer_bias_is_found_in_two_rounds_and_smoothed_to_t
     # along gravity, the dip the rest, through the field's noise), so no model reaches the errors
     # left once the generator's own path is taken off (the true path is not in the data); the level
     # the true model reaches from these data is that of the smoother with the true density.
-    from inclinometer_calib import effects as fx
+    from inclinometer_calib.core import effects as fx
 
     const = lambda t: np.full_like(t, 25.0)            # noqa: E731
     gen, data, site = _session(tmp_path, 11, const, const, acc={"walk": 2e-4})
@@ -429,10 +429,10 @@ def test_a_sensor_that_feels_the_temperature_late_is_said_to_lag_the_thermometer
     assert main(["lab", "fit", "--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site",
                  str(tmp_path / "site.yaml"), "--effects", "temperature_bias:mag:z,thermal_lag:mag", "--fit-on", "cal",
                  "-o", str(rec), "--quiet"]) == 0
-    from inclinometer_calib.cli import correct_log
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.launcher import read_bag
-    from inclinometer_calib.survey import Tolerances
+    from inclinometer_calib.apps.cli import correct_log
+    from inclinometer_calib.core.coeffs import Calibration
+    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.core.survey import Tolerances
     cal = Calibration.load(rec)
     _, res, summary = correct_log(tmp_path / "val.csv", cal, cal.site, Tolerances(), quiet=True)
     assert summary["azimuth_rms_deg"] <= 1.25 * true["azimuth_rms_deg"], (summary["azimuth_rms_deg"], true)
@@ -536,7 +536,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from inclinometer_calib import effects as fx
+from inclinometer_calib.core import effects as fx
 
 
 @dataclass
@@ -563,7 +563,7 @@ def test_a_plugin_that_depends_on_the_previous_hold_is_found_and_fitted(tmp_path
     try:
         _remanence_is_found(tmp_path)
     finally:
-        from inclinometer_calib import effects as fx
+        from inclinometer_calib.core import effects as fx
         fx.CATALOGUE.pop("remanence", None)    # the registry is global: leave the other tests the catalogue
 
 
@@ -583,7 +583,7 @@ def _remanence_is_found(tmp_path):
     v = _cal_only(model, data)
     assert v["azimuth_rms_deg"] <= 1.2 * true["azimuth_rms_deg"]
     # a model that needs the history cannot be applied without one
-    from inclinometer_calib.model import ModelContextError
+    from inclinometer_calib.core.model import ModelContextError
     with pytest.raises(ModelContextError, match="history"):
         model.probe.correct(data.g[:2], data.b[:2], data.temp_c[:2], data.time_s[:2])
     # cross-validation folds are blocks of consecutive stations: a held-out station's neighbours go with it
@@ -636,10 +636,10 @@ def test_a_magnetometer_that_settles_after_each_move_is_trimmed_named_and_fitted
     assert main(["lab", "fit", "--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site",
                  str(tmp_path / "site.yaml"), "--effects", top.label, "--fit-on", "cal", "-o", str(rec),
                  "--quiet"]) == 0
-    from inclinometer_calib.cli import correct_log
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.launcher import read_bag
-    from inclinometer_calib.survey import Tolerances
+    from inclinometer_calib.apps.cli import correct_log
+    from inclinometer_calib.core.coeffs import Calibration
+    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.core.survey import Tolerances
     cal = Calibration.load(rec)
     stations, res, summary = correct_log(tmp_path / "val.csv", cal, cal.site, Tolerances(), quiet=True)
     plain, _, before = correct_log(tmp_path / "val.csv", Calibration.load(tmp_path / "tp.yaml"), cal.site, Tolerances(),
@@ -661,7 +661,7 @@ def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits
     diagnose --plugin-out` writes the formula as a plug-in module (whole, never over a file), which
     the user names to `lab fit --plugin` and fits; with nothing outside, no file and the reason."""
     pytest.importorskip("sklearn", reason="the lab's discovery needs scikit-learn (requirements/core.txt)")
-    from inclinometer_calib import effects as fx
+    from inclinometer_calib.core import effects as fx
 
     gen, data, site = _session(tmp_path, 4, _ramp, _hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
     logs = ["--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site", str(tmp_path / "site.yaml")]
@@ -687,7 +687,7 @@ def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits
     # nothing outside the catalogue: no file, and why (the writer on a diagnosis that found nothing)
     from types import SimpleNamespace
 
-    from inclinometer_calib.cli import _write_plugin
+    from inclinometer_calib.apps.cli import _write_plugin
     again = tmp_path / "none.py"
     _write_plugin(str(again), SimpleNamespace(discovered=[]), "")
     assert not again.exists() and "nothing outside the catalogue was found" in capsys.readouterr().err

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from inclinometer_calib.station import Station, Stations
+from inclinometer_calib.core.station import Station, Stations
 from inclinometer_calib import lab
 from inclinometer_calib.lab.spec import build_model
 
@@ -74,8 +74,8 @@ def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(
     """A hand-turned log: labels dropped, static intervals found by the detector."""
     import numpy as np
 
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.probelog import write_csv
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.io.probelog import write_csv
 
     data, truth, site = sim_factory(21)
     probe = sim.build_probe(21)
@@ -94,11 +94,11 @@ def test_free_log_without_labels_is_segmented_and_fitted_through_the_invariants(
 
 def test_the_per_triad_cache_gives_the_residuals_of_a_full_evaluation_bit_for_bit(sim_factory):
     """A finite-difference step in one triad's parameter takes the other triad's outputs from the
-    cache (lab.fit.ResidualCache): every residual must be the bits of a full evaluation, for steps
+    cache (calibrate.fit.ResidualCache): every residual must be the bits of a full evaluation, for steps
     in acc, mag and shared parameters, on oriented and free stations, before and after a step."""
     import copy
 
-    from inclinometer_calib.lab.fit import ResidualCache, residual_vector
+    from inclinometer_calib.calibrate.fit import ResidualCache, residual_vector
 
     data, _, site = sim_factory(22, ["axial_interference=300"])
     data = copy.deepcopy(data)
@@ -122,16 +122,16 @@ def test_the_per_triad_cache_gives_the_residuals_of_a_full_evaluation_bit_for_bi
 
 
 def test_a_candidates_first_jacobian_takes_the_base_fits_columns_where_the_effect_starts_absent(sim_factory):
-    """lab.fit.JacobianHint: from the base model's solution, a candidate effect at its start values
+    """calibrate.fit.JacobianHint: from the base model's solution, a candidate effect at its start values
     leaves the residuals as they were, so the base fit's derivatives are the candidate's for the
     parameters they share — equal to the evaluated columns (to the finite difference's resolution;
     the base fit's last Jacobian may be one step behind its solution) and only the new columns are
     evaluated; a candidate that does not start absent takes none."""
     import copy
 
-    fitmod = __import__("sys").modules["inclinometer_calib.lab.fit"]
+    from inclinometer_calib.calibrate import fit as fitmod
+    from inclinometer_calib.calibrate.fit import ResidualCache, forward_jacobian, residual_vector
     from inclinometer_calib.lab.diagnose import fit_data
-    from inclinometer_calib.lab.fit import ResidualCache, forward_jacobian, residual_vector
 
     data, _, site = sim_factory(22, ["axial_interference=300"])
     fd = fit_data(data)

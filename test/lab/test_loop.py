@@ -4,8 +4,8 @@ import numpy as np
 import yaml
 
 import independent as ind
-from inclinometer_calib.cli import main
-from inclinometer_calib.coeffs import Calibration
+from inclinometer_calib.apps.cli import main
+from inclinometer_calib.core.coeffs import Calibration
 from inclinometer_calib.lab.loop import run_loop
 
 OFF = {3: (0.25, -0.10, 0.20), 7: (0.0, 0.30, -0.15)}

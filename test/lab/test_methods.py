@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import report_layout
 
-from inclinometer_calib import effects as fx
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.coeffs import Calibration
-from inclinometer_calib.frames import Site
+from inclinometer_calib.core import effects as fx
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.coeffs import Calibration
+from inclinometer_calib.core.frames import Site
 from inclinometer_calib.lab.methods import BLIND, compare
-from inclinometer_calib.probelog import write_csv
+from inclinometer_calib.io.probelog import write_csv
 
 SITE = Site()
 
@@ -75,7 +75,7 @@ def scenario_dir(name, **kw):
 
 def test_the_lab_report_shows_the_comparison(tmp_path):
     pytest.importorskip("matplotlib")
-    from inclinometer_calib.cli import main
+    from inclinometer_calib.apps.cli import main
 
     out = tmp_path / "sim"
     assert main(["simulate", "--out", str(out), "--seed", "4", "--effect", "misalignment:mag=0.004,-0.003,0.005",

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from inclinometer_calib import lab
-from inclinometer_calib.frames import Site
+from inclinometer_calib.core.frames import Site
 from inclinometer_calib.lab.noise import holds, noise_model
 
 import independent as ind
@@ -52,7 +52,7 @@ def test_abutting_logs_at_different_attitudes_are_not_one_hold(tmp_path):
 
 
 def test_the_cli_prints_the_ieee_figures_of_static_logs_and_names_a_missing_file(tmp_path, capsys):
-    from inclinometer_calib.cli import main
+    from inclinometer_calib.apps.cli import main
 
     probe = ind.random_probe(23)
     gen = ind.Generator(probe, seed=23)

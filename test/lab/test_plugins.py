@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import yaml
 
-from inclinometer_calib import effects as fx
+from inclinometer_calib.core import effects as fx
 from inclinometer_calib import lab
-from inclinometer_calib import simulate as sim
-from inclinometer_calib.coeffs import Calibration, CoefficientError
+from inclinometer_calib.calibrate import simulate as sim
+from inclinometer_calib.core.coeffs import Calibration, CoefficientError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 EXAMPLE = os.path.join(ROOT, "examples", "plugins", "quadratic_temperature.py")
@@ -43,7 +43,7 @@ def test_a_plugin_that_fails_to_import_names_the_error(tmp_path):
 
 def test_a_plugin_may_not_take_a_catalogue_name(tmp_path):
     p = tmp_path / "clash.py"
-    p.write_text("from inclinometer_calib.effects import Effect\n"
+    p.write_text("from inclinometer_calib.core.effects import Effect\n"
                  "class Bias2(Effect):\n    name = 'bias'\n    stage = 'output'\n")
     with pytest.raises(lab.PluginError, match="already taken"):
         lab.load_plugin(p)
@@ -55,7 +55,7 @@ MARKED = '''import pathlib
 
 pathlib.Path(__file__).with_name("executed.marker").write_text("this plug-in ran")
 
-from inclinometer_calib.effects import T_REF_C, Effect, ParamSpec
+from inclinometer_calib.core.effects import T_REF_C, Effect, ParamSpec
 
 
 class MarkedCubeBias(Effect):
@@ -73,7 +73,7 @@ class MarkedCubeBias(Effect):
 @pytest.fixture
 def fresh(monkeypatch):
     """This test's own registry of named plug-ins; its effects leave the catalogue afterwards."""
-    from inclinometer_calib import plugins
+    from inclinometer_calib.core import plugins
 
     monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
     before = set(fx.CATALOGUE)
@@ -84,7 +84,7 @@ def fresh(monkeypatch):
 
 def _forget(path, name):
     """As in a new process: the effect not registered, its module not imported, nothing named."""
-    from inclinometer_calib import plugins
+    from inclinometer_calib.core import plugins
 
     fx.CATALOGUE.pop(name, None)
     for m in [m for m, mod in list(sys.modules.items()) if getattr(mod, "__file__", None) == str(path)]:

@@ -12,7 +12,7 @@ _ros = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_ros)
 
 ros_env = _ros.ros_env  # re-exported fixture (function scope)
-from inclinometer_calib.rosenv import isolated_env, reserve_domain_id  # noqa: E402  (path set by _ros)
+from inclinometer_calib.apps.rosenv import isolated_env, reserve_domain_id  # noqa: E402  (path set by _ros)
 
 @pytest.fixture(scope="module")
 def domain_env():

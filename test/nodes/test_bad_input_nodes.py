@@ -24,15 +24,15 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.serialization import serialize_message  # noqa: E402
 from sensor_msgs.msg import Imu, MagneticField, Temperature  # noqa: E402
 
-from inclinometer_calib.station import Station
-from inclinometer_calib import bag  # noqa: E402
-from inclinometer_calib import simulate as sim  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.frames import Site  # noqa: E402
+from inclinometer_calib.core.station import Station
+from inclinometer_calib.io import bag  # noqa: E402
+from inclinometer_calib.calibrate import simulate as sim  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.core.frames import Site  # noqa: E402
 from inclinometer_calib.nodes import common as c  # noqa: E402
 from inclinometer_calib.nodes.calibration import CalibrationNode  # noqa: E402
 from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
-from inclinometer_calib.probelog import write_csv  # noqa: E402
+from inclinometer_calib.io.probelog import write_csv  # noqa: E402
 
 SITE = Site()
 SEED = 5
@@ -235,7 +235,7 @@ MARKED_PLUGIN = """import pathlib
 
 pathlib.Path(__file__).with_name("executed.marker").write_text("this plug-in ran")
 
-from inclinometer_calib.effects import T_REF_C, Effect, ParamSpec
+from inclinometer_calib.core.effects import T_REF_C, Effect, ParamSpec
 
 
 class NodeCubeBias(Effect):
@@ -252,8 +252,8 @@ class NodeCubeBias(Effect):
 def plugin_record(coeffs_file, tmp_path, monkeypatch):
     """(record file, its Calibration, plug-in file): the test probe's record plus a plug-in effect;
     then, as in a new process, nothing registered, imported or named, no marker."""
-    from inclinometer_calib import effects as fx
-    from inclinometer_calib import plugins
+    from inclinometer_calib.core import effects as fx
+    from inclinometer_calib.core import plugins
 
     monkeypatch.setattr(plugins, "_NAMED", {}, raising=False)
     plug = tmp_path / "cube.py"

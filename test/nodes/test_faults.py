@@ -25,7 +25,7 @@ import pytest
 
 rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
-from inclinometer_calib.station import Station
+from inclinometer_calib.core.station import Station
 
 
 def _node(name, env, log_path, *params):
@@ -72,8 +72,8 @@ class _Collect:
 def _survey_log(n_stations, seed=3):
     import numpy as np
 
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.frames import Site
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.frames import Site
 
     refs = [(20.0 + 10.0 * k, 40.0 * k, 0.0) for k in range(n_stations)]
     stations = [Station.planned(sim.orientation_matrix(*r), 2.0, ref=r) for r in refs]
@@ -101,9 +101,9 @@ def _feed(node, log):
 
 @pytest.fixture
 def truth_record(tmp_path):
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.frames import Site
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.coeffs import Calibration
+    from inclinometer_calib.core.frames import Site
 
     probe = sim.build_probe(3)
     cal = Calibration(acc=probe.acc, mag=probe.mag, probe_id="fallback", site=Site())
@@ -126,9 +126,9 @@ def test_correction_node_started_after_the_calibration_node_is_gone_applies_the_
 
 
 def test_a_different_record_on_the_topic_replaces_the_fallback_one(ros, truth_record, capfd):
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.coeffs import Calibration
-    from inclinometer_calib.frames import Site
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.coeffs import Calibration
+    from inclinometer_calib.core.frames import Site
     from inclinometer_calib.msg import CalibrationCoefficients
     from inclinometer_calib.nodes import common as c
 
@@ -189,7 +189,7 @@ class Launch:
     """A launcher running in the background; its output lines collected as they come."""
 
     def __init__(self, env, *args):
-        self.proc = subprocess.Popen([sys.executable, "-m", "inclinometer_calib.launcher", *map(str, args)],
+        self.proc = subprocess.Popen([sys.executable, "-m", "inclinometer_calib.apps.launcher", *map(str, args)],
                                      env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines = []
         self._th = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
@@ -223,7 +223,7 @@ class Launch:
 
 def _free_env():
     """An isolated environment with no ROS_DOMAIN_ID: the launcher must reserve one itself."""
-    from inclinometer_calib.rosenv import RESERVED_BY_PARENT, isolated_env
+    from inclinometer_calib.apps.rosenv import RESERVED_BY_PARENT, isolated_env
 
     env = isolated_env(0)
     for key in ("ROS_DOMAIN_ID", RESERVED_BY_PARENT):
@@ -241,10 +241,10 @@ def _sim_bag(path):
     """A simulated calibration and a 24-station well path as a recorded bag (ROS-free)."""
     import numpy as np
 
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.frames import Site
-    from inclinometer_calib.probelog import ProbeLog
-    from inclinometer_calib.reprocess import write_probe_bag
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.frames import Site
+    from inclinometer_calib.io.probelog import ProbeLog
+    from inclinometer_calib.correct.reprocess import write_probe_bag
 
     site = Site(total_field_nt=50500.0, dip_deg=62.0, declination_deg=1.5)
     probe = sim.build_probe(11)
@@ -280,7 +280,7 @@ def fault_runs(tmp_path_factory):
                "--param", "probe:calibration_session:=false", *common)
     try:
         a_domain = int(a.wait_for(r"^\[launch\] ROS_DOMAIN_ID=(\d+)", 30).group(1))
-        refused = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", root / "c",
+        refused = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", root / "c",
                                   "--domain-id", str(a_domain)], env=env, capture_output=True, text=True,
                                  timeout=60)
         pids = {n: int(a.wait_for(rf"^\[launch\] starting {n} \(pid (\d+)\)", 30).group(1))
@@ -330,10 +330,10 @@ def test_killed_recorder_correction_and_calibration_are_restarted_and_nothing_is
 
 
 def test_the_stations_of_a_run_whose_nodes_were_killed_are_reprocess_s_bit_for_bit(fault_runs, tmp_path):
-    from inclinometer_calib.accounting import unique_stations
-    from inclinometer_calib.launcher import read_bag, readable_parts
+    from inclinometer_calib.io.accounting import unique_stations
+    from inclinometer_calib.apps.launcher import read_bag, readable_parts
     from inclinometer_calib.lab.field import FieldMonitor
-    from inclinometer_calib.reprocess import reprocess
+    from inclinometer_calib.correct.reprocess import reprocess
 
     out = fault_runs["root"] / "a"
     live = []
@@ -378,7 +378,7 @@ def test_a_damaged_input_bag_ends_the_launcher_with_status_1(ros_env, tmp_path):
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu, MagneticField
 
-    from inclinometer_calib import bag
+    from inclinometer_calib.io import bag
     from inclinometer_calib.nodes import common as c
 
     src = tmp_path / "rec.mcap"
@@ -397,7 +397,7 @@ def test_a_damaged_input_bag_ends_the_launcher_with_status_1(ros_env, tmp_path):
     w.close()
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(src.read_bytes()[:int(src.stat().st_size * 0.6)])
-    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", tmp_path / "run",
+    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", tmp_path / "run",
                            "--source", "mcap", "--input", cut, "--no-calibration", "--no-recorder",
                            "--speed", "20", "--drain", "0.5", "--timeout", "60"],
                           env=ros_env, capture_output=True, text=True, timeout=90)

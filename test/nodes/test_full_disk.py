@@ -33,7 +33,7 @@ except Exception as exc:  # ImportError or missing shared libraries
     pytest.skip(f"rclpy not importable ({exc!r}): run scripts/setup.sh and source scripts/env.sh",
                 allow_module_level=True)
 
-from inclinometer_calib import bag  # noqa: E402
+from inclinometer_calib.io import bag  # noqa: E402
 
 HOLD_S = 240  # longest life of a mount namespace (the holder's sleep), s
 
@@ -265,7 +265,7 @@ def test_launcher_on_a_disk_that_fills_ends_with_words_not_a_traceback(small_dis
     disk = small_disk("300k")   # a short simulated run records ~650 kB: full about half-way
     out = disk.mnt / "run"
     t0 = time.monotonic()
-    proc = disk.popen([sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--stations", "3",
+    proc = disk.popen([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--stations", "3",
                        "--speed", "8", "--no-loop", "--drain", "1.5", "--timeout", "60"],
                       env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stdout = ""
@@ -316,7 +316,7 @@ def test_launcher_does_not_restart_a_recorder_that_dies_on_a_full_disk(small_dis
     env, _domain = domain_env
     disk = small_disk("300k")
     out = disk.mnt / "run"
-    proc = disk.popen([sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--stations", "3",
+    proc = disk.popen([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--stations", "3",
                        "--speed", "8", "--no-loop", "--drain", "1.5", "--timeout", "60"],
                       env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines, pid = [], None

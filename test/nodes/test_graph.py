@@ -1,7 +1,7 @@
 """The ROS graph as a graph: nodes as separate processes over real DDS (own ROS_DOMAIN_ID,
 discovery on localhost only), started by the launcher; results checked from the recorded MCAP
 with an independent reader (``mcap_ros2``; the launcher's summary uses ``rosbags``, the recorder
-writes with ``inclinometer_calib.bag``).
+writes with ``inclinometer_calib.io.bag``).
 
 1. the demo's scenario: a simulated twelve-pose calibration + well-path survey at 4x speed, the
    probe's magnetometer bias drifting with temperature: coefficients against the simulator truth,
@@ -28,10 +28,10 @@ import pytest
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 pytest.importorskip("mcap_ros2")
 
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 import report_layout  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
-from inclinometer_calib.frames import wrap180  # noqa: E402
+from inclinometer_calib.core.frames import wrap180  # noqa: E402
 
 N_STATIONS = 12
 SPEED = 4.0
@@ -65,7 +65,7 @@ def stamp(msg):
 
 
 def launch(args, env, timeout):
-    cmd = [sys.executable, "-m", "inclinometer_calib.launcher", *args]
+    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", *args]
     t0 = time.monotonic()
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
     return proc, time.monotonic() - t0
@@ -120,8 +120,8 @@ def test_the_live_witsml_trajectory_is_the_export_of_the_recorded_run(sim_run):
     the centimetre, and it carries each station's ISCWSA covariance."""
     from wits_parser import parse_wits0
 
-    from inclinometer_calib import witsml
-    from inclinometer_calib.launcher import read_bag
+    from inclinometer_calib.rig import witsml
+    from inclinometer_calib.apps.launcher import read_bag
 
     out, proc, _ = sim_run
     live = (out / "trajectory.xml").read_bytes()
@@ -271,7 +271,7 @@ def test_survey_angles_within_tolerance(sim_run):
         assert 24.0 < s.temperature_c < 61.0
     # the survey's depth (/probe/depth) and its trajectory by minimum curvature, tied in at the
     # surface; the twelve calibration poses have no depth
-    from inclinometer_calib.trajectory import minimum_curvature
+    from inclinometer_calib.correct.trajectory import minimum_curvature
 
     md = [s.measured_depth_m for s in surveyed]
     assert md == [500.0 + 30.0 * k for k in range(N_STATIONS)], md

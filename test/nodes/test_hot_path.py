@@ -21,13 +21,13 @@ from rclpy.serialization import serialize_message  # noqa: E402
 from sensor_msgs.msg import Imu, MagneticField, Temperature  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from inclinometer_calib import simulate as sim  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.frames import Site  # noqa: E402
+from inclinometer_calib.calibrate import simulate as sim  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.core.frames import Site  # noqa: E402
 from inclinometer_calib.msg import SurveyStation  # noqa: E402
 from inclinometer_calib.nodes import common as c  # noqa: E402
 from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
-from inclinometer_calib.station import Station  # noqa: E402
+from inclinometer_calib.core.station import Station  # noqa: E402
 
 
 class _Collect:
@@ -216,8 +216,8 @@ def test_an_error_in_a_sample_callback_ends_the_spin_with_that_error(ros):
 def _two_station_node(ros, tmp_path, with_temperature_effect=False, params=()):
     """A correction node called directly (no executor), its record the simulated probe's (with a
     temperature effect if asked), and the probe's messages of two stations: (node, log, messages)."""
-    from inclinometer_calib import effects as fx
-    from inclinometer_calib.model import ProbeModel
+    from inclinometer_calib.core import effects as fx
+    from inclinometer_calib.core.model import ProbeModel
 
     probe = sim.build_probe(3)
     model = ProbeModel.base(probe.acc, probe.mag)

@@ -21,7 +21,7 @@ pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` an
 pytest.importorskip("foxglove", reason="the live node needs foxglove-sdk (requirements/core.txt)")
 ws_client = pytest.importorskip("websockets.sync.client", reason="the test client needs websockets (test.txt)")
 
-from inclinometer_calib import liveview as lv  # noqa: E402
+from inclinometer_calib.rig import liveview as lv  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

@@ -20,11 +20,11 @@ import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
-from inclinometer_calib.cli import correct_log, main  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.frames import wrap180  # noqa: E402
-from inclinometer_calib.launcher import read_bag  # noqa: E402
-from inclinometer_calib.survey import Tolerances  # noqa: E402
+from inclinometer_calib.apps.cli import correct_log, main  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.core.frames import wrap180  # noqa: E402
+from inclinometer_calib.apps.launcher import read_bag  # noqa: E402
+from inclinometer_calib.core.survey import Tolerances  # noqa: E402
 
 SPEED = 40.0
 VAL_TEMP = "25:60:40"
@@ -48,7 +48,7 @@ def _live(files, domain_env, coeffs, name):
     d, _ = files
     env, _ = domain_env
     out = d / name
-    cmd = [sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", "mcap", "--input",
+    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "mcap", "--input",
            str(d / "val.mcap"), "--coeffs", str(coeffs), "--no-calibration", "--reliable", "--no-loop",
            "--speed", str(SPEED), "--timeout", "150"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=220)

@@ -14,15 +14,15 @@ from rclpy.exceptions import InvalidParameterValueException  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 
-from inclinometer_calib.station import Station
-from inclinometer_calib import simulate as sim  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.frames import Site  # noqa: E402
+from inclinometer_calib.core.station import Station
+from inclinometer_calib.calibrate import simulate as sim  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.core.frames import Site  # noqa: E402
 from inclinometer_calib.nodes import common as c  # noqa: E402
 from inclinometer_calib.nodes.calibration import CalibrationNode  # noqa: E402
 from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
 from inclinometer_calib.nodes.probe import ProbeNode  # noqa: E402
-from inclinometer_calib.probelog import ProbeLog  # noqa: E402
+from inclinometer_calib.io.probelog import ProbeLog  # noqa: E402
 
 
 @pytest.fixture
@@ -175,7 +175,7 @@ def test_coefficient_message_conventions():
 
 
 def test_stream_pairer_pairs_by_stamp_in_order():
-    from inclinometer_calib.streaming import StreamPairer
+    from inclinometer_calib.detect.streaming import StreamPairer
 
     p = StreamPairer(max_pending=4)
     assert p.add_imu((1, 0), "f1") is None
@@ -261,7 +261,7 @@ def _whole_probe_script(n_well, rate_hz):
 def test_probe_truth_names_the_stations_of_the_whole_script(ros, tmp_path):
     import json
 
-    from inclinometer_calib.probelog import label_runs
+    from inclinometer_calib.io.probelog import label_runs
 
     node = ProbeNode(parameter_overrides=[Parameter("well.n_stations", value=4), Parameter("rate_hz", value=50.0),
                                           Parameter("chunk_samples", value=300),
@@ -372,7 +372,7 @@ def _diag(cov):
 
 
 def test_probe_replaying_a_csv_log_publishes_the_noise_measured_from_it(ros, tmp_path):
-    from inclinometer_calib.probelog import write_csv
+    from inclinometer_calib.io.probelog import write_csv
 
     path = tmp_path / "log.csv"
     write_csv(path, _noisy_log(0.005, 50.0))  # 2.5x the defaults
@@ -393,7 +393,7 @@ def test_probe_replaying_a_bag_keeps_its_recorded_covariance_and_measures_a_miss
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Imu, MagneticField
 
-    from inclinometer_calib import bag
+    from inclinometer_calib.io import bag
 
     log = _noisy_log(0.004, 40.0)
     path = tmp_path / "rec.mcap"
@@ -524,7 +524,7 @@ def test_a_bad_model_is_refused_at_start_up(ros):
 def test_the_probes_serial_from_a_bag_is_published_and_a_contradicting_parameter_refused(ros, tmp_path):
     from std_msgs.msg import String
 
-    from inclinometer_calib.reprocess import write_probe_bag
+    from inclinometer_calib.correct.reprocess import write_probe_bag
 
     path = tmp_path / "sn.mcap"
     write_probe_bag(_noisy_log(0.002, 20.0), path, serial="SN-77")

@@ -22,7 +22,7 @@ except Exception as exc:  # ImportError or missing shared libraries
 from mcap_ros2.reader import read_ros2_messages  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 
-from inclinometer_calib import bag  # noqa: E402
+from inclinometer_calib.io import bag  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -258,7 +258,7 @@ def test_a_restarted_recorder_counts_the_stations_its_predecessors_recorded(tmp_
 
     from inclinometer_calib.msg import SurveyStation
     from inclinometer_calib.nodes.recorder import _recorded_station_ids
-    from inclinometer_calib.topics import STATION_TYPE, TOPIC_STATION
+    from inclinometer_calib.io.topics import STATION_TYPE, TOPIC_STATION
 
     def part(name, ids, finalize=True):
         w = bag.BagWriter(tmp_path / name)

@@ -16,10 +16,10 @@ import pytest
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
 import strangers as S  # noqa: E402
-from inclinometer_calib.cli import main  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.launcher import read_bag  # noqa: E402
-from inclinometer_calib.probelog import ProbeLog, read_csv, write_csv  # noqa: E402
+from inclinometer_calib.apps.cli import main  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.apps.launcher import read_bag  # noqa: E402
+from inclinometer_calib.io.probelog import ProbeLog, read_csv, write_csv  # noqa: E402
 
 VAL_STATIONS = 36
 CUT = 7
@@ -47,7 +47,7 @@ def test_the_strangers_bag_with_a_pose_cut_replayed_at_speed_50_on_one_core_give
         pytest.skip("taskset (util-linux) is not installed: the graph cannot be held to one core")
     env, _ = domain_env
     out = cut_bag["dir"] / "run"
-    proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.cli", "replay-test",
+    proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.apps.cli", "replay-test",
                            str(cut_bag["bag"]), "--expect", "reprocess", "--calibrate", "--site", str(cut_bag["site"]),
                            "--speed", "50", "--tolerance", "1e-9", "--out", str(out), "--junit",
                            str(cut_bag["dir"] / "replay.xml"), "--timeout", "240"],
@@ -72,9 +72,9 @@ def test_the_strangers_bag_with_a_pose_cut_replayed_at_speed_50_on_one_core_give
 
 
 def test_a_record_of_another_probe_is_refused_every_station_says_why_and_the_run_is_not_clean(domain_env, tmp_path):
-    from inclinometer_calib import simulate as sim
-    from inclinometer_calib.frames import Site
-    from inclinometer_calib.reprocess import write_probe_bag
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core.frames import Site
+    from inclinometer_calib.correct.reprocess import write_probe_bag
 
     env, _ = domain_env
     probe = sim.build_probe(3)
@@ -87,7 +87,7 @@ def test_a_record_of_another_probe_is_refused_every_station_says_why_and_the_run
     rec = tmp_path / "other.yaml"
     cal.save(rec)
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", "mcap",
+    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "mcap",
                            "--input", str(bag), "--coeffs", str(rec), "--no-calibration", "--speed", "50",
                            "--no-loop", "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 1, proc.stdout[-6000:]
@@ -110,7 +110,7 @@ def test_an_unpaced_replay_on_one_core_accounts_for_every_sample_of_every_reader
     from mcap.reader import make_reader
     env, _ = domain_env
     out = tmp_path / "run"
-    proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.launcher", "--out",
+    proc = subprocess.run(["taskset", "-c", "0", sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out",
                            str(out), "--unpaced", "--speed", "100", "--rate", "400", "--stations", "3", "--no-loop",
                            "--timeout", "120"], env=env, capture_output=True, text=True, timeout=180)
     text = proc.stdout

@@ -23,10 +23,10 @@ pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` an
 pytest.importorskip("foxglove", reason="the live node needs foxglove-sdk (requirements/core.txt)")
 ws_client = pytest.importorskip("websockets.sync.client", reason="the test client needs websockets (test.txt)")
 
-from inclinometer_calib import liveview as lv  # noqa: E402
+from inclinometer_calib.rig import liveview as lv  # noqa: E402
 from north_well import receiver_positions  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
-from inclinometer_calib.cli import load_site  # noqa: E402
+from inclinometer_calib.apps.common import load_site  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SITE_FILE = os.path.join(ROOT, "config", "rig_site.yaml")
@@ -85,7 +85,7 @@ def rig_run(domain_env, tmp_path_factory):
                threading.Thread(target=_foxglove_client, args=(fox_port, fox, stop), daemon=True)]
     for t in threads:
         t.start()
-    cmd = [sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--speed", "6",
+    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--speed", "6",
            "--stations", str(N_STATIONS), "--seed", "5", "--reliable", "--timeout", "120", "--no-loop",
            "--site", SITE_FILE, "--witsml", "--wits-port", str(wits_port), "--foxglove-port", str(fox_port)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180)
@@ -98,7 +98,7 @@ def rig_run(domain_env, tmp_path_factory):
 
 
 def test_the_rig_run_stations_carry_the_models_field_depth_position_and_its_uncertainty(rig_run):
-    from inclinometer_calib.launcher import read_bag
+    from inclinometer_calib.apps.launcher import read_bag
 
     out, proc, _, _ = rig_run
     site = load_site(SITE_FILE)
@@ -128,8 +128,8 @@ def test_the_rig_run_stations_carry_the_models_field_depth_position_and_its_unce
 def test_the_rigs_wits_and_foxglove_clients_get_every_station_and_the_witsml_validates(rig_run):
     from wits_parser import parse_wits0
 
-    from inclinometer_calib import witsml
-    from inclinometer_calib.launcher import read_bag
+    from inclinometer_calib.rig import witsml
+    from inclinometer_calib.apps.launcher import read_bag
 
     out, _, wits_bytes, fox = rig_run
     stations = [s for s in read_bag(str(out / "survey.mcap"))[0] if s["coefficients_id"] and s["status"] != 2]

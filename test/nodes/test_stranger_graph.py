@@ -17,8 +17,8 @@ import pytest
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
 import strangers as S  # noqa: E402
-from inclinometer_calib.cli import main  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.apps.cli import main  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 
 VAL_STATIONS = 36
 SPEED = 50.0
@@ -56,7 +56,7 @@ def _live(offline, domain_env, tmp_path, source):
     files, cli, _ = offline
     env, _ = domain_env
     out = tmp_path / f"run_{source}"
-    cmd = [sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", source, "--input",
+    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", source, "--input",
            str(files["bag" if source == "mcap" else "both"]), "--speed", str(SPEED), "--site", str(files["site"]),
            "--timeout", "150", *NO_LOOP]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=200)
@@ -100,7 +100,7 @@ def test_the_live_graph_calibrates_a_noisy_unlabelled_10_hz_probe_logged_in_tesl
     cli = Calibration.load(tmp_path / "cli.yaml")
     env, _ = domain_env
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", "csv",
+    proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "csv",
                            "--input", str(p["both"]), "--speed", "20.0", "--site", str(p["site"]),
                            "--param", "probe:mag_unit:=T", "--timeout", "120", *NO_LOOP],
                           env=env, capture_output=True, text=True, timeout=180)

@@ -12,9 +12,9 @@ import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
-from inclinometer_calib.cli import main  # noqa: E402
-from inclinometer_calib.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.turntable import angles_from_matrix  # noqa: E402
+from inclinometer_calib.apps.cli import main  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.calibrate.turntable import angles_from_matrix  # noqa: E402
 
 
 def test_the_live_node_calibrates_a_replayed_turntable_bag_as_the_cli_does(domain_env, tmp_path, capsys):
@@ -28,7 +28,7 @@ def test_the_live_node_calibrates_a_replayed_turntable_bag_as_the_cli_does(domai
     cli_doc = json.loads(capsys.readouterr().out)
     env, _ = domain_env
     out = tmp_path / "run"
-    cmd = [sys.executable, "-m", "inclinometer_calib.launcher", "--out", str(out), "--source", "mcap", "--input",
+    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "mcap", "--input",
            str(tmp_path / "tt.mcap"), "--speed", "10", "--site", str(sim / "site.yaml"), "--param",
            "calibration:method:=turntable", "--no-loop", "--timeout", "150"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=200)

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
-from inclinometer_calib import witsml  # noqa: E402
+from inclinometer_calib.rig import witsml  # noqa: E402
 from wits_parser import parse_wits0  # noqa: E402
 
 

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))))
-from inclinometer_calib.rosenv import WIDENING, isolated_settings, reserve_domain_id  # noqa: E402
+from inclinometer_calib.apps.rosenv import WIDENING, isolated_settings, reserve_domain_id  # noqa: E402
 
 
 @pytest.fixture

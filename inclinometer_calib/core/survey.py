@@ -1,0 +1,428 @@
+"""Survey evaluation: corrected angles, quality control against the site, errors against a reference.
+
+Works on static stations (see :mod:`probelog`).  Gravity vectors are in the seed paper's
+convention (down positive, m/s²), fields in nT.  Azimuths are reported from the NED frame's north:
+magnetic azimuth plus the site declination (true azimuth when the declination is given; magnetic
+when it is 0).
+
+Quality control follows drilling practice: total field within 300 nT and dip within 0.25° of the
+site reference (ISCWSA survey-QC e-book); the gravity tolerance is configurable (no industry-wide
+fixed value; default 0.0981 m/s² = 10 mg).  Azimuth is flagged undefined below a minimum drift.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import frames
+from .frames import Site, gravity_from_specific_force, wrap180, wrap360
+from .geomag import azimuths
+from . import batchkernel
+from .batchkernel import BATCH_KEYS
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """QC tolerances: |ΔB| nT, |Δdip| deg, |ΔG| m/s²; the azimuth is undefined within
+    ``min_drift_deg`` of the vertical (drift below it, or above 180° minus it — the vertical cone).
+
+    ``gravity_toolface_min_drift_deg``: outside this cone about the vertical the reported toolface
+    is the gravity toolface, inside it the magnetic toolface (the usual switch-over, ~3–5°).
+    """
+
+    field_nt: float = 300.0
+    dip_deg: float = 0.25
+    gravity_mps2: float = 0.0981
+    min_drift_deg: float = 0.5
+    gravity_toolface_min_drift_deg: float = 3.0
+
+
+def in_vertical_cone(drift_deg, cone_deg):
+    """True where a drift (deg) lies within ``cone_deg`` of the vertical, down (0°) or up (180°)."""
+    d = np.asarray(drift_deg, dtype=float)
+    return (d < cone_deg) | (d > 180.0 - cone_deg)
+
+
+def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict:
+    """Angles, QC and (if ``ref`` (N, 3) deg is given) errors for corrected vectors ``g``, ``b``.
+
+    Returns a dict of (N,) arrays.  Flags are booleans; ``status`` is 0 ok, 1 warn, 2 error.
+    ``azimuth_deg`` is from the site's north (true when the site has a declination), with
+    ``azimuth_magnetic_deg`` and ``azimuth_grid_deg`` (NaN when the site has no grid) beside it.
+
+    A reference is used for what it defines (NaN: not given).  Within the vertical cone
+    (``tol.min_drift_deg`` of 0° or 180°) the azimuth is undefined, and the toolface error is
+    the error of the tool's rotation about the vertical: the measured magnetic toolface against
+    the one the reference attitude implies in the site's field (a vertical stand pose gives drift
+    and toolface without azimuth: its orientation about the vertical is the toolface, as for
+    azimuth 0).  Elsewhere the toolface error is the gravity toolface's.
+    """
+    g = np.atleast_2d(np.asarray(g, dtype=float))
+    b = np.atleast_2d(np.asarray(b, dtype=float))
+    out = frames.angles_from_vectors(g, b)
+    # the azimuth in every reference (geomag.azimuths): magnetic as measured, true with the site's
+    # declination (the reported azimuth_deg), grid with its grid convergence (NaN without a grid)
+    refs = azimuths(wrap360(out["azimuth_deg"] + site.declination_deg), site.declination_deg,
+                    site.grid_convergence_deg)
+    out["azimuth_deg"] = refs["true"]
+    out["azimuth_magnetic_deg"], out["azimuth_grid_deg"] = refs["magnetic"], refs["grid"]
+    d, thr = out["drift_deg"], tol.gravity_toolface_min_drift_deg
+    gtf_ok = (d >= thr) & (d <= 180.0 - thr)   # outside the cone (NaN drift: magnetic, as the batch kernel)
+    out["toolface_deg"] = np.where(gtf_ok, out["gravity_toolface_deg"], out["magnetic_toolface_deg"])
+    out["toolface_is_gravity"] = gtf_ok
+    out["delta_g"] = out["total_gravity"] - site.gravity_mps2
+    out["delta_b"] = out["total_field"] - site.total_field_nt
+    out["delta_dip"] = out["dip_deg"] - site.dip_deg
+    out["azimuth_undefined"] = in_vertical_cone(out["drift_deg"], tol.min_drift_deg)
+    out["interference_suspected"] = (np.abs(out["delta_b"]) > tol.field_nt) | (np.abs(out["delta_dip"]) > tol.dip_deg)
+    out["gravity_out_of_tolerance"] = np.abs(out["delta_g"]) > tol.gravity_mps2
+    warn = out["azimuth_undefined"] | out["interference_suspected"]
+    err = out["gravity_out_of_tolerance"] | ~np.all(np.isfinite(np.c_[g, b]), axis=1)
+    out["status"] = np.where(err, 2, np.where(warn, 1, 0))
+    if ref is not None:
+        ref = np.atleast_2d(np.asarray(ref, dtype=float))
+        out.update(reference_errors(out, ref, site, tol))
+    return out
+
+
+def compared_toolface_deg(res: dict, ref_drift_deg, tol: Tolerances = Tolerances()) -> np.ndarray:
+    """The toolface :func:`reference_errors` compares with a reference of drift ``ref_drift_deg``:
+    the gravity toolface, the magnetic one where the reference is vertical (within
+    ``tol.min_drift_deg``) — not the reported ``toolface_deg``, which switches to the magnetic
+    toolface inside ``tol.gravity_toolface_min_drift_deg`` (a predicted σ of a toolface error must
+    be this one's: at 2° drift the gravity toolface's noise is ~15× the magnetic one's)."""
+    with np.errstate(invalid="ignore"):
+        vertical = in_vertical_cone(np.asarray(ref_drift_deg, dtype=float), tol.min_drift_deg)
+    return np.where(vertical, res["magnetic_toolface_deg"], res["gravity_toolface_deg"])
+
+
+def reference_errors(res: dict, ref, site: Site, tol: Tolerances = Tolerances()) -> dict:
+    """``drift_err``, ``azimuth_err``, ``toolface_err`` (deg) of evaluated stations ``res`` against
+    reference attitudes ``ref`` (N, 3): drift, azimuth, toolface in degrees, NaN where not given
+    (see :func:`evaluate`)."""
+    ref = np.atleast_2d(np.asarray(ref, dtype=float))
+    rd, ra, rt = ref[:, 0], ref[:, 1], ref[:, 2]
+    with np.errstate(invalid="ignore"):
+        vertical = in_vertical_cone(rd, tol.min_drift_deg)
+        az_err = wrap180(res["azimuth_deg"] - ra)
+        azimuth_err = np.where(res["azimuth_undefined"] | vertical | ~np.isfinite(ra), np.nan, az_err)
+        tf_ref = rt
+        # vertical reference: the rotation about the vertical, from the field (magnetic toolface)
+        if np.any(vertical & np.isfinite(rt)):
+            r = frames.orientation_matrix(np.where(np.isfinite(rd), rd, 0.0), np.where(np.isfinite(ra), ra, 0.0),
+                                          np.where(np.isfinite(rt), rt, 0.0))
+            b_ref = np.swapaxes(r, -1, -2) @ site.field_ned()
+            tf_ref = np.where(vertical, frames.magnetic_toolface_deg(b_ref), rt)
+        tf_err = wrap180(compared_toolface_deg(res, rd, tol) - tf_ref)
+        toolface_err = np.where(np.isfinite(rt), tf_err, np.nan)
+    return {"drift_err": res["drift_deg"] - rd, "azimuth_err": azimuth_err, "toolface_err": toolface_err}
+
+
+def summarize(result: dict) -> dict:
+    """Overall error statistics over stations with a reference (azimuth only where defined)."""
+    d = result.get("drift_err")
+    if d is None:
+        return {"stations": int(len(result["drift_deg"]))}
+    known = np.isfinite(d)
+    a = result["azimuth_err"][known]
+    a = a[np.isfinite(a)]
+    d = d[known]
+
+    def rms(x):
+        return float(np.sqrt(np.mean(x ** 2))) if len(x) else float("nan")
+
+    def mx(x):
+        return float(np.max(np.abs(x))) if len(x) else float("nan")
+
+    return {"stations": int(known.sum()), "drift_rms_deg": rms(d), "drift_max_abs_deg": mx(d),
+            "azimuth_rms_deg": rms(a), "azimuth_max_abs_deg": mx(a), "azimuth_stations": int(len(a))}
+
+
+def table4(result: dict, ref) -> dict:
+    """Paper Table 4 layout: drift error per set drift (mean over azimuth/toolface) and RMS.
+
+    Returns ``{"drifts": [...], "mean_err": [...], "rms_err": [...], "overall_rms": x}``.
+    """
+    ref = np.asarray(ref, dtype=float)
+    drifts = sorted({float(x) for x in ref[:, 0] if np.isfinite(x)})
+    err = result["drift_err"]
+    mean = [float(np.mean(err[ref[:, 0] == i])) for i in drifts]
+    rms = [float(np.sqrt(np.mean(err[ref[:, 0] == i] ** 2))) for i in drifts]
+    ok = np.isfinite(err)
+    return {"drifts": drifts, "mean_err": mean, "rms_err": rms,
+            "overall_rms": float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else float("nan")}
+
+
+def table5(result: dict, ref, toolface_deg: float | None = None) -> dict:
+    """Paper Table 5 layout: azimuth error by set drift (rows) × set azimuth (columns) at one set
+    toolface (default: the grid's first), with the RMS of each drift row over *all* its stations."""
+    ref = np.asarray(ref, dtype=float)
+    drifts = sorted({float(x) for x in ref[:, 0] if np.isfinite(x)})
+    azis = sorted({float(x) for x in ref[:, 1] if np.isfinite(x)})
+    if toolface_deg is None:
+        tfs = ref[np.isfinite(ref[:, 2]), 2]
+        toolface_deg = float(tfs[0]) if len(tfs) else float("nan")
+    err = result["azimuth_err"]
+    cells = np.full((len(drifts), len(azis)), np.nan)
+    rms = []
+    for r, i in enumerate(drifts):
+        row = ref[:, 0] == i
+        for c, a in enumerate(azis):
+            sel = row & (ref[:, 1] == a) & (ref[:, 2] == toolface_deg) & np.isfinite(err)
+            if sel.any():
+                cells[r, c] = float(np.mean(err[sel]))
+        e = err[row & np.isfinite(err)]
+        rms.append(float(np.sqrt(np.mean(e ** 2))) if len(e) else float("nan"))
+    return {"drifts": drifts, "azimuths": azis, "toolface_deg": toolface_deg, "cells": cells.tolist(),
+            "rms_err": rms}
+
+
+def format_table4(before: dict | None, after: dict) -> str:
+    cols = after["drifts"]
+    w = 7
+    lines = ["Table 4 — drift error (deg) by set drift: mean over azimuths/toolfaces",
+             "state      " + "".join(f"{c:>{w}g}" for c in cols) + f"{'RMS':>{w + 1}}"]
+    for name, t in (("before", before), ("after", after)):
+        if t is None:
+            continue
+        lines.append(f"{name:<11}" + "".join(f"{v:>{w}.3f}" for v in t["mean_err"]) + f"{t['overall_rms']:>{w + 1}.3f}")
+    return "\n".join(lines)
+
+
+def format_table5(before: dict | None, after: dict) -> str:
+    azis = after["azimuths"]
+    w = 8
+    lines = [f"Table 5 — azimuth error (deg) by set drift × set azimuth at toolface {after['toolface_deg']:g}; "
+             "RMS per drift row over all toolfaces",
+             "drift state  " + "".join(f"{a:>{w}g}" for a in azis) + f"{'RMS':>{w + 1}}"]
+    for r, i in enumerate(after["drifts"]):
+        for name, t in (("before", before), ("after", after)):
+            if t is None:
+                continue
+            cells = "".join(f"{v:>{w}.2f}" if np.isfinite(v) else f"{'-':>{w}}" for v in t["cells"][r])
+            lines.append(f"{i:>5g} {name:<7}" + cells + f"{t['rms_err'][r]:>{w + 1}.2f}")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Batch correction of raw samples (vectorized core)
+# --------------------------------------------------------------------------------------------
+#: Bits of the ``flags`` array returned by :func:`correct_samples`.
+FLAG_AZIMUTH_UNDEFINED = 1
+FLAG_INTERFERENCE = 2
+FLAG_GRAVITY_OUT_OF_TOLERANCE = 4
+FLAG_TOOLFACE_IS_GRAVITY = 8
+FLAG_NOT_FINITE = 16
+
+def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
+                    temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None,
+                    backend: str | None = None, threads: int | None = None) -> dict:
+    """Correct and evaluate raw samples in bulk: both triads, angles and QC per sample.
+
+    Parameters
+    ----------
+    f : (N, 3) float64 — accelerometer, REP-145 specific force, m/s² (converted here to the
+        gravity vector by :func:`frames.gravity_from_specific_force`, as the static detector does
+        for a stream).
+    m_nt : (N, 3) float64 — magnetometer, nT.
+    calibration : :class:`coeffs.Calibration` or None (uncorrected).  The correction is its
+        :meth:`~coeffs.Calibration.correct` (the package's one correction path), block by block.
+    site : the site reference; None: the calibration's (the record owns it).
+    tol : QC tolerances, as for :func:`evaluate`.
+    temperature_c, time_s : (N,) or scalars, °C and s since the data's first sample: needed when
+        the calibration's model has effects that depend on them.
+    block : samples per block: the work runs block by block so that every temporary stays in
+        the CPU cache and the arrays of N samples are read once and written once.
+    out : optional dict of preallocated output arrays (keys as returned) to write into.
+    backend : ``numba`` (the fused kernel, :mod:`batchkernel`), ``numpy`` (the blocked body below)
+        or ``auto`` (numba when importable); None: ``$INCLINOMETER_CALIB_BATCH_BACKEND``, else auto.
+    threads : threads of the numba kernel (:func:`batchkernel.resolve_threads`; None:
+        ``$INCLINOMETER_CALIB_BATCH_THREADS``, else the CPUs this process may use).  The numbers
+        do not depend on it; the numpy backend runs on the calling thread.
+
+    Returns
+    -------
+    dict of (N,) arrays: ``drift_deg``, ``azimuth_deg`` (with the site declination, [0, 360)),
+    ``toolface_deg`` (gravity toolface from ``tol.gravity_toolface_min_drift_deg`` on, magnetic
+    below), ``total_gravity`` (m/s²), ``total_field`` (nT), ``dip_deg``, float64; ``flags`` uint8
+    (bits ``FLAG_*``), ``status`` uint8 (0 ok, 1 warn, 2 error, as :func:`evaluate`).
+
+    The values agree exactly with ``evaluate(*calibration.correct(g, m_nt, ...), site, tol)``:
+    the same correction, then the same formulas in the same evaluation order; only the
+    intermediate storage differs.
+    """
+    f = np.asarray(f, dtype=np.float64)
+    m = np.asarray(m_nt, dtype=np.float64)
+    if f.ndim != 2 or f.shape[1] != 3 or m.shape != f.shape:
+        raise ValueError(f"correct_samples: f and m_nt must both be (N, 3), got {f.shape} and {m.shape}")
+    if site is None:
+        if calibration is None:
+            raise ValueError("correct_samples: no site reference: give a site, or a calibration (which owns one)")
+        site = calibration.site
+    n = len(f)
+    temp = None if temperature_c is None else np.broadcast_to(np.asarray(temperature_c, dtype=float), (n,))
+    tim = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=float), (n,))
+    if calibration is not None:
+        calibration.model.context(0, temp, tim, "val", "correct_samples: ")   # what the model needs: said up front
+    kernel = batchkernel.resolve_backend(backend) == "numba"
+    if out is None:
+        out = {k: np.empty(n) for k in BATCH_KEYS}
+        out["flags"] = np.empty(n, dtype=np.uint8)
+        out["status"] = np.empty(n, dtype=np.uint8)
+    if kernel:
+        return batchkernel.fused(f, m, calibration, site, tol, temp, tim, block, out,
+                                 lambda g, b, tc, ts: calibration.correct(g, b, tc, ts), threads)
+    blk = max(1, min(int(block), n)) if n else 1
+    gt = np.empty((3, blk))
+    bt = np.empty((3, blk))
+    t = np.empty((6, blk))
+    masks = np.empty((4, blk), dtype=bool)
+    u8 = np.empty((2, blk), dtype=np.uint8)
+    decl = float(site.declination_deg)
+    with np.errstate(invalid="ignore", divide="ignore"):  # NaN/inf samples are flagged, not warned
+        for s in range(0, n, blk):
+            e = min(s + blk, n)
+            g = gravity_from_specific_force(f[s:e])
+            if calibration is not None:
+                g, b = calibration.correct(g, m[s:e], None if temp is None else temp[s:e],
+                                           None if tim is None else tim[s:e])
+            else:
+                b = m[s:e]
+            np.copyto(gt[:, :e - s], g.T)
+            np.copyto(bt[:, :e - s], b.T)
+            _evaluate_block(s, e, out, gt, bt, t, masks, u8, site, tol, decl)
+    return out
+
+
+def _evaluate_block(s, e, out, gt, bt, t, masks, u8, site, tol, decl):
+    """Angles and QC of corrected samples s..e (components in the rows of ``gt``, ``bt``)."""
+    rad2deg = np.degrees
+    thr_tf = tol.gravity_toolface_min_drift_deg
+    k = e - s
+    gx, gy, gz = gt[:, :k]
+    bx, by, bz = bt[:, :k]
+    t1, t2, t3, t4, h2, sb = t[:, :k]
+    drift, az, tf = out["drift_deg"][s:e], out["azimuth_deg"][s:e], out["toolface_deg"][s:e]
+    gn, bn, dip = out["total_gravity"][s:e], out["total_field"][s:e], out["dip_deg"][s:e]
+    # |g| = sqrt((gx² + gy²) + gz²), |b| likewise                    (norm over the last axis)
+    np.multiply(gx, gx, out=h2)
+    np.multiply(gy, gy, out=t1)
+    np.add(h2, t1, out=h2)
+    # drift = atan2(sqrt(gx² + gy²), gz)                               (frames.drift_deg)
+    np.sqrt(h2, out=t1)
+    np.arctan2(t1, gz, out=drift)
+    rad2deg(drift, out=drift)
+    np.multiply(gz, gz, out=t1)
+    np.add(h2, t1, out=gn)
+    np.sqrt(gn, out=gn)
+    np.multiply(bx, bx, out=sb)
+    np.multiply(by, by, out=t1)
+    np.add(sb, t1, out=sb)
+    np.multiply(bz, bz, out=t1)
+    np.add(sb, t1, out=bn)
+    np.sqrt(bn, out=bn)
+    # azimuth = atan2(|g|(by gx - bx gy), bz(gx² + gy²) - gz(bx gx + by gy))  (frames.azimuth_deg)
+    np.multiply(by, gx, out=t1)
+    np.multiply(bx, gy, out=t2)
+    np.subtract(t1, t2, out=t1)
+    np.multiply(gn, t1, out=t1)
+    np.multiply(bx, gx, out=t2)
+    np.multiply(by, gy, out=t3)
+    np.add(t2, t3, out=t2)                 # bx gx + by gy, reused for the dip
+    np.multiply(gz, t2, out=t3)
+    np.multiply(bz, h2, out=t4)
+    np.subtract(t4, t3, out=t4)
+    is_g, m1, m2, m3 = masks[:, :k]
+    np.arctan2(t1, t4, out=az)
+    rad2deg(az, out=az)
+    _wrap_atan2_deg(az, m1, t4)
+    if decl:
+        np.add(az, decl, out=az)
+        if abs(decl) < 360.0:   # az in (-360, 720): +360 below 0 (as np.mod), -360 from 360 on
+            np.less(az, 0.0, out=m1)                  # (exact by Sterbenz, as fmod)
+            np.multiply(m1, 360.0, out=t3)
+            np.add(az, t3, out=az)
+            np.greater_equal(az, 360.0, out=m1)
+            np.multiply(m1, 360.0, out=t3)
+            np.subtract(az, t3, out=az)
+            _fix360(az, m1)
+        else:
+            _wrap360_inplace(az)
+    # dip = asin(clip((gx bx + gy by + gz bz) / (|g| |b|)))          (frames.dip_deg)
+    np.multiply(gz, bz, out=t3)
+    np.add(t2, t3, out=t3)
+    np.multiply(gn, bn, out=t4)
+    np.divide(t3, t4, out=t3)
+    np.clip(t3, -1.0, 1.0, out=t3)
+    np.arcsin(t3, out=dip)
+    rad2deg(dip, out=dip)
+    # toolface: gravity atan2(gy, -gx) where drift >= threshold, else magnetic atan2(-by, bx)
+    np.greater_equal(drift, thr_tf, out=is_g)               # outside the vertical cone (in_vertical_cone)
+    np.less_equal(drift, 180.0 - thr_tf, out=m2)
+    np.logical_and(is_g, m2, out=is_g)
+    np.negative(gx, out=t1)
+    np.arctan2(gy, t1, out=tf)
+    rad2deg(tf, out=tf)
+    _wrap_atan2_deg(tf, m1, t2)
+    if not is_g.all():
+        idx = np.flatnonzero(~is_g)
+        mt = np.degrees(np.arctan2(-by[idx], bx[idx]))
+        tf[idx] = _wrap360_inplace(mt)
+    # QC flags (survey.evaluate); booleans viewed as 0/1 bytes and shifted into their bits
+    fl, st = out["flags"][s:e], out["status"][s:e]
+    tmp = u8[0, :k]
+    np.less(drift, tol.min_drift_deg, out=m1)                 # azimuth undefined: vertical cone
+    np.greater(drift, 180.0 - tol.min_drift_deg, out=m2)
+    np.logical_or(m1, m2, out=m1)
+    np.copyto(fl, m1.view(np.uint8))
+    np.subtract(bn, site.total_field_nt, out=t1)
+    np.abs(t1, out=t1)
+    np.greater(t1, tol.field_nt, out=m2)
+    np.subtract(dip, site.dip_deg, out=t1)
+    np.abs(t1, out=t1)
+    np.greater(t1, tol.dip_deg, out=m3)
+    np.logical_or(m2, m3, out=m2)                             # interference suspected
+    np.logical_or(m1, m2, out=m1)                             # warn
+    np.left_shift(m2.view(np.uint8), 1, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.subtract(gn, site.gravity_mps2, out=t1)
+    np.abs(t1, out=t1)
+    np.greater(t1, tol.gravity_mps2, out=m2)                  # gravity out of tolerance
+    np.left_shift(m2.view(np.uint8), 2, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.left_shift(is_g.view(np.uint8), 3, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.multiply(gn, bn, out=t1)
+    np.isfinite(t1, out=m3)
+    np.logical_not(m3, out=m3)                                # a component NaN/inf
+    np.left_shift(m3.view(np.uint8), 4, out=tmp)
+    np.bitwise_or(fl, tmp, out=fl)
+    np.logical_or(m2, m3, out=m2)                             # error
+    np.left_shift(m2.view(np.uint8), 1, out=st)               # 2 where error ...
+    np.maximum(st, m1.view(np.uint8), out=st)                 # ... else 1 where warn
+
+
+def _wrap_atan2_deg(w, mask, tmp):
+    """frames.wrap360 in place for values in (-360, 360) such as atan2 in degrees: adding 360 to
+    the negatives is exactly what ``np.mod`` does there (fmod is the identity); adding 0.0 to the
+    others changes nothing.  Branch-free, so it vectorizes."""
+    np.less(w, 0.0, out=mask)
+    np.multiply(mask, 360.0, out=tmp)
+    np.add(w, tmp, out=w)
+    _fix360(w, mask)
+    return w
+
+
+def _fix360(w, mask):
+    """360.0 (a tiny negative plus 360, rounded) → 0.0, as frames.wrap360."""
+    np.greater_equal(w, 360.0, out=mask)
+    if mask.any():
+        w[mask] = 0.0
+
+
+def _wrap360_inplace(w):
+    """frames.wrap360 in place: mod 360, and 360.0 (from rounding of tiny negatives) → 0."""
+    np.mod(w, 360.0, out=w)
+    w[w >= 360.0] = 0.0
+    return w

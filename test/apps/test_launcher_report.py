@@ -1,0 +1,158 @@
+"""The launcher's ROS-free parts: honest labels in the run report and summary, and the choice of
+the run's ROS_DOMAIN_ID (a free one, or exactly the one asked for and refused while another run
+holds it).  Nothing here starts ROS."""
+import math
+
+import pytest
+
+from inclinometer_calib.apps import launcher, rosenv
+from inclinometer_calib.io import topics
+
+NAN = float("nan")
+
+
+def _station(station_id, coefficients_id, **kw):
+    s = {"station_id": station_id, "coefficients_id": coefficients_id, "drift_deg": 30.2, "azimuth_deg": 61.0,
+         "reference_drift_deg": 30.0, "reference_azimuth_deg": 60.0, "delta_b_nt": -850.0, "delta_dip_deg": 1.2,
+         "status": 1, "interference_suspected": True, "azimuth_undefined": False}
+    s.update(kw)
+    return s
+
+
+def _rows(report):
+    return [ln for ln in report.splitlines() if ln.startswith("| ") and not ln.startswith("| id")]
+
+
+def test_stations_before_the_calibration_are_labelled_uncorrected_without_qc_flags():
+    stations = [_station(0, ""),                                             # a stand pose, raw
+                _station(1, "abc123", status=0, interference_suspected=False),
+                _station(2, "abc123", status=1)]                              # corrected and off: flagged
+    raw, good, flagged = _rows(launcher.format_report({}, [], None, stations))
+    assert raw.endswith("| uncorrected (before calibration) |") and "interference" not in raw
+    assert raw.split("|")[2].strip() == launcher.DASH  # no coefficients
+    assert good.endswith("| ok |")
+    assert flagged.endswith("| warn (interference_suspected) |")
+
+
+def test_missing_values_print_as_a_dash_not_nan():
+    stations = [_station(0, "", reference_drift_deg=NAN, reference_azimuth_deg=NAN, azimuth_deg=NAN)]
+    summary = {"stations_recorded": 1, "raw_stations": {"before calibration": 1}, "coefficient_messages": 1, "coefficients_id": "abc123",
+               "survey": {"stations": 1, "drift_rms_deg": 0.001, "drift_max_abs_deg": 0.001,
+                          "azimuth_rms_deg": NAN, "azimuth_max_abs_deg": NAN, "azimuth_stations": 0,
+                          "toolface_rms_deg": NAN, "status_counts": {"0": 0, "1": 1, "2": 0},
+                          "max_abs_delta_b_nt": 3.0, "max_abs_delta_dip_deg": 0.01, "max_abs_delta_g_mps2": 0.0}}
+    lines = launcher.format_summary(summary)
+    report = launcher.format_report(summary, lines, None, stations)
+    for text in ("\n".join(lines), report):
+        assert "nan" not in text.lower(), text
+    assert f"azimuth RMS {launcher.DASH} max {launcher.DASH} deg" in "\n".join(lines)
+    (row,) = _rows(report)
+    cells = [x.strip() for x in row.strip("|").split("|")]
+    assert cells[2:4] == [launcher.DASH, launcher.DASH] and cells[5] == launcher.DASH and cells[7] == launcher.DASH
+    assert launcher._num(math.inf, ".3f") == launcher.DASH and launcher._num(None, ".3f") == launcher.DASH
+
+
+@pytest.fixture
+def no_domain(monkeypatch):
+    for key in ("ROS_DOMAIN_ID", rosenv.RESERVED_BY_PARENT):
+        monkeypatch.delenv(key, raising=False)
+
+
+def test_without_a_domain_the_launcher_reserves_a_free_one(no_domain):
+    args = launcher.parse_args([])
+    a_id, a_lock, how = launcher.reserve_run_domain(args, {})
+    b_id, b_lock, _ = launcher.reserve_run_domain(args, {})
+    try:
+        assert a_id != b_id and rosenv.DOMAIN_ID_MIN <= a_id <= rosenv.DOMAIN_ID_MAX
+        assert "free domain" in how
+    finally:
+        a_lock.close()
+        b_lock.close()
+
+
+def test_an_explicit_domain_held_by_another_run_is_refused_with_status_2(no_domain, tmp_path, capsys):
+    domain_id, lock = rosenv.reserve_domain_id()  # "another run" holds it
+    try:
+        out = tmp_path / "run"
+        assert launcher.main(["--out", str(out), "--domain-id", str(domain_id)]) == 2
+        err = capsys.readouterr().err
+        assert f"ROS_DOMAIN_ID {domain_id} is in use by another inclinometer_calib run" in err
+        assert "Give another --domain-id" in err and not out.exists()
+        # the same id from the environment is refused the same way ...
+        with pytest.raises(rosenv.DomainInUse):
+            launcher.reserve_run_domain(launcher.parse_args([]), {"ROS_DOMAIN_ID": str(domain_id)})
+        # ... unless the environment says the parent holds it for us (tests, benchmarks)
+        env = {"ROS_DOMAIN_ID": str(domain_id), rosenv.RESERVED_BY_PARENT: str(domain_id)}
+        assert launcher.reserve_run_domain(launcher.parse_args([]), env)[:2] == (domain_id, None)
+    finally:
+        lock.close()
+    free_again = rosenv.reserve_this_domain_id(domain_id)  # released with its holder
+    free_again.close()
+
+
+def test_a_bag_without_stations_coefficients_or_status_gives_an_empty_summary(tmp_path):
+    """Only /probe/* topics (a replayed probe log) and /clock: nothing for the summary to read —
+    rosbags reads an empty connection list as every connection, which made it decode a Clock or an
+    Imu as a coefficient record."""
+    pytest.importorskip("rosbags")
+    pytest.importorskip("mcap")
+    import numpy as np
+    from rosbags.typesys import Stores, get_typestore
+
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.io.bag import BagWriter
+    from inclinometer_calib.core.frames import Site
+    from inclinometer_calib.correct.reprocess import write_probe_bag
+
+    out = tmp_path / "run"
+    out.mkdir()
+    log = sim.run_session(sim.build_probe(1), Site(), sim.stand_grid_session(duration_s=1.0),
+                          np.random.default_rng(0), rate_hz=50)
+    write_probe_bag(log, out / "survey.mcap")                          # /probe/imu, mag, temperature, reference
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    Clock, Time = ts.types["rosgraph_msgs/msg/Clock"], ts.types["builtin_interfaces/msg/Time"]
+    with BagWriter(out / "survey_1.mcap") as w:                        # a second part with only /clock
+        cid = w.add_topic("/clock", "rosgraph_msgs/msg/Clock")
+        for k in range(5):
+            w.write(cid, bytes(ts.serialize_cdr(Clock(clock=Time(sec=k, nanosec=0)), "rosgraph_msgs/msg/Clock")),
+                    1_700_000_000_000_000_000 + k)
+    assert launcher.read_bag(out / "survey.mcap") == ([], [], None)
+    assert launcher.read_bag(out / "survey_1.mcap") == ([], [], None)
+    said = []
+    summary = launcher.summarize_run(str(out), print_fn=said.append, loop=False)
+    assert summary["stations_recorded"] == 0 and summary["coefficient_messages"] == 0
+    assert "calibration_status" not in summary and "coefficients_id" not in summary
+    assert [p["file"] for p in summary["bag_parts"]] == ["survey.mcap", "survey_1.mcap"]
+    assert "bag: 0 survey stations, 0 coefficient message(s)" in said
+    assert (out / "summary.json").is_file() and (out / "report.md").is_file()
+
+
+def _recorded_station(**fields):
+    """A SurveyStation as rosbags reads it from a bag recorded before azimuth_true_deg existed: the
+    fields station_dict reads, no azimuth_true_deg."""
+    from types import SimpleNamespace
+
+    names = ("station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg", "magnetic_toolface_deg",
+             "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt", "delta_dip_deg",
+             "status", "azimuth_undefined", "interference_suspected", "coefficients_id", "reference_drift_deg",
+             "reference_azimuth_deg", "reference_toolface_deg", "samples_averaged", "duration_s", "temperature_c",
+             "moved_during_capture", "model_misfit", "model_diagnosis", "measured_depth_m", "tvd_m", "north_m",
+             "east_m", "dls_deg_per_30m", "azimuth_magnetic_deg", "azimuth_grid_deg", "azimuth_reference")
+    values = {k: 0 for k in names}
+    values.update(fields)
+    return SimpleNamespace(header=SimpleNamespace(stamp=SimpleNamespace(sec=1, nanosec=0)), warnings=[], **values)
+
+
+def test_a_station_recorded_before_the_one_north_is_read_along_its_positions_north():
+    # then: azimuth true, north/east along grid north (the site had a grid)
+    old = topics.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=39.2,
+                                                  azimuth_reference="true", reference_azimuth_deg=40.25))
+    assert old["azimuth_reference"] == "grid" and old["azimuth_deg"] == 39.2 and old["azimuth_true_deg"] == 40.0
+    assert old["reference_azimuth_deg"] == pytest.approx(40.25 - 0.8)      # the reference along grid north too
+    # no grid: true (or magnetic) as recorded
+    plain = topics.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+                                                    azimuth_reference="true", reference_azimuth_deg=40.25))
+    assert plain["azimuth_reference"] == "true" and plain["azimuth_deg"] == 40.0 and plain["azimuth_true_deg"] == 40.0
+    mag = topics.station_dict(_recorded_station(azimuth_deg=37.5, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+                                                  azimuth_reference="magnetic"))
+    assert mag["azimuth_reference"] == "magnetic" and math.isnan(mag["azimuth_true_deg"])

@@ -1,0 +1,226 @@
+"""The stream engine (ROS-free): the one path from samples to stations that the nodes, reprocess and
+the CLI drive — its stations do not depend on the order the topics arrive in, a record applies from
+the data time it was solved at, and a calibration session that ends is solved and applied."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mcap")
+pytest.importorskip("rosbags")
+
+from inclinometer_calib.calibrate import simulate as sim  # noqa: E402
+from inclinometer_calib.io.bag import open_bag  # noqa: E402
+from inclinometer_calib.calibrate.capture import CaptureSession  # noqa: E402
+from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
+from inclinometer_calib.correct.engine import Expect, RecordOut, StationOut, StreamEngine  # noqa: E402
+from inclinometer_calib.core.frames import Site  # noqa: E402
+from inclinometer_calib.lab.field import FieldMonitor  # noqa: E402
+from inclinometer_calib.correct.pipeline import SurveyProcessor  # noqa: E402
+from inclinometer_calib.io.probelog import ProbeLog  # noqa: E402
+from inclinometer_calib.correct.reprocess import BagFeeder, reprocess, write_probe_bag  # noqa: E402
+from inclinometer_calib.io.topics import TOPIC_IMU, TOPIC_MAG  # noqa: E402
+
+SITE = Site(total_field_nt=51000.0, dip_deg=60.0, declination_deg=2.0)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """Twelve poses then a 10-station well path with depths, temperatures and references, as a bag."""
+    d = tmp_path_factory.mktemp("engine")
+    probe = sim.build_probe(21, ["temperature_bias:mag=2"])
+    rng = np.random.default_rng(4)
+    cal = sim.run_session(probe, SITE, sim.twelve_pose_session(duration_s=2.0), rng, rate_hz=100, move_s=1.0)
+    well = sim.run_session(probe, SITE, sim.well_path_session(10, build_deg_per_station=4.0, duration_s=2.0, seed=3),
+                           rng, rate_hz=100, move_s=1.0, t0=cal.t_s[-1] + 2.0)
+    log = ProbeLog.concatenate([cal, well])
+    log.pose[:] = 0                                      # a stream has no labels
+    bag = d / "run.mcap"
+    write_probe_bag(log, bag, serial="SN-9")
+    return {"dir": d, "bag": bag, "log": log, "probe": probe}
+
+
+def _messages(path):
+    return list(open_bag(path).messages(strict=False))
+
+
+def _engine(calibrate=True, sync=False):
+    proc = SurveyProcessor(monitor=FieldMonitor(window=30))
+    session = CaptureSession(site=None, probe_id="SN-9") if calibrate else None
+    return StreamEngine(None, proc, session, sync_calibration=sync, expect=Expect(True, True, True))
+
+
+def _stations(engine, messages):
+    feeder = BagFeeder(engine)
+    out = []
+    for m in messages:
+        feeder.feed(m)
+        out += [e for e in engine.pop() if isinstance(e, (StationOut, RecordOut))]
+    engine.end()
+    out += [e for e in engine.pop() if isinstance(e, (StationOut, RecordOut))]
+    return out
+
+
+def _same(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert type(x) is type(y)
+        if isinstance(x, RecordOut):
+            assert x.calibration.id == y.calibration.id and x.stamp == y.stamp
+            continue
+        for k, v in x.fields.items():
+            w = y.fields[k]
+            if isinstance(v, float) and math.isnan(v):
+                assert isinstance(w, float) and math.isnan(w), k
+            else:
+                assert v == w, (x.fields["station_id"], k, v, w)
+
+
+def test_stations_do_not_depend_on_the_order_the_topics_arrive(run):
+    """Each topic in its own order, but the side streams (reference, temperature, depth) and the
+    mag stream arriving late against the imu — as separate DDS readers deliver them under load —
+    give the same stations and records, bit for bit, as the bag's own order."""
+    msgs = _messages(run["bag"])
+    expected = _stations(_engine(), msgs)
+    assert sum(isinstance(e, StationOut) for e in expected) == 22 and any(isinstance(e, RecordOut) for e in expected)
+    rng = np.random.default_rng(0)
+    for lag in ({"/probe/reference": 300, "/probe/temperature": 900, "/probe/depth": 200, TOPIC_MAG: 50},
+                {"/probe/reference": 2000, "/probe/depth": 5000, TOPIC_IMU: 700}):
+        # a message's arrival = its place in the bag + a random lag of up to its topic's; within a
+        # topic the order stays (reliable, in-order delivery): its messages fill its arrival slots in turn
+        order = sorted(range(len(msgs)), key=lambda i: i + rng.uniform(0, lag.get(msgs[i].topic, 0)))
+        queues = {}
+        for m in msgs:
+            queues.setdefault(m.topic, []).append(m)
+        taken = {t: iter(q) for t, q in queues.items()}
+        shuffled = [next(taken[msgs[i].topic]) for i in order]
+        for topic in lag:       # within a topic, the order stays (reliable delivery)
+            assert [m.log_time for m in shuffled if m.topic == topic] == sorted(m.log_time for m in msgs
+                                                                                 if m.topic == topic)
+        _same(_stations(_engine(), shuffled), expected)
+
+
+def test_the_engine_gives_reprocess_its_stations(run):
+    rep = reprocess(run["bag"], None, calibrate=True, monitor=FieldMonitor(window=30))
+    mine = [e for e in _stations(_engine(), _messages(run["bag"])) if isinstance(e, StationOut)]
+    _same(mine, [SimpleNamespace(fields=f) for f in rep.stations] and
+          [StationOut(f, None) for f in rep.stations])
+    assert rep.counts["used"] == len(run["log"]) and rep.counts["unpaired"] == 0
+
+
+def test_a_record_applies_from_the_data_time_it_was_solved_at_however_late_it_arrives(run):
+    """Keeping step with a calibration elsewhere: stations wait until it has taken them; a record
+    that arrives late still applies to exactly the stations after its stamp."""
+    msgs = _messages(run["bag"])
+    whole = _stations(_engine(), msgs)
+    rec = next(e for e in whole if isinstance(e, RecordOut))
+    expected = [e for e in whole if isinstance(e, StationOut)]
+    eng = _engine(calibrate=False, sync=True)
+    feeder = BagFeeder(eng)
+    got = []
+    for m in msgs:
+        feeder.feed(m)
+        got += [e for e in eng.pop() if isinstance(e, StationOut)]
+        # the calibration elsewhere is far behind: nothing may go out past what it took
+        eng.calibration_progress(min(eng.t_last, rec.stamp - 5.0), 0)
+    assert all(e.station.t_end < rec.stamp - 5.0 for e in got)
+    eng.calibration_progress(math.inf, 1)        # it took everything and made one record ...
+    assert not [e for e in eng.pop() if isinstance(e, StationOut)]   # ... which has not arrived: wait
+    eng.record(rec.calibration, rec.stamp)
+    eng.end()
+    got += [e for e in eng.pop() if isinstance(e, StationOut)]
+    assert [e.fields["coefficients_id"] for e in got] == [e.fields["coefficients_id"] for e in expected]
+    assert [e.fields["drift_deg"] for e in got] == [e.fields["drift_deg"] for e in expected]
+    raw = [e for e in got if not e.fields["coefficients_id"]]
+    assert raw and all(e.fields["uncorrected_reason"].startswith("before calibration") for e in raw)
+
+
+def test_a_record_of_another_probe_is_refused_and_every_station_says_why(run):
+    other = Calibration(acc=run["probe"].acc, mag=run["probe"].mag, probe_id="SN-1", site=SITE)
+    eng = _engine(calibrate=False)
+    eng.set_serial("SN-9")
+    assert not eng.record(other)
+    out = [e for e in _stations(eng, _messages(run["bag"])) if isinstance(e, StationOut)]
+    assert out and all(not e.fields["coefficients_id"] for e in out)
+    assert all(e.fields["uncorrected_reason"].startswith("record refused: record ") and "probe SN-1" in
+               e.fields["uncorrected_reason"] for e in out)
+    assert eng.counts.records_refused == 1 and eng.counts.uncorrected == len(out)
+
+
+def test_samples_that_never_find_a_partner_and_implausible_ones_are_counted(run):
+    eng = _engine(calibrate=False)
+    msgs = [m for i, m in enumerate(_messages(run["bag"])) if not (m.topic == TOPIC_MAG and i % 100 == 0)]
+    _stations(eng, msgs)
+    c = eng.counts
+    assert c.imu - c.mag == c.unpaired > 0 and c.pairs == c.mag
+
+
+# ---- the session that ends -----------------------------------------------------------------
+def _cal_log(cut=(), rounds=2, seed=5):
+    probe = sim.build_probe(seed, severity=2.0)
+    rng = np.random.default_rng(seed)
+    temps = tuple(25.0 + 3 * k for k in range(rounds))
+    stations = [st for st in sim.twelve_pose_session(temps, duration_s=2.0) if st.pose not in cut]
+    cal = sim.run_session(probe, SITE, stations, rng, rate_hz=100, move_s=1.0)
+    grid = sim.run_session(probe, SITE, sim.stand_grid_session(drifts=(2, 20, 45), azimuths=(0, 120, 240),
+                                                               toolfaces=(0, 150), duration_s=2.0),
+                           rng, rate_hz=100, move_s=1.0, t0=cal.t_s[-1] + 2.0)
+    log = ProbeLog.concatenate([cal, grid])
+    log.pose[:] = 0
+    return log, probe, len(stations)
+
+
+def test_a_pose_missing_ends_the_sequence_when_the_probe_leaves_the_stand_and_the_survey_is_corrected(tmp_path):
+    """Pose 7 cut from both rounds: the second round is used too, the two statics that are not
+    poses of the sequence end it, it is solved by least squares, and every survey station from the
+    first one that ended it is corrected."""
+    log, probe, n_cal = _cal_log(cut=(7,))
+    bag = tmp_path / "cut.mcap"
+    write_probe_bag(log, bag)
+    rep = reprocess(bag, None, calibrate=True, site=SITE)
+    assert len(rep.calibrations) == 1
+    cal = rep.calibrations[0]
+    assert "least squares" in cal.method and rep.calibration_state == "done"
+    said = " ".join(rep.calibration_warnings)
+    assert "the twelve-pose sequence is over (2 statics in a row that are not poses of the sequence" in said
+    assert "missing pose 7: never captured" in said
+    assert len(rep.captures) == n_cal                           # both rounds, pose 7 absent from each
+    survey = rep.stations[n_cal:]
+    corrected = [s for s in survey if s["coefficients_id"] == cal.id]
+    assert len(survey) == 18 and len(corrected) >= 17            # the first stray may stay raw
+    for s in corrected:
+        assert abs(s["drift_deg"] - s["reference_drift_deg"]) < 0.02
+    # the probe's true errors, within the least-squares solution's reach
+    truth = Calibration(acc=probe.acc, mag=probe.mag, site=SITE)
+    assert np.allclose(cal.triad("mag").bias, truth.triad("mag").bias, atol=5.0)
+
+
+def test_after_the_sequence_ends_a_survey_station_near_a_missing_pose_is_not_taken(tmp_path):
+    """Pose 9 (tool axis vertical) never captured: survey stations at 2° of drift look like it, but
+    once the probe has left the stand they are survey stations — never a capture, never a new solve."""
+    log, _, n_cal = _cal_log(cut=(9,), rounds=1)
+    bag = tmp_path / "cut9.mcap"
+    write_probe_bag(log, bag)
+    rep = reprocess(bag, None, calibrate=True, site=SITE)
+    assert len(rep.calibrations) == 1 and "least squares" in rep.calibrations[0].method
+    assert sorted(c.pose for c in rep.captures) == [p for p in range(1, 13) if p != 9]
+    near = [s for s in rep.stations[n_cal:] if s["reference_drift_deg"] == 2.0]
+    assert len(near) == 6 and all(s["coefficients_id"] == rep.calibrations[0].id for s in near[1:])
+
+
+def test_the_sequence_ends_after_end_after_s_without_a_capture():
+    log, _, n_cal = _cal_log(cut=(12,), rounds=1)
+    det_t = log.t_s.copy()
+    # a pause of 200 s (probe streaming on the bench) before the survey
+    gap = det_t > det_t[0] + (n_cal * 3.0 + 1.0)
+    log.t_s = np.where(gap, det_t + 200.0, det_t)
+    eng = StreamEngine(None, SurveyProcessor(), CaptureSession(site=SITE, end_after_stations=50, end_after_s=120.0),
+                       expect=Expect(False, True, False))
+    eng.samples(log.t_s, log.acc, log.mag, log.temp_c)
+    eng.end()
+    ev = eng.pop()
+    recs = [e for e in ev if isinstance(e, RecordOut)]
+    assert recs and any("s without a capture before the static" in e.text for e in ev if hasattr(e, "text"))
+    first_survey = [e for e in ev if isinstance(e, StationOut)][n_cal - 1:]
+    assert recs[0].stamp < first_survey[1].station.t_end

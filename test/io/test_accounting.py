@@ -1,0 +1,57 @@
+"""The run's accounting (accounting.py): a reader is said to have taken every sample only when both
+sides' final counts are known; a loss is named per reader and topic; the recorder's counts are the
+recording's own."""
+from inclinometer_calib.io.accounting import account, format_account
+
+SENT = {"imu": 1000, "mag": 1000, "temperature": 1000, "reference": 10, "depth": 10}
+
+
+def progress(node, end, **taken):
+    counts = dict(SENT, **taken)
+    return dict(node=node, end=end, window=0, stations=0, records=0, forced=0, pairs_used=counts["imu"],
+                pairs_dropped=0, **counts)
+
+
+def lines_of(messages, recorded=None):
+    a = account([], messages, paced=False, recorded=recorded)
+    return a, format_account(a)
+
+
+def test_a_reader_that_took_the_end_with_fewer_samples_is_named_with_what_it_lost():
+    a, lines = lines_of([progress("probe", True), progress("correction", True, imu=900, mag=899)])
+    assert "  correction LOST 100 imu, 101 mag" in lines
+    assert any(p.startswith("samples lost: correction 100 imu, 101 mag") and "unpaced" in p for p in a["problems"])
+
+
+def test_a_reader_that_did_not_take_the_end_is_never_said_to_have_taken_every_one():
+    a, lines = lines_of([progress("probe", True), progress("calibration", False)])
+    line = next(x for x in lines if x.startswith("  calibration"))
+    assert "every one" not in line and "it did not take the end" in line
+    assert "calibration did not take the end of the data" in a["problems"]
+
+
+def test_without_the_probes_end_in_the_recording_no_reader_is_said_complete():
+    a, lines = lines_of([progress("probe", False, imu=500, mag=500, temperature=500),
+                         progress("correction", True, imu=400)])
+    line = next(x for x in lines if x.startswith("  correction"))
+    assert line == "  correction took 400 of 500 imu; the probe's end is not in the recording"
+    assert any("end of the data is not in the recording" in p for p in a["problems"])
+
+
+def test_the_recorder_is_counted_by_the_recording_and_its_loss_is_its_one_problem():
+    # the recorder never says it ended once it lost a sample: its counts are the recording's, final
+    a, lines = lines_of([progress("probe", True), progress("recorder", False, imu=10)],
+                        recorded=dict(SENT, imu=990, mag=1000, temperature=997))
+    assert "  recorder LOST 10 imu, 3 temperature" in lines
+    assert not any("recorder did not take the end" in p for p in a["problems"])
+    assert [p for p in a["problems"] if p.startswith("samples lost")] == [
+        "samples lost: recorder 10 imu, 3 temperature (an unpaced replay or a live source: a slow reader loses "
+        "what its queue cannot hold)"]
+
+
+def test_every_reader_complete_is_a_clean_account():
+    a, lines = lines_of([progress("probe", True), progress("calibration", True), progress("correction", True),
+                         progress("recorder", True)], recorded=dict(SENT))
+    assert a["problems"] == []
+    assert [x for x in lines if x.startswith("  ")] == ["  calibration took every one", "  correction took every one",
+                                                          "  recorder took every one"]
