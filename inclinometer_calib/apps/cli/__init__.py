@@ -15,24 +15,24 @@ import sys
 import numpy as np
 import yaml
 
-from ..calibrate import simulate as sim
-from ..core.coeffs import Calibration
-from .common import UserError, load_calibration, load_site
-from .. import __version__
-from ..core.deps import MissingDependency, require
-from ..core.frames import Site
-from ..core.geomag import NORTH_CHOICES, resolve_north
-from ..calibrate.capture import CaptureSession
-from ..detect.gates import SettlingTally, apply_gates
-from ..core.output import OutputError, atomic_write_bytes, atomic_write_text, check_output, output_folder, output_path
-from ..io.probelog import MAG_UNITS, Limits, read_csv, report, segment_stations, write_csv
-from ..core.station import correct_stations
-from ..io.progress import progress_bar
-from ..core.model import ModelContextError
-from ..correct.pipeline import (NO_SITE, along_north, context_warnings, evaluate_stations,
+from ...calibrate import simulate as sim
+from ...core.coeffs import Calibration
+from ..common import UserError, load_calibration, load_site
+from ... import __version__
+from ...core.deps import MissingDependency, require
+from ...core.frames import Site
+from ...core.geomag import NORTH_CHOICES, resolve_north
+from ...calibrate.capture import CaptureSession
+from ...detect.gates import SettlingTally, apply_gates
+from ...core.output import OutputError, atomic_write_bytes, atomic_write_text, check_output, output_folder, output_path
+from ...io.probelog import MAG_UNITS, Limits, read_csv, report, segment_stations, write_csv
+from ...core.station import correct_stations
+from ...io.progress import progress_bar
+from ...core.model import ModelContextError
+from ...correct.pipeline import (NO_SITE, along_north, context_warnings, evaluate_stations,
                        reference_along_north, site_override_note, station_status, usable)
-from ..core.survey import Tolerances, format_table4, format_table5, summarize, table4, table5
-from ..calibrate.twelve_position import format_table2, format_table3
+from ...core.survey import Tolerances, format_table4, format_table5, summarize, table4, table5
+from ...calibrate.twelve_position import format_table2, format_table3
 
 
 def _warn(msg):
@@ -43,7 +43,7 @@ def _warn(msg):
 def detector_from_args(args):
     """A :class:`streaming.StaticDetector` from the common detector options (defaults: noise from
     the data)."""
-    from ..detect.streaming import StaticDetector
+    from ...detect.streaming import StaticDetector
 
     try:
         return StaticDetector(noise_acc=getattr(args, "noise_acc_override", 0.0) or 0.0,
@@ -78,7 +78,7 @@ def load_plugins(specs, quiet=True, run=True):
     ``run``: the command needs their effects (simulate, fit, diagnose): executed now, their effects
     can then be named anywhere.  Otherwise (a command that reads records): named only, each executed
     when a record needs an effect from it and its SHA-256 is the record's."""
-    from ..core.plugins import PluginError, load_plugin, name_plugin
+    from ...core.plugins import PluginError, load_plugin, name_plugin
 
     for plug in specs or ():
         try:
@@ -159,7 +159,7 @@ def cmd_turntable(args):
     """The patent's turntable calibration of the magnetometer (:mod:`turntable`)."""
     if args.output:
         check_output(args.output)        # said before the work, not after it
-    from ..calibrate import turntable as tt
+    from ...calibrate import turntable as tt
 
     load_plugins(args.plugin, run=False)
     site = load_site(args.site) if args.site else None
@@ -222,8 +222,8 @@ def cmd_wits(args):
         check_output(args.output)        # said before the work, not after it
     import datetime as dt
 
-    from .launcher import read_bag
-    from ..rig.wits import describe, encode
+    from ..launcher import read_bag
+    from ...rig.wits import describe, encode
 
     try:
         stations = read_bag(args.bag)[0]
@@ -248,8 +248,8 @@ def cmd_witsml(args):
     """Export the survey stations of a recorded run as a WITSML 2.1 or 1.4.1.1 trajectory (:mod:`witsml`):
     every document validated against its schema before it is written, and written atomically —
     with ``-o``, the well, wellbore (and 2.1 datum) documents beside it unless they exist in the store."""
-    from .launcher import read_bag
-    from ..rig.witsml import (OPTION_HELP, Options, WitsmlError, mag_models, parent_path, trajectory_document,
+    from ..launcher import read_bag
+    from ...rig.witsml import (OPTION_HELP, Options, WitsmlError, mag_models, parent_path, trajectory_document,
                          validate)
 
     options = {name: getattr(args, name) for name in OPTION_HELP}
@@ -439,7 +439,7 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
     ref_used = np.where(np.array([s.moved for s in stations])[:, None], np.nan, ref)  # moved: no error figures
     has_ref = np.any(np.isfinite(ref_used), axis=1)
     if msa is not None:
-        from ..correct.msa import evaluate_with_msa
+        from ...correct.msa import evaluate_with_msa
         if site is None:
             raise UserError(f"{log_path}: multi-station analysis needs a site reference "
                             "(a record, or --site SITE.yaml)")
@@ -554,7 +554,7 @@ def cmd_correct(args):
         summ["msa"] = fit.to_dict()
         summ["msa"]["stations"] = [st.index for st in stations]
     if site is not None:
-        from ..core.geomag import azimuth_reference
+        from ...core.geomag import azimuth_reference
         summ["azimuth_reference"] = azimuth_reference(site, args.north)
     status = np.asarray(res["status"], dtype=int)
     summ["qc"] = {name: int(np.sum(status == k)) for k, name in enumerate(("ok", "warn", "error"))}
@@ -589,7 +589,7 @@ def cmd_correct(args):
         print(format_table5(None, table5(res, ref)).replace(" after ", f" {label[:6]:<6}"))
         print()
     if fit is not None:
-        from ..correct.msa import format_result
+        from ...correct.msa import format_result
         print(format_result(fit, [st.index for st in stations], res["drift_deg"]))
         print()
     print(_summary_line(summ))
@@ -614,7 +614,7 @@ def _msa_settings(args, site):
         return None
     if args.axial_correction:
         raise UserError("--axial-correction and --msa are two ways to correct axial interference: give one")
-    from ..correct.msa import MSASettings, reference_sigma
+    from ...correct.msa import MSASettings, reference_sigma
     if args.reference_sigma:
         try:
             sb, sd = (float(x) for x in args.reference_sigma.split(","))
@@ -671,7 +671,7 @@ def field_monitor(args):
     stations, or None when it is 0."""
     if not getattr(args, "monitor_window", 0):
         return None
-    from ..lab.field import FieldMonitor
+    from ...lab.field import FieldMonitor
 
     return FieldMonitor(window=args.monitor_window)
 
@@ -683,8 +683,8 @@ def cmd_reprocess(args):
     written, the damage is reported as ``error:``) or ``--calibrate`` did not solve; 2 when
     nothing could be done.
     """
-    from ..io.bag import BagError
-    from ..correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
+    from ...io.bag import BagError
+    from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
         return cmd_compare(args)
@@ -770,10 +770,10 @@ def cmd_reprocess(args):
 
 def cmd_compare(args):
     """``reprocess BAG --compare A.yaml B.yaml ... -o DIR``: the field effect ladder (:mod:`compare`)."""
-    from ..lab import compare
-    from ..io.bag import BagError
-    from ..core.deps import require
-    from ..correct.reprocess import ReprocessError
+    from ...lab import compare
+    from ...io.bag import BagError
+    from ...core.deps import require
+    from ...correct.reprocess import ReprocessError
 
     if args.coeffs or args.calibrate:
         raise UserError("--compare replays the bag through each record given: not with --coeffs or --calibrate")
@@ -814,7 +814,7 @@ def cmd_compare(args):
 
 def cmd_bag_recover(args):
     """Rewrite the readable part of a damaged bag (a recorder killed mid-run) as a finalized one."""
-    from ..io.bag import BagError, recover
+    from ...io.bag import BagError, recover
 
     try:
         rep = recover(args.bag, args.output)
@@ -828,8 +828,8 @@ def cmd_bag_recover(args):
 
 def cmd_bag_from_csv(args):
     """Write probe-log CSVs as one rosbag2 MCAP, as the probe node would have recorded them."""
-    from ..io.probelog import ProbeLog
-    from ..correct.reprocess import write_probe_bag
+    from ...io.probelog import ProbeLog
+    from ...correct.reprocess import write_probe_bag
 
     logs = []
     for path in args.logs:
@@ -862,15 +862,15 @@ def cmd_bag_from_csv(args):
 # Model lab
 # --------------------------------------------------------------------------------------------
 def _lab_setup(args):
-    from .. import lab
-    from ..lab.spec import build_model
+    from ... import lab
+    from ...lab.spec import build_model
 
     load_plugins(args.plugin, quiet=args.json)
     if bool(args.bag) == bool(args.cal):
         raise UserError("give the calibration log (--cal, with --val and --free) or a recorded run (--bag)")
     try:
         if args.bag:
-            from ..io.bag import BagError
+            from ...io.bag import BagError
             try:
                 data, cal = lab.load_bag(args.bag, warn=_warn)
             except BagError as exc:
@@ -918,7 +918,7 @@ def _progress(args):
 def cmd_lab_fit(args):
     if args.output:
         check_output(args.output)        # said before the work, not after it
-    from ..lab.diagnose import blocked_folds, field_fit, losses_text, validation
+    from ...lab.diagnose import blocked_folds, field_fit, losses_text, validation
 
     lab, site, data, model = _lab_setup(args)
     figures = []          # (label, metrics): the headline first
@@ -1017,7 +1017,7 @@ def _write_plugin(path, dg, where) -> None:
     """Write the diagnosis' first term outside the catalogue as a plug-in module at ``path``
     (:func:`lab.discover.plugin_source`), whole or not at all; say what was written, or that
     nothing was found outside the catalogue."""
-    from ..lab.discover import plugin_name, plugin_source
+    from ...lab.discover import plugin_name, plugin_source
 
     outside = [p for p in dg.discovered if p.outside]
     if not outside:
@@ -1044,7 +1044,7 @@ def cmd_lab_report(args):
     lab, site, data, model = _lab_setup(args)
     methods = None
     if args.turntable:
-        from ..lab.methods import compare
+        from ...lab.methods import compare
         if not args.cal or not args.val:
             raise UserError("--turntable compares the methods on --cal (the twelve poses) and --val logs: give both")
         truth = load_calibration(args.truth) if args.truth else None
@@ -1068,9 +1068,9 @@ def cmd_lab_report(args):
 
 def cmd_lab_noise(args):
     """The noise model of static logs: Allan deviation per axis of every hold, IEEE figures."""
-    from .. import lab
-    from ..detect.allan import format_noise, sensor_noise
-    from ..lab.noise import COLUMNS, holds
+    from ... import lab
+    from ...detect.allan import format_noise, sensor_noise
+    from ...lab.noise import COLUMNS, holds
 
     try:
         data = lab.load_logs(free_paths=args.logs, warn=_warn)
@@ -1118,7 +1118,7 @@ def _fleet_needs(purpose: str, modules) -> None:
 
 def _registry(args, create: bool = True):
     """The registry ``--db`` names; ``create=False`` for a command that only reads it."""
-    from ..fleet.registry import DEFAULT_URL, Registry, RegistryError
+    from ...fleet.registry import DEFAULT_URL, Registry, RegistryError
 
     try:
         return Registry(args.db or DEFAULT_URL, create=create)
@@ -1129,7 +1129,7 @@ def _registry(args, create: bool = True):
 def cmd_fleet_register(args):
     """``fleet register SERIAL``: add a probe to the registry (or, with --update, change its details)."""
     _fleet_needs("fleet register", FLEET_REGISTRY)
-    from ..fleet.registry import RegistryError
+    from ...fleet.registry import RegistryError
 
     with _registry(args) as reg:
         try:
@@ -1152,7 +1152,7 @@ def cmd_fleet_add(args):
     _fleet_needs("fleet add", FLEET_REGISTRY)
     import hashlib
 
-    from ..fleet.registry import RegistryError
+    from ...fleet.registry import RegistryError
 
     load_plugins(args.plugin, run=False)
     cal = load_calibration(args.record)
@@ -1183,8 +1183,8 @@ def cmd_fleet_history(args):
     """``fleet history SERIAL``: each parameter over time with its 1σ, the calibrations that moved
     beyond their combined uncertainty, and whether the probe is overdue (text; --html with plots)."""
     _fleet_needs("fleet history", FLEET_REGISTRY)
-    from ..fleet import history as fh
-    from ..fleet.registry import RegistryError
+    from ...fleet import history as fh
+    from ...fleet.registry import RegistryError
 
     at = parse_date(args.at, "--at") if args.at else None
     if not (args.k > 0):
@@ -1250,9 +1250,9 @@ def cmd_fleet_reprocess(args):
     (now or before), 1 when some failed (each with its reason in the summary), 2 when nothing
     could be done."""
     _fleet_needs("fleet reprocess", FLEET_REPROCESS)
-    from ..fleet.manifest import ManifestError, entries_from_paths, read_manifest
-    from ..fleet.registry import DEFAULT_URL
-    from ..fleet.reprocess import Settings, reprocess_fleet
+    from ...fleet.manifest import ManifestError, entries_from_paths, read_manifest
+    from ...fleet.registry import DEFAULT_URL
+    from ...fleet.reprocess import Settings, reprocess_fleet
 
     if bool(args.bags) == bool(args.manifest):
         raise UserError("give the bags either as arguments or with --manifest FILE (one of the two)")
@@ -1390,7 +1390,7 @@ def _detector_options(p, mag_unit=True):
 
 def _witsml_options(parser):
     """The WITSML options (:data:`witsml.OPTION_HELP`), checked by :meth:`witsml.Options.check` (one line, exit 2)."""
-    from ..rig.witsml import OPTION_HELP, Options
+    from ...rig.witsml import OPTION_HELP, Options
 
     defaults = Options()
     for name, text in OPTION_HELP.items():
@@ -1603,7 +1603,7 @@ def build_parser():
 
 def cmd_replay_test(args):
     """``replay-test``: a bag through the live graph, compared with an expected set (:mod:`replaytest`)."""
-    from .replaytest import run
+    from ..replaytest import run
 
     return run(args)
 
