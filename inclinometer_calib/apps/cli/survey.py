@@ -9,13 +9,9 @@ import sys
 import numpy as np
 
 from ...core.geomag import resolve_north
-from ...core.model import ModelContextError
 from ...core.output import atomic_write_text, check_output
-from ...core.station import correct_stations
-from ...core.survey import format_table4, format_table5, summarize, table4, table5
-from ...correct.pipeline import (along_north, context_warnings, evaluate_stations, reference_along_north,
-                                 station_status, usable)
-from ...detect.gates import SettlingTally, apply_gates
+from ...core.survey import format_table4, format_table5, table4, table5
+from ...correct.pipeline import evaluate_log
 from ..common import UserError, load_calibration
 from .shared import (detector_from_args, detector_options, load_plugins, load_stations, north_option, site_for,
                      tolerance_options, tolerances_from_args, warn)
@@ -23,77 +19,23 @@ from .shared import (detector_from_args, detector_options, load_plugins, load_st
 
 def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT", detector=None, msa=None,
                 north="auto"):
-    """Evaluate every static station of a log; returns (stations, result, summary).
-
-    Azimuths (and the reference azimuths, in the result's ``reference_azimuth_deg``) are along
-    ``north`` on ``site`` (:func:`pipeline.along_north`; the result's ``azimuth_reference`` names
-    it): a north the site cannot give is refused (:class:`UserError`).
-
-    Stations are found by the live nodes' detector and checked by the gates (in-hold motion,
-    flat axes): a station that fails is kept in the output, flagged and left out of the error
-    statistics.  ``axial``: azimuths from the short-collar correction of axial drill-string
-    interference.  ``msa``: an :class:`msa.MSASettings` — azimuths from the multi-station analysis
-    of the log's stations (:func:`msa.evaluate_with_msa`; stations that moved or have an unusable
-    sensor stay out of the fit); the summary's ``msa`` is then the :class:`msa.MSAResult`.
-    """
+    """Read a log, find its static stations (the live nodes' detector) and evaluate every one
+    (:func:`pipeline.evaluate_log`: gates, correction, QC, status; ``axial``, ``msa`` and the
+    result's fields there); returns (stations, result, summary).  A north the site cannot give,
+    a log without stations or one the model cannot correct is refused (:class:`UserError`);
+    ``quiet``: no warnings."""
     north, note = resolve_north(site, north)
     if note:
         raise UserError(f"--north: {note}")
     _, stations, _, _ = load_stations(log_path, quiet=quiet, mag_unit=mag_unit, detector=detector)
     if not stations:
         raise UserError(f"{log_path}: no static stations found")
-    tally = SettlingTally()
-    for st in stations:
-        for msg in tally.add(apply_gates(st)):   # corrected |G| is checked by the QC; the raw |g| gate is for captures
-            if not quiet:
-                warn(f"{log_path}: {msg}")
-    settled = tally.summary(len(stations), str(log_path))
-    if settled and not quiet:
-        warn(settled)
     try:
-        g, b = correct_stations(stations, cal, strict=True)   # the one correction path, with each station's temperature
-    except ModelContextError as exc:
-        raise UserError(f"{log_path}: {exc}") from None
-    missing = [st for st in stations if context_warnings(st, cal)]
-    if missing and not quiet:
-        warn(f"{log_path}: {len(missing)} station(s) without a temperature: {context_warnings(missing[0], cal)[0]}")
-    ref = np.array([s.ref for s in stations])
-    ref_used = np.where(np.array([s.moved for s in stations])[:, None], np.nan, ref)  # moved: no error figures
-    has_ref = np.any(np.isfinite(ref_used), axis=1)
-    if msa is not None:
-        from ...correct.msa import evaluate_with_msa
-        if site is None:
-            raise UserError(f"{log_path}: multi-station analysis needs a site reference "
-                            "(a record, or --site SITE.yaml)")
-        use = np.array([not s.moved and not s.unusable for s in stations])
-        try:
-            res, fit = evaluate_with_msa(g, b, site, tol, ref_used if has_ref.any() else None, msa, use=use)
-        except ValueError as exc:
-            raise UserError(f"{log_path}: {exc}") from None
-        _along(res, ref, site, north)
-        return stations, res, {**_finish(stations, res), "msa": fit}
-    res = evaluate_stations(g, b, site, tol, ref_used if has_ref.any() else None, axial)
-    _along(res, ref, site, north)
-    return stations, res, _finish(stations, res)
-
-
-def _along(res, ref, site, north):
-    """The result's azimuths and the log's reference azimuths along ``north`` (the errors, against
-    the true reference, are unchanged)."""
-    along_north(res, site, north)
-    res["azimuth_reference"] = north
-    res["reference_azimuth_deg"] = reference_along_north(ref[:, 1], site, north)
-
-
-def _finish(stations, res) -> dict:
-    """The one status rule on every station (:func:`pipeline.station_status`), and the summary of
-    the usable ones only: a station that is not to be used has no error figures."""
-    res["status"] = np.array([station_status(st, q) for st, q in zip(stations, res["status"])], dtype=int)
-    bad = ~usable(res["status"])
-    for k in ("drift_err", "azimuth_err", "toolface_err"):
-        if k in res:
-            res[k] = np.where(bad, np.nan, res[k])
-    return summarize(res)
+        res, summary = evaluate_log(stations, cal, site, tol, north, axial=axial, msa=msa, where=str(log_path),
+                                    warn=None if quiet else warn)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    return stations, res, summary
 
 
 STATION_COLUMNS = ["station", "pose", "t_start_s", "t_end_s", "samples", "temp_c", "drift_deg", "azimuth_deg",
