@@ -147,7 +147,7 @@ def test_concurrent_first_registrations_and_additions_are_safe(request, db_url, 
 #: there, and whether fleet.db is byte for byte the copy in the folder argv[1].
 _IN_THE_FOLDER = r"""
 import contextlib, io, json, os, sys, traceback
-from inclinometer_calib import cli
+from inclinometer_calib.apps import cli
 seed, out = sys.argv[1], []
 for argv in json.loads(sys.argv[2]):
     err = io.StringIO()
