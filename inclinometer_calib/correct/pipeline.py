@@ -31,11 +31,11 @@ import math
 import numpy as np
 
 from .axial import evaluate_with_axial
-from ..detect.gates import apply_gates
+from ..detect.gates import SettlingTally, apply_gates
 from ..core.geomag import azimuths, resolve_north
 from .iscwsa import position_covariance, terms_from_calibration
 from ..core.station import Station, StationSequence, correct_stations
-from ..core.survey import Tolerances, evaluate
+from ..core.survey import Tolerances, evaluate, summarize
 from .trajectory import minimum_curvature
 
 NAN = float("nan")
@@ -145,6 +145,81 @@ def context_warnings(st: Station, cal) -> list:
                 f"(record {cal.id}); its corrected values are NaN"]
     return []
 
+
+
+def evaluate_log(stations, cal, site, tol: Tolerances, north: str, *, axial: bool = False, msa=None,
+                 where: str = "", warn=None) -> tuple:
+    """Every static station of a log in one batch, the steps of the module docstring for the
+    ``correct`` command: returns ``(result, summary)`` (:func:`evaluate_stations`' dict, and
+    :func:`survey.summarize` of the usable stations).
+
+    Each station is gated (in-hold motion, flat axes: one that fails stays in the result, flagged,
+    its status error and its error figures NaN), corrected by ``cal`` (None: uncorrected), and
+    evaluated against ``site``; azimuths, and the log's reference azimuths in
+    ``reference_azimuth_deg``, are along ``north`` (resolved: :func:`geomag.resolve_north`; the
+    result's ``azimuth_reference`` names it).  ``axial``: azimuths from the short-collar correction
+    of axial drill-string interference.  ``msa``: an :class:`msa.MSASettings` — azimuths from the
+    multi-station analysis of the stations (:func:`msa.evaluate_with_msa`; stations that moved or
+    have an unusable sensor stay out of the fit); the summary's ``msa`` is then the
+    :class:`msa.MSAResult`.  ``warn`` (a callable, or None for silence) hears what the gates and
+    the model met, each line starting with ``where``; a log that cannot be evaluated raises
+    ``ValueError`` (``where: why``).
+    """
+    def say(msg):
+        if warn is not None:
+            warn(msg)
+
+    tally = SettlingTally()
+    for st in stations:
+        for msg in tally.add(apply_gates(st)):   # corrected |G| is checked by the QC; the raw |g| gate is for captures
+            say(f"{where}: {msg}")
+    settled = tally.summary(len(stations), where)
+    if settled:
+        say(settled)
+    try:
+        g, b = correct_stations(stations, cal, strict=True)   # the one correction path, with each station's temperature
+    except ValueError as exc:   # ModelContextError: a temperature or time the model needs and the log lacks
+        raise ValueError(f"{where}: {exc}") from None
+    missing = [st for st in stations if context_warnings(st, cal)]
+    if missing:
+        say(f"{where}: {len(missing)} station(s) without a temperature: {context_warnings(missing[0], cal)[0]}")
+    ref = np.array([s.ref for s in stations])
+    ref_used = np.where(np.array([s.moved for s in stations])[:, None], np.nan, ref)  # moved: no error figures
+    has_ref = np.any(np.isfinite(ref_used), axis=1)
+    if msa is not None:
+        from .msa import evaluate_with_msa
+        if site is None:
+            raise ValueError(f"{where}: multi-station analysis needs a site reference "
+                             "(a record, or --site SITE.yaml)")
+        use = np.array([not s.moved and not s.unusable for s in stations])
+        try:
+            res, fit = evaluate_with_msa(g, b, site, tol, ref_used if has_ref.any() else None, msa, use=use)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
+        _log_along(res, ref, site, north)
+        return res, {**_log_summary(stations, res), "msa": fit}
+    res = evaluate_stations(g, b, site, tol, ref_used if has_ref.any() else None, axial)
+    _log_along(res, ref, site, north)
+    return res, _log_summary(stations, res)
+
+
+def _log_along(res, ref, site, north):
+    """The result's azimuths and the log's reference azimuths along ``north`` (the errors, against
+    the true reference, are unchanged)."""
+    along_north(res, site, north)
+    res["azimuth_reference"] = north
+    res["reference_azimuth_deg"] = reference_along_north(ref[:, 1], site, north)
+
+
+def _log_summary(stations, res) -> dict:
+    """The one status rule on every station (:func:`station_status`), and the summary of the
+    usable ones only: a station that is not to be used has no error figures."""
+    res["status"] = np.array([station_status(st, q) for st, q in zip(stations, res["status"])], dtype=int)
+    bad = ~usable(res["status"])
+    for k in ("drift_err", "azimuth_err", "toolface_err"):
+        if k in res:
+            res[k] = np.where(bad, np.nan, res[k])
+    return summarize(res)
 
 class SurveyProcessor:
     """Gates, corrects and evaluates closed stations (the steps of the module docstring).

@@ -6,13 +6,16 @@ import sys
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PKG = os.path.join(ROOT, "inclinometer_calib")
 #: Every module of the layers below the nodes (test/core/test_layers.py: the layers and their
-#: order) and the CLI: none may import ROS (the kernel's numba module and the fleet's Alembic
-#: environment are left out: an optional extra, and a script Alembic runs).
+#: order) and the CLI's modules (not its __main__, which runs it): none may import ROS (the
+#: kernel's numba module and the fleet's Alembic environment are left out: an optional extra, and a
+#: script Alembic runs).
 CORE = sorted(
     os.path.relpath(os.path.join(d, f), PKG)[:-3].replace(os.sep, ".").removesuffix(".__init__")
     for layer in ("core", "detect", "io", "calibrate", "correct", "rig", "lab", "fleet")
     for d, _, files in os.walk(os.path.join(PKG, layer)) if "migrations" not in d
-    for f in files if f.endswith(".py") and f != "_batch_numba.py") + ["apps.cli", "apps.common"]
+    for f in files if f.endswith(".py") and f != "_batch_numba.py") + ["apps.common"] + [
+    "apps.cli" + ("" if f == "__init__.py" else "." + f[:-3])
+    for f in sorted(os.listdir(os.path.join(PKG, "apps", "cli"))) if f.endswith(".py") and f != "__main__.py"]
 
 
 def test_core_modules_import_no_ros():

@@ -49,13 +49,13 @@ def test_each_station_and_model_type_is_defined_once(name):
 
 def test_the_paths_import_the_one_station_type_and_the_one_correction_path():
     uses = {
-        "apps/cli.py": {("station", "correct_stations"), ("pipeline", "evaluate_stations")},
+        "apps/cli/survey.py": {("pipeline", "evaluate_log")},
         "correct/reprocess.py": {("pipeline", "SurveyProcessor")},
         "nodes/correction.py": {("pipeline", "SurveyProcessor")},
         "calibrate/labmodel.py": {("model", "ProbeModel")},
         "lab/data.py": {("station", "Stations")},
         "calibrate/capture.py": {("station", "Station")},
-        "correct/pipeline.py": {("station", "Station")},
+        "correct/pipeline.py": {("station", "Station"), ("station", "correct_stations")},
         "lab/loop.py": {("compare", "*")},
     }
     for module, need in uses.items():
@@ -132,4 +132,4 @@ def test_a_stations_status_is_decided_in_one_place():
     ``correct``'s table and figures."""
     callers = sorted(m for m, t in MODULES.items() if any(
         isinstance(n, ast.Call) and getattr(n.func, "id", "") == "station_status" for n in ast.walk(t)))
-    assert callers == ["apps/cli.py", "correct/pipeline.py"], callers
+    assert callers == ["correct/pipeline.py"], callers

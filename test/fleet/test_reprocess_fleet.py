@@ -19,6 +19,7 @@ import pyarrow.compute as pc
 import pytest
 
 from inclinometer_calib.apps import cli
+from inclinometer_calib.apps.cli.bags import field_monitor
 from inclinometer_calib.calibrate import simulate as sim
 from inclinometer_calib.fleet.manifest import ManifestError, read_manifest
 from inclinometer_calib.fleet.registry import Registry
@@ -138,7 +139,7 @@ def test_local_cluster_dataset_equals_single_bag_reprocess_with_the_record_of_ea
     for path, (serial, rec, date) in fleet["expected"].items():
         r = by_bag[path]
         assert (r.status, r.serial, r.record_id) == ("ok", serial, rec.id), r
-        want = reprocess(path, None, rec, monitor=cli.field_monitor(cli.build_parser().parse_args(
+        want = reprocess(path, None, rec, monitor=field_monitor(cli.build_parser().parse_args(
             ["reprocess", path, "-o", "x"]))).stations
         got = rows_of(table, path)
         assert len(got) == len(want) == r.stations == 4
@@ -208,7 +209,7 @@ def test_rerun_skips_what_is_done_and_redoes_a_bag_whose_record_changed(request,
     table = read_stations(out)
     rows = rows_of(table, target)
     assert len(rows) == 4 and {r["record_id"] for r in rows} == {new.id}   # the old fragment is gone
-    want = reprocess(target, None, new, monitor=cli.field_monitor(cli.build_parser().parse_args(
+    want = reprocess(target, None, new, monitor=field_monitor(cli.build_parser().parse_args(
         ["reprocess", target, "-o", "x"]))).stations
     for g, w in zip(rows, want):
         assert all(same(g[k], w[k]) for k in w)

@@ -429,7 +429,7 @@ def test_a_sensor_that_feels_the_temperature_late_is_said_to_lag_the_thermometer
     assert main(["lab", "fit", "--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site",
                  str(tmp_path / "site.yaml"), "--effects", "temperature_bias:mag:z,thermal_lag:mag", "--fit-on", "cal",
                  "-o", str(rec), "--quiet"]) == 0
-    from inclinometer_calib.apps.cli import correct_log
+    from inclinometer_calib.apps.cli.survey import correct_log
     from inclinometer_calib.core.coeffs import Calibration
     from inclinometer_calib.apps.launcher import read_bag
     from inclinometer_calib.core.survey import Tolerances
@@ -636,7 +636,7 @@ def test_a_magnetometer_that_settles_after_each_move_is_trimmed_named_and_fitted
     assert main(["lab", "fit", "--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site",
                  str(tmp_path / "site.yaml"), "--effects", top.label, "--fit-on", "cal", "-o", str(rec),
                  "--quiet"]) == 0
-    from inclinometer_calib.apps.cli import correct_log
+    from inclinometer_calib.apps.cli.survey import correct_log
     from inclinometer_calib.core.coeffs import Calibration
     from inclinometer_calib.apps.launcher import read_bag
     from inclinometer_calib.core.survey import Tolerances
@@ -687,7 +687,7 @@ def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits
     # nothing outside the catalogue: no file, and why (the writer on a diagnosis that found nothing)
     from types import SimpleNamespace
 
-    from inclinometer_calib.apps.cli import _write_plugin
+    from inclinometer_calib.apps.cli.lab import _write_plugin
     again = tmp_path / "none.py"
     _write_plugin(str(again), SimpleNamespace(discovered=[]), "")
     assert not again.exists() and "nothing outside the catalogue was found" in capsys.readouterr().err

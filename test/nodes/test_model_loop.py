@@ -20,7 +20,8 @@ import pytest
 
 pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` and `source scripts/env.sh`")
 
-from inclinometer_calib.apps.cli import correct_log, main  # noqa: E402
+from inclinometer_calib.apps.cli import main  # noqa: E402
+from inclinometer_calib.apps.cli.survey import correct_log  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.core.frames import wrap180  # noqa: E402
 from inclinometer_calib.apps.launcher import read_bag  # noqa: E402
