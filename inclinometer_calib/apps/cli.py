@@ -474,12 +474,7 @@ def _finish(stations, res) -> dict:
     return summarize(res)
 
 
-STATION_COLUMNS = ["station", "pose", "t_start_s", "t_end_s", "samples", "temp_c", "drift_deg", "azimuth_deg",
-                   "toolface_deg", "toolface_type", "gravity_toolface_deg", "magnetic_toolface_deg",
-                   "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
-                   "delta_dip_deg", "status", "flags", "ref_drift_deg", "ref_azimuth_deg",
-                   "ref_toolface_deg", "drift_err_deg", "azimuth_err_deg", "toolface_err_deg",
-                   "azimuth_reference", "azimuth_true_deg", "azimuth_magnetic_deg", "azimuth_grid_deg"]
+from ..io.station import CSV_COLUMNS as STATION_COLUMNS  # noqa: E402  (the one field table)
 
 
 def format_station_csv(stations, res) -> str:

@@ -73,7 +73,8 @@ from ..io.bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts a
 from ..core.deps import MissingDependency, require
 from ..core.geomag import NORTH_CHOICES
 from ..rig.liveview import station_label
-from ..io.topics import TOPIC_STATION, station_dict
+from ..io.station import from_msg as station_dict
+from ..io.topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
 STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder")  # the recorder last: it records the others
