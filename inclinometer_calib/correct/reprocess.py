@@ -55,7 +55,7 @@ from .engine import Expect, RecordOut, StationOut, StreamEngine
 from .pipeline import SurveyProcessor
 from ..detect.streaming import StaticDetector
 from ..core.survey import Tolerances
-from ..io.topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, PROGRESS_TYPE,
+from ..io.topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS,
                      REFERENCE_TYPE, STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU,
                      TOPIC_MAG, TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL, TOPIC_STATION,
                      TOPIC_TEMPERATURE)
