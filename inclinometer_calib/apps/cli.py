@@ -474,7 +474,7 @@ def _finish(stations, res) -> dict:
     return summarize(res)
 
 
-from ..io.station import CSV_COLUMNS as STATION_COLUMNS  # noqa: E402  (the one field table)
+from ..io.surveystation import CSV_COLUMNS as STATION_COLUMNS  # noqa: E402  (the one field table)
 
 
 def format_station_csv(stations, res) -> str:

@@ -73,7 +73,7 @@ from ..io.bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts a
 from ..core.deps import MissingDependency, require
 from ..core.geomag import NORTH_CHOICES
 from ..rig.liveview import station_label
-from ..io.station import from_msg as station_dict
+from ..io.surveystation import from_msg as station_dict
 from ..io.topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
@@ -613,7 +613,7 @@ PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_d
 
 
 def read_bag(path, progress=None):
-    """Stations (:func:`station.from_msg`), coefficient messages and the last calibration status of
+    """Stations (:func:`surveystation.from_msg`), coefficient messages and the last calibration status of
     a bag as plain dicts, in receive order (:func:`bag.read_messages`: each message decoded with the
     definition the bag records); with a list ``progress``, the ``/graph/progress`` messages are
     appended to it (dicts of :data:`PROGRESS_FIELDS`).  Raises ``ValueError`` (one line) for what is

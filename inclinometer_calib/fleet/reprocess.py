@@ -210,11 +210,11 @@ _SCHEMA = None
 
 def station_schema():
     """The Arrow schema of a fragment: the provenance columns, then every ``SurveyStation`` field
-    (but the header) as :func:`station.arrow_types` types it (the one field table)."""
+    (but the header) as :func:`surveystation.arrow_types` types it (the one field table)."""
     global _SCHEMA
     if _SCHEMA is None:
         import pyarrow as pa
-        from ..io.station import arrow_types
+        from ..io.surveystation import arrow_types
 
         fields = [pa.field("bag", pa.string()), pa.field("bag_sha256", pa.string()),
                   pa.field("record_id", pa.string()), pa.field("survey_start", pa.timestamp("ns", tz="UTC")),
@@ -236,7 +236,7 @@ def stations_table(stations: Sequence[dict], provenance: dict, stamps: Sequence[
     one Arrow table. Raises :class:`ValueError` for a station field the message does not declare."""
     import pyarrow as pa
 
-    from ..io.station import to_row
+    from ..io.surveystation import to_row
 
     rows = [{**provenance, **to_row({**st, "stamp": stamp})} for st, stamp in zip(stations, stamps, strict=True)]
     return pa.Table.from_pylist(rows, schema=station_schema())

@@ -66,7 +66,7 @@ from ..lab.field import FieldMonitor
 from ..correct.pipeline import NO_SITE, SurveyProcessor
 from ..core.plugins import NODE_PARAMETER, name_plugins
 from ..core.output import atomic_write_text
-from ..io.station import to_msg as station_to_msg
+from ..io.surveystation import to_msg as station_to_msg
 from . import common as c
 from .stream import StreamDriver, declare_stream_params, make_detector
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation

@@ -332,7 +332,7 @@ def test_read_messages_gives_the_probe_types_by_the_fast_path_and_the_same_value
 
 
 def test_a_station_recorded_with_an_older_definition_is_read_with_the_bags_own(tmp_path):
-    from inclinometer_calib.io import station
+    from inclinometer_calib.io import surveystation
 
     # the definition before the stations had one north: no azimuth_true_deg (its positions were
     # along grid north, its azimuth true)
@@ -346,7 +346,7 @@ def test_a_station_recorded_with_an_older_definition_is_read_with_the_bags_own(t
         w.write(w.add_topic("/survey/station", STATION, definition=old, type_hash=""), data, T0)
     (_, msg), = bag.read_messages(p)
     assert not hasattr(msg, "azimuth_true_deg")
-    d = station.from_msg(msg)
+    d = surveystation.from_msg(msg)
     assert d["azimuth_reference"] == "grid" and d["azimuth_true_deg"] == msg.azimuth_deg
     assert d["azimuth_deg"] == msg.azimuth_grid_deg
 

@@ -1,4 +1,4 @@
-"""The output station's one field table (inclinometer_calib/io/station.py) against the message
+"""The output station's one field table (inclinometer_calib/io/surveystation.py) against the message
 definition as ``rosbags`` parses msg/SurveyStation.msg, and its forms: a message read back through
 CDR, a recording that predates fields, the Parquet types, the CSV columns."""
 import math
@@ -7,7 +7,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from inclinometer_calib.io import station
+from inclinometer_calib.io import surveystation
 from inclinometer_calib.io.topics import STATION_TYPE
 
 pytest.importorskip("rosbags.typesys")
@@ -36,14 +36,14 @@ def _spelled(kind, rest) -> str:
 def test_the_field_table_is_the_message_definition_field_for_field_in_order(store):
     fields = [(name, _spelled(kind, rest)) for name, (kind, rest) in store.fielddefs[STATION_TYPE][1]
               if name != "header"]
-    assert [(f.name, f.ros_type) for f in station.FIELDS] == fields
+    assert [(f.name, f.ros_type) for f in surveystation.FIELDS] == fields
 
 
 def _message(store, **overrides):
     """A rosbags SurveyStation with a distinct value in every field, serialized and read back."""
     cls = store.types[STATION_TYPE]
     values = {}
-    for k, f in enumerate(station.FIELDS):
+    for k, f in enumerate(surveystation.FIELDS):
         base = f.ros_type.partition("[")[0]
         v = {"float64": 0.5 + k, "uint32": k, "uint8": k % 3, "bool": k % 2 == 0, "string": f"s{k}"}[base]
         if f.ros_type == "string[]":
@@ -61,17 +61,17 @@ def _message(store, **overrides):
 
 def test_a_message_becomes_the_dict_of_every_field_and_back(store):
     msg, values = _message(store)
-    d = station.from_msg(msg)
-    assert list(d) == list(station.DICT_KEYS)
+    d = surveystation.from_msg(msg)
+    assert list(d) == list(surveystation.DICT_KEYS)
     assert d["stamp"] == 1_700_000_000 + 0.25
-    for f in station.FIELDS:
+    for f in surveystation.FIELDS:
         want = values[f.name]
         assert d[f.name] == (list(want) if f.ros_type.endswith("]") else want), f.name
         assert type(d[f.name]) in (int, float, bool, str, list), f.name      # plain Python, not numpy
-    back = station.to_msg(d, type("Msg", (), {})())
-    assert {f.name: getattr(back, f.name) for f in station.FIELDS} == {k: d[k] for k in station.NAMES}
+    back = surveystation.to_msg(d, type("Msg", (), {})())
+    assert {f.name: getattr(back, f.name) for f in surveystation.FIELDS} == {k: d[k] for k in surveystation.NAMES}
     with pytest.raises(KeyError, match="not a SurveyStation field"):
-        station.to_msg({"drift": 1.0}, back)
+        surveystation.to_msg({"drift": 1.0}, back)
 
 
 def test_a_recording_that_predates_a_field_reads_it_as_its_missing_value():
@@ -79,11 +79,11 @@ def test_a_recording_that_predates_a_field_reads_it_as_its_missing_value():
         header = type("H", (), {"stamp": type("T", (), {"sec": 5, "nanosec": 0})})()
         warnings = ()
 
-    required = [f for f in station.FIELDS if f.missing is None]
+    required = [f for f in surveystation.FIELDS if f.missing is None]
     for f in required:
         setattr(Old, f.name, [] if f.ros_type.endswith("]") else 0)
-    d = station.from_msg(Old())
-    for f in station.FIELDS:
+    d = surveystation.from_msg(Old())
+    for f in surveystation.FIELDS:
         if f.missing is not None:
             want = list(f.missing) if isinstance(f.missing, tuple) else f.missing
             assert d[f.name] == want or (isinstance(want, float) and math.isnan(d[f.name])), f.name
@@ -91,15 +91,15 @@ def test_a_recording_that_predates_a_field_reads_it_as_its_missing_value():
 
 def test_the_parquet_row_and_types_cover_the_fields_and_refuse_another():
     pa = pytest.importorskip("pyarrow")
-    types = dict(station.arrow_types(pa))
-    assert list(types) == list(station.NAMES)
+    types = dict(surveystation.arrow_types(pa))
+    assert list(types) == list(surveystation.NAMES)
     assert types["raw_gravity_mps2"] == pa.list_(pa.float64(), 3) and types["warnings"] == pa.list_(pa.string())
     assert types["station_id"] == pa.uint32() and types["status"] == pa.uint8()
     with pytest.raises(ValueError, match="not SurveyStation fields"):
-        station.to_row({"station_id": 1, "drift": 2.0})
+        surveystation.to_row({"station_id": 1, "drift": 2.0})
 
 
 def test_the_csv_names_a_column_for_fields_of_the_table_only_and_each_once():
-    assert set(station.CSV_NAMES) <= set(station.NAMES)
-    assert len(set(station.CSV_COLUMNS)) == len(station.CSV_COLUMNS)
-    assert set(station.CSV_NAMES.values()) <= set(station.CSV_COLUMNS)
+    assert set(surveystation.CSV_NAMES) <= set(surveystation.NAMES)
+    assert len(set(surveystation.CSV_COLUMNS)) == len(surveystation.CSV_COLUMNS)
+    assert set(surveystation.CSV_NAMES.values()) <= set(surveystation.CSV_COLUMNS)
