@@ -33,7 +33,7 @@ class Field(NamedTuple):
     missing: object = None
 
 
-#: The message's fields but the header, in the ``.msg`` order (``test_station`` checks both).
+#: The message's fields but the header, in the ``.msg`` order (``test_surveystation`` holds it to the ``.msg``).
 FIELDS = (
     Field("station_id", "uint32"),
     Field("drift_deg", "float64"),
