@@ -9,8 +9,8 @@ line by line with a ``[name]`` prefix, and stops everything when the probe finis
 short drain so the last station is closed and recorded) or on Ctrl-C/SIGTERM: SIGINT first,
 then SIGTERM and SIGKILL after timeouts; the recorder is stopped last.
 
-Then it prints a summary, read back from the recorded bag with ``rosbags`` (independent of the
-recorder's writer): the calibration coefficients against the simulator truth (``truth.json``
+Then it prints a summary, read back from the recorded bag (:func:`bag.read_messages`: the
+definitions the bag records, ``rosbags``' deserializer, not the recorder's code): the calibration coefficients against the simulator truth (``truth.json``
 written by the probe) and the survey station angles against their reference attitudes.
 
 ``--out DIR`` leaves ``survey.mcap``, ``coeffs.yaml``, ``truth.json`` (+ ``truth_coeffs.yaml``),
@@ -73,7 +73,8 @@ from ..io.bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts a
 from ..core.deps import MissingDependency, require
 from ..core.geomag import NORTH_CHOICES
 from ..rig.liveview import station_label
-from ..io.topics import TOPIC_STATION, station_dict
+from ..io.surveystation import from_msg as station_dict
+from ..io.topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
 STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder")  # the recorder last: it records the others
@@ -603,7 +604,7 @@ def run_graph(args, out, env) -> GraphResult:
 
 
 # --------------------------------------------------------------------------------------------
-# Summary (independent reader: rosbags)
+# Summary (read back from the bag: io.bag's decoding, rosbags' deserializer)
 # --------------------------------------------------------------------------------------------
 #: StreamProgress fields read into the accounting (accounting.account).
 PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_depth", "window", "imu", "mag",
@@ -612,50 +613,37 @@ PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_d
 
 
 def read_bag(path, progress=None):
-    """Stations, coefficient messages and the last calibration status of a bag as plain dicts, read
-    with ``rosbags`` (in receive order); with a list ``progress``, the ``/graph/progress``
-    messages are appended to it (dicts of :data:`PROGRESS_FIELDS`)."""
-    from pathlib import Path
+    """Stations (:func:`surveystation.from_msg`), coefficient messages and the last calibration status of
+    a bag as plain dicts, in receive order (:func:`bag.read_messages`: each message decoded with the
+    definition the bag records); with a list ``progress``, the ``/graph/progress`` messages are
+    appended to it (dicts of :data:`PROGRESS_FIELDS`).  Raises ``ValueError`` (one line) for what is
+    not a readable bag."""
+    from ..io.bag import DECODE_ERRORS, BagError, read_messages
+    from ..io.topics import TOPIC_COEFFICIENTS, TOPIC_PROGRESS, TOPIC_STATUS
 
-    require("rosbags.highlevel", "bag", "the run summary")
-    from rosbags.highlevel import AnyReaderError
-    from rosbags.rosbag2 import ReaderError
-    from rosbags.serde import SerdeError
-
-    try:
-        return _read_bag(Path(path), progress)
-    except (AnyReaderError, ReaderError, SerdeError) as exc:   # not a bag, or a damaged one: said, not raised raw
-        raise ValueError(f"not a readable bag ({type(exc).__name__}: {exc})") from None
-
-
-def _read_bag(path, progress):
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    from ..io.topics import TOPIC_PROGRESS
-
+    require("rosbags.typesys", "bag", "the run summary")
     stations, coefficients, status = [], [], None
-    wanted = {"/survey/station", "/calibration/coefficients", "/calibration/status"}
+    wanted = {TOPIC_STATION, TOPIC_COEFFICIENTS, TOPIC_STATUS}
     if progress is not None:
         wanted.add(TOPIC_PROGRESS)
-    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
-        conns = [x for x in reader.connections if x.topic in wanted]
-        # rosbags reads an empty connection list as "every connection": a bag without these
-        # topics (only /clock and /probe/*) has nothing to read here
-        for conn, _, raw in reader.messages(connections=conns) if conns else ():
-            msg = reader.deserialize(raw, conn.msgtype)
-            if conn.topic == TOPIC_PROGRESS:
+    try:
+        for m, msg in read_messages(path, wanted):
+            if m.topic == TOPIC_PROGRESS:
                 progress.append({k: getattr(msg, k) for k in PROGRESS_FIELDS})
-            elif conn.topic == "/survey/station":
+            elif m.topic == TOPIC_STATION:
                 stations.append(station_dict(msg))
-            elif conn.topic == "/calibration/status":
+            elif m.topic == TOPIC_STATUS:
                 status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
                           "pending": [int(x) for x in msg.pending], "warnings": list(msg.warnings)}
-            elif conn.topic == "/calibration/coefficients":
+            else:
                 coefficients.append({"id": msg.id, "coefficients_yaml": msg.coefficients_yaml,
                                      "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
                                      "accel_correction_matrix": [float(x) for x in msg.accel_correction_matrix],
                                      "mag_correction_matrix": [float(x) for x in msg.mag_correction_matrix]})
+    except BagError as exc:          # not a bag, or a damaged one: said, not raised raw (the caller names the file)
+        raise ValueError(f"not a readable bag ({exc.reason} at byte offset {exc.offset})") from None
+    except DECODE_ERRORS as exc:
+        raise ValueError(f"not a readable bag (a message that does not decode: {type(exc).__name__}: {exc})") from None
     return stations, coefficients, status
 
 

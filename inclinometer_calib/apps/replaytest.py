@@ -82,7 +82,7 @@ def _wrapped(name, a, b) -> float:
 
 
 def compare(got, expected, tolerance: float = 1e-6) -> Comparison:
-    """Compare station dicts (``topics.station_dict``) ``got`` with ``expected``, matched by stamp."""
+    """Compare station dicts (``surveystation.from_msg``) ``got`` with ``expected``, matched by stamp."""
     from ..io.accounting import unique_stations
 
     got, _ = unique_stations(got)

@@ -1,8 +1,9 @@
 """Offline reprocessing of a recorded bag: read → pair → detect stations → correct → write.
 
 ROS-free on purpose (no rclpy, no generated message modules): the probe's messages are decoded
-from their CDR bytes here, the output ``SurveyStation`` messages are serialized with the
-``rosbags`` type store (our ``msg/SurveyStation.msg`` registered), and the bag is read and
+from their CDR bytes by :mod:`inclinometer_calib.io.cdr` (the fast path of :mod:`io.bag`'s
+decoding), the output ``SurveyStation`` messages are serialized with ``bag.MessageEncoder`` (the
+``rosbags`` type store, our ``msg/SurveyStation.msg`` registered), and the bag is read and
 written with :mod:`inclinometer_calib.io.bag`.  It does offline what the correction node does live:
 
 * ``/probe/imu`` (``sensor_msgs/Imu``: REP-145 specific force, m/s²) and ``/probe/mag``
@@ -43,7 +44,7 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from ..io.bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageDefinitions, open_bag
+from ..io.bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageEncoder, open_bag, read_messages
 from ..calibrate.capture import CaptureSession
 from ..io.cdr import (DECODE_ERRORS, Patcher, decode_float64, decode_imu, decode_imu_covariance, decode_mag_covariance,
                   decode_string, decode_temperature, decode_vector3, header)
@@ -54,7 +55,7 @@ from .engine import Expect, RecordOut, StationOut, StreamEngine
 from .pipeline import SurveyProcessor
 from ..detect.streaming import StaticDetector
 from ..core.survey import Tolerances
-from ..io.topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS, PROGRESS_TYPE,
+from ..io.topics import (COEFFICIENTS_TYPE, DEPTH_TYPE, GRAPH_OUTPUTS, IMU_TYPE, MAG_TYPE, PROBE_TOPICS,
                      REFERENCE_TYPE, STATION_TYPE, TEMPERATURE_TYPE, TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU,
                      TOPIC_MAG, TOPIC_REFERENCE, SERIAL_TYPE, TOPIC_SERIAL, TOPIC_STATION,
                      TOPIC_TEMPERATURE)
@@ -71,12 +72,11 @@ class ReprocessError(ValueError):
 def bag_probe_serial(path) -> Optional[str]:
     """The probe serial a bag records (its first ``/probe/serial`` message), or None when it has
     none.  Raises :class:`bag.BagError` if ``path`` is not a bag."""
-    reader = open_bag(path)
-    for m in reader.messages([TOPIC_SERIAL], strict=False):
-        try:
-            return decode_string(m.data)
-        except DECODE_ERRORS as exc:
-            raise ReprocessError(f"{path}: undecodable {TOPIC_SERIAL} message ({exc})") from None
+    try:
+        for _m, serial in read_messages(path, [TOPIC_SERIAL], strict=False):
+            return serial
+    except DECODE_ERRORS as exc:
+        raise ReprocessError(f"{path}: undecodable {TOPIC_SERIAL} message ({exc})") from None
     return None
 
 
@@ -146,7 +146,7 @@ class BagFeeder:
             elif topic == TOPIC_SERIAL:
                 eng.set_serial(decode_string(m.data))
             elif topic == TOPIC_COEFFICIENTS:
-                fields = self._decoder().decode(COEFFICIENTS_TYPE, m.data)
+                fields = self.codec.decode(COEFFICIENTS_TYPE, m.data)
                 if fields["id"] not in self.record_ids:
                     self.record_ids.append(fields["id"])
                     if self.records:
@@ -157,46 +157,12 @@ class BagFeeder:
             return f"undecodable {topic} message ({exc})"
         return ""
 
-    def _decoder(self):
+    @property
+    def codec(self) -> MessageEncoder:
+        """Our messages' CDR (the records here, a resuming node's progress and stations)."""
         if not hasattr(self, "_enc"):
             self._enc = MessageEncoder()
         return self._enc
-
-
-# ---------------------------------------------------------------------------------------------
-# Our messages' serialization (rosbags type store, our .msg registered)
-
-class MessageEncoder:
-    """Serializes ``SurveyStation`` and ``CalibrationCoefficients`` messages to CDR without rclpy
-    (``rosbags`` type store with our message definitions registered)."""
-
-    def __init__(self, definitions: Optional[MessageDefinitions] = None):
-        require("rosbags.typesys", "bag", "writing our messages into a bag")
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-        defs = definitions or MessageDefinitions()
-        self.store = get_typestore(Stores.ROS2_JAZZY)
-        for name in (STATION_TYPE, COEFFICIENTS_TYPE, PROGRESS_TYPE):
-            self.store.register(get_types_from_msg(defs.text(name), name))
-        self._header = self.store.types["std_msgs/msg/Header"]
-        self._time = self.store.types["builtin_interfaces/msg/Time"]
-
-    def encode(self, type_name: str, stamp_ns: int, frame_id: str, fields: dict) -> bytes:
-        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-        cls = self.store.types[type_name]
-        # rosbags wants numpy arrays for numeric sequences
-        vals = {k: (np.asarray(v, dtype=np.uint8 if k == "poses_used" else float)
-                    if isinstance(v, list) and (not v or not isinstance(v[0], str)) else v)
-                for k, v in fields.items()}
-        msg = cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id), **vals)
-        return bytes(self.store.serialize_cdr(msg, type_name))
-
-    def decode(self, type_name: str, data) -> dict:
-        """The fields of one of our messages from its CDR bytes (``stamp``: the header's, s)."""
-        msg = self.store.deserialize_cdr(bytes(data), type_name)
-        out = {k: getattr(msg, k) for k in msg.__dataclass_fields__ if k != "header"}
-        out["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
-        return out
 
 
 # ---------------------------------------------------------------------------------------------

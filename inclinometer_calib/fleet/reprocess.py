@@ -208,41 +208,18 @@ def survey_start(path) -> _dt.datetime:
 _SCHEMA = None
 
 
-def _arrow_type(pa, kind, rest):
-    from rosbags.typesys.base import Nodetype
-
-    scalars = {"float64": pa.float64(), "float32": pa.float32(), "uint8": pa.uint8(), "uint16": pa.uint16(),
-               "uint32": pa.uint32(), "uint64": pa.uint64(), "int8": pa.int8(), "int16": pa.int16(),
-               "int32": pa.int32(), "int64": pa.int64(), "bool": pa.bool_(), "string": pa.string()}
-    if kind == Nodetype.BASE:
-        return scalars[rest[0]]
-    if kind == Nodetype.ARRAY:
-        (ek, er), n = rest
-        return pa.list_(_arrow_type(pa, ek, er), n)
-    if kind == Nodetype.SEQUENCE:
-        (ek, er), _ = rest
-        return pa.list_(_arrow_type(pa, ek, er))
-    raise TypeError(f"no Parquet column type for a field of kind {kind}")
-
-
 def station_schema():
     """The Arrow schema of a fragment: the provenance columns, then every ``SurveyStation`` field
-    (but the header) typed from the message definition (the one place the fields are declared)."""
+    (but the header) as :func:`surveystation.arrow_types` types it (the one field table)."""
     global _SCHEMA
     if _SCHEMA is None:
         import pyarrow as pa
-        from ..io.bag import MessageDefinitions
-        from ..io.topics import STATION_TYPE
+        from ..io.surveystation import arrow_types
 
-        defs = MessageDefinitions()
-        name = defs.register(STATION_TYPE)
         fields = [pa.field("bag", pa.string()), pa.field("bag_sha256", pa.string()),
                   pa.field("record_id", pa.string()), pa.field("survey_start", pa.timestamp("ns", tz="UTC")),
                   pa.field("probe_forced", pa.bool_()), pa.field("stamp", pa.float64())]
-        for fname, (kind, rest) in defs.typestore.fielddefs[name][1]:
-            if fname == "header":
-                continue
-            fields.append(pa.field(fname, _arrow_type(pa, kind, rest)))
+        fields += [pa.field(name, t) for name, t in arrow_types(pa)]
         _SCHEMA = pa.schema(fields)
     return _SCHEMA
 
@@ -259,15 +236,10 @@ def stations_table(stations: Sequence[dict], provenance: dict, stamps: Sequence[
     one Arrow table. Raises :class:`ValueError` for a station field the message does not declare."""
     import pyarrow as pa
 
-    schema = station_schema()
-    names = set(schema.names)
-    rows = []
-    for st, stamp in zip(stations, stamps, strict=True):
-        extra = set(st) - names
-        if extra:
-            raise ValueError(f"station fields {sorted(extra)} are not SurveyStation fields")
-        rows.append({**provenance, "stamp": stamp, **st})
-    return pa.Table.from_pylist(rows, schema=schema)
+    from ..io.surveystation import to_row
+
+    rows = [{**provenance, **to_row({**st, "stamp": stamp})} for st, stamp in zip(stations, stamps, strict=True)]
+    return pa.Table.from_pylist(rows, schema=station_schema())
 
 
 def partition_dir(serial: str, date: str) -> str:

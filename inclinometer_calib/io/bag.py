@@ -26,6 +26,11 @@ what ``rosbags`` and ``mcap_ros2`` need to decode it):
 * a metadata record ``rosbag2`` with ``serialized_metadata`` (the ``metadata.yaml`` content),
   then the summary with statistics and chunk indexes, written by :meth:`BagWriter.close`.
 
+The QoS YAML and ``metadata.yaml`` mappings are built here (:func:`qos_profiles_yaml`,
+:meth:`BagWriter.rosbag2_metadata`) and dumped by PyYAML: ``rosbags`` writes them only from its own
+``rosbag2.Writer.close`` (its storage, without the crash safety below; its ``dump_qos_v9`` is not
+public API), and ``mcap`` knows nothing of rosbag2.
+
 Crash safety (:class:`BagWriter`)
 --------------------------------
 The bag is written **directly to its final path**, never to a temporary name that is renamed at
@@ -94,7 +99,7 @@ __all__ = [
     "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
     "normalize_type", "qos_profiles_yaml", "parse_qos_profiles", "DEFAULT_QOS_PROFILE",
     "BagWriter", "BagReader", "BagMessage", "TopicInfo", "RecoveryReport", "open_bag", "recover",
-    "available_compressions",
+    "available_compressions", "BagDecoder", "read_messages", "DECODE_ERRORS", "MessageEncoder",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -304,9 +309,9 @@ DEFAULT_QOS_PROFILE = {
 }
 
 
-def _sec_nsec(ns: int) -> str:
+def _sec_nsec(ns: int) -> dict:
     sec, nsec = divmod(int(ns), 1_000_000_000)
-    return f"sec: {sec}\n    nsec: {nsec}"
+    return {"sec": sec, "nsec": nsec}
 
 
 def qos_profiles_yaml(profiles: Iterable[Mapping]) -> str:
@@ -315,24 +320,20 @@ def qos_profiles_yaml(profiles: Iterable[Mapping]) -> str:
     Each profile is a mapping with the keys of :data:`DEFAULT_QOS_PROFILE` (missing keys take
     those defaults): enum policies as lower-case rmw names (``keep_last``, ``best_effort``,
     ``transient_local``, ``automatic``...), durations as integer nanoseconds. An empty list gives
-    ``""`` as rosbag2 does.
+    ``""`` as rosbag2 does.  The mapping is rosbag2's (the one ``rosbags`` writes, whose
+    ``dump_qos_v9`` is not public API), dumped by PyYAML.
     """
     items = []
     for prof in profiles:
         p = dict(DEFAULT_QOS_PROFILE)
         p.update(prof)
-        items.append(
-            f"- history: {p['history']}\n"
-            f"  depth: {int(p['depth'])}\n"
-            f"  reliability: {p['reliability']}\n"
-            f"  durability: {p['durability']}\n"
-            f"  deadline:\n    {_sec_nsec(p['deadline_ns'])}\n"
-            f"  lifespan:\n    {_sec_nsec(p['lifespan_ns'])}\n"
-            f"  liveliness: {p['liveliness']}\n"
-            f"  liveliness_lease_duration:\n    {_sec_nsec(p['liveliness_lease_duration_ns'])}\n"
-            f"  avoid_ros_namespace_conventions: "
-            f"{'true' if p['avoid_ros_namespace_conventions'] else 'false'}")
-    return "\n".join(items)
+        items.append({
+            "history": p["history"], "depth": int(p["depth"]), "reliability": p["reliability"],
+            "durability": p["durability"], "deadline": _sec_nsec(p["deadline_ns"]),
+            "lifespan": _sec_nsec(p["lifespan_ns"]), "liveliness": p["liveliness"],
+            "liveliness_lease_duration": _sec_nsec(p["liveliness_lease_duration_ns"]),
+            "avoid_ros_namespace_conventions": bool(p["avoid_ros_namespace_conventions"])})
+    return yaml.safe_dump(items, sort_keys=False).strip() if items else ""
 
 
 _QOS_ENUMS = {
@@ -541,22 +542,10 @@ class BagWriter:
             raise
         self.error: Optional[OSError] = None
         self._add = self._mcap.add_message
-        self._stats = getattr(self._mcap, "_Writer__statistics", None)
-        self._own_counts: Optional[Dict[int, int]] = None
-        if self._stats is None:  # other mcap version: count ourselves (slightly slower)
-            self._own_counts = {}
-            self._own_times = [_INF_NS, 0]
-            inner = self._add
-
-            def counting_add(channel_id, log_time, data, publish_time):
-                self._own_counts[channel_id] = self._own_counts.get(channel_id, 0) + 1
-                t = self._own_times
-                if log_time < t[0]:
-                    t[0] = log_time
-                if log_time > t[1]:
-                    t[1] = log_time
-                inner(channel_id, log_time, data, publish_time)
-            self._add = counting_add
+        # messages per channel and the log-time range, counted here: mcap's writer keeps its own
+        # statistics private (Writer.__statistics, no public accessor in mcap 1.6); 0.1 µs a message
+        self._counts: Dict[int, int] = {}
+        self._t_range = [_INF_NS, 0]
         self._deadline = 0  # log time at which the open chunk must be closed (0: not armed)
         self._schemas: Dict[str, int] = {}
         self.topics: Dict[str, _TopicRecord] = {}
@@ -627,12 +616,22 @@ class BagWriter:
         try:
             if log_time >= self._deadline:
                 self._roll(log_time)
-            # remembered before the add: a chunk full with this message is written by the add
+            # remembered and counted before the add: a chunk full with this message is written by
+            # the add, and what the file then holds includes it (_commit)
             self._last_cid, self._last_data = channel_id, data
+            self._count(channel_id, log_time)
             self._add(channel_id, log_time, data, publish_time or log_time)
         except OSError as exc:
             self._fail(exc)
             raise
+
+    def _count(self, channel_id: int, log_time: int) -> None:
+        counts, t = self._counts, self._t_range
+        counts[channel_id] = counts.get(channel_id, 0) + 1
+        if log_time < t[0]:
+            t[0] = log_time
+        if log_time > t[1]:
+            t[1] = log_time
 
     def _roll(self, log_time: int) -> None:
         if self._deadline:
@@ -674,8 +673,7 @@ class BagWriter:
         """The sink took a write whole: what the writer has counted is now in the file (the chunk
         builder is empty at every write the writer makes: a write is a chunk, its message indexes,
         the header, metadata or the summary)."""
-        counts = self._stats.channel_message_counts if self._stats is not None else self._own_counts
-        end = self._stats.message_end_time if self._stats is not None else self._own_times[1]
+        counts, end = self._counts, self._t_range[1]
         last = (self._last_cid, self._last_data) if self._last_data else None
         self._committed = (dict(counts), end, last)
 
@@ -687,7 +685,8 @@ class BagWriter:
         self._sink.abandon(exc)
         refused = self._sink._refused
 
-        def refuse(*_args):
+        def refuse(channel_id, *_args):
+            self._counts[channel_id] -= 1          # counted by write(); the file never held it
             raise OSError(refused.errno, refused.strerror)
         self._add = refuse
 
@@ -708,18 +707,10 @@ class BagWriter:
     # -- statistics ----------------------------------------------------------------------------
     def message_counts(self) -> Dict[str, int]:
         """Messages written per topic so far."""
-        if self._stats is not None:
-            counts = self._stats.channel_message_counts
-        else:
-            counts = self._own_counts
-        return {t: int(counts.get(r.channel_id, 0)) for t, r in self.topics.items()}
+        return {t: int(self._counts.get(r.channel_id, 0)) for t, r in self.topics.items()}
 
     def _time_range(self):
-        if self._stats is not None:
-            if not self._stats.message_count:
-                return 0, 0
-            return self._stats.message_start_time, self._stats.message_end_time
-        lo, hi = self._own_times
+        lo, hi = self._t_range
         return (0, 0) if lo == _INF_NS else (lo, hi)
 
     def rosbag2_metadata(self) -> dict:
@@ -1123,6 +1114,132 @@ def open_bag(path: PathLike) -> BagReader:
     return BagReader(path)
 
 
+# ---------------------------------------------------------------------------------------------
+# decoding: the one layer every reader of a bag's messages goes through
+
+def _fast_decoders() -> dict:
+    from . import cdr, topics
+
+    return {topics.IMU_TYPE: cdr.decode_imu, topics.MAG_TYPE: cdr.decode_vector3,
+            topics.TEMPERATURE_TYPE: cdr.decode_temperature, topics.REFERENCE_TYPE: cdr.decode_vector3,
+            topics.DEPTH_TYPE: cdr.decode_float64, topics.SERIAL_TYPE: cdr.decode_string}
+
+
+class BagDecoder:
+    """A bag's messages as values: the probe's six types by :mod:`cdr` (the fast path, ~1 µs a
+    message: ``((sec, nanosec), values)`` as its ``decode_*`` give them, a depth's float, a serial's
+    text), every other type by ``rosbags``' deserializer into its dataclass, with the definition the
+    bag's own schema records (as ``rosbags.highlevel.AnyReader`` does: a station recorded before a
+    field existed reads without it), else the installed one (:class:`MessageDefinitions`).
+    ``fast=False`` decodes the probe's types with ``rosbags`` too.  A message that does not decode
+    raises what the decoder raises (:data:`DECODE_ERRORS`)."""
+
+    def __init__(self, *, fast: bool = True, definitions: Optional[MessageDefinitions] = None):
+        self.fast = _fast_decoders() if fast else {}
+        self.definitions = definitions
+        self._stores: Dict[tuple, object] = {}
+
+    def store(self, type_name: str, definition: str = ""):
+        """The ``rosbags`` type store that holds ``type_name`` as ``definition`` describes it
+        (one store per definition: two parts of a run may record two versions of a type)."""
+        key = (type_name, definition)
+        st = self._stores.get(key)
+        if st is None:
+            if definition:
+                require("rosbags.typesys", "bag", "decoding a bag's messages")
+                from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+                st = get_typestore(Stores.EMPTY)
+                st.register(get_types_from_msg(definition, type_name))
+            else:
+                defs = self.definitions or _defaults()
+                defs.register(type_name)
+                st = defs.typestore
+            self._stores[key] = st
+        return st
+
+    def decode(self, info: "TopicInfo", data):
+        """One message of the channel ``info`` (:meth:`BagReader.topic_info`) from its CDR bytes."""
+        fast = self.fast.get(info.type)
+        if fast is not None:
+            return fast(data)
+        return self.store(info.type, info.definition).deserialize_cdr(bytes(data), info.type)
+
+
+class MessageEncoder:
+    """Serializes ``SurveyStation`` and ``CalibrationCoefficients`` messages to CDR without rclpy
+    (``rosbags`` type store with our message definitions registered)."""
+
+    def __init__(self, definitions: Optional[MessageDefinitions] = None):
+        require("rosbags.typesys", "bag", "writing our messages into a bag")
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+        from .topics import COEFFICIENTS_TYPE, PROGRESS_TYPE, STATION_TYPE
+
+        defs = definitions or MessageDefinitions()
+        self.store = get_typestore(Stores.ROS2_JAZZY)
+        for name in (STATION_TYPE, COEFFICIENTS_TYPE, PROGRESS_TYPE):
+            self.store.register(get_types_from_msg(defs.text(name), name))
+        self._header = self.store.types["std_msgs/msg/Header"]
+        self._time = self.store.types["builtin_interfaces/msg/Time"]
+
+    def encode(self, type_name: str, stamp_ns: int, frame_id: str, fields: dict) -> bytes:
+        import numpy as np
+
+        sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
+        cls = self.store.types[type_name]
+        # rosbags wants numpy arrays for numeric sequences
+        vals = {k: (np.asarray(v, dtype=np.uint8 if k == "poses_used" else float)
+                    if isinstance(v, list) and (not v or not isinstance(v[0], str)) else v)
+                for k, v in fields.items()}
+        msg = cls(header=self._header(stamp=self._time(sec=sec, nanosec=nsec), frame_id=frame_id), **vals)
+        return bytes(self.store.serialize_cdr(msg, type_name))
+
+    def decode(self, type_name: str, data) -> dict:
+        """The fields of one of our messages from its CDR bytes (``stamp``: the header's, s), as this
+        version defines it (a run's own recording; a bag's other messages: :class:`BagDecoder`)."""
+        msg = self.store.deserialize_cdr(bytes(data), type_name)
+        out = {k: getattr(msg, k) for k in msg.__dataclass_fields__ if k != "header"}
+        out["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+        return out
+
+
+def _decode_errors() -> tuple:
+    from .cdr import DECODE_ERRORS as CDR_ERRORS
+
+    try:
+        from rosbags.serde import SerdeError
+        from rosbags.typesys import TypesysError
+    except ImportError:              # no rosbags: only the fast path decodes
+        return CDR_ERRORS
+    return CDR_ERRORS + (SerdeError, TypesysError)
+
+
+#: What decoding a message raises on bytes that are not the message (:mod:`cdr`'s, rosbags').
+DECODE_ERRORS = _decode_errors()
+
+
+def read_messages(bag, topics: Optional[Iterable[str]] = None, *, decode: bool = True, strict: bool = True,
+                  fast: bool = True) -> Iterator[tuple]:
+    """``(message, value)`` for each message of ``topics`` (default all) of ``bag`` (a path, or a
+    :class:`BagReader` whose :attr:`~BagReader.errors` the caller reads after) in file order: the
+    :class:`BagMessage` and, with ``decode``, its value (:class:`BagDecoder`: the probe's types by
+    :mod:`cdr`, the others as ``rosbags`` dataclasses), else None.  ``strict``: a damaged bag
+    raises :class:`BagError` after its readable messages (:meth:`BagReader.messages`).  A message
+    that does not decode raises (:data:`DECODE_ERRORS`)."""
+    reader = bag if isinstance(bag, BagReader) else open_bag(bag)
+    decoder = BagDecoder(fast=fast) if decode else None
+    infos: Dict[str, TopicInfo] = {}
+    for m in reader.messages(topics, strict=strict):
+        if decoder is None:
+            yield m, None
+            continue
+        info = infos.get(m.topic)
+        if info is None:
+            info = infos[m.topic] = reader.topic_info(m.topic)
+        yield m, decoder.decode(info, m.data)
+
+
 @dataclass
 class RecoveryReport:
     source: Path
@@ -1162,6 +1279,7 @@ def recover(src: PathLike, dst: PathLike, *, compression: Optional[str] = None) 
                                        schema_encoding=t.schema_encoding or "ros2msg",
                                        extra_metadata=extra)
                 cids[m.topic] = cid
+            writer._count(cid, m.log_time)         # as read: no chunk cut by time (write() would)
             writer._add(cid, m.log_time, m.data, m.publish_time)
             saved += 1
         # topics that had no readable message still get their channel

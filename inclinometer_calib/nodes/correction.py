@@ -66,6 +66,7 @@ from ..lab.field import FieldMonitor
 from ..correct.pipeline import NO_SITE, SurveyProcessor
 from ..core.plugins import NODE_PARAMETER, name_plugins
 from ..core.output import atomic_write_text
+from ..io.surveystation import to_msg as station_to_msg
 from . import common as c
 from .stream import StreamDriver, declare_stream_params, make_detector
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation
@@ -368,8 +369,7 @@ class CorrectionNode(Node):
         msg = SurveyStation()
         c.set_stamp(msg.header.stamp, seg.t_end)
         msg.header.frame_id = self.frame_id
-        for name, value in fields.items():
-            setattr(msg, name, value)
+        station_to_msg(fields, msg)
         verdict = self.processor.monitor.last if self.processor.monitor is not None else None
         if verdict is not None and verdict.misfit and (self._last_verdict is None or not self._last_verdict.misfit):
             self.get_logger().warning(f"station {msg.station_id}: {verdict.text}")   # said when it starts

@@ -29,7 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from foxglove.channels import FrameTransformsChannel, LogChannel, SceneUpdateChannel
 from rclpy.node import Node
 
-from ..io.topics import station_dict
+from ..io.surveystation import from_msg as station_dict
 from ..rig import liveview as lv
 from . import common as c
 from inclinometer_calib.msg import CalibrationStatus, SurveyStation

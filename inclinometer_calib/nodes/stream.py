@@ -304,12 +304,12 @@ class StreamDriver:
                 for m in reader.messages(strict=False):
                     n += 1
                     if m.topic == c.TOPIC_PROGRESS:
-                        fields = feeder._decoder().decode(PROGRESS_TYPE, m.data)
+                        fields = feeder.codec.decode(PROGRESS_TYPE, m.data)
                         if fields["node"] != self.node.get_name():      # its own earlier self: not
                             self._on_progress(SimpleNamespace(**fields))
                         continue
                     if m.topic == c.TOPIC_STATION:
-                        self.recorded_stations.add(feeder._decoder().decode(STATION_TYPE, m.data)["station_id"])
+                        self.recorded_stations.add(feeder.codec.decode(STATION_TYPE, m.data)["station_id"])
                         continue
                     problem = feeder.feed(m)
                     if problem:

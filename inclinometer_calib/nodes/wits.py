@@ -28,7 +28,7 @@ store's.  The geomagnetic model of each station comes from the calibration recor
 ``/calibration/coefficients`` (:func:`witsml.mag_models`), as the CLI takes it from the recorded
 ones.  2.1 ``ActiveStatus`` is ``active`` while the node runs and ``inactive`` in the last rewrite
 when it stops.  The message becomes the same station dict as a recorded bag's
-(:func:`topics.station_dict`), so the live document equals ``inclinometer-calib witsml`` of the
+(:func:`surveystation.from_msg`), so the live document equals ``inclinometer-calib witsml`` of the
 recorded run with the same options.
 """
 from __future__ import annotations
@@ -39,7 +39,7 @@ import sys
 from rclpy.node import Node
 
 from ..rig import witsml
-from ..io.topics import station_dict
+from ..io.surveystation import from_msg as station_dict
 from ..rig.wits import UNITS, WitsServer, describe, encode
 from . import common as c
 from inclinometer_calib.msg import CalibrationCoefficients, SurveyStation

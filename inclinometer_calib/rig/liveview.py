@@ -1,7 +1,7 @@
 """The live view of a survey in Foxglove: what the ``live`` node (:mod:`.nodes.live`) sends — ROS-free.
 
 The node turns each ``SurveyStation`` into the station dict every other path uses
-(:func:`topics.station_dict`: the same for a recorded bag's messages and live ones; every
+(:func:`surveystation.from_msg`: the same for a recorded bag's messages and live ones; every
 field, the header as ``stamp`` in float seconds, arrays as lists), keeps the stations in a
 :class:`LiveView` and sends, over the Foxglove SDK's WebSocket server, the channels of
 :data:`CHANNELS`.  Diagnostics and the calibration status are passed on as they are
@@ -112,7 +112,7 @@ def message_dict(msg) -> dict:
     """Every field of a ROS message as plain Python values: nested messages as dicts (a header as
     ``{"stamp": {"sec", "nanosec"}, "frame_id"}``), arrays as lists, a ``byte`` as an int; floats
     unchanged (NaN stays NaN — :func:`jsonable` makes it null).  Works for rclpy messages and
-    ``rosbags`` dataclasses.  (A ``SurveyStation`` becomes :func:`topics.station_dict` instead:
+    ``rosbags`` dataclasses.  (A ``SurveyStation`` becomes :func:`surveystation.from_msg` instead:
     the one station dict of every path.)"""
     return {name: _plain(getattr(msg, name)) for name in _field_names(msg)}
 
@@ -195,7 +195,7 @@ def station_color(s: Mapping) -> tuple:
 
 
 class LiveView:
-    """The stations received so far (station dicts, :func:`topics.station_dict`), oldest first, at
+    """The stations received so far (station dicts, :func:`surveystation.from_msg`), oldest first, at
     most ``max_stations`` (the oldest dropped), and the trajectory through them."""
 
     def __init__(self, max_stations: int = 2000):

@@ -85,7 +85,7 @@ def _line(item: int, value: str) -> str:
 
 def encode(station: dict, sequence: int, well_id: str = "WELL", hole_section: int = 0,
            when: _dt.datetime | None = None, survey_type: str = "MWD", units: str = "m") -> bytes:
-    """One WITS0 record 07 of a survey station (a station dict, :func:`topics.station_dict`:
+    """One WITS0 record 07 of a survey station (a station dict, :func:`surveystation.from_msg`:
     ``azimuth_deg`` and ``north_m``/``east_m`` along its ``azimuth_reference``, the trajectory's
     ``measured_depth_m``, ``tvd_m``, ``dls_deg_per_30m``, and ``azimuth_magnetic_deg``;
     ``hole_depth_m`` defaults to the survey depth), in ``units`` (:data:`UNITS`: ``m`` or ``ft``).

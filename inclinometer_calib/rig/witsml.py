@@ -1,7 +1,7 @@
 """WITSML out: the corrected survey stations as an Energistics trajectory, 2.1 or 1.4.1.1 — ROS-free.
 
 One trajectory per run (well, wellbore, run): :func:`trajectory_document` builds it from station
-dicts — those of :func:`launcher.read_bag` or :func:`topics.station_dict`, so a recorded run
+dicts — those of :func:`launcher.read_bag` or :func:`surveystation.from_msg`, so a recorded run
 (``inclinometer-calib witsml RUN.mcap``) and the live ``wits`` node (``witsml_file``) give the same
 document for the same stations — in one of two versions:
 
@@ -54,7 +54,7 @@ are the Energistics uom symbols, the foot the dictionary's international foot, 0
 * ``Azi`` and the displacements are along one north, the trajectory's ``AziRef`` (:func:`_north`):
   the stations' ``azimuth_reference``, the one north of their ``azimuth_deg`` and
   ``north_m``/``east_m`` (a bag recorded before the stations had one north is put along its
-  positions' north by :func:`topics.station_dict`).
+  positions' north by :func:`surveystation.from_msg`).
 * ``MatrixCov``: the station's ``position_covariance_ned_m2`` (ISCWSA, :mod:`iscwsa`, 1σ, along the
   positions' north): ``VarianceNN`` … ``VarianceVertVert`` in m² or ft², ``BiasN/E/Vert`` 0 (rev 4
   has no bias terms), 2.1 ``Sigma`` 1.  Left out where the station has none (NaN).

@@ -6,7 +6,7 @@ import math
 import pytest
 
 from inclinometer_calib.apps import launcher, rosenv
-from inclinometer_calib.io import topics
+from inclinometer_calib.io import surveystation
 
 NAN = float("nan")
 
@@ -129,7 +129,7 @@ def test_a_bag_without_stations_coefficients_or_status_gives_an_empty_summary(tm
 
 def _recorded_station(**fields):
     """A SurveyStation as rosbags reads it from a bag recorded before azimuth_true_deg existed: the
-    fields station_dict reads, no azimuth_true_deg."""
+    fields surveystation.from_msg reads, no azimuth_true_deg."""
     from types import SimpleNamespace
 
     names = ("station_id", "drift_deg", "azimuth_deg", "toolface_deg", "gravity_toolface_deg", "magnetic_toolface_deg",
@@ -145,14 +145,14 @@ def _recorded_station(**fields):
 
 def test_a_station_recorded_before_the_one_north_is_read_along_its_positions_north():
     # then: azimuth true, north/east along grid north (the site had a grid)
-    old = topics.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=39.2,
+    old = surveystation.from_msg(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=39.2,
                                                   azimuth_reference="true", reference_azimuth_deg=40.25))
     assert old["azimuth_reference"] == "grid" and old["azimuth_deg"] == 39.2 and old["azimuth_true_deg"] == 40.0
     assert old["reference_azimuth_deg"] == pytest.approx(40.25 - 0.8)      # the reference along grid north too
     # no grid: true (or magnetic) as recorded
-    plain = topics.station_dict(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+    plain = surveystation.from_msg(_recorded_station(azimuth_deg=40.0, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
                                                     azimuth_reference="true", reference_azimuth_deg=40.25))
     assert plain["azimuth_reference"] == "true" and plain["azimuth_deg"] == 40.0 and plain["azimuth_true_deg"] == 40.0
-    mag = topics.station_dict(_recorded_station(azimuth_deg=37.5, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
+    mag = surveystation.from_msg(_recorded_station(azimuth_deg=37.5, azimuth_magnetic_deg=37.5, azimuth_grid_deg=NAN,
                                                   azimuth_reference="magnetic"))
     assert mag["azimuth_reference"] == "magnetic" and math.isnan(mag["azimuth_true_deg"])

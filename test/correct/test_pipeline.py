@@ -7,6 +7,7 @@ from inclinometer_calib.core.coeffs import Calibration
 from inclinometer_calib.core.frames import Site
 from inclinometer_calib.correct.pipeline import NO_SITE, SurveyProcessor, site_override_note
 from inclinometer_calib.detect.streaming import StaticDetector
+from inclinometer_calib.io import surveystation
 
 
 def _stations(log):
@@ -33,6 +34,7 @@ def test_a_station_is_corrected_by_the_record_and_checked_against_the_records_si
     assert abs(f["azimuth_deg"] - 120.0) < 0.05
     assert f["status"] == 0 and abs(f["delta_b_nt"]) < 30
     assert f["coefficients_id"] == proc.calibration.id
+    assert sorted(f) == sorted(surveystation.NAMES)        # every field of the message, none other
 
 
 def test_a_given_site_overrides_the_records_and_says_so():

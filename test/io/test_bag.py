@@ -307,6 +307,50 @@ def test_writer_decoded_by_mcap_ros2_and_rosbags(tmp_path):
     assert rd.topics["/survey/station"].count == 3
 
 
+def test_read_messages_gives_the_probe_types_by_the_fast_path_and_the_same_values_as_rosbags(tmp_path):
+    store = _station_store()
+    p = tmp_path / "run.mcap"
+    with bag.BagWriter(p, compression="") as w:
+        ci = w.add_topic("/probe/imu", IMU)
+        cs = w.add_topic("/survey/station", STATION)
+        for i in range(20):
+            w.write(ci, imu_cdr(i), T0 + i)
+        w.write(cs, station_cdr(store, 4), T0 + 20)
+    fast = list(bag.read_messages(p))
+    slow = list(bag.read_messages(p, fast=False))
+    with AnyReader([p]) as r:
+        theirs = [r.deserialize(raw, c.msgtype) for c, _t, raw in r.messages()]
+    assert [m.topic for m, _ in fast] == ["/probe/imu"] * 20 + ["/survey/station"]
+    for (_, (stamp, f)), (_, mine), ref in zip(fast[:20], slow[:20], theirs[:20]):
+        a = ref.linear_acceleration
+        assert stamp == (ref.header.stamp.sec, ref.header.stamp.nanosec) and f == (a.x, a.y, a.z)
+        b = mine.linear_acceleration
+        assert (b.x, b.y, b.z) == f
+    assert slow[-1][1].station_id == fast[-1][1].station_id == theirs[-1].station_id == 4
+    assert fast[-1][1].warnings == theirs[-1].warnings
+    assert [v for _, v in bag.read_messages(p, ["/survey/station"], decode=False)] == [None]
+
+
+def test_a_station_recorded_with_an_older_definition_is_read_with_the_bags_own(tmp_path):
+    from inclinometer_calib.io import surveystation
+
+    # the definition before the stations had one north: no azimuth_true_deg (its positions were
+    # along grid north, its azimuth true)
+    old = bag.message_definition(STATION).replace("float64 azimuth_true_deg\n", "", 1)
+    assert old != bag.message_definition(STATION)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    store.register(get_types_from_msg(old, STATION))
+    data = station_cdr(store, 3)          # azimuth 0.5 + k, grid azimuth 0.5 + k' along the field list
+    p = tmp_path / "old.mcap"
+    with bag.BagWriter(p, compression="") as w:
+        w.write(w.add_topic("/survey/station", STATION, definition=old, type_hash=""), data, T0)
+    (_, msg), = bag.read_messages(p)
+    assert not hasattr(msg, "azimuth_true_deg")
+    d = surveystation.from_msg(msg)
+    assert d["azimuth_reference"] == "grid" and d["azimuth_true_deg"] == msg.azimuth_deg
+    assert d["azimuth_deg"] == msg.azimuth_grid_deg
+
+
 def test_directory_layout_rosbags_checks_hashes(tmp_path):
     d = tmp_path / "survey1"
     write_imu_bag(d, n=50)

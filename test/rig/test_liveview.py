@@ -14,7 +14,7 @@ import pytest
 
 foxglove = pytest.importorskip("foxglove", reason="the live view needs foxglove-sdk (requirements/core.txt)")
 
-from inclinometer_calib.io import topics  # noqa: E402
+from inclinometer_calib.io import surveystation  # noqa: E402
 from inclinometer_calib.rig import liveview as lv  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -92,7 +92,7 @@ def check_schema(value, schema, where="$"):
 def test_station_json_has_every_field_of_the_message_with_nan_as_null():
     fields = msg_fields("SurveyStation")
     msg = station_msg(azimuth_deg=NAN, raw_field_nt=[NAN, 2.0, 3.0], station_id=7, drift_deg=12.5)
-    s = topics.station_dict(msg)
+    s = surveystation.from_msg(msg)
     assert set(s) == set(fields) - {"header"} | {"stamp"}
     payload = json.loads(json.dumps(lv.jsonable(s), allow_nan=False))
     assert payload["azimuth_deg"] is None and payload["raw_field_nt"] == [None, 2.0, 3.0]
@@ -149,7 +149,7 @@ def test_message_dict_turns_bytes_arrays_and_nested_messages_into_plain_values()
 # the survey so far
 
 def _station(sid, md, n, e, tvd, status=0, coefficients_id="abc", **kw):
-    return topics.station_dict(station_msg(station_id=sid, measured_depth_m=md, north_m=n, east_m=e, tvd_m=tvd,
+    return surveystation.from_msg(station_msg(station_id=sid, measured_depth_m=md, north_m=n, east_m=e, tvd_m=tvd,
                                        status=status, coefficients_id=coefficients_id, **{"warnings": [], **kw}))
 
 
@@ -209,7 +209,7 @@ def test_the_live_station_declares_the_one_north_of_its_azimuth_and_north_east_a
     view = lv.LiveView()
     sent = []
     for s in stations:
-        d = topics.station_dict(station_msg(**{k: v for k, v in s.items() if k != "stamp"}))
+        d = surveystation.from_msg(station_msg(**{k: v for k, v in s.items() if k != "stamp"}))
         view.add(d)
         sent.append(json.loads(json.dumps(lv.jsonable(d), allow_nan=False)))     # what /live/station carries
     last = sent[-1]

@@ -12,6 +12,7 @@ from ...core.geomag import resolve_north
 from ...core.output import atomic_write_text, check_output
 from ...core.survey import format_table4, format_table5, table4, table5
 from ...correct.pipeline import evaluate_log
+from ...io.surveystation import CSV_COLUMNS as STATION_COLUMNS   # the one field table
 from ..common import UserError, load_calibration
 from .shared import (detector_from_args, detector_options, load_plugins, load_stations, north_option, site_for,
                      tolerance_options, tolerances_from_args, warn)
@@ -36,14 +37,6 @@ def correct_log(log_path, cal, site, tol, quiet=False, axial=False, mag_unit="nT
     except ValueError as exc:
         raise UserError(str(exc)) from None
     return stations, res, summary
-
-
-STATION_COLUMNS = ["station", "pose", "t_start_s", "t_end_s", "samples", "temp_c", "drift_deg", "azimuth_deg",
-                   "toolface_deg", "toolface_type", "gravity_toolface_deg", "magnetic_toolface_deg",
-                   "total_gravity_mps2", "total_field_nt", "dip_deg", "delta_g_mps2", "delta_b_nt",
-                   "delta_dip_deg", "status", "flags", "ref_drift_deg", "ref_azimuth_deg",
-                   "ref_toolface_deg", "drift_err_deg", "azimuth_err_deg", "toolface_err_deg",
-                   "azimuth_reference", "azimuth_true_deg", "azimuth_magnetic_deg", "azimuth_grid_deg"]
 
 
 def format_station_csv(stations, res) -> str:
