@@ -91,11 +91,11 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
 
 
 def _samples(log, st):
-    """A station's samples: (n, 7) time (s), gravity vector (m/s², the log's specific force negated)
-    and field (nT)."""
+    """A station's samples: (n, 7) time (s), gravity vector (m/s², ``ProbeLog.gravity``) and field
+    (nT)."""
     i0, i1 = np.searchsorted(log.t_s, [st.t_start, st.t_end], side="left")
     i1 = min(i1 + 1, len(log))
-    return np.column_stack([log.t_s[i0:i1], -np.asarray(log.acc[i0:i1]), np.asarray(log.mag[i0:i1])])
+    return np.column_stack([log.t_s[i0:i1], log.gravity[i0:i1], np.asarray(log.mag[i0:i1])])
 
 
 def _row_losses(source: str, rejections) -> list:

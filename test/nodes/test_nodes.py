@@ -130,8 +130,8 @@ def test_recapture_and_reset_services(spinning):
     probe = sim.build_probe(5)
     log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0)[:2],
                           np.random.default_rng(1), rate_hz=100.0)
-    for t, f, m in zip(log.t_s, log.acc, log.mag):
-        cal_node.stream.feed(float(t), tuple(f), tuple(m))
+    for t, g, m in zip(log.t_s, log.gravity, log.mag):
+        cal_node.stream.feed(float(t), tuple(g), tuple(m))
     cal_node.stream.close_hold()
     assert cal_node.session.captured == [1, 2]
 
@@ -403,7 +403,7 @@ def test_probe_replaying_a_bag_keeps_its_recorded_covariance_and_measures_a_miss
     recorded = [1e-6, 0.0, 0.0, 0.0, 4e-6, 0.0, 0.0, 0.0, 9e-6]
     mi, mm = Imu(), MagneticField()
     mi.linear_acceleration_covariance = recorded  # the magnetometer's stays all zero: unknown
-    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
+    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
         c.set_stamp(mi.header.stamp, t)
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
@@ -430,8 +430,8 @@ def test_periodic_work_runs_on_steady_time_when_the_sim_clock_stops(spinning, tm
     sub = spinning(rclpy.create_node("test_sub"))
     sub.create_subscription(SurveyStation, c.TOPIC_STATION, stations.append, c.reliable_qos(10))
     log = _noisy_log(0.002, 20.0)
-    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node.stream.feed(t, tuple(f), tuple(m))
+    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
+        node.stream.feed(t, tuple(g), tuple(m))
     assert node.get_clock().ros_time_is_active and node.get_clock().now().nanoseconds == 0  # no /clock
     end = time.monotonic() + 6.0
     while time.monotonic() < end and len(stations) < 4:
@@ -452,7 +452,7 @@ def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_
     mi, mm = Imu(), MagneticField()
     mi.linear_acceleration_covariance = [0.002 ** 2, 0.0, 0.0, 0.0, 0.002 ** 2, 0.0, 0.0, 0.0, 0.002 ** 2]
     mm.magnetic_field_covariance = [(20e-9) ** 2, 0.0, 0.0, 0.0, (20e-9) ** 2, 0.0, 0.0, 0.0, (20e-9) ** 2]
-    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
+    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
         c.set_stamp(mi.header.stamp, t)
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
@@ -498,9 +498,9 @@ def test_the_calibration_node_fits_the_model_it_is_told_and_says_what_the_captur
 def _feed_to_the_end(node, log):
     """A log's samples and temperatures into the calibration node, then the end of the data (as
     the idle timer does it)."""
-    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
+    for t, g, m, tc in zip(log.t_s, log.gravity, log.mag, log.temp_c):
         node.engine.temperature(float(t), float(tc))   # what the driver's /probe/temperature callback does
-        node.stream.feed(float(t), tuple(f), tuple(m))
+        node.stream.feed(float(t), tuple(g), tuple(m))
     node.stream.idle()
 
 
