@@ -115,11 +115,11 @@ def _array_name(node):
             return None
 
 
-def _negations(tree):
-    """Line numbers where an accelerometer-named array is negated: ``-f``, ``np.negative(acc)``,
-    ``-1 * f`` / ``f * -1``."""
+def _negations(nodes):
+    """Line numbers where an accelerometer-named array is negated among ``nodes`` (those of
+    ``ast.walk``): ``-f``, ``np.negative(acc)``, ``-1 * f`` / ``f * -1``."""
     out = []
-    for n in ast.walk(tree):
+    for n in nodes:
         if isinstance(n, ast.UnaryOp) and isinstance(n.op, ast.USub):
             operand = n.operand
         elif isinstance(n, ast.Call) and _callee(n) == "negative" and n.args:
@@ -141,14 +141,20 @@ def test_the_specific_force_sign_flip_happens_at_the_entries_only():
             & _functions(t)]
     assert defs == ["core/frames.py"]
     # used: called or passed on (coeffs picks it per sensor), not merely imported or named in a docstring
-    calls = {name: sorted(m for m, t in MODULES.items()
-                          if any(isinstance(n, ast.Name) and n.id == name or isinstance(n, ast.Attribute) and n.attr == name
-                                 for n in ast.walk(t)))
-             for name in ("gravity_from_specific_force", "specific_force_from_gravity")}
-    assert calls["gravity_from_specific_force"] == sorted(ENTRIES), calls
-    assert calls["specific_force_from_gravity"] == sorted(EXITS), calls
-    flips = {m: _negations(t) for m, t in MODULES.items() if m != "core/frames.py"}
-    assert {m: lines for m, lines in flips.items() if lines} == {}, "negates an accelerometer array: use frames"
+    names = ("gravity_from_specific_force", "specific_force_from_gravity")
+    calls = {name: [] for name in names}
+    flips = {}
+    for m, t in MODULES.items():
+        nodes = list(ast.walk(t))       # one walk per module: the whole package costs about a second
+        used = {n.id if isinstance(n, ast.Name) else n.attr for n in nodes if isinstance(n, (ast.Name, ast.Attribute))}
+        for name in names:
+            if name in used:
+                calls[name].append(m)
+        if m != "core/frames.py" and _negations(nodes):
+            flips[m] = _negations(nodes)
+    assert set(calls["gravity_from_specific_force"]) == ENTRIES, calls
+    assert set(calls["specific_force_from_gravity"]) == EXITS, calls
+    assert flips == {}, "negates an accelerometer array: convert where samples enter, with frames"
 
 
 def test_the_negation_finder_sees_each_form_of_the_flip():
@@ -156,9 +162,9 @@ def test_the_negation_finder_sees_each_form_of_the_flip():
     for src in ("g = -f", "g = -f[s:e]", "g = -np.asarray(log.acc[i0:i1])", "x = (-f[0], -f[1], -f[2])",
                 "np.negative(acc, out=t)", "g = f * -1", "g = -1 * specific_force",
                 "hx = -f[3 * i + 0] if negate else f[3 * i + 0]"):
-        assert _negations(ast.parse(src)), src
+        assert _negations(ast.walk(ast.parse(src))), src
     for src in ("g = -b", "x = -np.asarray(spacing_s)", "y = a - f", "t = -gx", "jb = [c, -a]"):
-        assert not _negations(ast.parse(src)), src
+        assert not _negations(ast.walk(ast.parse(src))), src
 
 
 def test_the_core_apis_take_the_gravity_vector():

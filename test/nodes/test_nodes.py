@@ -403,7 +403,7 @@ def test_probe_replaying_a_bag_keeps_its_recorded_covariance_and_measures_a_miss
     recorded = [1e-6, 0.0, 0.0, 0.0, 4e-6, 0.0, 0.0, 0.0, 9e-6]
     mi, mm = Imu(), MagneticField()
     mi.linear_acceleration_covariance = recorded  # the magnetometer's stays all zero: unknown
-    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
+    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
         c.set_stamp(mi.header.stamp, t)
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
@@ -452,7 +452,7 @@ def test_the_noise_the_messages_state_is_a_prior_the_data_overrule_and_the_node_
     mi, mm = Imu(), MagneticField()
     mi.linear_acceleration_covariance = [0.002 ** 2, 0.0, 0.0, 0.0, 0.002 ** 2, 0.0, 0.0, 0.0, 0.002 ** 2]
     mm.magnetic_field_covariance = [(20e-9) ** 2, 0.0, 0.0, 0.0, (20e-9) ** 2, 0.0, 0.0, 0.0, (20e-9) ** 2]
-    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
+    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
         c.set_stamp(mi.header.stamp, t)
         mm.header.stamp = mi.header.stamp
         mi.linear_acceleration.x, mi.linear_acceleration.y, mi.linear_acceleration.z = f
