@@ -2,8 +2,9 @@
 
 Boundary conventions (converted here, once):
 
-* ``sensor_msgs/Imu.linear_acceleration`` is REP-145 specific force in m/s^2; it is passed to the
-  core as is (the core's :class:`streaming.StaticDetector` turns it into the gravity vector).
+* ``sensor_msgs/Imu.linear_acceleration`` is REP-145 specific force in m/s^2; the core takes the
+  gravity vector ``g = -f``: :func:`gravity` reads it, :func:`set_gravity` writes it back (the raw
+  sample subscriptions decode with ``cdr.decode_imu_gravity``, the same conversion).
 * ``sensor_msgs/MagneticField`` is in tesla; the core works in nT (``NT_PER_TESLA``).
 * Header stamps become float seconds (``sec + 1e-9 nanosec``).
 
