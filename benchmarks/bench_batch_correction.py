@@ -35,7 +35,7 @@ from inclinometer_calib.core.survey import BATCH_KEYS, Tolerances, correct_sampl
 
 TARGET = 0.7
 
-BYTES_PER_SAMPLE = 6 * 8 + 6 * 8 + 2  # read f, m (float64 ×3 each); write 6 float64 + 2 uint8
+BYTES_PER_SAMPLE = 6 * 8 + 6 * 8 + 2  # read h, m (float64 ×3 each); write 6 float64 + 2 uint8
 
 
 def make_data(n, seed=0):
@@ -45,9 +45,9 @@ def make_data(n, seed=0):
     drift = rng.uniform(0, 180, n)
     drift[: n // 100] = rng.uniform(0, 4, n // 100)   # some near-vertical samples (magnetic toolface)
     g, b = tool_vectors(site, drift, rng.uniform(0, 360, n), rng.uniform(0, 360, n))
-    f = -probe.acc.forward(g) + rng.normal(0, 0.002, (n, 3))
+    h = probe.acc.forward(g) - rng.normal(0, 0.002, (n, 3))   # raw accelerometer, gravity convention (the core's)
     m = probe.mag.forward(b) + rng.normal(0, 20, (n, 3))
-    return np.ascontiguousarray(f), np.ascontiguousarray(m), Calibration(acc=probe.acc, mag=probe.mag), site
+    return np.ascontiguousarray(h), np.ascontiguousarray(m), Calibration(acc=probe.acc, mag=probe.mag), site
 
 
 def alloc(n):
@@ -59,13 +59,13 @@ def alloc(n):
     return out
 
 
-def baseline(f, m, out, block=4096):
+def baseline(h, m, out, block=4096):
     """Read every input element once, write every output element once (memory-bound limit)."""
-    n = len(f)
+    n = len(h)
     keys = BATCH_KEYS
     for s in range(0, n, block):
         e = min(s + block, n)
-        fb, mb = f[s:e], m[s:e]
+        fb, mb = h[s:e], m[s:e]
         for j, k in enumerate(keys):
             np.add(fb[:, j % 3], mb[:, j % 3], out=out[k][s:e])
         np.less(fb[:, 0], mb[:, 0], out=out["flags"][s:e].view(bool))
@@ -73,11 +73,11 @@ def baseline(f, m, out, block=4096):
     return out
 
 
-def baseline_threads(f, m, out, threads):
+def baseline_threads(h, m, out, threads):
     """:func:`baseline` on the kernel's slices, on the kernel's thread pool (numpy's ufuncs release
     the GIL): the memory-bound limit with the kernel's threads."""
-    parts = batchkernel._slices(len(f), threads)
-    futs = [batchkernel._pool(threads).submit(baseline, f[s:e], m[s:e], {k: v[s:e] for k, v in out.items()})
+    parts = batchkernel._slices(len(h), threads)
+    futs = [batchkernel._pool(threads).submit(baseline, h[s:e], m[s:e], {k: v[s:e] for k, v in out.items()})
             for s, e in parts]
     for fut in futs:
         fut.result()
@@ -122,14 +122,14 @@ def main(argv=None):
     rows = []
     tol = Tolerances()
     for n in sizes:
-        f, m, cal, site = make_data(n)
+        h, m, cal, site = make_data(n)
         out = alloc(n)
         nt = batchkernel.resolve_threads()
-        fns = {"baseline": lambda: baseline(f, m, out),
-               "baseline_mt": lambda: baseline_threads(f, m, out, nt),
-               "numba": lambda: correct_samples(f, m, cal, site, tol, out=out, backend="numba"),
-               "numba1": lambda: correct_samples(f, m, cal, site, tol, out=out, backend="numba", threads=1)}
-        fns["numpy"] = lambda: correct_samples(f, m, cal, site, tol, block=args.block, out=out, backend="numpy")
+        fns = {"baseline": lambda: baseline(h, m, out),
+               "baseline_mt": lambda: baseline_threads(h, m, out, nt),
+               "numba": lambda: correct_samples(h, m, cal, site, tol, out=out, backend="numba"),
+               "numba1": lambda: correct_samples(h, m, cal, site, tol, out=out, backend="numba", threads=1)}
+        fns["numpy"] = lambda: correct_samples(h, m, cal, site, tol, block=args.block, out=out, backend="numpy")
         best = interleaved(fns, repeat)
         tb = min(best["baseline"], best["baseline_mt"])
         names = {"baseline": "baseline: read inputs + write outputs, 1 thread",
@@ -144,21 +144,21 @@ def main(argv=None):
         if n <= 2_000_000:
             def station_path():
                 with np.errstate(invalid="ignore"):
-                    g, b = cal.correct(-f, m)
+                    g, b = cal.correct(h, m)
                     return evaluate(g, b, site, tol)
             best = interleaved({"baseline": fns["baseline"], "evaluate": station_path}, max(1, repeat - 2))
             te, tb2 = best["evaluate"], best["baseline"]
             rows.append([f"{n:.0e}", "evaluate(Calibration.correct(...)) whole-array", f"{te:.4f}",
                          f"{n / te / 1e6:.1f}", f"{n * BYTES_PER_SAMPLE / te / 1e9:.2f}", f"{tb2 / te:.2f}"])
             ref = station_path()
-            fused = correct_samples(f, m, cal, site, tol, backend="numba")
-            fb = correct_samples(f, m, cal, site, tol, block=args.block, backend="numpy")
+            fused = correct_samples(h, m, cal, site, tol, backend="numba")
+            fb = correct_samples(h, m, cal, site, tol, block=args.block, backend="numpy")
             same = all(np.array_equal(fb[k], ref[k], equal_nan=True) for k in BATCH_KEYS) and \
                 np.array_equal(fb["status"], ref["status"])
             flags = np.array_equal(fused["flags"], fb["flags"]) and np.array_equal(fused["status"], fb["status"])
             rows.append([f"{n:.0e}", f"  (kernel vs station path: angles within {max_angle_diff(fused, ref):.1e}°, "
                          f"flags+status equal: {flags}; numpy fallback bitwise: {same})", "", "", "", ""])
-        del f, m, out
+        del h, m, out
     print(table(rows, ["N", "variant", "best s", "Msamples/s", "GB/s moved", "× baseline"]))
     print(f"(GB/s counts the {BYTES_PER_SAMPLE} bytes each sample must move: inputs read + outputs written; "
           f"× baseline is against the faster baseline of each size; target: fused kernel ≥ {TARGET}×)")

@@ -53,11 +53,12 @@ def _segment(log, batch):
     """The stations of ``log`` by the batch path or sample by sample (the live nodes' path)."""
     det = StaticDetector()
     if batch:
-        out = list(det.run(log.t_s, log.acc, log.mag, log.temp_c))
+        out = list(det.run(log.t_s, log.gravity, log.mag, log.temp_c))
     else:
         out = []
+        g = log.gravity
         for i in range(len(log)):
-            out.extend(det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]))
+            out.extend(det.update(log.t_s[i], g[i], log.mag[i], log.temp_c[i]))
     return out + list(det.flush())
 
 

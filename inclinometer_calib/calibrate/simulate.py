@@ -73,6 +73,14 @@ class SimulatedProbe:
 
     def measure(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool, draws: "SessionDraws | None" = None,
                 history=None):
+        """What the probe sends: :meth:`measure_gravity`'s accelerometer as REP-145 specific force
+        (:func:`frames.specific_force_from_gravity`, as a real IMU reports it), and the field.
+        Returns ``(specific_force_mps2, field_nt)``."""
+        a, m = self.measure_gravity(g_tool, b_tool, temp_c, t_s, rng, survey, draws, history)
+        return specific_force_from_gravity(a), m
+
+    def measure_gravity(self, g_tool, b_tool, temp_c, t_s, rng, survey: bool, draws: SessionDraws | None = None,
+                        history=None):
         """Raw outputs for true tool-frame gravity (m/s², down) and field (nT), (N, 3) each, on the
         stand (``survey`` False) or in the survey; ``t_s`` s since the data's first sample.
 
@@ -83,7 +91,8 @@ class SimulatedProbe:
         would have taken from ``rng``.  ``history`` (:class:`effects.History`, per sample): for
         effects that depend on the sequence of holds (a sensor settling after the move).
 
-        Returns ``(specific_force_mps2, field_nt)``.
+        Returns ``(gravity_mps2, field_nt)``: the raw accelerometer in the core's convention
+        (down positive), for a caller that feeds the core directly (:func:`msa.simulate_run`).
         """
         role = "val" if survey else "cal"
         a, m = self.model.forward(g_tool, b_tool, temp_c, t_s, role=role, history=history)
@@ -91,7 +100,7 @@ class SimulatedProbe:
         a, m = a + walk["acc"], m + walk["mag"]
         a = a + (draws.stream("acc") if draws else rng).normal(0.0, self.noise_acc, a.shape)
         m = m + (draws.stream("mag") if draws else rng).normal(0.0, self.noise_mag, m.shape)
-        return specific_force_from_gravity(a), m
+        return a, m
 
     def walk_widths(self, role: str) -> list:
         """``[(key, axes)]`` of the stochastic effects acting in ``role``, in the order they draw."""

@@ -8,7 +8,7 @@ the accelerometer): the horizontal components cancel in eqs. 5–16, so neither 
 an exactly level stand is needed.
 
 Inputs are per-pose mean vectors in the *gravity-vector* convention for the accelerometer (down
-positive: convert REP-145 specific force with ``frames.gravity_from_specific_force`` first) and in
+positive: stations carry it, converted from REP-145 specific force where the samples entered) and in
 output units (nT or A/D counts) for the magnetometer.
 
 Several rounds of the twelve poses (e.g. at different temperatures) are all used: the pose means

@@ -101,7 +101,7 @@ def _wrap_atan2_deg(w):
 
 
 @numba.njit(inline="always", **_JIT)
-def _sample(i, careful, f, m, negate, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o,
+def _sample(i, careful, g, m, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o,
             status_o):
     """Sample i: correct, evaluate, write the outputs; True when an angle came out NaN (with
     ``careful`` False: perhaps a special value of an arc tangent, see :func:`fused`).  ``coef``,
@@ -110,9 +110,9 @@ def _sample(i, careful, f, m, negate, linear, coef, qc, wrap_big, drift_o, az_o,
     (a00, a01, a02, a10, a11, a12, a20, a21, a22, ba0, ba1, ba2,
      m00, m01, m02, m10, m11, m12, m20, m21, m22, bm0, bm1, bm2) = coef
     decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2, tol_field, tol_dip, tol_gravity = qc
-    hx = -f[3 * i + 0] if negate else f[3 * i + 0]   # g = −f (frames.gravity_from_specific_force)
-    hy = -f[3 * i + 1] if negate else f[3 * i + 1]
-    hz = -f[3 * i + 2] if negate else f[3 * i + 2]
+    hx = g[3 * i + 0]
+    hy = g[3 * i + 1]
+    hz = g[3 * i + 2]
     px = m[3 * i + 0]
     py = m[3 * i + 1]
     pz = m[3 * i + 2]
@@ -174,15 +174,15 @@ def _sample(i, careful, f, m, negate, linear, coef, qc, wrap_big, drift_o, az_o,
 
 
 @numba.njit(**_JIT)
-def fused(f, m, negate, linear, ca, ba, cm, bm, decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2,
+def fused(g, m, linear, ca, ba, cm, bm, decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2,
           tol_field, tol_dip, tol_gravity, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o, status_o):
     """Correct and evaluate every sample, one thread (:mod:`batchkernel` runs it on slices, one
     per thread: the loop always starts at 0, since a loop from a run-time start is not
     vectorised).
 
-    ``f``, ``m``: (3N,) float64 — (N, 3) arrays in C order, flattened (so that LLVM sees the
-    stride of 3 and vectorises the loads) — the accelerometer (``negate``: REP-145 specific force,
-    turned into the gravity vector here; else already the gravity vector) and the field, nT.
+    ``g``, ``m``: (3N,) float64 — (N, 3) arrays in C order, flattened (so that LLVM sees the
+    stride of 3 and vectorises the loads) — the gravity vector (down positive, m/s²: REP-145
+    specific force is converted where it enters) and the field, nT.
     ``linear``: apply the base model ``v = C·(h − B)`` with ``ca``, ``ba`` (accelerometer, 3×3 and
     3) and ``cm``, ``bm`` (magnetometer); else the triads are taken as corrected.  Site, declination
     and tolerances as :class:`frames.Site` / :class:`survey.Tolerances`.  Outputs (N,) C order:
@@ -206,15 +206,15 @@ def fused(f, m, negate, linear, ca, ba, cm, bm, decl, thr_tf, min_drift, field_n
             m00, m01, m02, m10, m11, m12, m20, m21, m22, bm0, bm1, bm2)
     qc = (decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2, tol_field, tol_dip, tol_gravity)
     nan = 0
-    for i in range(f.shape[0] // 3):
-        nan += _sample(i, False, f, m, negate, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
+    for i in range(g.shape[0] // 3):
+        nan += _sample(i, False, g, m, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
                        flags_o, status_o)
     if nan:   # again, with the special values, where an angle came out NaN
-        for i in range(f.shape[0] // 3):
+        for i in range(g.shape[0] // 3):
             if drift_o[i] != drift_o[i] or az_o[i] != az_o[i] or tf_o[i] != tf_o[i] or dip_o[i] != dip_o[i]:
-                _sample(i, True, f, m, negate, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
+                _sample(i, True, g, m, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
                         flags_o, status_o)
     if decl != 0.0 and wrap_big:   # |decl| ≥ 360: az = (az + decl) mod 360, as survey.evaluate
-        for i in range(f.shape[0] // 3):
+        for i in range(g.shape[0] // 3):
             az = az_o[i] % 360.0
             az_o[i] = 0.0 if az >= 360.0 else az

@@ -6,13 +6,13 @@ backend resolves to ``numba``, and returns the same dict: both triads corrected,
 (m/s²), ``total_field`` (nT), ``dip_deg`` (float64) and ``flags``, ``status`` (uint8; bits
 ``survey.FLAG_*``) per sample.  Backends:
 
-* ``numba`` — :mod:`_batch_numba`: one pass, per sample ``g = −f``, ``v = C·(h − B)`` per triad
+* ``numba`` — :mod:`_batch_numba`: one pass, per sample ``v = C·(h − B)`` per triad
   (the record's base model, :meth:`errormodel.TriadModel.inverse`, same products in the same
   order), then the formulas of :func:`survey.evaluate` in one go; no array of N samples besides
   the outputs.  A record with effects beyond the base model (Newton steps, temperature, time:
   :class:`model.CorrectionPlan`) is corrected block by block through :meth:`coeffs.Calibration.correct`
   — the one correction path, whatever the effect — and the kernel then does the angles and QC of
-  each block.  Agreement with the station path ``evaluate(*calibration.correct(−f, m), site, tol)``:
+  each block.  Agreement with the station path ``evaluate(*calibration.correct(g, m), site, tol)``:
   every addition and multiplication is numpy's, in the same order (no ``fastmath``), so |G|, |B|
   and the corrected vectors are bit-identical; the arc tangents are the kernel's own (within
   1 ulp of numpy's), so the angles differ by at most a few 1e-14 degrees
@@ -112,7 +112,7 @@ def warm_up(tol) -> float:
     """Compile the kernel (or load it from the disk cache) now, for QC tolerances ``tol`` (a
     :class:`survey.Tolerances`); returns the seconds it took."""
     t0 = time.perf_counter()
-    _run(np.zeros(3), np.zeros(3), True, True, (np.eye(3), np.zeros(3)), (np.eye(3), np.zeros(3)), Site(), tol,
+    _run(np.zeros(3), np.zeros(3), True, (np.eye(3), np.zeros(3)), (np.eye(3), np.zeros(3)), Site(), tol,
          _alloc(1))
     return time.perf_counter() - t0
 
@@ -164,8 +164,8 @@ def _slices(n: int, threads: int) -> list[tuple[int, int]]:
     return list(zip(edges[:-1], edges[1:]))
 
 
-def _run(f_flat, m_flat, negate, linear, cal_a, cal_m, site, tol, out, threads: int = 1):
-    """The kernel on flat (3N,) inputs into ``out``; ``cal_a``/``cal_m``: (C, B) or None;
+def _run(g_flat, m_flat, linear, cal_a, cal_m, site, tol, out, threads: int = 1):
+    """The kernel on flat (3N,) inputs (gravity vector m/s², field nT) into ``out``; ``cal_a``/``cal_m``: (C, B) or None;
     ``threads`` > 1: slices on the pool (:func:`_slices`)."""
     k = _kernels()
     eye, zero = np.eye(3), np.zeros(3)
@@ -177,10 +177,10 @@ def _run(f_flat, m_flat, negate, linear, cal_a, cal_m, site, tol, out, threads: 
     outs = [out[key] for key in BATCH_KEYS] + [out["flags"], out["status"]]
 
     def piece(s, e):
-        k.fused(f_flat[3 * s:3 * e], m_flat[3 * s:3 * e], bool(negate), bool(linear), ca, ba, cm, bm, *scalars,
+        k.fused(g_flat[3 * s:3 * e], m_flat[3 * s:3 * e], bool(linear), ca, ba, cm, bm, *scalars,
                 *(a[s:e] for a in outs))
 
-    parts = _slices(len(f_flat) // 3, threads)
+    parts = _slices(len(g_flat) // 3, threads)
     if len(parts) == 1:
         piece(*parts[0])
         return
@@ -195,33 +195,33 @@ def _linear(calibration, sensor):
     return c, np.ascontiguousarray(np.asarray(plan.triads[sensor].bias, dtype=np.float64))
 
 
-def fused(f, m, calibration, site, tol, temp, tim, block: int, out: dict, correct_block,
+def fused(g, m, calibration, site, tol, temp, tim, block: int, out: dict, correct_block,
           threads: int | None = None) -> dict:
     """The kernel's part of :func:`survey.correct_samples` (which checks the inputs and calls it
-    when the backend resolves to ``numba``): ``f`` (N, 3) REP-145 specific force, m/s²; ``m``
+    when the backend resolves to ``numba``): ``g`` (N, 3) gravity vector (down positive), m/s²; ``m``
     (N, 3) nT; ``out`` the outputs (checked here).  A record with effects beyond the base model is
     corrected block by block by ``correct_block(g, b, temp, time)`` (the caller's: the one
     correction path), and the kernel then does the angles and QC of each block (on the calling
     thread).  ``threads``: see :func:`resolve_threads`."""
-    n = len(f)
+    n = len(g)
     _check_out(out, n)
     nt = resolve_threads(threads)
     if n == 0:
         return out
     if calibration is None:
-        _run(np.ascontiguousarray(f).reshape(-1), np.ascontiguousarray(m).reshape(-1), True, False, None, None,
+        _run(np.ascontiguousarray(g).reshape(-1), np.ascontiguousarray(m).reshape(-1), False, None, None,
              site, tol, out, nt)
     elif not any(calibration.plan.extra.values()):
-        _run(np.ascontiguousarray(f).reshape(-1), np.ascontiguousarray(m).reshape(-1), True, True,
+        _run(np.ascontiguousarray(g).reshape(-1), np.ascontiguousarray(m).reshape(-1), True,
              _linear(calibration, "acc"), _linear(calibration, "mag"), site, tol, out, nt)
     else:   # effects beyond the base model: the one correction path per block, then the kernel
         blk = max(1, min(int(block), n))
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             for s in range(0, n, blk):
                 e = min(s + blk, n)
-                g, b = correct_block(-f[s:e], m[s:e], None if temp is None else temp[s:e],
-                                     None if tim is None else tim[s:e])
-                _run(np.ascontiguousarray(g).reshape(-1), np.ascontiguousarray(b).reshape(-1), False, False,
+                gc, bc = correct_block(g[s:e], m[s:e], None if temp is None else temp[s:e],
+                                       None if tim is None else tim[s:e])
+                _run(np.ascontiguousarray(gc).reshape(-1), np.ascontiguousarray(bc).reshape(-1), False,
                      None, None, site, tol, {k: v[s:e] for k, v in out.items()})
     return out
 

@@ -10,7 +10,11 @@ Conventions (used everywhere in this package)
   ``v_ned = R @ v_tool``.
 * **Gravity vector** (the seed paper's convention): ``g_tool = R.T @ [0, 0, +g]``, down positive.
   ``sensor_msgs/Imu`` carries REP-145 *specific force* ``f = -g_tool`` (a resting probe reads
-  -gravity).  Convert once with :func:`gravity_from_specific_force`, at the boundary.
+  -gravity).  Convert once with :func:`gravity_from_specific_force`, at the boundary: the
+  probe-log reader (``ProbeLog.gravity``), the CDR decoder (``cdr.decode_imu_gravity``) and the
+  nodes' ``Imu`` reader (``nodes.common.gravity``) are its only callers; every core API
+  (detector, engine, batch correction, kernel, lab) takes the gravity vector
+  (``test_the_specific_force_sign_flip_happens_at_the_entries_only`` pins it).
 * **Magnetic field** in nT in the core (``sensor_msgs/MagneticField`` carries tesla).
 
 Angles are in degrees at the public API.  All functions broadcast over leading dimensions: vectors
@@ -174,8 +178,10 @@ class Site:
 def gravity_from_specific_force(f):
     """Paper-convention gravity vector (down positive) from REP-145 specific force: ``g = -f``.
 
-    The one place where samples change convention on their way in (the static detector, the
-    batch path); a tuple gives a tuple (the per-sample path), anything else an array."""
+    The one place where samples change convention on their way in, called only where they enter
+    the package: ``io.probelog.ProbeLog.gravity`` (a log's rows), ``io.cdr.decode_imu_gravity``
+    (the bytes of an ``Imu``: a bag, the nodes' raw subscriptions) and ``nodes.common.gravity``
+    (a Python ``Imu``).  A tuple gives a tuple (the per-sample path), anything else an array."""
     if isinstance(f, tuple):
         return (-f[0], -f[1], -f[2])
     return -np.asarray(f, dtype=float)
@@ -185,7 +191,8 @@ def specific_force_from_gravity(g):
     """REP-145 specific force (a resting probe reads -gravity) from the gravity vector: ``f = -g``.
 
     The one place where values change convention on their way out (corrected ``Imu`` streams,
-    the accelerometer fields of a ``CalibrationCoefficients`` message, the simulator's output)."""
+    the accelerometer fields of a ``CalibrationCoefficients`` message, the simulator's output,
+    a stuck level said as the log records it)."""
     if isinstance(g, tuple):
         return (-g[0], -g[1], -g[2])
     return -np.asarray(g, dtype=float)

@@ -8,7 +8,7 @@ lab's fits (built only from :class:`Station` objects).
 
 Conventions: ``g`` is the seed paper's **gravity vector** (down positive, m/s²) — the REP-145
 specific force of ``sensor_msgs/Imu`` and of the probe-log CSV is negated once, where samples
-enter :class:`streaming.StaticDetector`; ``b`` is the field in nT.  Times are seconds in the
+enter the package (:func:`frames.gravity_from_specific_force`); ``b`` is the field in nT.  Times are seconds in the
 data's own time base (log time, or the stream's header stamps).
 """
 from __future__ import annotations

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import frames
-from .frames import Site, gravity_from_specific_force, wrap180, wrap360
+from .frames import Site, wrap180, wrap360
 from .geomag import azimuths
 from . import batchkernel
 from .batchkernel import BATCH_KEYS
@@ -215,16 +215,15 @@ FLAG_GRAVITY_OUT_OF_TOLERANCE = 4
 FLAG_TOOLFACE_IS_GRAVITY = 8
 FLAG_NOT_FINITE = 16
 
-def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
+def correct_samples(g, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
                     temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None,
                     backend: str | None = None, threads: int | None = None) -> dict:
     """Correct and evaluate raw samples in bulk: both triads, angles and QC per sample.
 
     Parameters
     ----------
-    f : (N, 3) float64 — accelerometer, REP-145 specific force, m/s² (converted here to the
-        gravity vector by :func:`frames.gravity_from_specific_force`, as the static detector does
-        for a stream).
+    g : (N, 3) float64 — accelerometer, the gravity vector (down positive), m/s² (REP-145
+        specific force is converted where it enters, e.g. ``ProbeLog.gravity``).
     m_nt : (N, 3) float64 — magnetometer, nT.
     calibration : :class:`coeffs.Calibration` or None (uncorrected).  The correction is its
         :meth:`~coeffs.Calibration.correct` (the package's one correction path), block by block.
@@ -252,15 +251,15 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
     the same correction, then the same formulas in the same evaluation order; only the
     intermediate storage differs.
     """
-    f = np.asarray(f, dtype=np.float64)
+    gs = np.asarray(g, dtype=np.float64)
     m = np.asarray(m_nt, dtype=np.float64)
-    if f.ndim != 2 or f.shape[1] != 3 or m.shape != f.shape:
-        raise ValueError(f"correct_samples: f and m_nt must both be (N, 3), got {f.shape} and {m.shape}")
+    if gs.ndim != 2 or gs.shape[1] != 3 or m.shape != gs.shape:
+        raise ValueError(f"correct_samples: g and m_nt must both be (N, 3), got {gs.shape} and {m.shape}")
     if site is None:
         if calibration is None:
             raise ValueError("correct_samples: no site reference: give a site, or a calibration (which owns one)")
         site = calibration.site
-    n = len(f)
+    n = len(gs)
     temp = None if temperature_c is None else np.broadcast_to(np.asarray(temperature_c, dtype=float), (n,))
     tim = None if time_s is None else np.broadcast_to(np.asarray(time_s, dtype=float), (n,))
     if calibration is not None:
@@ -271,7 +270,7 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
         out["flags"] = np.empty(n, dtype=np.uint8)
         out["status"] = np.empty(n, dtype=np.uint8)
     if kernel:
-        return batchkernel.fused(f, m, calibration, site, tol, temp, tim, block, out,
+        return batchkernel.fused(gs, m, calibration, site, tol, temp, tim, block, out,
                                  lambda g, b, tc, ts: calibration.correct(g, b, tc, ts), threads)
     blk = max(1, min(int(block), n)) if n else 1
     gt = np.empty((3, blk))
@@ -283,7 +282,7 @@ def correct_samples(f, m_nt, calibration=None, site: Site | None = None, tol: To
     with np.errstate(invalid="ignore", divide="ignore"):  # NaN/inf samples are flagged, not warned
         for s in range(0, n, blk):
             e = min(s + blk, n)
-            g = gravity_from_specific_force(f[s:e])
+            g = gs[s:e]
             if calibration is not None:
                 g, b = calibration.correct(g, m[s:e], None if temp is None else temp[s:e],
                                            None if tim is None else tim[s:e])

@@ -39,7 +39,7 @@ import math
 import re
 from dataclasses import dataclass, field
 
-from ..core.frames import STANDARD_GRAVITY, Site
+from ..core.frames import STANDARD_GRAVITY, Site, specific_force_from_gravity
 from ..detect.gates import GateLimits, apply_gates
 from .pipeline import UNNAMED_PROBE, probe_mismatch
 from ..io.probelog import Limits, check_sample
@@ -68,15 +68,15 @@ _MAG2 = (_LIMITS.mag_total_range[0] ** 2, (0.999 * _LIMITS.mag_full_scale) ** 2)
 assert _ACC2[1] < (0.999 * _LIMITS.acc_full_scale) ** 2   # likewise for the accelerometer
 
 
-def implausible(f, m) -> str | None:
-    """Why a sample (REP-145 specific force m/s², field nT) is unusable, or None: the CSV reader's
-    limits (:func:`probelog.check_sample`), the same everywhere; a field that looks like nT
-    written into a tesla field says so."""
-    a2 = f[0] * f[0] + f[1] * f[1] + f[2] * f[2]
+def implausible(g, m) -> str | None:
+    """Why a sample (gravity vector m/s², field nT) is unusable, or None: the CSV reader's limits
+    (:func:`probelog.check_sample`, said in the values the probe sent: REP-145 specific force),
+    the same everywhere; a field that looks like nT written into a tesla field says so."""
+    a2 = g[0] * g[0] + g[1] * g[1] + g[2] * g[2]
     b2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
     if _ACC2[0] <= a2 <= _ACC2[1] and _MAG2[0] <= b2 <= _MAG2[1]:
         return None
-    reason = check_sample(f, m, NAN, _LIMITS)
+    reason = check_sample(specific_force_from_gravity(tuple(g)), m, NAN, _LIMITS)
     if reason is not None and 1.0 < math.sqrt(b2) * 1e-9 < 1e6:
         reason += " — the field looks like nT written into a tesla field; MagneticField carries tesla"
     return reason
@@ -381,9 +381,10 @@ class StreamEngine:
             self.release()
 
     # ---- samples ---------------------------------------------------------------------------
-    def imu(self, key, f, order: int = 0, sigma: float = NAN) -> tuple:
-        """A ``/probe/imu`` sample: header stamp ``key`` (sec, nanosec), REP-145 specific force
-        ``f`` (m/s²), ``order`` its send-order key (placing depths), ``sigma`` the per-axis noise its
+    def imu(self, key, g, order: int = 0, sigma: float = NAN) -> tuple:
+        """A ``/probe/imu`` sample: header stamp ``key`` (sec, nanosec), its gravity vector ``g``
+        (m/s², down positive: :func:`io.cdr.decode_imu_gravity`), ``order`` its send-order key
+        (placing depths), ``sigma`` the per-axis noise its
         covariance states (m/s², NaN: none; the first one is the detector's prior)."""
         self.counts.imu += 1
         if not self._prior[0]:
@@ -392,7 +393,7 @@ class StreamEngine:
                 self.det.set_prior(noise_acc=sigma)
         if order:
             self._note_sent(order, key[0] + 1e-9 * key[1])
-        got = self.pairer.add_imu(key, f)
+        got = self.pairer.add_imu(key, g)
         if got is None:
             return self._dropped(TOPIC_IMU, key)
         return self._pair(*got)
@@ -422,23 +423,23 @@ class StreamEngine:
                                      f"s): non-monotonic timestamps, dropped; {n} so far")
         return ()
 
-    def _pair(self, t, f, m) -> tuple:
+    def _pair(self, t, g, m) -> tuple:
         """A complete pair at ``t``: through the detector.  Returns the stations it closed (they
         wait, go out, or both: see :meth:`pop`)."""
         c = self.counts
         c.pairs += 1
         if self.t_first != self.t_first:
             self.t_first = t
-        if not math.isfinite(f[0] + f[1] + f[2] + m[0] + m[1] + m[2]):
+        if not math.isfinite(g[0] + g[1] + g[2] + m[0] + m[1] + m[2]):
             c.nonfinite += 1
             if c.nonfinite & (c.nonfinite - 1) == 0:   # said at the 1st, 2nd, 4th ... one: bounded
-                which = [n for n, v in ((TOPIC_IMU, f), (TOPIC_MAG, m)) if not all(map(math.isfinite, v))]
-                self._say("warning", f"non-finite sample at t={t:.3f} s on {' and '.join(which)} (acc {tuple(f)} "
+                which = [n for n, v in ((TOPIC_IMU, g), (TOPIC_MAG, m)) if not all(map(math.isfinite, v))]
+                self._say("warning", f"non-finite sample at t={t:.3f} s on {' and '.join(which)} (gravity {tuple(g)} "
                                      f"m/s^2, mag {tuple(m)} nT): it ends the current static interval; "
                                      f"{c.nonfinite} so far")
-        elif implausible(f, m) is not None:
+        elif implausible(g, m) is not None:
             c.implausible += 1
-            reason = implausible(f, m)
+            reason = implausible(g, m)
             kind = _NUMBER.sub("#", reason)       # the reason without its numbers: a few kinds at most
             if c.implausible & (c.implausible - 1) == 0 or kind not in self._implausible_kinds:
                 self._implausible_kinds.add(kind)  # the first of each kind too: one does not hide another
@@ -446,8 +447,8 @@ class StreamEngine:
             return ()
         c.used += 1
         self.t_last = t
-        self.last_pair = (t, f, m)
-        closed = self.det.update(t, f, m)
+        self.last_pair = (t, g, m)
+        closed = self.det.update(t, g, m)
         if self.det.events:
             for e in self.det.pop_events():
                 self._say("warning", e)
@@ -457,14 +458,14 @@ class StreamEngine:
             self.settled = t
         return closed
 
-    def samples(self, t, f, m, temp_c=None) -> None:
+    def samples(self, t, g, m, temp_c=None) -> None:
         """A block of samples at once (a log): the detector's bulk path (:meth:`StaticDetector.run`,
         the same stations as sample by sample); rows that are not plausible are left out first,
         counted.  Only for a source with no side streams waiting (a log's own temperature column)."""
         import numpy as np
 
         t = np.asarray(t, float)
-        f = np.asarray(f, float)
+        g = np.asarray(g, float)
         m = np.asarray(m, float)
         n = len(t)
         self.counts.imu += n
@@ -475,15 +476,15 @@ class StreamEngine:
         temp = None if temp_c is None else np.asarray(temp_c, float)
         if temp is not None:
             self.have_temp = bool(np.any(np.isfinite(temp))) or self.have_temp
-        finite = np.all(np.isfinite(f), axis=1) & np.all(np.isfinite(m), axis=1)
+        finite = np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(m), axis=1)
         keep = np.ones(n, bool)
         for i in np.flatnonzero(finite):
-            if implausible(f[i], m[i]) is not None:
+            if implausible(g[i], m[i]) is not None:
                 keep[i] = False
         self.counts.nonfinite += int(np.sum(~finite))
         self.counts.implausible += int(np.sum(~keep))
         self.counts.used += int(np.sum(keep & finite))
-        closed = self.det.run(t[keep], f[keep], m[keep], None if temp is None else temp[keep])
+        closed = self.det.run(t[keep], g[keep], m[keep], None if temp is None else temp[keep])
         for e in self.det.pop_events():
             self._say("warning", e)
         for st in closed:

@@ -671,7 +671,7 @@ def simulate_run(seed: int, path: str = "build_turn", n_stations: int = 30, axia
     g0, b0 = frames.tool_vectors(site, ref[:, 0], ref[:, 1], ref[:, 2])
     temps = np.array([st.temp_c for st in plan])
     times = 60.0 * np.arange(n_stations)
-    f, m = probe.measure(g0, b0, temps, times, rng, survey=True)
+    g, m = probe.measure_gravity(g0, b0, temps, times, rng, survey=True)
     m = m + rng.normal(0.0, station_noise_nt, m.shape)
     out_idx = np.sort(rng.choice(n_stations, size=outliers, replace=False)) if outliers else np.array([], int)
     for k in out_idx:
@@ -682,7 +682,7 @@ def simulate_run(seed: int, path: str = "build_turn", n_stations: int = 30, axia
     solver_site = Site(total_field_nt=site.total_field_nt + reference_error[0],
                        dip_deg=site.dip_deg + reference_error[1], declination_deg=site.declination_deg,
                        gravity_mps2=site.gravity_mps2)
-    return {"g": frames.gravity_from_specific_force(f), "b": m, "inc_deg": ref[:, 0], "azimuth_deg": ref[:, 1],
+    return {"g": g, "b": m, "inc_deg": ref[:, 0], "azimuth_deg": ref[:, 1],
             "toolface_deg": ref[:, 2], "site": solver_site, "site_true": site, "dz_nt": (1.0 + msz) * axial_nt,
             "msz": msz, "mbxy_nt": tuple(mbxy_nt), "outliers": out_idx, "reference_error": tuple(reference_error)}
 

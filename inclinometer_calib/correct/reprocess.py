@@ -46,7 +46,7 @@ import numpy as np
 
 from ..io.bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageEncoder, open_bag, read_messages
 from ..calibrate.capture import CaptureSession
-from ..io.cdr import (DECODE_ERRORS, Patcher, decode_float64, decode_imu, decode_imu_covariance, decode_mag_covariance,
+from ..io.cdr import (DECODE_ERRORS, Patcher, decode_float64, decode_imu_covariance, decode_imu_gravity, decode_mag_covariance,
                   decode_string, decode_temperature, decode_vector3, header)
 from ..core.deps import require
 from ..core.frames import NT_PER_TESLA, Site
@@ -121,10 +121,10 @@ class BagFeeder:
                 self.duplicates += 1
                 return ""
             if topic == TOPIC_IMU:
-                key, f = decode_imu(m.data)
+                key, g = decode_imu_gravity(m.data)
                 if "acc" not in self.prior:
                     self.prior["acc"] = decode_imu_covariance(m.data)
-                eng.imu(key, f, m.publish_time, self.prior["acc"])
+                eng.imu(key, g, m.publish_time, self.prior["acc"])
                 self.last[topic] = key[0] + 1e-9 * key[1]
             elif topic == TOPIC_MAG:
                 key, b = decode_vector3(m.data)

@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.effects import mean_decay
+from ..core.frames import specific_force_from_gravity
 from .noise import chi_quantile
 
 #: Significance of a trend, in standard errors of the slope.
@@ -314,7 +315,8 @@ class SaturationMonitor:
 
     def add(self, st, findings) -> list:
         out = []
-        for sensor, mean, std, noise in (("acc", -np.asarray(st.g), st.g_std, st.g_noise),
+        # a stuck level is said as the log records it (REP-145 specific force)
+        for sensor, mean, std, noise in (("acc", specific_force_from_gravity(st.g), st.g_std, st.g_noise),
                                          ("mag", np.asarray(st.b), st.b_std, st.b_noise)):
             if not any(f.code == "flat" and sensor in f.sensors for f in findings):
                 continue

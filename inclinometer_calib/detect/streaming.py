@@ -9,8 +9,9 @@
 
 What happens to a closed station next (correction, QC, the field monitor) is in :mod:`pipeline`.
 
-Inputs follow the boundary convention: accelerometer as REP-145 specific force (m/s²), converted
-here once to the gravity vector; magnetometer in nT (a node converts from tesla before calling).
+Inputs are the core's: accelerometer as the gravity vector (down positive, m/s²: converted from
+REP-145 specific force where the samples entered, :func:`frames.gravity_from_specific_force`);
+magnetometer in nT (a node converts from tesla before calling).
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ import math
 
 import numpy as np
 
-from ..core.frames import angle_between_deg, gravity_from_specific_force
+from ..core.frames import angle_between_deg
 from .noise import AXES6, UNITS6, NoiseEstimator
 from ..core.station import Station, hold_statistics
 
@@ -60,8 +61,8 @@ class StaticDetector:
     with a guessed noise.  ``noise_acc`` / ``noise_mag`` > 0 override the data (per-sample σ,
     m/s² and nT); a noise stated by the messages (covariance) is a prior: :meth:`set_prior`.
 
-    Inputs follow the boundary convention: ``f`` REP-145 specific force (m/s²), converted here
-    once to the gravity vector of the stations (:func:`frames.gravity_from_specific_force`); ``m`` the field in nT.
+    Inputs are the core's: ``g`` the gravity vector (down positive, m/s²; REP-145 specific force is
+    converted where it enters, :func:`frames.gravity_from_specific_force`); ``m`` the field in nT.
 
     :meth:`update` returns a tuple of the stations closed by that sample (usually empty; several
     when the warm-up buffer is replayed).  Messages for the user (a hold cut into pieces and why,
@@ -169,13 +170,12 @@ class StaticDetector:
         on a topic of their own (a node, a bag)."""
         self.temps.add(t, temp_c)
 
-    def update(self, t: float, f, m, temp_c: float = math.nan):
-        """Feed one sample (specific force m/s², field nT, and its temperature °C, or NaN when the
+    def update(self, t: float, g, m, temp_c: float = math.nan):
+        """Feed one sample (gravity vector m/s², field nT, and its temperature °C, or NaN when the
         temperature comes separately by :meth:`add_temperature` or not at all).
 
         Returns the stations closed by it (a tuple, usually empty)."""
-        x = gravity_from_specific_force((float(f[0]), float(f[1]), float(f[2]))) + (float(m[0]), float(m[1]),
-                                                                                     float(m[2]))
+        x = (float(g[0]), float(g[1]), float(g[2]), float(m[0]), float(m[1]), float(m[2]))
         t = float(t)
         if temp_c == temp_c:
             self.temps.add(t, temp_c)
@@ -212,12 +212,12 @@ class StaticDetector:
         return out + self._step(t, x)
 
     # ---- a whole log at once ----------------------------------------------------------------
-    def run(self, t, f, m, temp_c=None):
+    def run(self, t, g, m, temp_c=None):
         """Feed a block of samples at once: what calling :meth:`update` on each row in turn does,
         with the same stations, events and state after it, bit for bit (``test_streaming`` pins
         it), at a fraction of the cost — for a log or a recorded stream.
 
-        ``t`` (N,) s, ``f`` (N, 3) specific force m/s², ``m`` (N, 3) nT, ``temp_c`` (N,) °C or None.
+        ``t`` (N,) s, ``g`` (N, 3) gravity vector m/s², ``m`` (N, 3) nT, ``temp_c`` (N,) °C or None.
         Returns the stations closed (a tuple; :meth:`flush` closes the last one).
 
         There is one detection rule, :meth:`_step`.  What is done here in bulk is only what it
@@ -233,7 +233,7 @@ class StaticDetector:
         sample, as do logs whose times go backwards.
         """
         t = np.asarray(t, dtype=float)
-        f = np.asarray(f, dtype=float)
+        g = np.asarray(g, dtype=float)
         m = np.asarray(m, dtype=float)
         n_all = len(t)
         temp = np.full(n_all, np.nan) if temp_c is None else np.asarray(temp_c, dtype=float)
@@ -241,14 +241,14 @@ class StaticDetector:
         i = 0
         # per sample until the noise is known and the estimator's block boundary is reached
         while i < n_all and (self._warming or self.noise.block_open or self.t_first != self.t_first):
-            out.extend(self.update(t[i], f[i], m[i], temp[i]))
+            out.extend(self.update(t[i], g[i], m[i], temp[i]))
             i += 1
         tf = t[i:][np.isfinite(t[i:])]
         if n_all - i < 64 or np.any(np.diff(tf) < 0):
             for j in range(i, n_all):
-                out.extend(self.update(t[j], f[j], m[j], temp[j]))
+                out.extend(self.update(t[j], g[j], m[j], temp[j]))
             return tuple(out)
-        out.extend(_BatchRun(self, t[i:], f[i:], m[i:], temp[i:]).run())
+        out.extend(_BatchRun(self, t[i:], g[i:], m[i:], temp[i:]).run())
         return tuple(out)
 
     def _note_gap(self, t, dt):
@@ -413,10 +413,10 @@ class _BatchRun:
     #: the bulk step's fixed cost would exceed the per-sample path's).
     SHORT = 16
 
-    def __init__(self, det, t, f, m, temp):
+    def __init__(self, det, t, g, m, temp):
         self.det = det
         self.t = t
-        self.x = np.concatenate([gravity_from_specific_force(f), m], axis=1)
+        self.x = np.concatenate([g, m], axis=1)
         self.temp = temp
         self.n = len(t)
         self._temps_done = 0
@@ -635,7 +635,7 @@ class _BatchRun:
 class StreamPairer:
     """Pairs Imu and MagneticField samples of the same header stamp, cheaply and in time order.
 
-    ``add_imu``/``add_mag`` return ``(t, f, m)`` when the stamp's partner is already there,
+    ``add_imu``/``add_mag`` return ``(t, g, m)`` when the stamp's partner is already there,
     else None.  Unpaired samples wait in small insertion-ordered dicts (the oldest is evicted
     beyond ``max_pending``: with reliable QoS on a loaded machine one topic may run hundreds of
     samples behind the other); a completed pair older than the last one emitted is dropped
@@ -679,8 +679,8 @@ class StreamPairer:
         self.paired += 1
         return (t, value, partner) if imu_first else (t, partner, value)
 
-    def add_imu(self, key, f):
-        return self._add(key, f, self._imu, self._mag, True)
+    def add_imu(self, key, g):
+        return self._add(key, g, self._imu, self._mag, True)
 
     def add_mag(self, key, m):
         return self._add(key, m, self._mag, self._imu, False)

@@ -25,6 +25,8 @@ from __future__ import annotations
 import math
 import struct
 
+from ..core.frames import gravity_from_specific_force
+
 NAN = float("nan")
 
 _LE = (struct.Struct("<iiI"), struct.Struct("<ddd"), struct.Struct("<d"), struct.Struct("<iI"),
@@ -63,9 +65,19 @@ def stamp(data) -> float:
 
 def decode_imu(data):
     """``((sec, nanosec), (fx, fy, fz))`` from the CDR bytes of a ``sensor_msgs/Imu``: the linear
-    acceleration (REP-145 specific force, m/s²)."""
+    acceleration as recorded (REP-145 specific force, m/s²) — for passing the message on (the
+    probe's replay of a bag); what goes into the core is :func:`decode_imu_gravity`'s."""
     sec, nsec, pos, s = header(data)
     return (sec, nsec), s[1].unpack_from(data, pos + IMU_ACC_OFFSET)
+
+
+def decode_imu_gravity(data):
+    """``((sec, nanosec), (gx, gy, gz))`` from the CDR bytes of a ``sensor_msgs/Imu``: the gravity
+    vector (down positive, m/s²) the core takes, ``g = -f`` of the REP-145 specific force
+    (:func:`frames.gravity_from_specific_force`, converted here, once, for every driver of the
+    engine: a bag, the nodes' raw subscriptions)."""
+    sec, nsec, pos, s = header(data)
+    return (sec, nsec), gravity_from_specific_force(s[1].unpack_from(data, pos + IMU_ACC_OFFSET))
 
 
 def imu_covariance(data) -> tuple:

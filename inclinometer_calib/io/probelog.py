@@ -51,7 +51,7 @@ import numpy as np
 
 from ..core.deps import installed, require
 from ..core.output import atomic_write_text
-from ..core.frames import STANDARD_GRAVITY
+from ..core.frames import STANDARD_GRAVITY, gravity_from_specific_force
 
 HEADER = ["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose",
           "ref_drift_deg", "ref_azimuth_deg", "ref_toolface_deg"]
@@ -105,6 +105,13 @@ class ProbeLog:
             self.station = np.full(n, -1)
         if self.md_m is None:
             self.md_m = np.full(n, np.nan)
+
+    @property
+    def gravity(self) -> np.ndarray:
+        """(N, 3) the gravity vector (down positive, m/s²) of the rows: ``-acc``
+        (:func:`frames.gravity_from_specific_force`), what every core API takes.  A new array at
+        each access (``acc`` is the record as read and written)."""
+        return gravity_from_specific_force(self.acc)
 
     @property
     def is_turntable(self) -> bool:
@@ -879,8 +886,8 @@ def segment_stations(log: ProbeLog, detector=None, use_labels: bool = True):
 
     det = detector if detector is not None else StaticDetector()
     found = []
-    t, acc, mag, temp = log.t_s, log.acc, log.mag, log.temp_c
-    found.extend(det.run(t, acc, mag, temp))    # = det.update row by row, in bulk (test_streaming pins it)
+    t, g, mag, temp = log.t_s, log.gravity, log.mag, log.temp_c
+    found.extend(det.run(t, g, mag, temp))    # = det.update row by row, in bulk (test_streaming pins it)
     found.extend(det.flush())
     problems = list(det.pop_events())
     stations = []

@@ -82,7 +82,7 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
             losses.append(Loss(str(path), "log", 1, why))
             say(f"{path}: {why}: the whole log is left out")
             continue
-        parts.append((kept, role, str(path), labels, [_samples(log, st) for st in kept]))
+        parts.append((kept, role, str(path), labels, _samples(log, kept)))
     if not parts:
         raise ValueError("no usable static stations in any log" if losses else "no logs given")
     return Stations.concatenate([Stations.from_list(st, role, source=src, use_ref=labels, t_origin=t_origin,
@@ -90,12 +90,16 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
                                  for st, role, src, labels, smp in parts], losses=losses)
 
 
-def _samples(log, st):
-    """A station's samples: (n, 7) time (s), gravity vector (m/s², the log's specific force negated)
-    and field (nT)."""
-    i0, i1 = np.searchsorted(log.t_s, [st.t_start, st.t_end], side="left")
-    i1 = min(i1 + 1, len(log))
-    return np.column_stack([log.t_s[i0:i1], -np.asarray(log.acc[i0:i1]), np.asarray(log.mag[i0:i1])])
+def _samples(log, stations):
+    """Each station's samples: (n, 7) time (s), gravity vector (m/s², ``ProbeLog.gravity``) and
+    field (nT)."""
+    g = log.gravity
+    out = []
+    for st in stations:
+        i0, i1 = np.searchsorted(log.t_s, [st.t_start, st.t_end], side="left")
+        i1 = min(i1 + 1, len(log))
+        out.append(np.column_stack([log.t_s[i0:i1], g[i0:i1], np.asarray(log.mag[i0:i1])]))
+    return out
 
 
 def _row_losses(source: str, rejections) -> list:

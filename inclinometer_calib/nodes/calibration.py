@@ -51,7 +51,6 @@ from std_srvs.srv import Trigger
 from ..calibrate.capture import CaptureSession
 from ..core.effects import parse_effects, split_model_options
 from ..correct.engine import RecordOut, StreamEngine
-from ..core.frames import gravity_from_specific_force
 from ..core.plugins import NODE_PARAMETER, name_plugins
 from ..calibrate.turntable import MOUNTS, MOUNT_NAMES_ORDER, TurntableSession
 from ..calibrate.twelve_position import POSES
@@ -232,7 +231,7 @@ class CalibrationNode(Node):
         # Live pose while static (the session only identifies closed segments).
         last = self.engine.last_pair
         if last is not None and self.detector.static_for_s > 0:
-            g = gravity_from_specific_force(tuple(last[1]))
+            g = last[1]    # the engine's last pair: gravity already (converted where it came in)
             if self.turntable:
                 m = self.session.identify(g)
                 self._live_pose = MOUNT_NAMES_ORDER.index(m) + 1 if m else -1

@@ -2,8 +2,9 @@
 
 Boundary conventions (converted here, once):
 
-* ``sensor_msgs/Imu.linear_acceleration`` is REP-145 specific force in m/s^2; it is passed to the
-  core as is (the core's :class:`streaming.StaticDetector` turns it into the gravity vector).
+* ``sensor_msgs/Imu.linear_acceleration`` is REP-145 specific force in m/s^2; the core takes the
+  gravity vector ``g = -f``: :func:`gravity` reads it, :func:`set_gravity` writes it back (the raw
+  sample subscriptions decode with ``cdr.decode_imu_gravity``, the same conversion).
 * ``sensor_msgs/MagneticField`` is in tesla; the core works in nT (``NT_PER_TESLA``).
 * Header stamps become float seconds (``sec + 1e-9 nanosec``).
 
@@ -26,7 +27,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from ..io.cdr import stamp_parts
 from ..core.coeffs import Calibration, message_fields
-from ..core.frames import NT_PER_TESLA, Site
+from ..core.frames import NT_PER_TESLA, Site, gravity_from_specific_force, specific_force_from_gravity
 from ..core.survey import Tolerances
 from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
 
@@ -320,10 +321,18 @@ def ros_time_started(node) -> bool:
     return not clock.ros_time_is_active or clock.now().nanoseconds > 0
 
 
-def specific_force(imu_msg) -> tuple:
-    """REP-145 specific force (m/s^2) of an Imu message as a tuple of floats."""
+def gravity(imu_msg) -> tuple:
+    """The gravity vector (down positive, m/s^2) of an Imu message as a tuple of floats: ``-f`` of
+    its REP-145 specific force (:func:`frames.gravity_from_specific_force`, once, here)."""
     a = imu_msg.linear_acceleration
-    return (a.x, a.y, a.z)
+    return gravity_from_specific_force((a.x, a.y, a.z))
+
+
+def set_gravity(imu_msg, g) -> None:
+    """Write the gravity vector ``g`` (down positive, m/s^2) into an Imu message's
+    linear_acceleration as REP-145 specific force (:func:`frames.specific_force_from_gravity`)."""
+    a = imu_msg.linear_acceleration
+    a.x, a.y, a.z = specific_force_from_gravity(tuple(g))
 
 
 def field_nt(mag_msg) -> tuple:

@@ -60,7 +60,6 @@ from sensor_msgs.msg import Imu, MagneticField, Temperature
 
 from ..core.coeffs import Calibration, CoefficientError
 from ..correct.engine import StationOut, StreamEngine
-from ..core.frames import gravity_from_specific_force, specific_force_from_gravity
 from ..core.geomag import NORTH_CHOICES, azimuth_reference
 from ..lab.field import FieldMonitor
 from ..correct.pipeline import NO_SITE, SurveyProcessor
@@ -312,10 +311,9 @@ class CorrectionNode(Node):
             return
         t = c.stamp_to_sec(msg.header.stamp)
         if isinstance(msg, Imu):
-            v = self._correct_stream("acc", gravity_from_specific_force(c.specific_force(msg)), t)
+            v = self._correct_stream("acc", c.gravity(msg), t)
             if v is not None:
-                la = msg.linear_acceleration
-                la.x, la.y, la.z = specific_force_from_gravity(v)
+                c.set_gravity(msg, v)
                 self.pub_imu.publish(msg)
         elif isinstance(msg, MagneticField):
             v = self._correct_stream("mag", c.field_nt(msg), t)

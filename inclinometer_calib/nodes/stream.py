@@ -169,7 +169,7 @@ class StreamDriver:
         if self.engine.ended:
             return self._late(c.TOPIC_IMU)
         try:
-            key, f = cdr.decode_imu(data)
+            key, g = cdr.decode_imu_gravity(data)
             sigma = math.nan if self._prior[0] else cdr.decode_imu_covariance(data)
         except cdr.DECODE_ERRORS as exc:
             return self._undecodable(c.TOPIC_IMU, exc)
@@ -177,7 +177,7 @@ class StreamDriver:
             return
         self._prior[0] = True
         self._last_wall = time.monotonic()
-        self.engine.imu(key, f, info.get("source_timestamp", 0) if info else 0, sigma)
+        self.engine.imu(key, g, info.get("source_timestamp", 0) if info else 0, sigma)
         self._after((Imu, data), info)
 
     def _on_mag(self, data):
@@ -338,12 +338,12 @@ class StreamDriver:
         return False
 
     # ---- direct use (in-process: a test, another driver) -----------------------------------------
-    def feed(self, t: float, f, m) -> None:
-        """A paired sample (s, REP-145 specific force m/s², field nT) handed in directly."""
+    def feed(self, t: float, g, m) -> None:
+        """A paired sample (s, gravity vector m/s² down positive, field nT) handed in directly."""
         self.engine.counts.imu += 1
         self.engine.counts.mag += 1
         self._last_wall = time.monotonic()
-        self.engine._pair(float(t), tuple(f), tuple(m))
+        self.engine._pair(float(t), tuple(g), tuple(m))
         self._after()
 
     def close_hold(self) -> None:

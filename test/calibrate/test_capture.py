@@ -12,8 +12,9 @@ from inclinometer_calib.detect.streaming import StaticDetector
 def _feed(session, log, finish=False):
     det = StaticDetector()
     out = []
+    g = log.gravity
     for i in range(len(log)):
-        for st in det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]):
+        for st in det.update(log.t_s[i], g[i], log.mag[i], log.temp_c[i]):
             out.append(session.offer(st))
     for st in det.flush():
         out.append(session.offer(st))

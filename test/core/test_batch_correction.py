@@ -19,22 +19,22 @@ def _samples(site, n=20000, seed=0):
     drift = rng.uniform(0, 180, n)
     drift[:500] = rng.uniform(0, 4, 500)            # near vertical: magnetic toolface, azimuth undefined
     g, b = tool_vectors(site, drift, rng.uniform(0, 360, n), rng.uniform(0, 360, n))
-    f = -PROBE.acc.forward(g) + rng.normal(0, 0.05, (n, 3))   # noisy enough to trip every QC flag
+    h = PROBE.acc.forward(g) - rng.normal(0, 0.05, (n, 3))    # raw gravity; noisy enough to trip every QC flag
     m = PROBE.mag.forward(b) + rng.normal(0, 300, (n, 3))
-    f[5] = np.nan
+    h[5] = np.nan
     m[7, 2] = np.inf
-    return f, m
+    return h, m
 
 
 @pytest.mark.parametrize("declination", [0.0, -7.3, 12.0])
 @pytest.mark.parametrize("calibrated", [False, True])
 def test_batch_equals_station_path_bitwise(declination, calibrated):
     site = Site(declination_deg=declination)
-    f, m = _samples(site)
+    h, m = _samples(site)
     cal = CAL if calibrated else None
     tol = Tolerances()
-    out = correct_samples(f, m, cal, site, tol, block=3000, backend="numpy")   # several blocks and a partial one
-    g, b = (-f, m) if cal is None else cal.correct(-f, m)
+    out = correct_samples(h, m, cal, site, tol, block=3000, backend="numpy")   # several blocks and a partial one
+    g, b = (h, m) if cal is None else cal.correct(h, m)
     with np.errstate(invalid="ignore"):
         ref = evaluate(g, b, site, tol)
     for k in BATCH_KEYS:
@@ -64,15 +64,15 @@ def test_a_lab_model_gives_the_same_bits_sample_by_sample_and_in_blocks():
     probe = sim.build_probe(4, ["temperature_bias:mag=3", "nonlinearity:acc=1e-3", "bias_drift:mag=40"])
     site = Site()
     cal = Calibration(probe.model, site=site)
-    f, m = _samples(site, n=6000)
-    temp = np.linspace(20.0, 60.0, len(f))
-    t = np.arange(len(f)) * 0.01
-    out = correct_samples(f, m, cal, temperature_c=temp, time_s=t, block=777, backend="numpy")
-    idx = np.arange(0, len(f), 97)
-    one = [cal.correct(-f[i], m[i], temp[i], t[i]) for i in idx]
+    h, m = _samples(site, n=6000)
+    temp = np.linspace(20.0, 60.0, len(h))
+    t = np.arange(len(h)) * 0.01
+    out = correct_samples(h, m, cal, temperature_c=temp, time_s=t, block=777, backend="numpy")
+    idx = np.arange(0, len(h), 97)
+    one = [cal.correct(h[i], m[i], temp[i], t[i]) for i in idx]
     with np.errstate(invalid="ignore"):
         ref = evaluate(np.array([g for g, _ in one]), np.array([b for _, b in one]), site)
     for k in BATCH_KEYS:
         np.testing.assert_array_equal(out[k][idx], ref[k], err_msg=k)
     with pytest.raises(ValueError, match="depend on temperature"):
-        correct_samples(f, m, cal, time_s=t)          # the model needs a temperature: said, not defaulted
+        correct_samples(h, m, cal, time_s=t)          # the model needs a temperature: said, not defaulted

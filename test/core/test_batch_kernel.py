@@ -26,17 +26,18 @@ def _samples(site, n=20000, seed=0):
     drift[500:700] = rng.uniform(176, 180, 200)      # near vertical, pointing up
     drift[700:720] = 0.0                             # exactly vertical
     g, b = tool_vectors(site, drift, rng.uniform(0, 360, n), rng.uniform(0, 360, n))
-    f = -PROBE.acc.forward(g) + rng.normal(0, 0.05, (n, 3))   # noisy enough to trip every QC flag
+    h = PROBE.acc.forward(g) - rng.normal(0, 0.05, (n, 3))    # raw gravity; noisy enough to trip every QC flag
     m = PROBE.mag.forward(b) + rng.normal(0, 300, (n, 3))
-    f[5] = np.nan
+    h[5] = np.nan
     m[7, 2] = np.inf
-    f[9] = m[9] = 0.0                                # signed zeros into atan2 (uncorrected: g = −0.0)
-    return f, m
+    h[9] = -0.0                                      # signed zeros into atan2
+    m[9] = 0.0
+    return h, m
 
 
-def _station_path(f, m, cal, site, tol, temp=None, tim=None):
+def _station_path(h, m, cal, site, tol, temp=None, tim=None):
     with np.errstate(invalid="ignore", divide="ignore"):
-        g, b = (-f, m) if cal is None else cal.correct(-f, m, temp, tim)
+        g, b = (h, m) if cal is None else cal.correct(h, m, temp, tim)
         return evaluate(g, b, site, tol)
 
 
@@ -103,15 +104,15 @@ def test_the_fast_arc_tangent_is_the_careful_one_bit_for_bit_or_nan_where_a_spec
 def test_threads_split_the_samples_without_changing_a_bit(monkeypatch):
     site = Site(declination_deg=-3.0)
     n = 5 * batchkernel.MIN_SLICE + 17                               # five slices on two threads
-    f, m = _samples(site, n=n, seed=5)
-    f[n - 3] = np.nan                                                # special values in a later slice too
-    f[batchkernel.MIN_SLICE + 1] = m[batchkernel.MIN_SLICE + 1] = 0.0
+    h, m = _samples(site, n=n, seed=5)
+    h[n - 3] = np.nan                                                # special values in a later slice too
+    h[batchkernel.MIN_SLICE + 1], m[batchkernel.MIN_SLICE + 1] = -0.0, 0.0
     assert len(batchkernel._slices(n, 2)) == 5 and len(batchkernel._slices(n, 1)) == 1
-    one = survey.correct_samples(f, m, CAL, site, backend="numba", threads=1)
-    two = survey.correct_samples(f, m, CAL, site, backend="numba", threads=2)
+    one = survey.correct_samples(h, m, CAL, site, backend="numba", threads=1)
+    two = survey.correct_samples(h, m, CAL, site, backend="numba", threads=2)
     for k in BATCH_KEYS + ("flags", "status"):
         np.testing.assert_array_equal(two[k], one[k], err_msg=k)
-    _assert_same(two, _station_path(f, m, CAL, site, Tolerances()), "two threads")
+    _assert_same(two, _station_path(h, m, CAL, site, Tolerances()), "two threads")
     monkeypatch.setenv(batchkernel.THREADS_ENV, "3")
     assert batchkernel.resolve_threads() == 3 and batchkernel.resolve_threads(1) == 1
     monkeypatch.delenv(batchkernel.THREADS_ENV)
@@ -121,7 +122,7 @@ def test_threads_split_the_samples_without_changing_a_bit(monkeypatch):
             batchkernel.resolve_threads(bad)
     monkeypatch.setenv(batchkernel.THREADS_ENV, "0")
     with pytest.raises(ValueError, match=r"\$INCLINOMETER_CALIB_BATCH_THREADS must be a whole number"):
-        survey.correct_samples(f[:10], m[:10], CAL, site, backend="numba")
+        survey.correct_samples(h[:10], m[:10], CAL, site, backend="numba")
 
 
 @has_numba
@@ -129,12 +130,12 @@ def test_threads_split_the_samples_without_changing_a_bit(monkeypatch):
 @pytest.mark.parametrize("calibrated", [False, True])
 def test_kernel_and_fallback_equal_the_station_path(declination, calibrated):
     site = Site(declination_deg=declination)
-    f, m = _samples(site)
+    h, m = _samples(site)
     cal = CAL if calibrated else None
     tol = Tolerances()
-    ref = _station_path(f, m, cal, site, tol)
-    fused = survey.correct_samples(f, m, cal, site, tol, backend="numba")
-    fallback = survey.correct_samples(f, m, cal, site, tol, backend="numpy", block=3000)
+    ref = _station_path(h, m, cal, site, tol)
+    fused = survey.correct_samples(h, m, cal, site, tol, backend="numba")
+    fallback = survey.correct_samples(h, m, cal, site, tol, backend="numpy", block=3000)
     _assert_same(fused, ref, "numba")
     _assert_same(fallback, ref, "numpy")
     assert fused["flags"][5] & survey.FLAG_NOT_FINITE and fused["flags"][7] & survey.FLAG_NOT_FINITE
@@ -146,22 +147,22 @@ def test_a_lab_model_goes_through_the_one_correction_path_then_the_kernel():
     probe = sim.build_probe(4, ["temperature_bias:mag=3", "nonlinearity:acc=1e-3", "bias_drift:mag=40"])
     site = Site(declination_deg=2.0)
     cal = Calibration(probe.model, site=site)
-    f, m = _samples(site, n=6000)
-    temp = np.linspace(20.0, 60.0, len(f))
-    t = np.arange(len(f)) * 0.01
-    out = survey.correct_samples(f, m, cal, temperature_c=temp, time_s=t, block=777, backend="numba")
-    _assert_same(out, _station_path(f, m, cal, site, Tolerances(), temp, t), "lab model")
+    h, m = _samples(site, n=6000)
+    temp = np.linspace(20.0, 60.0, len(h))
+    t = np.arange(len(h)) * 0.01
+    out = survey.correct_samples(h, m, cal, temperature_c=temp, time_s=t, block=777, backend="numba")
+    _assert_same(out, _station_path(h, m, cal, site, Tolerances(), temp, t), "lab model")
     with pytest.raises(ValueError, match="depend on temperature"):
-        survey.correct_samples(f, m, cal, time_s=t, backend="numba")
+        survey.correct_samples(h, m, cal, time_s=t, backend="numba")
 
 
 def test_backend_choice(monkeypatch):
     monkeypatch.setenv(batchkernel.BACKEND_ENV, "numpy")
     assert batchkernel.resolve_backend() == "numpy"
     site = Site(declination_deg=3.0)
-    f, m = _samples(site, n=2000)
-    out = survey.correct_samples(f, m, CAL, site)      # forced fallback: survey.correct_samples, bit for bit
-    ref = survey.correct_samples(f, m, CAL, site)
+    h, m = _samples(site, n=2000)
+    out = survey.correct_samples(h, m, CAL, site)      # forced fallback: survey.correct_samples, bit for bit
+    ref = survey.correct_samples(h, m, CAL, site)
     for k in BATCH_KEYS + ("flags", "status"):
         np.testing.assert_array_equal(out[k], ref[k], err_msg=k)
     monkeypatch.setenv(batchkernel.BACKEND_ENV, "fast")

@@ -3,10 +3,12 @@
 Read from the source (``ast``), so that a copy coming back fails here whatever it is called by:
 one station type (:mod:`station`), one correction path (:meth:`model.ProbeModel.correct` through
 :meth:`coeffs.Calibration.correct` and :func:`station.correct_stations`), the specific-force
-sign flip in :mod:`frames` only, effect metadata on the effect classes, one effect grammar.
+sign flip only where samples enter and leave (through :mod:`frames`), effect metadata on the effect
+classes, one effect grammar.
 """
 import ast
 import pathlib
+import re
 
 import pytest
 
@@ -79,14 +81,110 @@ def test_only_the_model_inverts_a_triad_and_only_the_pipeline_feeds_it_stations(
                        "core/station.py", "core/survey.py", "lab/uncertainty.py"], callers
 
 
-def test_the_specific_force_sign_flip_lives_in_frames_only():
+#: Where REP-145 specific force becomes the core's gravity vector (the only callers of
+#: frames.gravity_from_specific_force): a probe log's rows, the CDR bytes of an Imu (a bag, the
+#: nodes' raw subscriptions), a Python Imu message.
+ENTRIES = {"io/probelog.py", "io/cdr.py", "nodes/common.py"}
+#: Where a gravity vector goes out as specific force (frames.specific_force_from_gravity): an Imu
+#: message, a coefficients message's accelerometer fields, the simulator's probe output, and two
+#: messages that quote the probe's own values (an implausible sample, a stuck level).
+EXITS = {"nodes/common.py", "core/coeffs.py", "calibrate/simulate.py", "correct/engine.py", "detect/gates.py"}
+#: Names an accelerometer array goes by in the package (a sign flip of one of these is the flip again).
+ACCEL = re.compile(r"(f|fs|f_flat|h|acc\w*|accel\w*|specific_force\w*|sf|linear_acceleration|la|imu\w*)$")
+
+
+def _callee(node):
+    f = node.func
+    return f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
+
+
+def _array_name(node):
+    """The variable an expression reads an array from (``f``, ``f[s:e]``, ``log.acc``,
+    ``np.asarray(f)``), or None."""
+    while True:
+        if isinstance(node, ast.Name):
+            return node.id
+        if isinstance(node, ast.Attribute):
+            return node.attr
+        if isinstance(node, ast.Subscript):
+            node = node.value
+        elif isinstance(node, ast.Call) and _callee(node) in ("asarray", "array", "ascontiguousarray", "tuple",
+                                                                "float") and node.args:
+            node = node.args[0]
+        else:
+            return None
+
+
+def _negations(nodes):
+    """Line numbers where an accelerometer-named array is negated among ``nodes`` (those of
+    ``ast.walk``): ``-f``, ``np.negative(acc)``, ``-1 * f`` / ``f * -1``."""
+    out = []
+    for n in nodes:
+        if isinstance(n, ast.UnaryOp) and isinstance(n.op, ast.USub):
+            operand = n.operand
+        elif isinstance(n, ast.Call) and _callee(n) == "negative" and n.args:
+            operand = n.args[0]
+        elif isinstance(n, ast.BinOp) and isinstance(n.op, ast.Mult):
+            minus_one = [x for x in (n.left, n.right) if isinstance(x, ast.UnaryOp) and isinstance(x.op, ast.USub)
+                         and isinstance(x.operand, ast.Constant) and x.operand.value == 1]
+            operand = (n.right if minus_one[0] is n.left else n.left) if minus_one else None
+        else:
+            continue
+        name = _array_name(operand) if operand is not None else None
+        if name is not None and ACCEL.fullmatch(name):
+            out.append(n.lineno)
+    return out
+
+
+def test_the_specific_force_sign_flip_happens_at_the_entries_only():
     defs = [m for m, t in MODULES.items() if {"gravity_from_specific_force", "specific_force_from_gravity"}
             & _functions(t)]
     assert defs == ["core/frames.py"]
-    for module in ("detect/streaming.py", "core/survey.py", "nodes/correction.py", "nodes/calibration.py",
-                   "calibrate/simulate.py", "core/coeffs.py"):
-        names = {n for _, n in _imports(MODULES[module])}
-        assert names & {"gravity_from_specific_force", "specific_force_from_gravity"}, module
+    # used: called or passed on (coeffs picks it per sensor), not merely imported or named in a docstring
+    names = ("gravity_from_specific_force", "specific_force_from_gravity")
+    calls = {name: [] for name in names}
+    flips = {}
+    for m, t in MODULES.items():
+        nodes = list(ast.walk(t))       # one walk per module: the whole package costs about a second
+        used = {n.id if isinstance(n, ast.Name) else n.attr for n in nodes if isinstance(n, (ast.Name, ast.Attribute))}
+        for name in names:
+            if name in used:
+                calls[name].append(m)
+        if m != "core/frames.py" and _negations(nodes):
+            flips[m] = _negations(nodes)
+    assert set(calls["gravity_from_specific_force"]) == ENTRIES, calls
+    assert set(calls["specific_force_from_gravity"]) == EXITS, calls
+    assert flips == {}, "negates an accelerometer array: convert where samples enter, with frames"
+
+
+def test_the_negation_finder_sees_each_form_of_the_flip():
+    # the rule above is only as good as this finder: each way the flip was (or could be) written
+    for src in ("g = -f", "g = -f[s:e]", "g = -np.asarray(log.acc[i0:i1])", "x = (-f[0], -f[1], -f[2])",
+                "np.negative(acc, out=t)", "g = f * -1", "g = -1 * specific_force",
+                "hx = -f[3 * i + 0] if negate else f[3 * i + 0]"):
+        assert _negations(ast.walk(ast.parse(src))), src
+    for src in ("g = -b", "x = -np.asarray(spacing_s)", "y = a - f", "t = -gx", "jb = [c, -a]"):
+        assert not _negations(ast.walk(ast.parse(src))), src
+
+
+def test_the_core_apis_take_the_gravity_vector():
+    """The entry points of the core name their accelerometer argument ``g`` (the docstrings say
+    gravity vector): a caller reading the signature cannot mistake it for specific force."""
+    first = {("detect/streaming.py", "StaticDetector.update"): 1, ("detect/streaming.py", "StaticDetector.run"): 1,
+             ("detect/streaming.py", "StreamPairer.add_imu"): 1, ("correct/engine.py", "StreamEngine.imu"): 1,
+             ("correct/engine.py", "StreamEngine.samples"): 1, ("correct/engine.py", "implausible"): 0,
+             ("core/survey.py", "correct_samples"): 0, ("core/batchkernel.py", "fused"): 0,
+             ("core/_batch_numba.py", "fused"): 0, ("nodes/stream.py", "StreamDriver.feed"): 1}
+    for (module, func), k in first.items():
+        body = MODULES[module].body
+        *cls, name = func.split(".")
+        if cls:
+            body = next(n.body for n in body if isinstance(n, ast.ClassDef) and n.name == cls[0])
+        defs = [n for n in body if isinstance(n, ast.FunctionDef) and n.name == name]
+        assert len(defs) == 1, (module, func)
+        for d in defs:
+            args = [a.arg for a in d.args.args if a.arg != "self"]
+            assert args[k] == "g" and "negate" not in args, (module, func, args)
 
 
 def test_effect_metadata_is_asked_of_the_classes_not_keyed_by_name_elsewhere():

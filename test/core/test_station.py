@@ -42,16 +42,16 @@ def test_a_hold_taken_from_a_profile_row_has_the_statistics_of_its_samples_from_
 
     rng = np.random.default_rng(3)
     t = np.arange(600) * 0.02                                         # 12 s at 50 Hz
-    f = np.c_[rng.normal(0, 0.004, (600, 2)), rng.normal(-9.81, 0.004, 600)]   # REP-145: at rest, −g
+    g = np.c_[rng.normal(0, 0.004, (600, 2)), rng.normal(9.81, 0.004, 600)]    # gravity vector: at rest, +g down
     m = rng.normal(0, 25, (600, 3)) + [20000.0, 0.0, 40000.0] + np.outer(np.exp(-t / 1.5), [120.0, -80.0, 40.0])
     det = StaticDetector(noise_acc=0.004, noise_mag=60.0, max_duration_s=60.0)      # no sample left out as a spike
-    (st,) = list(det.run(t, f, m)) + list(det.flush())
+    (st,) = list(det.run(t, g, m)) + list(det.flush())
     assert st.n == 600 and st.profile.shape == (32 + 1, 22)           # a row a quarter second to 8 s, then the totals
     for row in (0, 5, 19, 31):
         k = int(st.profile[row, 1])                                    # samples before the row's
         assert np.isclose(t[k], st.profile[row, 0] + t[0])
         part = st.settled_from(row)
-        x = np.c_[-f[k:], m[k:]]
+        x = np.c_[g[k:], m[k:]]
         ref = _from_samples(t[k:], x)
         assert part.n == 600 - k and part.t_start == t[k] and part.t_end == st.t_end
         assert np.isclose(part.settled_s, t[k] - t[0]) and part.pose == st.pose

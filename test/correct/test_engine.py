@@ -217,7 +217,7 @@ def test_the_sequence_ends_after_end_after_s_without_a_capture():
     log.t_s = np.where(gap, det_t + 200.0, det_t)
     eng = StreamEngine(None, SurveyProcessor(), CaptureSession(site=SITE, end_after_stations=50, end_after_s=120.0),
                        expect=Expect(False, True, False))
-    eng.samples(log.t_s, log.acc, log.mag, log.temp_c)
+    eng.samples(log.t_s, log.gravity, log.mag, log.temp_c)
     eng.end()
     ev = eng.pop()
     recs = [e for e in ev if isinstance(e, RecordOut)]

@@ -13,8 +13,9 @@ from inclinometer_calib.io import surveystation
 def _stations(log):
     det = StaticDetector()
     out = []
+    g = log.gravity
     for i in range(len(log)):
-        out.extend(det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]))
+        out.extend(det.update(log.t_s[i], g[i], log.mag[i], log.temp_c[i]))
     return out + list(det.flush())
 
 

@@ -11,8 +11,9 @@ from inclinometer_calib.detect.streaming import StaticDetector
 def _stations(log, **kw):
     det = StaticDetector(**kw)
     out = []
+    g = log.gravity
     for i in range(len(log)):
-        out.extend(det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]))
+        out.extend(det.update(log.t_s[i], g[i], log.mag[i], log.temp_c[i]))
     out.extend(det.flush())
     return out, det
 
@@ -66,8 +67,9 @@ def test_stated_noise_that_the_data_contradict_is_reported_and_the_data_win():
     log = _twelve(2.5)
     det = StaticDetector()
     det.set_prior(noise_acc=0.002, noise_mag=20.0)
+    g = log.gravity
     for i in range(len(log)):
-        det.update(log.t_s[i], log.acc[i], log.mag[i])
+        det.update(log.t_s[i], g[i], log.mag[i])
     events = det.pop_events()
     assert any("the messages state a noise of 0.002 m/s^2" in e and "using the data" in e for e in events)
     assert det.noise_level.acc_source == "data"
@@ -76,9 +78,9 @@ def test_stated_noise_that_the_data_contradict_is_reported_and_the_data_win():
 def test_the_first_stations_wait_for_the_noise_estimate_then_come_out_in_order():
     log = _twelve(2.5)
     det = StaticDetector()
-    first = None
+    first, g = None, log.gravity
     for i in range(len(log)):
-        got = det.update(log.t_s[i], log.acc[i], log.mag[i])
+        got = det.update(log.t_s[i], g[i], log.mag[i])
         if got and first is None:
             first = (i, got)
     i, got = first
@@ -144,9 +146,10 @@ def test_a_consumer_that_holds_stations_back_still_finds_their_temperatures():
         det = StaticDetector()
         det.retain_temperatures = retain
         held = []
+        g = log.gravity
         for i in range(len(log)):
             det.add_temperature(log.t_s[i], 20.0 + 0.01 * i)       # on a topic of its own
-            held.extend(det.update(log.t_s[i], log.acc[i], log.mag[i]))
+            held.extend(det.update(log.t_s[i], g[i], log.mag[i]))
         held.extend(det.flush())
         temps = [det.temps.mean(s.t_start, s.t_end) for s in held if not s.short]
         assert len(temps) == 12
@@ -179,16 +182,16 @@ def _assert_same_detectors(da, db, sa, sb):
 
 def _both_ways(log, split=None, **kw):
     """The log row by row through update(), and through run() (up to ``split``, then row by row)."""
-    temp = log.temp_c
+    temp, g = log.temp_c, log.gravity
     a, sa = StaticDetector(**kw), []
     for i in range(len(log)):
-        sa.extend(a.update(log.t_s[i], log.acc[i], log.mag[i], temp[i]))
+        sa.extend(a.update(log.t_s[i], g[i], log.mag[i], temp[i]))
     sa.extend(a.flush())
     b = StaticDetector(**kw)
     k = len(log) if split is None else split
-    sb = list(b.run(log.t_s[:k], log.acc[:k], log.mag[:k], temp[:k]))
+    sb = list(b.run(log.t_s[:k], g[:k], log.mag[:k], temp[:k]))
     for i in range(k, len(log)):
-        sb.extend(b.update(log.t_s[i], log.acc[i], log.mag[i], temp[i]))
+        sb.extend(b.update(log.t_s[i], g[i], log.mag[i], temp[i]))
     sb.extend(b.flush())
     _assert_same_detectors(a, b, sa, sb)
     return sa, a

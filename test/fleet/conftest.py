@@ -130,8 +130,9 @@ def _calibrate(probe, serial, seed):
     log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0), np.random.default_rng(seed))
     session = CaptureSession(site=Site(), probe_id=serial)
     det = StaticDetector()
+    g = log.gravity
     for i in range(len(log)):
-        for st in det.update(log.t_s[i], log.acc[i], log.mag[i], log.temp_c[i]):
+        for st in det.update(log.t_s[i], g[i], log.mag[i], log.temp_c[i]):
             session.offer(st)
     for st in det.flush():
         session.offer(st)

@@ -41,6 +41,7 @@ def test_the_decoders_read_what_rosbags_writes(store, frame_id, little_endian):
     ser = {t: bytes(store.serialize_cdr(m, t, little_endian=little_endian)) for t, m in msgs.items()}
     key = (1700000123, 450000000)
     assert cdr.decode_imu(ser[IMU]) == (key, (0.1, -0.2, -9.8))
+    assert cdr.decode_imu_gravity(ser[IMU]) == (key, (-0.1, 0.2, 9.8))   # what the core takes: g = -f
     assert cdr.imu_covariance(ser[IMU]) == tuple(np.arange(9.0) + 20)
     assert cdr.decode_imu_covariance(ser[IMU]) == np.sqrt(20.0)
     assert cdr.decode_vector3(ser[MAG]) == (key, (2e-5, -1e-6, 4e-5))

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from inclinometer_calib.calibrate import simulate as sim
-from inclinometer_calib.core.frames import Site
+from inclinometer_calib.core.frames import Site, drift_deg
 from inclinometer_calib.io.probelog import HEADER, ProbeLog, format_csv, parse_csv, segment_stations
 
 GOOD = "0.00,0.1,0.2,-9.8,20000,1000,40000,25,1,,,\n"
@@ -57,6 +57,16 @@ def test_round_trip_through_csv_text():
     np.testing.assert_allclose(back.acc, log.acc, atol=5e-7)
     np.testing.assert_allclose(back.mag, log.mag, atol=5e-4)
     np.testing.assert_array_equal(back.pose, log.pose)
+
+
+def test_a_resting_vertical_probe_enters_the_core_as_gravity_down_positive():
+    # REP-145: at rest the accelerometer reads the reaction to gravity, up: -9.8 on a down-hole Z
+    log, rej = parse_csv(",".join(HEADER[:7]) + "\n0.0,0.1,0.0,-9.8,20000,1000,40000\n")
+    assert rej == []
+    np.testing.assert_array_equal(log.gravity, [[-0.1, 0.0, 9.8]])
+    assert drift_deg(log.gravity[0]) < 1.0                  # vertical: the paper's eq. (1) on g, not on f
+    log.gravity[0, 2] = 0.0                                 # a new array each time: the record stays as read
+    assert log.acc[0, 2] == -9.8
 
 
 @pytest.mark.parametrize("row,reason", [

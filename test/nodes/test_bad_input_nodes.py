@@ -74,8 +74,8 @@ def _correction(ros, coeffs_file, *params):
 
 
 def _feed(node, log):
-    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node.stream.feed(t, tuple(f), tuple(m))
+    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
+        node.stream.feed(t, tuple(g), tuple(m))
     node.stream.close_hold()    # the end of the data: the open hold closes (no solve with what there is)
 
 

@@ -93,8 +93,8 @@ def _correction_node(*params):
 
 def _feed(node, log):
     """Samples straight into the node's sample path, then the end-of-stream flush."""
-    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node.stream.feed(t, tuple(f), tuple(m))
+    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
+        node.stream.feed(t, tuple(g), tuple(m))
     node.stream.close_hold()        # the open interval
     return node.pub_station.msgs
 

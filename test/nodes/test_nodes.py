@@ -130,8 +130,8 @@ def test_recapture_and_reset_services(spinning):
     probe = sim.build_probe(5)
     log = sim.run_session(probe, Site(), sim.twelve_pose_session(duration_s=2.0)[:2],
                           np.random.default_rng(1), rate_hz=100.0)
-    for t, f, m in zip(log.t_s, log.acc, log.mag):
-        cal_node.stream.feed(float(t), tuple(f), tuple(m))
+    for t, g, m in zip(log.t_s, log.gravity, log.mag):
+        cal_node.stream.feed(float(t), tuple(g), tuple(m))
     cal_node.stream.close_hold()
     assert cal_node.session.captured == [1, 2]
 
@@ -430,8 +430,8 @@ def test_periodic_work_runs_on_steady_time_when_the_sim_clock_stops(spinning, tm
     sub = spinning(rclpy.create_node("test_sub"))
     sub.create_subscription(SurveyStation, c.TOPIC_STATION, stations.append, c.reliable_qos(10))
     log = _noisy_log(0.002, 20.0)
-    for t, f, m in zip(log.t_s.tolist(), log.acc.tolist(), log.mag.tolist()):
-        node.stream.feed(t, tuple(f), tuple(m))
+    for t, g, m in zip(log.t_s.tolist(), log.gravity.tolist(), log.mag.tolist()):
+        node.stream.feed(t, tuple(g), tuple(m))
     assert node.get_clock().ros_time_is_active and node.get_clock().now().nanoseconds == 0  # no /clock
     end = time.monotonic() + 6.0
     while time.monotonic() < end and len(stations) < 4:
@@ -498,9 +498,9 @@ def test_the_calibration_node_fits_the_model_it_is_told_and_says_what_the_captur
 def _feed_to_the_end(node, log):
     """A log's samples and temperatures into the calibration node, then the end of the data (as
     the idle timer does it)."""
-    for t, f, m, tc in zip(log.t_s, log.acc, log.mag, log.temp_c):
+    for t, g, m, tc in zip(log.t_s, log.gravity, log.mag, log.temp_c):
         node.engine.temperature(float(t), float(tc))   # what the driver's /probe/temperature callback does
-        node.stream.feed(float(t), tuple(f), tuple(m))
+        node.stream.feed(float(t), tuple(g), tuple(m))
     node.stream.idle()
 
 
