@@ -2,11 +2,9 @@
 of the files every command takes (a site reference, a calibration record)."""
 from __future__ import annotations
 
-import yaml
-
 from ..core.coeffs import Calibration, CoefficientError
 from ..core.frames import Site
-from ..core.geomag import site_from_config
+from ..core.geomag import load_site_file
 
 
 class UserError(Exception):
@@ -14,14 +12,14 @@ class UserError(Exception):
 
 
 def load_site(path) -> Site:
+    """The site of a ``--site`` file (:func:`geomag.load_site_file`; None: the default site); a bad
+    one is a :class:`UserError` line naming the file and the key."""
     if path is None:
         return Site()
     try:
-        with open(path, encoding="utf-8") as fh:
-            d = yaml.safe_load(fh)
-        return site_from_config(d.get("site", d) if isinstance(d, dict) else {})
-    except (OSError, yaml.YAMLError, ValueError, TypeError) as exc:
-        raise UserError(f"{path}: cannot read site reference: {exc}") from None
+        return load_site_file(path)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def load_calibration(spec):

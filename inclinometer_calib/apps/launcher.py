@@ -274,6 +274,17 @@ def node_command(name, params, cfg):
     return cmd
 
 
+def site_node_parameters(path) -> dict:
+    """The nodes' ``site.*`` parameters of a site file (:func:`geomag.site_parameters`, read back
+    by the nodes with :func:`geomag.site_from_parameters`); the file is parsed here first
+    (:func:`geomag.load_site_file`) so that a bad site is refused once, in the CLI's words, rather
+    than by three nodes.  ``ValueError`` (one line naming the file and the key) for a bad site."""
+    from ..core.geomag import load_site_file, read_site_section, site_parameters
+
+    load_site_file(path)
+    return {f"site.{k}": v for k, v in site_parameters(read_site_section(path)).items()}
+
+
 def build_params(args, out):
     """Per-node parameters of the run (on top of the config files)."""
     p = {n: {} for n in NODES}
@@ -347,19 +358,12 @@ def build_params(args, out):
         # the site reference of the run (total field, dip, declination, gravity): the calibration
         # and correction nodes use it, the simulated probe lives in it
         # (a location is looked up by each node, in the same geomagnetic model: geomag.site_parameters)
-        from .common import UserError, load_site
-        import yaml
-
-        from ..core.geomag import site_parameters
         try:
-            load_site(args.site)         # refused here, once, rather than by three nodes
-            with open(args.site, encoding="utf-8") as fh:
-                d = yaml.safe_load(fh)
-        except UserError as exc:
+            site_params = site_node_parameters(args.site)
+        except ValueError as exc:
             raise SystemExit(f"--site: {exc}") from None
-        d = d.get("site", d)
         for n in ("probe", "calibration", "correction"):
-            p[n].update({f"site.{k}": v for k, v in site_parameters(d).items()})
+            p[n].update(site_params)
         for n in ("calibration", "correction"):
             p[n]["site.given"] = True
     for spec in args.param:

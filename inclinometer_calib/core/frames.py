@@ -146,6 +146,8 @@ class Site:
         return np.array([0.0, 0.0, self.gravity_mps2])
 
     def to_dict(self) -> dict:
+        """The site's values (and ``reference``), as a record stores them; read back (like every
+        site section) by :func:`geomag.site_from_config`."""
         out = {
             "total_field_nt": float(self.total_field_nt),
             "dip_deg": float(self.dip_deg),
@@ -155,21 +157,6 @@ class Site:
         if self.reference:
             out["reference"] = dict(self.reference)
         return out
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "Site":
-        """A site from its values (a record's); a site section that may give a location to look
-        the values up instead is read by :func:`geomag.site_from_config` (which comes here)."""
-        known = {"total_field_nt", "dip_deg", "declination_deg", "gravity_mps2"}
-        unknown = set(d) - known - {"reference"}
-        if unknown:
-            raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected {sorted(known)} (a location: "
-                             "geomag.site_from_config)")
-        site = cls(**{k: float(v) for k, v in d.items() if k != "reference"},
-                   reference=dict(d.get("reference") or {}))
-        if not (site.total_field_nt > 0 and site.gravity_mps2 > 0 and -90 <= site.dip_deg <= 90):
-            raise ValueError(f"site: implausible reference {site.to_dict()}")
-        return site
 
 
 # --------------------------------------------------------------------------------------------

@@ -161,11 +161,16 @@ def azimuth_reference(site, north: str = "auto") -> str:
     return f"grid north of {ref.get('crs', 'the site')} (convergence {site.grid_convergence_deg:+.3f}°; {decl})"
 
 
+#: A site's values (the reference field and gravity; measured, or a model's at the location).
+SITE_VALUES = ("total_field_nt", "dip_deg", "declination_deg", "gravity_mps2")
+
+
 def site_parameters(d: dict) -> dict:
     """The node parameters (names after ``site.``) of a site section (:func:`site_from_config`'s
     keys): the values as they are, a location's keys, and with a location the measured values'
-    names in ``measured`` (they win over the model's in the node as here)."""
-    measured = [k for k in ("total_field_nt", "dip_deg", "declination_deg", "gravity_mps2") if k in d]
+    names in ``measured`` (they win over the model's in the node as here).  The node reads them
+    back with :func:`site_from_parameters`."""
+    measured = [k for k in SITE_VALUES if k in d]
     out = {k: float(d[k]) for k in measured}
     loc = {k: d[k] for k in LOCATION_KEYS if k in d}
     if loc:
@@ -175,42 +180,138 @@ def site_parameters(d: dict) -> dict:
     return out
 
 
-def site_from_config(d: dict):
-    """A :class:`frames.Site` from a site section: measured values (``total_field_nt``,
-    ``dip_deg``, ``declination_deg``, ``gravity_mps2``) and/or a location (``latitude_deg``,
-    ``longitude_deg``, ``altitude_m``, ``date``, ``model``; optional ``crs`` for grid azimuths).
-    Measured values win, value by value; the site's ``reference`` says where each came from."""
+def site_parameter_defaults(site=None) -> dict:
+    """The node site parameters' defaults (names after ``site.``; ``nodes.common.declare_site``
+    declares them): ``site``'s values (None: :class:`frames.Site`'s defaults) and no location."""
     from .frames import Site
 
-    measured = {k: d[k] for k in ("total_field_nt", "dip_deg", "declination_deg", "gravity_mps2") if k in d}
+    site = Site() if site is None else site
+    return {**{k: float(getattr(site, k)) for k in SITE_VALUES}, "latitude_deg": math.nan,
+            "longitude_deg": math.nan, "altitude_m": 0.0, "date": "", "model": MODELS[0], "crs": "", "measured": ""}
+
+
+def site_from_parameters(values: dict, prefix: str = "site"):
+    """A :class:`frames.Site` from a node's site parameters (``values``: names after ``prefix.``,
+    as :func:`site_parameters` writes them and ``nodes.common.declare_site`` declares them): the
+    four values, and a location unless ``latitude_deg`` and ``longitude_deg`` are NaN, with which
+    only the values named in ``measured`` (IFR) are kept.  Parsed by :func:`site_from_config`;
+    errors name the parameter (``prefix.key``)."""
+    lat, lon = float(values.get("latitude_deg", math.nan)), float(values.get("longitude_deg", math.nan))
+    if not (math.isfinite(lat) or math.isfinite(lon)):
+        return site_from_config({k: values[k] for k in SITE_VALUES if k in values}, where=prefix)
+    names = [x.strip() for x in str(values.get("measured", "")).split(",") if x.strip()]
+    unknown = [n for n in names if n not in SITE_VALUES]
+    if unknown:
+        raise ValueError(f"{prefix}.measured names {unknown}; the site values are {', '.join(SITE_VALUES)}")
+    missing = [n for n in names if n not in values]
+    if missing:
+        raise ValueError(f"{prefix}.measured names {missing}, which have no value")
+    if not values.get("date"):
+        raise ValueError(f"{prefix}.latitude_deg/longitude_deg given without {prefix}.date: the geomagnetic model "
+                         "needs the survey date")
+    d = {"latitude_deg": lat, "longitude_deg": lon}
+    d.update({k: values[k] for k in ("altitude_m", "date", "model") if k in values})
+    if values.get("crs"):
+        d["crs"] = values["crs"]
+    return site_from_config({**d, **{n: values[n] for n in names}}, where=prefix)
+
+
+def _number(d: dict, key: str, where: str) -> float:
+    v = d[key]
+    if isinstance(v, bool):
+        raise ValueError(f"{where}.{key}: expected a number, got {v!r}")
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}.{key}: expected a number, got {v!r}") from None
+
+
+def _plausible(site, where: str):
+    bad = [f"{where}.total_field_nt {site.total_field_nt!r} (must be > 0)"] if not site.total_field_nt > 0 else []
+    if not site.gravity_mps2 > 0:
+        bad.append(f"{where}.gravity_mps2 {site.gravity_mps2!r} (must be > 0)")
+    if not -90 <= site.dip_deg <= 90:
+        bad.append(f"{where}.dip_deg {site.dip_deg!r} (must be within ±90°)")
+    if bad:
+        raise ValueError(f"{where}: implausible reference: {'; '.join(bad)}")
+    return site
+
+
+def site_from_config(d, where: str = "site"):
+    """The one reader of a site: a :class:`frames.Site` from a site section (a site file's, a
+    record's, the launcher's; the nodes' parameters come through :func:`site_from_parameters`):
+    measured values (``total_field_nt``, ``dip_deg``, ``declination_deg``, ``gravity_mps2``) and/or
+    a location (``latitude_deg``, ``longitude_deg``, ``altitude_m``, ``date``, ``model``; optional
+    ``crs`` for grid azimuths), and a record's ``reference`` (kept as it is, values only).
+    Measured values win, value by value; the site's ``reference`` says where each came from.
+    ``where`` names the section in the one-line ``ValueError`` of a bad site (``site.dip_deg: …``)."""
+    from .frames import Site
+
+    if not isinstance(d, dict):
+        raise ValueError(f"{where}: expected a mapping of {', '.join(SITE_VALUES)} and/or a location "
+                         f"({', '.join(LOCATION_KEYS)}), got {type(d).__name__}")
+    measured = {k: _number(d, k, where) for k in SITE_VALUES if k in d}
     loc = {k: d[k] for k in LOCATION_KEYS if k in d}
     unknown = set(d) - set(measured) - set(LOCATION_KEYS) - {"reference"}
     if unknown:
-        raise ValueError(f"site: unknown key(s) {sorted(unknown)}; expected measured values (total_field_nt, dip_deg, "
-                         f"declination_deg, gravity_mps2) and/or a location ({', '.join(LOCATION_KEYS)})")
+        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; expected measured values (total_field_nt, "
+                         f"dip_deg, declination_deg, gravity_mps2) and/or a location ({', '.join(LOCATION_KEYS)})")
     if not loc:
-        return Site.from_dict({**measured, **({"reference": d["reference"]} if "reference" in d else {})})
+        ref = d.get("reference") or {}
+        if not isinstance(ref, dict):
+            raise ValueError(f"{where}.reference: expected a mapping, got {type(ref).__name__}")
+        return _plausible(Site(**measured, reference=dict(ref)), where)
     missing = [k for k in ("latitude_deg", "longitude_deg", "date") if k not in loc]
     if missing:
-        raise ValueError(f"site: a location needs {', '.join(missing)} as well")
-    lat, lon = float(loc["latitude_deg"]), float(loc["longitude_deg"])
-    alt = float(loc.get("altitude_m", 0.0))
+        raise ValueError(f"{where}: a location needs {', '.join(missing)} as well")
+    lat, lon = _number(loc, "latitude_deg", where), _number(loc, "longitude_deg", where)
+    alt = _number(loc, "altitude_m", where) if "altitude_m" in loc else 0.0
     model = str(loc.get("model", "WMM2025"))
     date = loc["date"] if isinstance(loc["date"], (_dt.date, _dt.datetime)) else str(loc["date"])
-    m = model_field(lat, lon, alt, date, model)
+    try:
+        m = model_field(lat, lon, alt, date, model)
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
     values = {"total_field_nt": m["f"], "dip_deg": m["dip_deg"], "declination_deg": m["declination_deg"],
               "gravity_mps2": normal_gravity(lat, alt)}
     source = {k: (f"{model} at {lat:g}, {lon:g}, {alt:g} m, {m['decimal_year']:.3f}" if k != "gravity_mps2"
                   else "WGS84 normal gravity") for k in values}
     for k, v in measured.items():
-        values[k] = float(v)
+        values[k] = v
         source[k] = "measured (IFR)"
     ref = {"latitude_deg": lat, "longitude_deg": lon, "altitude_m": alt, "date": str(date), "model": model,
            "sources": source}
     if "crs" in loc:
         ref["crs"] = str(loc["crs"])
-        ref["grid_convergence_deg"] = grid_convergence(lat, lon, loc["crs"])
-    site = Site(**{k: float(v) for k, v in values.items()}, reference=ref)
-    if not (site.total_field_nt > 0 and site.gravity_mps2 > 0 and -90 <= site.dip_deg <= 90):
-        raise ValueError(f"site: implausible reference {site.to_dict()}")
-    return site
+        from pyproj.exceptions import CRSError
+
+        try:
+            ref["grid_convergence_deg"] = grid_convergence(lat, lon, loc["crs"])
+        except (ValueError, CRSError) as exc:     # CRSError: a CRS pyproj does not know
+            raise ValueError(f"{where}.crs: {exc}") from None
+    return _plausible(Site(**{k: float(v) for k, v in values.items()}, reference=ref), where)
+
+
+def read_site_section(path) -> dict:
+    """The site section of a site file (YAML: the keys of :func:`site_from_config`, at the top or
+    under ``site:``), as it is; ``ValueError`` (one line, naming the file) when it cannot be read."""
+    import yaml
+
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = yaml.safe_load(fh)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read site reference: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: cannot read site reference: not YAML ({' '.join(str(exc).split())})") from None
+    return d.get("site", d) if isinstance(d, dict) else d
+
+
+def load_site_file(path):
+    """The :class:`frames.Site` of a site file (:func:`read_site_section`, :func:`site_from_config`);
+    a bad site is one ``ValueError`` line naming the file and the key."""
+    d = read_site_section(path)
+    try:
+        return site_from_config(d)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: cannot read site reference: {exc}") from None

@@ -28,6 +28,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from ..io.cdr import stamp_parts
 from ..core.coeffs import Calibration, message_fields
 from ..core.frames import NT_PER_TESLA, Site, gravity_from_specific_force, specific_force_from_gravity
+from ..core.geomag import site_from_parameters, site_parameter_defaults
 from ..core.survey import Tolerances
 from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
 
@@ -159,51 +160,40 @@ def declare_site(params: Params, site: Site = Site(), prefix: str = "site", give
     given = True
     if given_flag is not None:
         given = params.declare(f"{p}.given", False, given_flag, read_only=True)
-    s = Site(
-        total_field_nt=params.declare(f"{p}.total_field_nt", float(site.total_field_nt),
-                                      "Reference total magnetic field |B|, nT", read_only=True,
-                                      range=(1000.0, 100000.0)),
-        dip_deg=params.declare(f"{p}.dip_deg", float(site.dip_deg),
-                               "Reference magnetic dip, degrees, positive down", read_only=True,
-                               range=(-90.0, 90.0)),
-        declination_deg=params.declare(f"{p}.declination_deg", float(site.declination_deg),
-                                       "Magnetic declination, degrees east of true north (0: azimuths "
-                                       "are magnetic)", read_only=True, range=(-180.0, 180.0)),
-        gravity_mps2=params.declare(f"{p}.gravity_mps2", float(site.gravity_mps2),
-                                    "Reference local gravity |g|, m/s^2", read_only=True,
-                                    range=(9.7, 9.9)),
-    )
-    # the rig's site by location: the values from a geomagnetic model (geomag.site_from_config), the
-    # site.* values listed in site.measured (IFR) winning value by value
-    lat = params.declare(f"{p}.latitude_deg", float("nan"), "Site latitude, degrees north (NaN: no location; the "
-                         "site.* values are the reference)", read_only=True)
-    lon = params.declare(f"{p}.longitude_deg", float("nan"), "Site longitude, degrees east", read_only=True)
-    alt = params.declare(f"{p}.altitude_m", 0.0, "Site altitude above the WGS84 ellipsoid, m", read_only=True)
-    date = params.declare(f"{p}.date", "", "Survey date (YYYY-MM-DD) for the geomagnetic model", read_only=True)
-    model = params.declare(f"{p}.model", "WMM2025", "Geomagnetic model: WMM2025 or IGRF-14", read_only=True,
-                           choices=("WMM2025", "IGRF-14"))
-    crs = params.declare(f"{p}.crs", "", "Projected CRS for grid azimuths (e.g. EPSG:32631; empty: none)",
-                         read_only=True)
-    measured = params.declare(f"{p}.measured", "", "Comma-separated site.* values that are measured (IFR) and win "
-                              "over the model's, e.g. 'total_field_nt,dip_deg'", read_only=True)
-    if math.isfinite(lat) or math.isfinite(lon):
-        from inclinometer_calib.core.geomag import site_from_config
-
-        names = [x.strip() for x in measured.split(",") if x.strip()]
-        values = s.to_dict()
-        unknown = [n for n in names if n not in values]
-        if unknown:
-            raise ValueError(f"{p}.measured names {unknown}; the site values are {', '.join(values)}")
-        loc = {"latitude_deg": lat, "longitude_deg": lon, "altitude_m": alt, "date": date, "model": model}
-        if not date:
-            raise ValueError(f"{p}.latitude_deg/longitude_deg given without {p}.date: the geomagnetic model needs "
-                             "the survey date")
-        if crs:
-            loc["crs"] = crs
-        try:
-            s = site_from_config({**loc, **{n: values[n] for n in names}})
-        except (ValueError, TypeError) as exc:
-            raise ValueError(f"{p}: {exc}") from None
+    dflt = site_parameter_defaults(site)
+    values = {
+        "total_field_nt": params.declare(f"{p}.total_field_nt", dflt["total_field_nt"],
+                                         "Reference total magnetic field |B|, nT", read_only=True,
+                                         range=(1000.0, 100000.0)),
+        "dip_deg": params.declare(f"{p}.dip_deg", dflt["dip_deg"],
+                                  "Reference magnetic dip, degrees, positive down", read_only=True,
+                                  range=(-90.0, 90.0)),
+        "declination_deg": params.declare(f"{p}.declination_deg", dflt["declination_deg"],
+                                          "Magnetic declination, degrees east of true north (0: azimuths "
+                                          "are magnetic)", read_only=True, range=(-180.0, 180.0)),
+        "gravity_mps2": params.declare(f"{p}.gravity_mps2", dflt["gravity_mps2"],
+                                       "Reference local gravity |g|, m/s^2", read_only=True,
+                                       range=(9.7, 9.9)),
+        # the rig's site by location: the values from a geomagnetic model, the site.* values listed
+        # in site.measured (IFR) winning value by value
+        "latitude_deg": params.declare(f"{p}.latitude_deg", dflt["latitude_deg"], "Site latitude, degrees north "
+                                       "(NaN: no location; the site.* values are the reference)", read_only=True),
+        "longitude_deg": params.declare(f"{p}.longitude_deg", dflt["longitude_deg"], "Site longitude, degrees east",
+                                        read_only=True),
+        "altitude_m": params.declare(f"{p}.altitude_m", dflt["altitude_m"],
+                                     "Site altitude above the WGS84 ellipsoid, m", read_only=True),
+        "date": params.declare(f"{p}.date", dflt["date"], "Survey date (YYYY-MM-DD) for the geomagnetic model",
+                               read_only=True),
+        "model": params.declare(f"{p}.model", dflt["model"], "Geomagnetic model: WMM2025 or IGRF-14",
+                                read_only=True, choices=("WMM2025", "IGRF-14")),
+        "crs": params.declare(f"{p}.crs", dflt["crs"],
+                              "Projected CRS for grid azimuths (e.g. EPSG:32631; empty: none)", read_only=True),
+        "measured": params.declare(f"{p}.measured", dflt["measured"], "Comma-separated site.* values that are "
+                                   "measured (IFR) and win over the model's, e.g. 'total_field_nt,dip_deg'",
+                                   read_only=True),
+    }
+    # the one site reader (the CLI's, the record's, the launcher's): geomag.site_from_config
+    s = site_from_parameters(values, prefix=p)
     return s if given else None
 
 

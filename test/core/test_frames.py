@@ -80,10 +80,3 @@ def test_declination_rotates_the_field_east():
     s = F.Site(declination_deg=10.0)
     n, e, d = s.field_ned()
     assert np.degrees(np.arctan2(e, n)) == pytest.approx(10.0)
-
-
-def test_site_from_dict_rejects_unknown_keys_and_implausible_values():
-    with pytest.raises(ValueError, match="unknown key"):
-        F.Site.from_dict({"total_field": 5})
-    with pytest.raises(ValueError, match="implausible"):
-        F.Site.from_dict({"total_field_nt": -1})

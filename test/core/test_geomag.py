@@ -102,12 +102,26 @@ def test_a_site_by_location_takes_the_model_and_measured_values_win():
     assert ifr.total_field_nt == 50123.0 and ifr.reference["sources"]["total_field_nt"] == "measured (IFR)"
     assert ifr.reference["sources"]["declination_deg"].startswith("WMM2025")
     # a record keeps where its site came from, and reads it back the same
-    again = Site.from_dict(ifr.to_dict())
+    again = geomag.site_from_config(ifr.to_dict())
     assert again == ifr and again.reference == ifr.reference
     with pytest.raises(ValueError, match="date"):
         geomag.site_from_config({"latitude_deg": 57.1, "longitude_deg": 2.1})
     # typed-in values alone stay as they were (no reference key, the record id unchanged)
     assert "reference" not in Site(50000.0, 60.0, 1.0).to_dict()
+
+
+def test_a_bad_site_is_one_line_naming_the_key():
+    with pytest.raises(ValueError, match=r"^site: unknown key\(s\) \['total_field'\]"):
+        geomag.site_from_config({"total_field": 5})
+    with pytest.raises(ValueError, match=r"^site: implausible reference: site.total_field_nt -1.0"):
+        geomag.site_from_config({"total_field_nt": -1})
+    with pytest.raises(ValueError, match=r"^site.dip_deg: expected a number, got 'steep'"):
+        geomag.site_from_config({"dip_deg": "steep"})
+    with pytest.raises(ValueError, match=r"^site: expected a mapping"):
+        geomag.site_from_config(["dip_deg", 60])
+    with pytest.raises(ValueError, match=r"^site.measured names \['dip'\]"):
+        geomag.site_from_parameters({"latitude_deg": 57.1, "longitude_deg": 2.1, "date": "2026-11-23",
+                                     "measured": "dip"})
 
 
 def test_azimuths_are_given_in_all_three_references():
