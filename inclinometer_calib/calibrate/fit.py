@@ -217,6 +217,7 @@ class FitResult:
     covariance: np.ndarray | None = None
     n_free: float = -1
     #: the data rows of the fit's last Jacobian, for the fits of this model with one effect more
+    #: (with ``fit(..., give_hint=True)``, else None)
     hint: "JacobianHint | None" = None
 
     @property
@@ -271,14 +272,16 @@ class FitResult:
 
 @one_thread
 def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: bool = True,
-        fixed=None, hint: JacobianHint | None = None) -> FitResult:
+        fixed=None, hint: JacobianHint | None = None, give_hint: bool = False) -> FitResult:
     """Fit ``model`` (in place, starting from its current parameters) to ``data``.
 
     Levenberg–Marquardt (MINPACK, QR-based: faster than the SVD-based trust region for these
     tall, narrow problems), parameters scaled by their typical magnitudes.  ``fixed``: a boolean
     mask over :meth:`LabModel.param_names` of parameters held at their current values (their
     σ is 0).  ``uncertainty=False`` skips the covariance and identifiability analysis.  ``hint``:
-    the :attr:`FitResult.hint` of the model this one extends (:class:`JacobianHint`).
+    the :attr:`FitResult.hint` of the model this one extends (:class:`JacobianHint`);
+    ``give_hint``: keep this fit's own (its Jacobian's data rows: kept only where models that
+    extend it will be fitted, not in every result).
     """
     t0 = time.perf_counter()
     x_all = model.get_vector()
@@ -361,7 +364,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
         std[:] = np.nan
         cov[:] = np.nan
     hint = None
-    if p and not stochastic and jac.ndim == 2 and jac.shape[0] >= n_data and jac.shape[1] == p:
+    if give_hint and p and not stochastic and jac.ndim == 2 and jac.shape[0] >= n_data and jac.shape[1] == p:
         hint = JacobianHint(names=[n for n, f in zip(model.param_names(), free) if f], all_names=model.param_names(),
                             values=model.get_vector().copy(), r_data=r_data, jac=np.array(jac[:n_data]))
     return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=model.get_vector(),

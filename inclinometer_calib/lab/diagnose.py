@@ -203,17 +203,18 @@ def fit_data(data: Stations) -> Stations:
 
 
 def field_fit(model: LabModel, data: Stations, uncertainty: bool = True, progress=None, max_nfev: int = 200,
-              survey_invariants: bool = True, fixed=None, hint=None):
+              survey_invariants: bool = True, fixed=None, hint=None, give_hint: bool = False):
     """Fit ``model`` (in place) as for a survey; returns the :class:`fit.FitResult`.
 
     The fit sees what a rig has: the calibration stations, and (``survey_invariants``) the survey
     stations' |g|, |B| and dip against the site — never their reference angles
     (:func:`fit_data`).  With ``survey_invariants=False`` it sees the calibration logs only (an
     effect acting on the survey alone then stays at its prior, zero).  ``fixed``: parameters held,
-    ``hint``: the base model's :class:`fit.JacobianHint` (:func:`fit.fit`)."""
+    ``hint``: the base model's :class:`fit.JacobianHint`, ``give_hint``: keep this one's (:func:`fit.fit`)."""
     fd = fit_data(data)
     use = fd if survey_invariants or not (fd.role == "cal").any() else fd.subset(fd.role == "cal")
-    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty, fixed=fixed, hint=hint)
+    return fit(model, use, progress=progress, max_nfev=max_nfev, uncertainty=uncertainty, fixed=fixed, hint=hint,
+               give_hint=give_hint)
 
 
 def validation(model: LabModel, data: Stations, survey_invariants: bool = True) -> dict:
@@ -529,7 +530,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
         model = LabModel.base(site)
     model = copy.deepcopy(model)
     say(f"fitting {model.describe()}")
-    base_fit = field_fit(model, data)
+    base_fit = field_fit(model, data, give_hint=True)     # its Jacobian serves every candidate's first
     base_val = validation(model, data)
     base_score = base_val.get("pointing_rms_deg", float("nan"))
     fd = fit_data(data)

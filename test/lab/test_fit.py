@@ -136,7 +136,8 @@ def test_a_candidates_first_jacobian_takes_the_base_fits_columns_where_the_effec
     data, _, site = sim_factory(22, ["axial_interference=300"])
     fd = fit_data(data)
     base = lab.LabModel.base(site)
-    hint = lab.fit(base, fd).hint
+    assert lab.fit(copy.deepcopy(base), fd).hint is None          # kept only when asked for
+    hint = lab.fit(base, fd, give_hint=True).hint
     assert hint is not None and hint.jac.shape == (len(hint.r_data), len(hint.names))
     trial = base.with_effect(lab.effect("axial_interference", "mag", "z"), "val")
     x = trial.get_vector()
