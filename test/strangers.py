@@ -79,11 +79,25 @@ def make(case: Case, out) -> dict:
 
 
 def stations_of_bag(path):
-    """``/survey/station`` and ``/calibration/coefficients`` of a bag, read with rosbags (the run
-    summary's reader, independent of our writer)."""
-    from inclinometer_calib.apps.launcher import read_bag
+    """``/survey/station`` (station dicts, :func:`io.surveystation.from_msg`) and
+    ``/calibration/coefficients`` (``id``, ``coefficients_yaml``) of a bag, read with rosbags'
+    ``AnyReader`` and its Jazzy type store: a reader and decoder independent of our bag code."""
+    from pathlib import Path
 
-    stations, coefficients = read_bag(path)[:2]
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from inclinometer_calib.io.surveystation import from_msg
+
+    stations, coefficients = [], []
+    with AnyReader([Path(path)], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        conns = [c for c in reader.connections if c.topic in ("/survey/station", "/calibration/coefficients")]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == "/survey/station":
+                stations.append(from_msg(msg))
+            else:
+                coefficients.append({"id": msg.id, "coefficients_yaml": msg.coefficients_yaml})
     return stations, coefficients
 
 
