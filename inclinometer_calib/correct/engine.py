@@ -506,7 +506,9 @@ class StreamEngine:
         """What station ``p`` still waits for (empty: it can go)."""
         miss = []
         if self.sync and not self.cal_gone:
-            if not self.cal_ended and self.cal_settled < p.t_close - TIME_EPS:
+            # settled is "every station closed at or before it has gone out" there: a station waiting
+            # there says t_close − TIME_EPS, so the same station here waits until it reaches t_close
+            if not self.cal_ended and self.cal_settled < p.t_close:
                 miss.append("calibration")
             elif self.counts.records < self.cal_records:
                 miss.append("record")

@@ -224,3 +224,52 @@ def test_the_sequence_ends_after_end_after_s_without_a_capture():
     assert recs and any("s without a capture before the static" in e.text for e in ev if hasattr(e, "text"))
     first_survey = [e for e in ev if isinstance(e, StationOut)][n_cal - 1:]
     assert recs[0].stamp < first_survey[1].station.t_end
+
+
+def test_a_station_the_calibration_elsewhere_still_holds_waits_for_it(tmp_path):
+    """Keeping step with a calibration node whose station waits there (its temperatures late) while
+    the correction has them all: the correction's station waits too — ``settled`` just before a
+    station's close is not that station taken — so the record solved at it (pose 7 cut: the
+    sequence ends at a survey station and applies from its start) corrects it, as offline.
+    Failed before: the same station went out raw (the replay on one core, 2026-11-26)."""
+    log, _, n_cal = _cal_log(cut=(7,), rounds=1)
+    bag = tmp_path / "cut.mcap"
+    write_probe_bag(log, bag, serial="SN-9")
+    msgs = _messages(bag)
+    expected = [e for e in _stations(_engine(), msgs) if isinstance(e, StationOut)]
+    cal = StreamEngine(None, session=CaptureSession(site=None, probe_id="SN-9"), expect=Expect(False, True, False))
+    cor = StreamEngine(None, SurveyProcessor(monitor=FieldMonitor(window=30)), None, sync_calibration=True,
+                       expect=Expect(True, True, False))    # the log has no depth: nothing else holds a station
+    cal_feed, cor_feed = BagFeeder(cal), BagFeeder(cor)
+    temps = [m for m in msgs if m.topic == "/probe/temperature"]
+    late, got, records = 0, [], []
+
+    def step():
+        # the calibration's progress first, its records on their own topic after (as live)
+        cor.calibration_progress(cal.settled, cal.counts.records, cal.done)
+        got.extend(e for e in cor.pop() if isinstance(e, StationOut))
+        for r in records:
+            cor.record(r.calibration, r.stamp)
+        records.clear()
+        records.extend(e for e in cal.pop() if isinstance(e, RecordOut))
+        got.extend(e for e in cor.pop() if isinstance(e, StationOut))
+
+    for i, m in enumerate(msgs):
+        cor_feed.feed(m)
+        if m.topic != "/probe/temperature":
+            cal_feed.feed(m)
+        while late < len(temps) and temps[late].log_time <= msgs[max(i - 300, 0)].log_time:
+            cal_feed.feed(temps[late])      # the calibration's temperatures 300 messages behind
+            late += 1
+        step()
+    for m in temps[late:]:
+        cal_feed.feed(m)
+    cal.end()
+    step()
+    step()
+    cor.end()
+    got.extend(e for e in cor.pop() if isinstance(e, StationOut))
+    assert len(got) == len(expected) and n_cal < len(got)
+    assert [e.fields["coefficients_id"] for e in got] == [e.fields["coefficients_id"] for e in expected]
+    assert [e.fields["drift_deg"] for e in got] == [e.fields["drift_deg"] for e in expected]
+    assert cor.counts.forced == 0
