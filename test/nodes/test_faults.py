@@ -238,7 +238,7 @@ def _bag_topics(path, topics):
 
 
 def _sim_bag(path):
-    """A simulated calibration and a 24-station well path as a recorded bag (ROS-free)."""
+    """A simulated calibration and a 24-station well path as a recorded bag (ROS-free), 50 Hz."""
     import numpy as np
 
     from inclinometer_calib.calibrate import simulate as sim
@@ -249,8 +249,8 @@ def _sim_bag(path):
     site = Site(total_field_nt=50500.0, dip_deg=62.0, declination_deg=1.5)
     probe = sim.build_probe(11)
     rng = np.random.default_rng(11)
-    cal = sim.run_session(probe, site, sim.twelve_pose_session(duration_s=2.0), rng, rate_hz=100, move_s=1.0)
-    well = sim.run_session(probe, site, sim.well_path_session(24, duration_s=2.0, seed=11), rng, rate_hz=100,
+    cal = sim.run_session(probe, site, sim.twelve_pose_session(duration_s=2.0), rng, rate_hz=50, move_s=1.0)
+    well = sim.run_session(probe, site, sim.well_path_session(24, duration_s=2.0, seed=11), rng, rate_hz=50,
                            move_s=1.0, t0=cal.t_s[-1] + 2.0)
     log = ProbeLog.concatenate([cal, well])
     log.pose[:] = 0
@@ -277,7 +277,7 @@ def fault_runs(tmp_path_factory):
     common = ("--timeout", 150, "--no-loop")
     a = Launch(env, "--out", root / "a", "--source", "mcap", "--input", bag, "--speed", 8.0, *common)
     b = Launch(env, "--out", root / "b", "--stations", 6, "--seed", 12, "--speed", 8.0,
-               "--param", "probe:calibration_session:=false", *common)
+               "--param", "probe:calibration_session:=false", "--param", "probe:rate_hz:=50.0", *common)
     try:
         a_domain = int(a.wait_for(r"^\[launch\] ROS_DOMAIN_ID=(\d+)", 30).group(1))
         refused = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", root / "c",

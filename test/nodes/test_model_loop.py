@@ -36,7 +36,7 @@ def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("loop")
     sim = d / "sim"
     assert main(["simulate", "--out", str(sim), "--seed", "17", "--effect", "temperature_bias:mag=3",
-                 "--val-temp", VAL_TEMP, "--station-seconds", "1.5", "--rate", "50"]) == 0
+                 "--val-temp", VAL_TEMP, "--station-seconds", "1.5", "--rate", "25"]) == 0
     site = sim / "site.yaml"
     assert main(["twelve-position", str(sim / "cal.csv"), "--site", str(site), "-o", str(d / "base.yaml")]) == 0
     assert main(["lab", "fit", "--cal", str(sim / "cal.csv"), "--val", str(sim / "val.csv"), "--site", str(site),

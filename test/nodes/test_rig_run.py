@@ -87,6 +87,7 @@ def rig_run(domain_env, tmp_path_factory):
         t.start()
     cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--speed", "6",
            "--stations", str(N_STATIONS), "--seed", "5", "--reliable", "--timeout", "120", "--no-loop",
+           "--param", "probe:rate_hz:=50.0",
            "--site", SITE_FILE, "--witsml", "--wits-port", str(wits_port), "--foxglove-port", str(fox_port)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=180)
     stop.set()
