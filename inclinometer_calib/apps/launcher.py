@@ -69,11 +69,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..io.bag import RUN_BAG as BAG, next_run_part as next_bag_part, run_parts as bag_parts
+from ..io.bag import RUN_BAG as BAG, next_run_part as next_bag_part, read_bag, run_parts as bag_parts
 from ..core.deps import MissingDependency, require
 from ..core.geomag import NORTH_CHOICES
 from ..rig.liveview import station_label
-from ..io.surveystation import from_msg as station_dict
 from ..io.topics import TOPIC_STATION
 
 NODES = ("probe", "calibration", "correction", "wits", "live", "recorder")
@@ -610,47 +609,6 @@ def run_graph(args, out, env) -> GraphResult:
 # --------------------------------------------------------------------------------------------
 # Summary (read back from the bag: io.bag's decoding, rosbags' deserializer)
 # --------------------------------------------------------------------------------------------
-#: StreamProgress fields read into the accounting (accounting.account).
-PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_depth", "window", "imu", "mag",
-                   "temperature", "reference", "depth", "pairs_used", "pairs_dropped", "stations",
-                   "stations_uncorrected", "records", "forced", "end")
-
-
-def read_bag(path, progress=None):
-    """Stations (:func:`surveystation.from_msg`), coefficient messages and the last calibration status of
-    a bag as plain dicts, in receive order (:func:`bag.read_messages`: each message decoded with the
-    definition the bag records); with a list ``progress``, the ``/graph/progress`` messages are
-    appended to it (dicts of :data:`PROGRESS_FIELDS`).  Raises ``ValueError`` (one line) for what is
-    not a readable bag."""
-    from ..io.bag import DECODE_ERRORS, BagError, read_messages
-    from ..io.topics import TOPIC_COEFFICIENTS, TOPIC_PROGRESS, TOPIC_STATUS
-
-    require("rosbags.typesys", "bag", "the run summary")
-    stations, coefficients, status = [], [], None
-    wanted = {TOPIC_STATION, TOPIC_COEFFICIENTS, TOPIC_STATUS}
-    if progress is not None:
-        wanted.add(TOPIC_PROGRESS)
-    try:
-        for m, msg in read_messages(path, wanted):
-            if m.topic == TOPIC_PROGRESS:
-                progress.append({k: getattr(msg, k) for k in PROGRESS_FIELDS})
-            elif m.topic == TOPIC_STATION:
-                stations.append(station_dict(msg))
-            elif m.topic == TOPIC_STATUS:
-                status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
-                          "pending": [int(x) for x in msg.pending], "warnings": list(msg.warnings)}
-            else:
-                coefficients.append({"id": msg.id, "coefficients_yaml": msg.coefficients_yaml,
-                                     "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
-                                     "accel_correction_matrix": [float(x) for x in msg.accel_correction_matrix],
-                                     "mag_correction_matrix": [float(x) for x in msg.mag_correction_matrix]})
-    except BagError as exc:          # not a bag, or a damaged one: said, not raised raw (the caller names the file)
-        raise ValueError(f"not a readable bag ({exc.reason} at byte offset {exc.offset})") from None
-    except DECODE_ERRORS as exc:
-        raise ValueError(f"not a readable bag (a message that does not decode: {type(exc).__name__}: {exc})") from None
-    return stations, coefficients, status
-
-
 def trajectory_summary(stations, coefficients_id=None) -> dict:
     """The deepest corrected station with a position: MD, TVD, north, east and its ISCWSA 1σ
     (horizontal semi-major and vertical, m), and how many stations have a position."""

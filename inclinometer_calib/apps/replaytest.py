@@ -165,7 +165,8 @@ def junit_xml(c: Comparison, problems, name: str) -> str:
 def run(args) -> int:
     """The ``replay-test`` command (see the module docstring)."""
     from .common import UserError
-    from .launcher import read_bag, readable_parts
+    from ..io.bag import read_bag
+    from .launcher import readable_parts
 
     bag = Path(args.bag)
     if not bag.exists():

@@ -27,7 +27,7 @@ the scheduler address given, unchanged. A task:
 Columns of a fragment: ``bag`` (absolute path), ``bag_sha256``, ``record_id``, ``survey_start``
 (timestamp, UTC), ``probe_forced`` (the record was applied to a bag that records another serial,
 with ``force_probe``), ``stamp`` (the station message's header stamp, s since the epoch, as
-``launcher.read_bag`` gives it), then every field of ``SurveyStation`` in the message's order, typed
+``io.bag.read_bag`` gives it), then every field of ``SurveyStation`` in the message's order, typed
 from the message definition (float64, uint32, uint8, bool, string; ``string[]`` as a list of
 strings; ``float64[N]`` as a fixed-size list of N float64: ``raw_gravity_mps2``, ``raw_field_nt``,
 ``position_covariance_ned_m2``). Read the dataset with :func:`read_stations`.
@@ -225,7 +225,7 @@ def station_schema():
 
 
 def header_stamp_s(t_end: float) -> float:
-    """A station's header stamp (s since the epoch) as ``launcher.read_bag`` gives it: the message
+    """A station's header stamp (s since the epoch) as ``io.bag.read_bag`` gives it: the message
     stamp ``round(t_end·1e9)`` ns read back as ``sec + 1e-9·nanosec``."""
     sec, nsec = divmod(int(round(t_end * 1e9)), 1_000_000_000)
     return sec + 1e-9 * nsec

@@ -1240,6 +1240,47 @@ def read_messages(bag, topics: Optional[Iterable[str]] = None, *, decode: bool =
         yield m, decoder.decode(info, m.data)
 
 
+#: StreamProgress fields read into the accounting (accounting.account).
+PROGRESS_FIELDS = ("node", "settled", "has_reference", "has_temperature", "has_depth", "window", "imu", "mag",
+                   "temperature", "reference", "depth", "pairs_used", "pairs_dropped", "stations",
+                   "stations_uncorrected", "records", "forced", "end")
+
+
+def read_bag(path, progress=None):
+    """Stations (:func:`surveystation.from_msg`), coefficient messages and the last calibration status of
+    a bag as plain dicts, in receive order (:func:`bag.read_messages`: each message decoded with the
+    definition the bag records); with a list ``progress``, the ``/graph/progress`` messages are
+    appended to it (dicts of :data:`PROGRESS_FIELDS`).  Raises ``ValueError`` (one line) for what is
+    not a readable bag."""
+    from .surveystation import from_msg as station_dict
+    from .topics import TOPIC_COEFFICIENTS, TOPIC_PROGRESS, TOPIC_STATION, TOPIC_STATUS
+
+    require("rosbags.typesys", "bag", "the run summary")
+    stations, coefficients, status = [], [], None
+    wanted = {TOPIC_STATION, TOPIC_COEFFICIENTS, TOPIC_STATUS}
+    if progress is not None:
+        wanted.add(TOPIC_PROGRESS)
+    try:
+        for m, msg in read_messages(path, wanted):
+            if m.topic == TOPIC_PROGRESS:
+                progress.append({k: getattr(msg, k) for k in PROGRESS_FIELDS})
+            elif m.topic == TOPIC_STATION:
+                stations.append(station_dict(msg))
+            elif m.topic == TOPIC_STATUS:
+                status = {"state": msg.state, "message": msg.message, "captured": [int(x) for x in msg.captured],
+                          "pending": [int(x) for x in msg.pending], "warnings": list(msg.warnings)}
+            else:
+                coefficients.append({"id": msg.id, "coefficients_yaml": msg.coefficients_yaml,
+                                     "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
+                                     "accel_correction_matrix": [float(x) for x in msg.accel_correction_matrix],
+                                     "mag_correction_matrix": [float(x) for x in msg.mag_correction_matrix]})
+    except BagError as exc:          # not a bag, or a damaged one: said, not raised raw (the caller names the file)
+        raise ValueError(f"not a readable bag ({exc.reason} at byte offset {exc.offset})") from None
+    except DECODE_ERRORS as exc:
+        raise ValueError(f"not a readable bag (a message that does not decode: {type(exc).__name__}: {exc})") from None
+    return stations, coefficients, status
+
+
 @dataclass
 class RecoveryReport:
     source: Path

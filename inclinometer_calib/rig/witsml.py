@@ -1,7 +1,7 @@
 """WITSML out: the corrected survey stations as an Energistics trajectory, 2.1 or 1.4.1.1 — ROS-free.
 
 One trajectory per run (well, wellbore, run): :func:`trajectory_document` builds it from station
-dicts — those of :func:`launcher.read_bag` or :func:`surveystation.from_msg`, so a recorded run
+dicts — those of :func:`bag.read_bag` or :func:`surveystation.from_msg`, so a recorded run
 (``inclinometer-calib witsml RUN.mcap``) and the live ``wits`` node (``witsml_file``) give the same
 document for the same stations — in one of two versions:
 
@@ -388,7 +388,7 @@ class MagModel:
 
 def mag_models(records) -> dict:
     """``{record id: MagModel}`` of calibration records (dicts with ``id`` and ``coefficients_yaml``,
-    as :func:`launcher.read_bag` gives them) whose site came from a geomagnetic model
+    as :func:`bag.read_bag` gives them) whose site came from a geomagnetic model
     (``site.reference.model``, :func:`geomag.site_from_config`); a record without one is left out."""
     import yaml
 

@@ -468,7 +468,7 @@ def test_a_crept_and_a_clipped_station_are_errors_in_correct_and_reprocess_alike
     """One status rule (pipeline.station_status) on every path: a station whose probe crept during
     the hold, and one whose magnetometer z is clipped (flat), are status 2 in ``correct -o`` and in
     ``reprocess`` both, and neither counts in ``correct``'s error figures."""
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
 
     log = Log(simdir / "val.csv")
     crept, clipped = log.station_rows(ref=30.0), log.station_rows(ref=60.0)

@@ -7,6 +7,7 @@ import pytest
 
 from inclinometer_calib.apps import launcher, rosenv
 from inclinometer_calib.io import surveystation
+from inclinometer_calib.io.bag import read_bag
 
 NAN = float("nan")
 
@@ -116,8 +117,8 @@ def test_a_bag_without_stations_coefficients_or_status_gives_an_empty_summary(tm
         for k in range(5):
             w.write(cid, bytes(ts.serialize_cdr(Clock(clock=Time(sec=k, nanosec=0)), "rosgraph_msgs/msg/Clock")),
                     1_700_000_000_000_000_000 + k)
-    assert launcher.read_bag(out / "survey.mcap") == ([], [], None)
-    assert launcher.read_bag(out / "survey_1.mcap") == ([], [], None)
+    assert read_bag(out / "survey.mcap") == ([], [], None)
+    assert read_bag(out / "survey_1.mcap") == ([], [], None)
     said = []
     summary = launcher.summarize_run(str(out), print_fn=said.append, loop=False)
     assert summary["stations_recorded"] == 0 and summary["coefficient_messages"] == 0

@@ -164,7 +164,7 @@ def test_station_messages_carry_our_definition_and_hash(survey, tmp_path):
 
 
 def test_a_well_logged_with_its_depth_is_reprocessed_into_a_trajectory(tmp_path):
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
     from inclinometer_calib.io.probelog import read_csv, write_csv
     from inclinometer_calib.correct.trajectory import minimum_curvature
 

@@ -27,7 +27,7 @@ from inclinometer_calib.fleet.reprocess import (DATASET_DIR, INDEX_FILE, LOST_RE
                                                 local_cluster, lost_attempts, read_stations, reprocess_fleet,
                                                 write_fragment)
 from inclinometer_calib.core.frames import Site
-from inclinometer_calib.apps.launcher import read_bag
+from inclinometer_calib.io.bag import read_bag
 from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
 
 # one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module

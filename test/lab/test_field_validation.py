@@ -431,7 +431,7 @@ def test_a_sensor_that_feels_the_temperature_late_is_said_to_lag_the_thermometer
                  "-o", str(rec), "--quiet"]) == 0
     from inclinometer_calib.apps.cli.survey import correct_log
     from inclinometer_calib.core.coeffs import Calibration
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
     from inclinometer_calib.core.survey import Tolerances
     cal = Calibration.load(rec)
     _, res, summary = correct_log(tmp_path / "val.csv", cal, cal.site, Tolerances(), quiet=True)
@@ -638,7 +638,7 @@ def test_a_magnetometer_that_settles_after_each_move_is_trimmed_named_and_fitted
                  "--quiet"]) == 0
     from inclinometer_calib.apps.cli.survey import correct_log
     from inclinometer_calib.core.coeffs import Calibration
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
     from inclinometer_calib.core.survey import Tolerances
     cal = Calibration.load(rec)
     stations, res, summary = correct_log(tmp_path / "val.csv", cal, cal.site, Tolerances(), quiet=True)

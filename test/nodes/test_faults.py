@@ -331,7 +331,8 @@ def test_killed_recorder_correction_and_calibration_are_restarted_and_nothing_is
 
 def test_the_stations_of_a_run_whose_nodes_were_killed_are_reprocess_s_bit_for_bit(fault_runs, tmp_path):
     from inclinometer_calib.io.accounting import unique_stations
-    from inclinometer_calib.apps.launcher import read_bag, readable_parts
+    from inclinometer_calib.apps.launcher import readable_parts
+    from inclinometer_calib.io.bag import read_bag
     from inclinometer_calib.lab.field import FieldMonitor
     from inclinometer_calib.correct.reprocess import reprocess
 

@@ -122,7 +122,7 @@ def test_the_live_witsml_trajectory_is_the_export_of_the_recorded_run(sim_run):
     from wits_parser import parse_wits0
 
     from inclinometer_calib.rig import witsml
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
 
     out, proc, _ = sim_run
     live = (out / "trajectory.xml").read_bytes()

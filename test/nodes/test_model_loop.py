@@ -24,7 +24,7 @@ from inclinometer_calib.apps.cli import main  # noqa: E402
 from inclinometer_calib.apps.cli.survey import correct_log  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.core.frames import wrap180  # noqa: E402
-from inclinometer_calib.apps.launcher import read_bag  # noqa: E402
+from inclinometer_calib.io.bag import read_bag  # noqa: E402
 from inclinometer_calib.core.survey import Tolerances  # noqa: E402
 
 SPEED = 40.0

@@ -18,7 +18,7 @@ pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setup.sh` an
 import strangers as S  # noqa: E402
 from inclinometer_calib.apps.cli import main  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
-from inclinometer_calib.apps.launcher import read_bag  # noqa: E402
+from inclinometer_calib.io.bag import read_bag  # noqa: E402
 from inclinometer_calib.io.probelog import ProbeLog, read_csv, write_csv  # noqa: E402
 
 VAL_STATIONS = 36

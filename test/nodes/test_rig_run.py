@@ -99,7 +99,7 @@ def rig_run(domain_env, tmp_path_factory):
 
 
 def test_the_rig_run_stations_carry_the_models_field_depth_position_and_its_uncertainty(rig_run):
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
 
     out, proc, _, _ = rig_run
     site = load_site(SITE_FILE)
@@ -130,7 +130,7 @@ def test_the_rigs_wits_and_foxglove_clients_get_every_station_and_the_witsml_val
     from wits_parser import parse_wits0
 
     from inclinometer_calib.rig import witsml
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
 
     out, _, wits_bytes, fox = rig_run
     stations = [s for s in read_bag(str(out / "survey.mcap"))[0] if s["coefficients_id"] and s["status"] != 2]

@@ -150,7 +150,7 @@ def test_the_cli_exports_a_recorded_runs_survey_stations(tmp_path, capsys):
     from north_well import projected_survey, receiver_positions
 
     from inclinometer_calib.apps.cli import main
-    from inclinometer_calib.apps.launcher import read_bag
+    from inclinometer_calib.io.bag import read_bag
     from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
 
     _, log, _, cal = projected_survey()                      # a projected site: grid north by default

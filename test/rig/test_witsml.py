@@ -22,7 +22,8 @@ from inclinometer_calib.rig import witsml  # noqa: E402
 from inclinometer_calib.apps.cli import main  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.core.frames import Site  # noqa: E402
-from inclinometer_calib.apps.launcher import read_bag, witsml_summary  # noqa: E402
+from inclinometer_calib.apps.launcher import witsml_summary  # noqa: E402
+from inclinometer_calib.io.bag import read_bag  # noqa: E402
 from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag  # noqa: E402
 from inclinometer_calib.correct.trajectory import minimum_curvature  # noqa: E402
 

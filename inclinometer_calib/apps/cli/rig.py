@@ -17,7 +17,7 @@ def cmd_wits(args):
         check_output(args.output)        # said before the work, not after it
     import datetime as dt
 
-    from ..launcher import read_bag
+    from ...io.bag import read_bag
     from ...rig.wits import describe, encode
 
     try:
@@ -43,7 +43,7 @@ def cmd_witsml(args):
     """Export the survey stations of a recorded run as a WITSML 2.1 or 1.4.1.1 trajectory (:mod:`witsml`):
     every document validated against its schema before it is written, and written atomically —
     with ``-o``, the well, wellbore (and 2.1 datum) documents beside it unless they exist in the store."""
-    from ..launcher import read_bag
+    from ...io.bag import read_bag
     from ...rig.witsml import (OPTION_HELP, Options, WitsmlError, mag_models, parent_path, trajectory_document,
                          validate)
 
