@@ -33,10 +33,14 @@ the coefficients travel as tuples).
 from __future__ import annotations
 
 import math
+import types
 
 import numba
+from numba.core import types as nbtypes
+from numba.extending import intrinsic
 
 from . import formulas
+from .formulas import corrected, survey  # what _sample calls (rebound per pass: _bound)
 
 # Cephes atan.c: atan(x) = x + x³·P(x²)/Q(x²) on 0 ≤ x ≤ 0.66 (Q monic)
 _P0, _P1, _P2, _P3, _P4 = (-8.750608600031904122785e-1, -1.615753718733365076637e1, -7.500855792314704667340e1,
@@ -99,9 +103,19 @@ def _atan2(y, x):
     return _atan2_core(y, x, True)
 
 
-@numba.njit(**_INLINE)
-def _select(c, a, b):
-    return a if c else b
+@intrinsic
+def _select(typingctx, c, a, b):
+    """``a if c else b`` as one LLVM ``select``: no branch, and nothing for numba's inliner to do
+    (it would otherwise inline a function at each of the formulas' selects, which makes the
+    kernel's compilation several times longer)."""
+    t = typingctx.unify_types(nbtypes.unliteral(a), nbtypes.unliteral(b))
+
+    def codegen(context, builder, sig, args):
+        cond = context.cast(builder, args[0], sig.args[0], nbtypes.boolean)
+        return builder.select(cond, context.cast(builder, args[1], sig.args[1], t),
+                              context.cast(builder, args[2], sig.args[2], t))
+
+    return t(c, a, b), codegen
 
 
 def _primitives(careful: bool) -> dict:
@@ -114,40 +128,30 @@ def _primitives(careful: bool) -> dict:
 
     @numba.njit(**_INLINE)
     def asin(s):
-        return atan2(s, math.sqrt((1.0 - s) * (1.0 + s)))
+        return _atan2_core(s, math.sqrt((1.0 - s) * (1.0 + s)), careful)
 
     return {"sqrt": math.sqrt, "atan2": atan2, "asin": asin, "select": _select}
 
 
-# the formulas, twice: the main pass's (the arc tangents' arithmetic alone) and the careful pass's
-_FAST = formulas.bind(_primitives(False), numba.njit(**_INLINE))
-_CAREFUL = formulas.bind(_primitives(True), numba.njit(**_INLINE))
-_corrected = _FAST["corrected"]
-_survey_fast = _FAST["survey"]
-_survey_careful = _CAREFUL["survey"]
-
-
-@numba.njit(inline="always", **_JIT)
-def _sample(i, careful, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o,
-            status_o):
+def _sample(i, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o, status_o):
     """Sample i: correct (``linear``: :func:`formulas.corrected` with the record's base model
     ``ca``, ``ba`` / ``cm``, ``bm``; else the triads are taken as corrected), evaluate
-    (:func:`formulas.survey`), write the outputs; True when an angle came out NaN (with
-    ``careful`` False: perhaps a special value of an arc tangent, see :func:`fused`).
-    Coefficients and ``qc`` are tuples of scalars (values: no aliasing with the outputs; fewer
-    than 30 arguments, which numba's inliner needs)."""
+    (:func:`formulas.survey`), write the outputs; True when an angle came out NaN (in the main
+    pass: perhaps a special value of an arc tangent, see :func:`fused`).  Coefficients and ``qc``
+    are tuples of scalars (values: no aliasing with the outputs; fewer than 30 arguments, which
+    numba's inliner needs).
+
+    Written against the formulas' names and compiled with them, once per binding (:func:`_bound`):
+    each pass inlines one copy of the formulas, not both."""
     hx, hy, hz = g[3 * i + 0], g[3 * i + 1], g[3 * i + 2]
     px, py, pz = m[3 * i + 0], m[3 * i + 1], m[3 * i + 2]
     if linear:
-        gx, gy, gz = _corrected(ca, ba, hx, hy, hz)
-        bx, by, bz = _corrected(cm, bm, px, py, pz)
+        gx, gy, gz = corrected(ca, ba, hx, hy, hz)
+        bx, by, bz = corrected(cm, bm, px, py, pz)
     else:
         gx, gy, gz = hx, hy, hz
         bx, by, bz = px, py, pz
-    if careful:
-        r = _survey_careful(gx, gy, gz, bx, by, bz, qc)
-    else:
-        r = _survey_fast(gx, gy, gz, bx, by, bz, qc)
+    r = survey(gx, gy, gz, bx, by, bz, qc)
     drift_o[i] = r.drift_deg
     az_o[i] = r.azimuth_deg
     tf_o[i] = r.toolface_deg
@@ -158,6 +162,18 @@ def _sample(i, careful, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, g
     status_o[i] = r.status
     return (r.drift_deg != r.drift_deg) | (r.azimuth_deg != r.azimuth_deg) | (r.toolface_deg != r.toolface_deg) | \
         (r.dip_deg != r.dip_deg)
+
+
+def _bound(careful: bool):
+    """:func:`_sample` with the formulas bound to the primitives (``careful``: the arc tangents
+    with their special values), all inlined into it."""
+    ns = formulas.bind(_primitives(careful), numba.njit(**_INLINE))
+    return numba.njit(**_INLINE)(types.FunctionType(_sample.__code__, ns, "_sample"))
+
+
+# the main pass's (the arc tangents' arithmetic alone) and the careful pass's
+_sample_fast = _bound(False)
+_sample_careful = _bound(True)
 
 
 @numba.njit(**_JIT)
@@ -184,10 +200,10 @@ def fused(g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip
     """
     nan = 0
     for i in range(g.shape[0] // 3):
-        nan += _sample(i, False, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
-                       flags_o, status_o)
+        nan += _sample_fast(i, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
+                            flags_o, status_o)
     if nan:   # again, with the special values, where an angle came out NaN
         for i in range(g.shape[0] // 3):
             if drift_o[i] != drift_o[i] or az_o[i] != az_o[i] or tf_o[i] != tf_o[i] or dip_o[i] != dip_o[i]:
-                _sample(i, True, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
-                        flags_o, status_o)
+                _sample_careful(i, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
+                                flags_o, status_o)
