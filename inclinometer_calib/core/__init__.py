@@ -1,7 +1,8 @@
 """The core: the conventions, the models and the records every other layer builds on.
 
 ``frames`` (NED, tool Z down-hole, R = Rz(azimuth)·Ry(drift)·Rz(toolface), Table 1's poses, the
-specific-force sign flip, the site reference ``Site``), ``geomag`` (the site's field from a
+specific-force sign flip, the site reference ``Site``), ``formulas`` (the correction, angles and
+QC written once, for numpy and the numba kernel), ``geomag`` (the site's field from a
 location: WMM/IGRF, gravity, grid convergence, the one north), ``errormodel`` (a triad's bias,
 scale and non-orthogonality), ``effects`` (the effect catalogue), ``model`` (a probe model: triads
 plus effects), ``plugins`` (user effects), ``coeffs`` (the calibration record), ``station`` (a

@@ -3,9 +3,12 @@ which sets numba's on-disk cache directory first; never imported when numba is m
 
 One pass over the samples, no temporaries: per sample, read the raw triads, correct them with the
 record's base model, compute drift, azimuth, toolface, |G|, |B|, dip and the QC flags, write the
-outputs.  The formulas, their evaluation order and the QC rules are those of
-:func:`survey.evaluate` / :func:`survey.correct_samples` (see :mod:`batchkernel` for the
-conventions and the agreement with the station path).
+outputs.  The formulas are not written here: they are :mod:`formulas`' (``corrected``,
+``survey``: the text numpy runs for :func:`survey.evaluate` and :func:`survey.correct_samples`),
+compiled by :func:`formulas.bind` against this module's scalar primitives (the arc tangent and
+arc sine below, a scalar select) as ``njit(inline="always")`` functions, which numba inlines into
+the loop.  They are bound twice, once per arc tangent (``careful`` or not, see below).  See
+:mod:`batchkernel` for the conventions and the agreement with the station path.
 
 The arc tangents are not libm's: a scalar ``atan2`` call (≈ 18 ns) would cost more than the whole
 sample may take, and it stops the loop from being vectorised.  :func:`_atan2` is Cephes' ``atan``
@@ -21,7 +24,8 @@ contract them into FMAs, so the arithmetic outside the arc tangents gives numpy'
 
 What stops LLVM's loop vectoriser here, found by measurement (``docs/benchmarks.md`` section 1):
 a call inside the loop even on a branch never taken (Python's float modulo, for a declination
-of 360° or more, is therefore a pass of its own), a loop that starts at a run-time index (as a
+of 360° or more, was one: the declination is now folded into a turn before the loop,
+:func:`formulas.qc_parameters`), a loop that starts at a run-time index (as a
 loop over blocks would: the kernel always runs from 0, on a slice per thread), and an inlined call
 with more than 30 arguments (CPython passes those as ``*args``, which numba's inliner refuses:
 the coefficients travel as tuples).
@@ -29,9 +33,14 @@ the coefficients travel as tuples).
 from __future__ import annotations
 
 import math
+import types
 
 import numba
-import numpy as np
+from numba.core import types as nbtypes
+from numba.extending import intrinsic
+
+from . import formulas
+from .formulas import corrected, survey  # what _sample calls (rebound per pass: _bound)
 
 # Cephes atan.c: atan(x) = x + x³·P(x²)/Q(x²) on 0 ≤ x ≤ 0.66 (Q monic)
 _P0, _P1, _P2, _P3, _P4 = (-8.750608600031904122785e-1, -1.615753718733365076637e1, -7.500855792314704667340e1,
@@ -42,10 +51,11 @@ _MOREBITS_HALF = 0.5 * 6.123233995736765886130e-17   # π/4 − fl(π/4)
 _PIO4 = math.pi / 4.0
 _PIO2 = math.pi / 2.0
 _PI = math.pi
-_R2D = 180.0 / math.pi        # np.degrees multiplies by this constant: same bits
 _INF = math.inf
 
 _JIT = dict(cache=True, error_model="numpy", nogil=True)
+#: the functions numba inlines into the kernel (compiled as part of it, cached with it)
+_INLINE = {"inline": "always", "error_model": "numpy", "nogil": True}
 
 
 @numba.njit(inline="always", **_JIT)
@@ -93,89 +103,81 @@ def _atan2(y, x):
     return _atan2_core(y, x, True)
 
 
-@numba.njit(inline="always", **_JIT)
-def _wrap_atan2_deg(w):
-    """[0, 360) for atan2 in degrees, as survey._wrap_atan2_deg (+360 below 0; 360.0 → 0)."""
-    w = w + (360.0 if w < 0.0 else 0.0)
-    return 0.0 if w >= 360.0 else w
+@intrinsic
+def _select(typingctx, c, a, b):
+    """``a if c else b`` as one LLVM ``select``: no branch, and nothing for numba's inliner to do
+    (it would otherwise inline a function at each of the formulas' selects, which makes the
+    kernel's compilation several times longer)."""
+    t = typingctx.unify_types(nbtypes.unliteral(a), nbtypes.unliteral(b))
+
+    def codegen(context, builder, sig, args):
+        cond = context.cast(builder, args[0], sig.args[0], nbtypes.boolean)
+        return builder.select(cond, context.cast(builder, args[1], sig.args[1], t),
+                              context.cast(builder, args[2], sig.args[2], t))
+
+    return t(c, a, b), codegen
 
 
-@numba.njit(inline="always", **_JIT)
-def _sample(i, careful, g, m, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o,
-            status_o):
-    """Sample i: correct, evaluate, write the outputs; True when an angle came out NaN (with
-    ``careful`` False: perhaps a special value of an arc tangent, see :func:`fused`).  ``coef``,
-    ``qc``: tuples of scalars (values: no aliasing with the outputs; fewer than 30 arguments, which
-    numba's inliner needs)."""
-    (a00, a01, a02, a10, a11, a12, a20, a21, a22, ba0, ba1, ba2,
-     m00, m01, m02, m10, m11, m12, m20, m21, m22, bm0, bm1, bm2) = coef
-    decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2, tol_field, tol_dip, tol_gravity = qc
-    hx = g[3 * i + 0]
-    hy = g[3 * i + 1]
-    hz = g[3 * i + 2]
-    px = m[3 * i + 0]
-    py = m[3 * i + 1]
-    pz = m[3 * i + 2]
-    if linear:   # v = C·(h − B), each row (x·C[r,0] + y·C[r,1]) + z·C[r,2] (frames.rotate)
-        ux = hx - ba0
-        uy = hy - ba1
-        uz = hz - ba2
-        gx = ux * a00 + uy * a01 + uz * a02
-        gy = ux * a10 + uy * a11 + uz * a12
-        gz = ux * a20 + uy * a21 + uz * a22
-        ux = px - bm0
-        uy = py - bm1
-        uz = pz - bm2
-        bx = ux * m00 + uy * m01 + uz * m02
-        by = ux * m10 + uy * m11 + uz * m12
-        bz = ux * m20 + uy * m21 + uz * m22
+def _primitives(careful: bool) -> dict:
+    """The scalar primitives :mod:`formulas` is compiled against: the kernel's arc tangent
+    (``careful``: with its special values), ``asin s = atan2(s, √((1 − s)(1 + s)))``, a select."""
+
+    @numba.njit(**_INLINE)
+    def atan2(y, x):
+        return _atan2_core(y, x, careful)
+
+    @numba.njit(**_INLINE)
+    def asin(s):
+        return _atan2_core(s, math.sqrt((1.0 - s) * (1.0 + s)), careful)
+
+    return {"sqrt": math.sqrt, "atan2": atan2, "asin": asin, "select": _select}
+
+
+def _sample(i, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o, status_o):
+    """Sample i: correct (``linear``: :func:`formulas.corrected` with the record's base model
+    ``ca``, ``ba`` / ``cm``, ``bm``; else the triads are taken as corrected), evaluate
+    (:func:`formulas.survey`), write the outputs; True when an angle came out NaN (in the main
+    pass: perhaps a special value of an arc tangent, see :func:`fused`).  Coefficients and ``qc``
+    are tuples of scalars (values: no aliasing with the outputs; fewer than 30 arguments, which
+    numba's inliner needs).
+
+    Written against the formulas' names and compiled with them, once per binding (:func:`_bound`):
+    each pass inlines one copy of the formulas, not both."""
+    hx, hy, hz = g[3 * i + 0], g[3 * i + 1], g[3 * i + 2]
+    px, py, pz = m[3 * i + 0], m[3 * i + 1], m[3 * i + 2]
+    if linear:
+        gx, gy, gz = corrected(ca, ba, hx, hy, hz)
+        bx, by, bz = corrected(cm, bm, px, py, pz)
     else:
         gx, gy, gz = hx, hy, hz
         bx, by, bz = px, py, pz
-    h2 = gx * gx + gy * gy
-    drift = _atan2_core(math.sqrt(h2), gz, careful) * _R2D                       # frames.drift_deg
-    gn = math.sqrt(h2 + gz * gz)
-    bn = math.sqrt((bx * bx + by * by) + bz * bz)
-    # azimuth = atan2(|g|(by gx − bx gy), bz(gx² + gy²) − gz(bx gx + by gy))   (frames.azimuth_deg)
-    num = gn * (by * gx - bx * gy)
-    bg = bx * gx + by * gy
-    az = _wrap_atan2_deg(_atan2_core(num, bz * h2 - gz * bg, careful) * _R2D)
-    if decl != 0.0:
-        az = az + decl
-        if not wrap_big:   # |decl| ≥ 360: Python's modulo after the loop (a libm call here stops vectorisation)
-            az = az + (360.0 if az < 0.0 else 0.0)
-            az = az - (360.0 if az >= 360.0 else 0.0)
-            az = 0.0 if az >= 360.0 else az
-    # dip = asin(clip(g·b / (|g||b|), −1, 1))                        (frames.dip_deg)
-    sd = (bg + gz * bz) / (gn * bn)
-    sd = 1.0 if sd > 1.0 else sd
-    sd = -1.0 if sd < -1.0 else sd
-    dip = _atan2_core(sd, math.sqrt((1.0 - sd) * (1.0 + sd)), careful) * _R2D
-    # toolface: gravity atan2(gy, −gx) outside the cone of tol.gravity_toolface_min_drift_deg,
-    # magnetic atan2(−by, bx) inside it (and for a NaN drift)
-    is_g = drift >= thr_tf and drift <= 180.0 - thr_tf
-    tf = _wrap_atan2_deg(_atan2_core(gy if is_g else -by, -gx if is_g else bx, careful) * _R2D)
-    # QC (survey.evaluate)
-    az_undef = drift < min_drift or drift > 180.0 - min_drift
-    interf = abs(bn - field_nt) > tol_field or abs(dip - dip_deg) > tol_dip
-    grav = abs(gn - gravity_mps2) > tol_gravity
-    prod = gn * bn
-    bad = not (abs(prod) < _INF)                                   # a component NaN/inf
-    drift_o[i] = drift
-    az_o[i] = az
-    tf_o[i] = tf
-    gn_o[i] = gn
-    bn_o[i] = bn
-    dip_o[i] = dip
-    flags_o[i] = np.uint8(az_undef) | (np.uint8(interf) << 1) | (np.uint8(grav) << 2) | \
-        (np.uint8(is_g) << 3) | (np.uint8(bad) << 4)
-    status_o[i] = np.uint8(2) if (grav or bad) else np.uint8(az_undef or interf)
-    return (drift != drift) | (az != az) | (tf != tf) | (dip != dip)
+    r = survey(gx, gy, gz, bx, by, bz, qc)
+    drift_o[i] = r.drift_deg
+    az_o[i] = r.azimuth_deg
+    tf_o[i] = r.toolface_deg
+    gn_o[i] = r.total_gravity
+    bn_o[i] = r.total_field
+    dip_o[i] = r.dip_deg
+    flags_o[i] = r.flags
+    status_o[i] = r.status
+    return (r.drift_deg != r.drift_deg) | (r.azimuth_deg != r.azimuth_deg) | (r.toolface_deg != r.toolface_deg) | \
+        (r.dip_deg != r.dip_deg)
+
+
+def _bound(careful: bool):
+    """:func:`_sample` with the formulas bound to the primitives (``careful``: the arc tangents
+    with their special values), all inlined into it."""
+    ns = formulas.bind(_primitives(careful), numba.njit(**_INLINE))
+    return numba.njit(**_INLINE)(types.FunctionType(_sample.__code__, ns, "_sample"))
+
+
+# the main pass's (the arc tangents' arithmetic alone) and the careful pass's
+_sample_fast = _bound(False)
+_sample_careful = _bound(True)
 
 
 @numba.njit(**_JIT)
-def fused(g, m, linear, ca, ba, cm, bm, decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2,
-          tol_field, tol_dip, tol_gravity, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o, status_o):
+def fused(g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o, flags_o, status_o):
     """Correct and evaluate every sample, one thread (:mod:`batchkernel` runs it on slices, one
     per thread: the loop always starts at 0, since a loop from a run-time start is not
     vectorised).
@@ -183,10 +185,11 @@ def fused(g, m, linear, ca, ba, cm, bm, decl, thr_tf, min_drift, field_nt, dip_d
     ``g``, ``m``: (3N,) float64 — (N, 3) arrays in C order, flattened (so that LLVM sees the
     stride of 3 and vectorises the loads) — the gravity vector (down positive, m/s²: REP-145
     specific force is converted where it enters) and the field, nT.
-    ``linear``: apply the base model ``v = C·(h − B)`` with ``ca``, ``ba`` (accelerometer, 3×3 and
-    3) and ``cm``, ``bm`` (magnetometer); else the triads are taken as corrected.  Site, declination
-    and tolerances as :class:`frames.Site` / :class:`survey.Tolerances`.  Outputs (N,) C order:
-    float64 drift, azimuth, toolface (deg), |G| (m/s²), |B| (nT), dip (deg); uint8 flags, status.
+    ``linear``: apply the base model ``v = C·(h − B)`` with ``ca``, ``ba`` (accelerometer: C's
+    nine entries row by row, B's three, as tuples of floats) and ``cm``, ``bm`` (magnetometer);
+    else the triads are taken as corrected.  ``qc``: :func:`formulas.qc_parameters` (site and
+    tolerances; the declination folded into a turn).  Outputs (N,) C order: float64 drift,
+    azimuth, toolface (deg), |G| (m/s²), |B| (nT), dip (deg); uint8 flags, status.
 
     Two passes: first every sample with the arc tangents' arithmetic alone, counting the samples
     whose angles came out NaN; then, only if there were any, those samples again with the special
@@ -195,26 +198,12 @@ def fused(g, m, linear, ca, ba, cm, bm, decl, thr_tf, min_drift, field_nt, dip_d
     on how the samples are split.  This keeps the special-value selects of four arc tangents out
     of the vectorised loop (about 10 % of its time).
     """
-    wrap_big = not (abs(decl) < 360.0)
-    # the record's coefficients as scalars: loaded once, not per sample (the outputs could alias them)
-    a00, a01, a02, a10, a11, a12, a20, a21, a22 = (ca[0, 0], ca[0, 1], ca[0, 2], ca[1, 0], ca[1, 1], ca[1, 2],
-                                                   ca[2, 0], ca[2, 1], ca[2, 2])
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = (cm[0, 0], cm[0, 1], cm[0, 2], cm[1, 0], cm[1, 1], cm[1, 2],
-                                                   cm[2, 0], cm[2, 1], cm[2, 2])
-    ba0, ba1, ba2, bm0, bm1, bm2 = ba[0], ba[1], ba[2], bm[0], bm[1], bm[2]
-    coef = (a00, a01, a02, a10, a11, a12, a20, a21, a22, ba0, ba1, ba2,
-            m00, m01, m02, m10, m11, m12, m20, m21, m22, bm0, bm1, bm2)
-    qc = (decl, thr_tf, min_drift, field_nt, dip_deg, gravity_mps2, tol_field, tol_dip, tol_gravity)
     nan = 0
     for i in range(g.shape[0] // 3):
-        nan += _sample(i, False, g, m, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
-                       flags_o, status_o)
+        nan += _sample_fast(i, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
+                            flags_o, status_o)
     if nan:   # again, with the special values, where an angle came out NaN
         for i in range(g.shape[0] // 3):
             if drift_o[i] != drift_o[i] or az_o[i] != az_o[i] or tf_o[i] != tf_o[i] or dip_o[i] != dip_o[i]:
-                _sample(i, True, g, m, linear, coef, qc, wrap_big, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
-                        flags_o, status_o)
-    if decl != 0.0 and wrap_big:   # |decl| ≥ 360: az = (az + decl) mod 360, as survey.evaluate
-        for i in range(g.shape[0] // 3):
-            az = az_o[i] % 360.0
-            az_o[i] = 0.0 if az >= 360.0 else az
+                _sample_careful(i, g, m, linear, ca, ba, cm, bm, qc, drift_o, az_o, tf_o, gn_o, bn_o, dip_o,
+                                flags_o, status_o)

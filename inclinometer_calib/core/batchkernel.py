@@ -7,26 +7,28 @@ backend resolves to ``numba``, and returns the same dict: both triads corrected,
 ``survey.FLAG_*``) per sample.  Backends:
 
 * ``numba`` — :mod:`_batch_numba`: one pass, per sample ``v = C·(h − B)`` per triad
-  (the record's base model, :meth:`errormodel.TriadModel.inverse`, same products in the same
-  order), then the formulas of :func:`survey.evaluate` in one go; no array of N samples besides
-  the outputs.  A record with effects beyond the base model (Newton steps, temperature, time:
-  :class:`model.CorrectionPlan`) is corrected block by block through :meth:`coeffs.Calibration.correct`
-  — the one correction path, whatever the effect — and the kernel then does the angles and QC of
-  each block.  Agreement with the station path ``evaluate(*calibration.correct(g, m), site, tol)``:
-  every addition and multiplication is numpy's, in the same order (no ``fastmath``), so |G|, |B|
-  and the corrected vectors are bit-identical; the arc tangents are the kernel's own (within
-  1 ulp of numpy's), so the angles differ by at most a few 1e-14 degrees
-  (``test/core/test_batch_kernel.py`` pins 1e-9°).  The flags follow from the same comparisons: a value
-  within an ulp of a QC threshold could in principle tip the other way.
-* ``numpy`` — the blocked numpy body of :func:`survey.correct_samples` (bit-identical to the
-  station path).
+  (the record's base model: :func:`formulas.corrected`, as :meth:`errormodel.TriadModel.inverse`)
+  then :func:`formulas.survey` (angles, QC, status), the very text numpy runs for the station
+  path, compiled by numba and inlined; no array of N samples besides the outputs.  A record with
+  effects beyond the base model (Newton steps, temperature, time: :class:`model.CorrectionPlan`)
+  is corrected block by block through :meth:`coeffs.Calibration.correct` — the one correction
+  path, whatever the effect — and the kernel then does the angles and QC of each block.
+  Agreement with the station path ``evaluate(*calibration.correct(g, m), site, tol)``: every
+  addition and multiplication is numpy's, in the same order (no ``fastmath``), so |G|, |B| and
+  the corrected vectors are bit-identical; the arc tangents are the kernel's own (within 1 ulp of
+  numpy's), so the angles differ by at most a few 1e-14 degrees (``test/core/test_batch_kernel.py``
+  pins 1e-9°).  The flags follow from the same comparisons: a value within an ulp of a QC
+  threshold could in principle tip the other way.
+* ``numpy`` — the blocked numpy body of :func:`survey.correct_samples`: :func:`formulas.survey`
+  on numpy arrays, block by block (bit-identical to the station path).
 * ``auto`` (default) — numba when it can be imported, else numpy.  The environment variable
   ``INCLINOMETER_CALIB_BATCH_BACKEND`` (``auto``, ``numba``, ``numpy``) sets the default.
 
 Compilation: the first call in a process compiles the kernel (a few seconds) or loads it from
 numba's on-disk cache (well under a second); :func:`warm_up` does it up front and says how long
 it took.  The cache is ``$NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/inclinometer_calib/numba``
-(``~/.cache/...``): the user's cache, not the installed package's directory.
+(``~/.cache/...``): the user's cache, not the installed package's directory; in it, a directory
+per text of :mod:`formulas` (:func:`_kernels`: numba would not see a change there).
 
 Threads: ``threads`` (None: ``$INCLINOMETER_CALIB_BATCH_THREADS``, else the CPUs this process may
 run on) splits the samples into contiguous slices, a few per thread, each corrected by the
@@ -40,6 +42,7 @@ slower than one thread.)
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import threading
 import time
@@ -47,6 +50,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from . import formulas
 from .frames import Site
 
 BACKEND_ENV = "INCLINOMETER_CALIB_BATCH_BACKEND"
@@ -95,15 +99,22 @@ def resolve_backend(backend: str | None = None) -> str:
 
 
 def _kernels():
-    """The compiled kernels' module, with numba's cache pointed at :func:`cache_dir`."""
+    """The compiled kernels' module, with numba's cache in :func:`cache_dir`, in a directory of
+    its own per text of :mod:`formulas` (numba checks the kernel's own file for changes, not the
+    files of the functions it inlines: a kernel compiled from another version of the formulas
+    must not be loaded)."""
     global _kernel_module
     if _kernel_module is None:
         import numba
 
-        if not os.environ.get("NUMBA_CACHE_DIR"):
-            numba.config.CACHE_DIR = cache_dir()   # read when the kernels are decorated, just below
-        from . import _batch_numba
-
+        with open(formulas.__file__, "rb") as fh:
+            digest = hashlib.sha256(fh.read()).hexdigest()[:16]
+        given = numba.config.CACHE_DIR
+        numba.config.CACHE_DIR = os.path.join(cache_dir(), f"formulas-{digest}")   # read as the kernels are decorated
+        try:
+            from . import _batch_numba
+        finally:
+            numba.config.CACHE_DIR = given
         _kernel_module = _batch_numba
     return _kernel_module
 
@@ -112,8 +123,7 @@ def warm_up(tol) -> float:
     """Compile the kernel (or load it from the disk cache) now, for QC tolerances ``tol`` (a
     :class:`survey.Tolerances`); returns the seconds it took."""
     t0 = time.perf_counter()
-    _run(np.zeros(3), np.zeros(3), True, (np.eye(3), np.zeros(3)), (np.eye(3), np.zeros(3)), Site(), tol,
-         _alloc(1))
+    _run(np.zeros(3), np.zeros(3), True, _IDENTITY, _IDENTITY, Site(), tol, _alloc(1))
     return time.perf_counter() - t0
 
 
@@ -165,19 +175,17 @@ def _slices(n: int, threads: int) -> list[tuple[int, int]]:
 
 
 def _run(g_flat, m_flat, linear, cal_a, cal_m, site, tol, out, threads: int = 1):
-    """The kernel on flat (3N,) inputs (gravity vector m/s², field nT) into ``out``; ``cal_a``/``cal_m``: (C, B) or None;
-    ``threads`` > 1: slices on the pool (:func:`_slices`)."""
+    """The kernel on flat (3N,) inputs (gravity vector m/s², field nT) into ``out``; ``cal_a``/``cal_m``:
+    (C's nine entries row by row, B's three) as float tuples, or None; ``threads`` > 1: slices on
+    the pool (:func:`_slices`)."""
     k = _kernels()
-    eye, zero = np.eye(3), np.zeros(3)
-    ca, ba = cal_a if cal_a is not None else (eye, zero)
-    cm, bm = cal_m if cal_m is not None else (eye, zero)
-    scalars = (float(site.declination_deg), float(tol.gravity_toolface_min_drift_deg), float(tol.min_drift_deg),
-               float(site.total_field_nt), float(site.dip_deg), float(site.gravity_mps2),
-               float(tol.field_nt), float(tol.dip_deg), float(tol.gravity_mps2))
+    ca, ba = cal_a if cal_a is not None else _IDENTITY
+    cm, bm = cal_m if cal_m is not None else _IDENTITY
+    qc = formulas.qc_parameters(site, tol)
     outs = [out[key] for key in BATCH_KEYS] + [out["flags"], out["status"]]
 
     def piece(s, e):
-        k.fused(g_flat[3 * s:3 * e], m_flat[3 * s:3 * e], bool(linear), ca, ba, cm, bm, *scalars,
+        k.fused(g_flat[3 * s:3 * e], m_flat[3 * s:3 * e], bool(linear), ca, ba, cm, bm, qc,
                 *(a[s:e] for a in outs))
 
     parts = _slices(len(g_flat) // 3, threads)
@@ -188,11 +196,8 @@ def _run(g_flat, m_flat, linear, cal_a, cal_m, site, tol, out, threads: int = 1)
         fut.result()
 
 
-def _linear(calibration, sensor):
-    """(C, B) of one triad's base model, as :meth:`errormodel.TriadModel.inverse` uses them."""
-    plan = calibration.plan
-    c = np.ascontiguousarray(plan.matrix_t[sensor].T)
-    return c, np.ascontiguousarray(np.asarray(plan.triads[sensor].bias, dtype=np.float64))
+#: (C, B) of no correction: the kernel's coefficients when ``linear`` is False (unused, typed alike)
+_IDENTITY = ((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
 
 
 def fused(g, m, calibration, site, tol, temp, tim, block: int, out: dict, correct_block,
@@ -213,7 +218,7 @@ def fused(g, m, calibration, site, tol, temp, tim, block: int, out: dict, correc
              site, tol, out, nt)
     elif not any(calibration.plan.extra.values()):
         _run(np.ascontiguousarray(g).reshape(-1), np.ascontiguousarray(m).reshape(-1), True,
-             _linear(calibration, "acc"), _linear(calibration, "mag"), site, tol, out, nt)
+             calibration.plan.coefficients["acc"], calibration.plan.coefficients["mag"], site, tol, out, nt)
     else:   # effects beyond the base model: the one correction path per block, then the kernel
         blk = max(1, min(int(block), n))
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):

@@ -17,12 +17,17 @@ true component ``M_a`` in the output of sensor ``b``, i.e. ``E[b, a]``.  (The ac
 ``f_ab`` are the same thing.)  Units: ``K`` and ``E`` are dimensionless ratios of output units to
 input units; ``B`` and ``D`` are in output units (nT or A/D counts for the magnetometer; m/s² of the
 *gravity vector* or A/D counts for the accelerometer).
+
+The correction's formula itself is written once, in :mod:`formulas` (``corrected``: the text
+:meth:`TriadModel.inverse`, a node's per-sample correction and the batch kernel all run).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .formulas import corrected
 
 AXES = "xyz"
 #: The six non-orthogonality terms, in the paper's naming, and their (row, col) place in E.
@@ -100,20 +105,19 @@ class TriadModel:
         """Sensor output ``H = K·E·M + B`` for true vectors ``m`` of shape (..., 3)."""
         return np.asarray(m, dtype=float) @ self.A.T + self.bias
 
-    def inverse(self, h, c_t=None) -> np.ndarray:
-        """The linear part of the correction, ``M = C·(H - B)``, for outputs ``h`` (N, 3).
+    def inverse(self, h, c=None) -> np.ndarray:
+        """The linear part of the correction, ``M = C·(H - B)``, for outputs ``h`` (N, 3):
+        :func:`formulas.corrected`, element by element, so that every batch size gives the same bits.
 
         A building block of :meth:`model.ProbeModel.correct`, the one correction path (which
         adds the effects beyond the paper); the twelve-position solver also uses it on its own
-        triad before any record exists.  Written out element by element (:func:`frames.rotate`)
-        so that every batch size gives the same bits.  ``c_t``: ``C`` transposed, when the
-        caller keeps it (:class:`model.CorrectionPlan`: the lab's fits correct a triad thousands
-        of times, and inverting ``K·E`` again each time was 3% of their CPU)."""
-        from .frames import rotate
-
+        triad before any record exists.  ``c``: C's nine entries row by row, when the caller
+        keeps them (:class:`model.CorrectionPlan`: the lab's fits correct a triad thousands of
+        times, and inverting ``K·E`` again each time was 3% of their CPU)."""
         h = np.asarray(h, dtype=float)
-        c_t = self.correction_matrix.T if c_t is None else c_t
-        return rotate(c_t, h.reshape(-1, 3) - self.bias).reshape(h.shape)
+        c = tuple(self.correction_matrix.ravel()) if c is None else c
+        h2 = h.reshape(-1, 3)
+        return np.stack(corrected(c, self.bias, h2[:, 0], h2[:, 1], h2[:, 2]), axis=1).reshape(h.shape)
 
     # ---- records ---------------------------------------------------------------------------
     def parameters(self) -> dict:

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import formulas
+
 #: Standard gravity, m/s² (used as default site gravity).
 STANDARD_GRAVITY = 9.80665
 #: nT per tesla.
@@ -88,10 +90,9 @@ def angle_between_deg(u, v) -> float:
 
 
 def wrap360(angle_deg):
-    """Wrap an angle to [0, 360) degrees."""
-    w = np.mod(angle_deg, 360.0)
-    # np.mod can return 360.0 for tiny negative inputs through rounding.
-    return np.where(w >= 360.0, 0.0, w)
+    """Wrap an angle to [0, 360) degrees: ``fmod``, then :func:`formulas.wrap360_near` (the
+    same bits as ``np.mod``, and 360.0 — a tiny negative plus 360, rounded — becomes 0)."""
+    return formulas.wrap360_near(np.fmod(angle_deg, 360.0))
 
 
 def wrap180(angle_deg):
@@ -188,43 +189,45 @@ def specific_force_from_gravity(g):
 # --------------------------------------------------------------------------------------------
 # Angles from sensor vectors (tool frame)
 # --------------------------------------------------------------------------------------------
+def _xyz(v):
+    v = np.asarray(v, dtype=float)
+    return v[..., 0], v[..., 1], v[..., 2]
+
+
 def drift_deg(g):
     """Drift (inclination) in degrees from the tool-frame gravity vector ``g`` (down positive).
 
     Paper eq. (1), ``θ = arctan(sqrt(gx² + gy²) / gz)``, written as ``atan2`` so that it is
-    valid over the whole range 0–180° (eq. 1 folds drifts above 90°).
+    valid over the whole range 0–180° (eq. 1 folds drifts above 90°): :func:`formulas.drift_deg`.
     """
-    g = np.asarray(g, dtype=float)
-    gx, gy = g[..., 0], g[..., 1]
-    # sqrt(gx² + gy²) rather than hypot: the same to 1 ulp for any m/s² value, several times
-    # cheaper, and the form survey.correct_samples reuses (it already has gx² + gy²)
-    return np.degrees(np.arctan2(np.sqrt(gx * gx + gy * gy), g[..., 2]))
+    return formulas.drift_deg(*_xyz(g))
 
 
 def gravity_toolface_deg(g):
     """Gravity (high-side) toolface in degrees [0, 360): the angle T of ``Rz(T)`` in R.
 
     With ``g_tool = R.T @ [0, 0, g]`` one finds ``gx = -g sinI cosT``, ``gy = g sinI sinT``, so
-    ``T = atan2(gy, -gx)``.  In REP-145 specific force this is the familiar ``atan2(-fy, fx)``.
-    Undefined (noise-dominated) when the drift is near zero.
+    ``T = atan2(gy, -gx)`` (:func:`formulas.toolface_deg`).  In REP-145 specific force this is the
+    familiar ``atan2(-fy, fx)``.  Undefined (noise-dominated) when the drift is near zero.
     """
-    g = np.asarray(g, dtype=float)
-    return wrap360(np.degrees(np.arctan2(g[..., 1], -g[..., 0])))
+    gx, gy, _ = _xyz(g)
+    return formulas.toolface_deg(True, gx, gy, 0.0, 0.0)
 
 
 def magnetic_toolface_deg(b):
     """Magnetic toolface in degrees [0, 360): angle from the cross-axial projection of north to X.
 
-    ``MTF = atan2(-by, bx)``; for a vertical tool it equals azimuth + gravity toolface.
+    ``MTF = atan2(-by, bx)`` (:func:`formulas.toolface_deg`); for a vertical tool it equals
+    azimuth + gravity toolface.
     """
-    b = np.asarray(b, dtype=float)
-    return wrap360(np.degrees(np.arctan2(-b[..., 1], b[..., 0])))
+    bx, by, _ = _xyz(b)
+    return formulas.toolface_deg(False, 0.0, 0.0, bx, by)
 
 
 def azimuth_deg(g, b):
     """Magnetic azimuth in degrees [0, 360) of the tool axis from tool-frame gravity and field.
 
-    Implements the paper's eq. (2) in a quadrant-resolving form::
+    Implements the paper's eq. (2) in a quadrant-resolving form (:func:`formulas.azimuth_deg`)::
 
         A = atan2( |g| (by gx - bx gy),  bz (gx² + gy²) - gz (bx gx + by gy) )
 
@@ -235,42 +238,32 @@ def azimuth_deg(g, b):
     levelling the field with the drift and toolface taken from ``g``.  Near vertical both
     arguments vanish and the azimuth is undefined: see :func:`azimuth_defined`.
     """
-    g = np.asarray(g, dtype=float)
-    b = np.asarray(b, dtype=float)
-    gx, gy, gz = g[..., 0], g[..., 1], g[..., 2]
-    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
-    gnorm = np.sqrt(gx * gx + gy * gy + gz * gz)
-    num = gnorm * (by * gx - bx * gy)
-    den = bz * (gx * gx + gy * gy) - gz * (bx * gx + by * gy)
-    return wrap360(np.degrees(np.arctan2(num, den)))
+    return formulas.azimuth_deg(*_xyz(g), *_xyz(b))
 
 
 def azimuth_defined(g, min_drift_deg: float = 0.5):
     """True where the tool is more than ``min_drift_deg`` from the vertical (down or up), so that
     the azimuth is meaningful."""
-    d = drift_deg(g)
-    return (d >= min_drift_deg) & (d <= 180.0 - min_drift_deg)
+    return formulas.outside_vertical_cone(drift_deg(g), min_drift_deg)
 
 
 def total_gravity(g):
-    """Total gravity |g| (same units as ``g``)."""
-    return np.linalg.norm(np.asarray(g, dtype=float), axis=-1)
+    """Total gravity |g| (same units as ``g``): :func:`formulas.norm`."""
+    return formulas.norm(*_xyz(g))
 
 
 def total_field(b):
-    """Total magnetic field |B| (same units as ``b``)."""
-    return np.linalg.norm(np.asarray(b, dtype=float), axis=-1)
+    """Total magnetic field |B| (same units as ``b``): :func:`formulas.norm`."""
+    return formulas.norm(*_xyz(b))
 
 
 def dip_deg(g, b):
     """Magnetic dip in degrees: 90° minus the angle between g (down) and B.
 
-    ``dip = asin( (g·b) / (|g||b|) )`` — independent of orientation, so a survey-QC invariant.
+    ``dip = asin( (g·b) / (|g||b|) )`` — independent of orientation, so a survey-QC invariant
+    (:func:`formulas.dip_deg`).
     """
-    g = np.asarray(g, dtype=float)
-    b = np.asarray(b, dtype=float)
-    s = np.sum(g * b, axis=-1) / (total_gravity(g) * total_field(b))
-    return np.degrees(np.arcsin(np.clip(s, -1.0, 1.0)))
+    return formulas.dip_deg(*_xyz(g), *_xyz(b))
 
 
 def angles_from_vectors(g, b):
@@ -301,16 +294,11 @@ def tool_vectors(site: Site, drift, azimuth, toolface):
 
 
 def rotate(m, v) -> np.ndarray:
-    """``v @ m`` for (N, 3) ``v`` and a 3×3 ``m``, written out element by element.
-
-    Not through BLAS: each output element is the same three products added in the same order
-    whatever N is, so one sample corrected alone (a node) and the same sample in a block of a
-    million (the batch path) give the same bits.
-    """
-    x, y, z = v[:, 0], v[:, 1], v[:, 2]
-    return np.stack([x * m[0, 0] + y * m[1, 0] + z * m[2, 0],
-                     x * m[0, 1] + y * m[1, 1] + z * m[2, 1],
-                     x * m[0, 2] + y * m[1, 2] + z * m[2, 2]], axis=1)
+    """``v @ m`` for (N, 3) ``v`` and a 3×3 ``m``: :func:`formulas.mat_vec` with ``C = mᵀ``,
+    element by element (not through BLAS: each output element is the same three products added
+    in the same order whatever N is, so one sample corrected alone (a node) and the same sample
+    in a block of a million (the batch path) give the same bits)."""
+    return np.stack(formulas.mat_vec(tuple(np.asarray(m).T.ravel()), v[:, 0], v[:, 1], v[:, 2]), axis=1)
 
 
 _DIR = {

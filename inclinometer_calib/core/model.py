@@ -30,6 +30,7 @@ import numpy as np
 
 from . import effects as fx
 from .errormodel import TriadModel
+from .formulas import corrected
 from .frames import rotate
 
 SENSORS = ("acc", "mag")
@@ -301,18 +302,18 @@ class CorrectionPlan:
         self.model = model
         self.role = role
         self.triads = {s: model.triad(s) for s in sensors}
-        self.matrix_t = {s: self.triads[s].correction_matrix.T.copy() for s in sensors}
+        c = {s: self.triads[s].correction_matrix for s in sensors}
+        self.matrix_t = {s: c[s].T.copy() for s in sensors}
+        #: each triad's base model as floats, ``(C's nine entries row by row, B)``: what
+        #: :func:`formulas.corrected` takes (here, in :meth:`correct_sample`, and in the batch kernel)
+        self.coefficients = {s: (tuple(c[s].ravel().tolist()), tuple(self.triads[s].bias.tolist()))
+                             for s in sensors}
         self.chains = {s: model.chain(s, role) for s in sensors}
         self.extra = {s: len(self.chains[s]) > len(fx.BASE) for s in sensors}
         self.needs = model.needs(role)
         # what each triad's own chain needs (a magnetometer-only effect never stops the accelerometer)
         self.triad_needs = {sn: tuple(dict.fromkeys(n for e in self.chains[sn] for n in type(e).context_needs()))
                             for sn in sensors}
-        # per-sample form of a base-only triad (correct_sample): C row by row, then B, as floats
-        self._floats = {s: None if self.extra[s] else
-                        (tuple(float(x) for x in self.matrix_t[s].T.ravel()),
-                         tuple(float(x) for x in self.triads[s].bias))
-                        for s in sensors}
 
     def correct(self, g, b, temperature_c=None, time_s=None, history=None):
         """Both triads (see :meth:`ProbeModel.correct`)."""
@@ -323,7 +324,7 @@ class CorrectionPlan:
         """One triad's corrected vectors (a node corrects each stream as its samples come)."""
         h = np.asarray(h, dtype=float)
         h2 = h.reshape(-1, 3)
-        x = self.triads[sensor].inverse(h2, self.matrix_t[sensor])
+        x = self.triads[sensor].inverse(h2, self.coefficients[sensor][0])
         if self.extra[sensor]:
             ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history,
                                      needs=self.triad_needs[sensor])
@@ -339,13 +340,11 @@ class CorrectionPlan:
         tuple of three floats: :meth:`correct_triad` of that sample, bit for bit.
 
         A node corrects its streams sample by sample; numpy on one 3-vector costs ≈ 30 µs a call.
-        For a triad with nothing beyond the base model this is ``v = C·(h − B)`` in plain floats,
-        each row's three products added in :func:`frames.rotate`'s order (≈ 1 µs); a triad with
-        effects goes through :meth:`correct_triad` (which raises ValueError as it does)."""
-        floats = self._floats[sensor]
-        if floats is None:
+        For a triad with nothing beyond the base model this is :func:`formulas.corrected`,
+        ``v = C·(h − B)``, in plain floats (≈ 1 µs); a triad with effects goes through
+        :meth:`correct_triad` (which raises ValueError as it does)."""
+        if self.extra[sensor]:
             v = self.correct_triad(sensor, (h[0], h[1], h[2]), temperature_c, time_s)
             return (float(v[0]), float(v[1]), float(v[2]))
-        (c00, c01, c02, c10, c11, c12, c20, c21, c22), (b0, b1, b2) = floats
-        x, y, z = h[0] - b0, h[1] - b1, h[2] - b2
-        return (x * c00 + y * c01 + z * c02, x * c10 + y * c11 + z * c12, x * c20 + y * c21 + z * c22)
+        c, b = self.coefficients[sensor]
+        return corrected(c, b, h[0], h[1], h[2])

@@ -8,6 +8,10 @@ when it is 0).
 Quality control follows drilling practice: total field within 300 nT and dip within 0.25° of the
 site reference (ISCWSA survey-QC e-book); the gravity tolerance is configurable (no industry-wide
 fixed value; default 0.0981 m/s² = 10 mg).  Azimuth is flagged undefined below a minimum drift.
+
+The formulas themselves (angles, QC rules, status, flag bits) are written once, in
+:mod:`formulas`; this module applies them: to stations (:func:`evaluate`) and to raw samples in
+bulk (:func:`correct_samples`: the same text on numpy blocks, or compiled into the numba kernel).
 """
 from __future__ import annotations
 
@@ -15,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import frames
-from .frames import Site, wrap180, wrap360
+from . import formulas, frames
+from .frames import Site, wrap180
 from .geomag import azimuths
 from . import batchkernel
 from .batchkernel import BATCH_KEYS
@@ -39,17 +43,18 @@ class Tolerances:
 
 
 def in_vertical_cone(drift_deg, cone_deg):
-    """True where a drift (deg) lies within ``cone_deg`` of the vertical, down (0°) or up (180°)."""
-    d = np.asarray(drift_deg, dtype=float)
-    return (d < cone_deg) | (d > 180.0 - cone_deg)
+    """True where a drift (deg) lies within ``cone_deg`` of the vertical, down (0°) or up (180°)
+    (:func:`formulas.in_vertical_cone`)."""
+    return formulas.in_vertical_cone(np.asarray(drift_deg, dtype=float), cone_deg)
 
 
 def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict:
     """Angles, QC and (if ``ref`` (N, 3) deg is given) errors for corrected vectors ``g``, ``b``.
 
-    Returns a dict of (N,) arrays.  Flags are booleans; ``status`` is 0 ok, 1 warn, 2 error.
-    ``azimuth_deg`` is from the site's north (true when the site has a declination), with
-    ``azimuth_magnetic_deg`` and ``azimuth_grid_deg`` (NaN when the site has no grid) beside it.
+    Returns a dict of (N,) arrays: those of :func:`formulas.survey` (the one text of the angles,
+    the QC and the status: flags are booleans, ``status`` is 0 ok, 1 warn, 2 error), and both
+    toolfaces.  ``azimuth_deg`` is from the site's north (true when the site has a declination),
+    with ``azimuth_magnetic_deg`` and ``azimuth_grid_deg`` (NaN when the site has no grid) beside it.
 
     A reference is used for what it defines (NaN: not given).  Within the vertical cone
     (``tol.min_drift_deg`` of 0° or 180°) the azimuth is undefined, and the toolface error is
@@ -60,26 +65,19 @@ def evaluate(g, b, site: Site, tol: Tolerances = Tolerances(), ref=None) -> dict
     """
     g = np.atleast_2d(np.asarray(g, dtype=float))
     b = np.atleast_2d(np.asarray(b, dtype=float))
-    out = frames.angles_from_vectors(g, b)
-    # the azimuth in every reference (geomag.azimuths): magnetic as measured, true with the site's
-    # declination (the reported azimuth_deg), grid with its grid convergence (NaN without a grid)
-    refs = azimuths(wrap360(out["azimuth_deg"] + site.declination_deg), site.declination_deg,
-                    site.grid_convergence_deg)
-    out["azimuth_deg"] = refs["true"]
-    out["azimuth_magnetic_deg"], out["azimuth_grid_deg"] = refs["magnetic"], refs["grid"]
-    d, thr = out["drift_deg"], tol.gravity_toolface_min_drift_deg
-    gtf_ok = (d >= thr) & (d <= 180.0 - thr)   # outside the cone (NaN drift: magnetic, as the batch kernel)
-    out["toolface_deg"] = np.where(gtf_ok, out["gravity_toolface_deg"], out["magnetic_toolface_deg"])
-    out["toolface_is_gravity"] = gtf_ok
-    out["delta_g"] = out["total_gravity"] - site.gravity_mps2
-    out["delta_b"] = out["total_field"] - site.total_field_nt
-    out["delta_dip"] = out["dip_deg"] - site.dip_deg
-    out["azimuth_undefined"] = in_vertical_cone(out["drift_deg"], tol.min_drift_deg)
-    out["interference_suspected"] = (np.abs(out["delta_b"]) > tol.field_nt) | (np.abs(out["delta_dip"]) > tol.dip_deg)
-    out["gravity_out_of_tolerance"] = np.abs(out["delta_g"]) > tol.gravity_mps2
-    warn = out["azimuth_undefined"] | out["interference_suspected"]
-    err = out["gravity_out_of_tolerance"] | ~np.all(np.isfinite(np.c_[g, b]), axis=1)
-    out["status"] = np.where(err, 2, np.where(warn, 1, 0))
+    gx, gy, gz, bx, by, bz = g[:, 0], g[:, 1], g[:, 2], b[:, 0], b[:, 1], b[:, 2]
+    r = formulas.survey(gx, gy, gz, bx, by, bz, formulas.qc_parameters(site, tol))
+    # the azimuth in every reference (geomag.azimuths): true with the site's declination (the
+    # reported azimuth_deg), magnetic as measured, grid with its grid convergence (NaN without a grid)
+    refs = azimuths(r.azimuth_deg, site.declination_deg, site.grid_convergence_deg)
+    out = {"drift_deg": r.drift_deg, "azimuth_deg": refs["true"],
+           "gravity_toolface_deg": formulas.toolface_deg(True, gx, gy, bx, by),
+           "magnetic_toolface_deg": formulas.toolface_deg(False, gx, gy, bx, by),
+           "total_gravity": r.total_gravity, "total_field": r.total_field, "dip_deg": r.dip_deg,
+           "azimuth_magnetic_deg": refs["magnetic"], "azimuth_grid_deg": refs["grid"]}
+    for key in ("toolface_deg", "toolface_is_gravity", "delta_g", "delta_b", "delta_dip", "azimuth_undefined",
+                "interference_suspected", "gravity_out_of_tolerance", "status"):
+        out[key] = getattr(r, key)
     if ref is not None:
         ref = np.atleast_2d(np.asarray(ref, dtype=float))
         out.update(reference_errors(out, ref, site, tol))
@@ -208,12 +206,13 @@ def format_table5(before: dict | None, after: dict) -> str:
 # --------------------------------------------------------------------------------------------
 # Batch correction of raw samples (vectorized core)
 # --------------------------------------------------------------------------------------------
-#: Bits of the ``flags`` array returned by :func:`correct_samples`.
-FLAG_AZIMUTH_UNDEFINED = 1
-FLAG_INTERFERENCE = 2
-FLAG_GRAVITY_OUT_OF_TOLERANCE = 4
-FLAG_TOOLFACE_IS_GRAVITY = 8
-FLAG_NOT_FINITE = 16
+#: Bits of the ``flags`` array returned by :func:`correct_samples` (:mod:`formulas`).
+FLAG_AZIMUTH_UNDEFINED = formulas.FLAG_AZIMUTH_UNDEFINED
+FLAG_INTERFERENCE = formulas.FLAG_INTERFERENCE
+FLAG_GRAVITY_OUT_OF_TOLERANCE = formulas.FLAG_GRAVITY_OUT_OF_TOLERANCE
+FLAG_TOOLFACE_IS_GRAVITY = formulas.FLAG_TOOLFACE_IS_GRAVITY
+FLAG_NOT_FINITE = formulas.FLAG_NOT_FINITE
+
 
 def correct_samples(g, m_nt, calibration=None, site: Site | None = None, tol: Tolerances = Tolerances(), *,
                     temperature_c=None, time_s=None, block: int = 16384, out: dict | None = None,
@@ -234,7 +233,8 @@ def correct_samples(g, m_nt, calibration=None, site: Site | None = None, tol: To
     block : samples per block: the work runs block by block so that every temporary stays in
         the CPU cache and the arrays of N samples are read once and written once.
     out : optional dict of preallocated output arrays (keys as returned) to write into.
-    backend : ``numba`` (the fused kernel, :mod:`batchkernel`), ``numpy`` (the blocked body below)
+    backend : ``numba`` (the fused kernel, :mod:`batchkernel`), ``numpy`` (the blocked body below:
+        :func:`formulas.survey` on each block)
         or ``auto`` (numba when importable); None: ``$INCLINOMETER_CALIB_BATCH_BACKEND``, else auto.
     threads : threads of the numba kernel (:func:`batchkernel.resolve_threads`; None:
         ``$INCLINOMETER_CALIB_BATCH_THREADS``, else the CPUs this process may use).  The numbers
@@ -248,8 +248,8 @@ def correct_samples(g, m_nt, calibration=None, site: Site | None = None, tol: To
     (bits ``FLAG_*``), ``status`` uint8 (0 ok, 1 warn, 2 error, as :func:`evaluate`).
 
     The values agree exactly with ``evaluate(*calibration.correct(g, m_nt, ...), site, tol)``:
-    the same correction, then the same formulas in the same evaluation order; only the
-    intermediate storage differs.
+    the same correction, then the same formulas (:func:`formulas.survey`) — on the numba backend
+    compiled, with its own arc tangents (angles within 1e-9°, see :mod:`batchkernel`).
     """
     gs = np.asarray(g, dtype=np.float64)
     m = np.asarray(m_nt, dtype=np.float64)
@@ -273,12 +273,7 @@ def correct_samples(g, m_nt, calibration=None, site: Site | None = None, tol: To
         return batchkernel.fused(gs, m, calibration, site, tol, temp, tim, block, out,
                                  lambda g, b, tc, ts: calibration.correct(g, b, tc, ts), threads)
     blk = max(1, min(int(block), n)) if n else 1
-    gt = np.empty((3, blk))
-    bt = np.empty((3, blk))
-    t = np.empty((6, blk))
-    masks = np.empty((4, blk), dtype=bool)
-    u8 = np.empty((2, blk), dtype=np.uint8)
-    decl = float(site.declination_deg)
+    qc = formulas.qc_parameters(site, tol)
     with np.errstate(invalid="ignore", divide="ignore"):  # NaN/inf samples are flagged, not warned
         for s in range(0, n, blk):
             e = min(s + blk, n)
@@ -288,140 +283,7 @@ def correct_samples(g, m_nt, calibration=None, site: Site | None = None, tol: To
                                            None if tim is None else tim[s:e])
             else:
                 b = m[s:e]
-            np.copyto(gt[:, :e - s], g.T)
-            np.copyto(bt[:, :e - s], b.T)
-            _evaluate_block(s, e, out, gt, bt, t, masks, u8, site, tol, decl)
+            r = formulas.survey(g[:, 0], g[:, 1], g[:, 2], b[:, 0], b[:, 1], b[:, 2], qc)
+            for key in BATCH_KEYS + ("flags", "status"):
+                out[key][s:e] = getattr(r, key)
     return out
-
-
-def _evaluate_block(s, e, out, gt, bt, t, masks, u8, site, tol, decl):
-    """Angles and QC of corrected samples s..e (components in the rows of ``gt``, ``bt``)."""
-    rad2deg = np.degrees
-    thr_tf = tol.gravity_toolface_min_drift_deg
-    k = e - s
-    gx, gy, gz = gt[:, :k]
-    bx, by, bz = bt[:, :k]
-    t1, t2, t3, t4, h2, sb = t[:, :k]
-    drift, az, tf = out["drift_deg"][s:e], out["azimuth_deg"][s:e], out["toolface_deg"][s:e]
-    gn, bn, dip = out["total_gravity"][s:e], out["total_field"][s:e], out["dip_deg"][s:e]
-    # |g| = sqrt((gx² + gy²) + gz²), |b| likewise                    (norm over the last axis)
-    np.multiply(gx, gx, out=h2)
-    np.multiply(gy, gy, out=t1)
-    np.add(h2, t1, out=h2)
-    # drift = atan2(sqrt(gx² + gy²), gz)                               (frames.drift_deg)
-    np.sqrt(h2, out=t1)
-    np.arctan2(t1, gz, out=drift)
-    rad2deg(drift, out=drift)
-    np.multiply(gz, gz, out=t1)
-    np.add(h2, t1, out=gn)
-    np.sqrt(gn, out=gn)
-    np.multiply(bx, bx, out=sb)
-    np.multiply(by, by, out=t1)
-    np.add(sb, t1, out=sb)
-    np.multiply(bz, bz, out=t1)
-    np.add(sb, t1, out=bn)
-    np.sqrt(bn, out=bn)
-    # azimuth = atan2(|g|(by gx - bx gy), bz(gx² + gy²) - gz(bx gx + by gy))  (frames.azimuth_deg)
-    np.multiply(by, gx, out=t1)
-    np.multiply(bx, gy, out=t2)
-    np.subtract(t1, t2, out=t1)
-    np.multiply(gn, t1, out=t1)
-    np.multiply(bx, gx, out=t2)
-    np.multiply(by, gy, out=t3)
-    np.add(t2, t3, out=t2)                 # bx gx + by gy, reused for the dip
-    np.multiply(gz, t2, out=t3)
-    np.multiply(bz, h2, out=t4)
-    np.subtract(t4, t3, out=t4)
-    is_g, m1, m2, m3 = masks[:, :k]
-    np.arctan2(t1, t4, out=az)
-    rad2deg(az, out=az)
-    _wrap_atan2_deg(az, m1, t4)
-    if decl:
-        np.add(az, decl, out=az)
-        if abs(decl) < 360.0:   # az in (-360, 720): +360 below 0 (as np.mod), -360 from 360 on
-            np.less(az, 0.0, out=m1)                  # (exact by Sterbenz, as fmod)
-            np.multiply(m1, 360.0, out=t3)
-            np.add(az, t3, out=az)
-            np.greater_equal(az, 360.0, out=m1)
-            np.multiply(m1, 360.0, out=t3)
-            np.subtract(az, t3, out=az)
-            _fix360(az, m1)
-        else:
-            _wrap360_inplace(az)
-    # dip = asin(clip((gx bx + gy by + gz bz) / (|g| |b|)))          (frames.dip_deg)
-    np.multiply(gz, bz, out=t3)
-    np.add(t2, t3, out=t3)
-    np.multiply(gn, bn, out=t4)
-    np.divide(t3, t4, out=t3)
-    np.clip(t3, -1.0, 1.0, out=t3)
-    np.arcsin(t3, out=dip)
-    rad2deg(dip, out=dip)
-    # toolface: gravity atan2(gy, -gx) where drift >= threshold, else magnetic atan2(-by, bx)
-    np.greater_equal(drift, thr_tf, out=is_g)               # outside the vertical cone (in_vertical_cone)
-    np.less_equal(drift, 180.0 - thr_tf, out=m2)
-    np.logical_and(is_g, m2, out=is_g)
-    np.negative(gx, out=t1)
-    np.arctan2(gy, t1, out=tf)
-    rad2deg(tf, out=tf)
-    _wrap_atan2_deg(tf, m1, t2)
-    if not is_g.all():
-        idx = np.flatnonzero(~is_g)
-        mt = np.degrees(np.arctan2(-by[idx], bx[idx]))
-        tf[idx] = _wrap360_inplace(mt)
-    # QC flags (survey.evaluate); booleans viewed as 0/1 bytes and shifted into their bits
-    fl, st = out["flags"][s:e], out["status"][s:e]
-    tmp = u8[0, :k]
-    np.less(drift, tol.min_drift_deg, out=m1)                 # azimuth undefined: vertical cone
-    np.greater(drift, 180.0 - tol.min_drift_deg, out=m2)
-    np.logical_or(m1, m2, out=m1)
-    np.copyto(fl, m1.view(np.uint8))
-    np.subtract(bn, site.total_field_nt, out=t1)
-    np.abs(t1, out=t1)
-    np.greater(t1, tol.field_nt, out=m2)
-    np.subtract(dip, site.dip_deg, out=t1)
-    np.abs(t1, out=t1)
-    np.greater(t1, tol.dip_deg, out=m3)
-    np.logical_or(m2, m3, out=m2)                             # interference suspected
-    np.logical_or(m1, m2, out=m1)                             # warn
-    np.left_shift(m2.view(np.uint8), 1, out=tmp)
-    np.bitwise_or(fl, tmp, out=fl)
-    np.subtract(gn, site.gravity_mps2, out=t1)
-    np.abs(t1, out=t1)
-    np.greater(t1, tol.gravity_mps2, out=m2)                  # gravity out of tolerance
-    np.left_shift(m2.view(np.uint8), 2, out=tmp)
-    np.bitwise_or(fl, tmp, out=fl)
-    np.left_shift(is_g.view(np.uint8), 3, out=tmp)
-    np.bitwise_or(fl, tmp, out=fl)
-    np.multiply(gn, bn, out=t1)
-    np.isfinite(t1, out=m3)
-    np.logical_not(m3, out=m3)                                # a component NaN/inf
-    np.left_shift(m3.view(np.uint8), 4, out=tmp)
-    np.bitwise_or(fl, tmp, out=fl)
-    np.logical_or(m2, m3, out=m2)                             # error
-    np.left_shift(m2.view(np.uint8), 1, out=st)               # 2 where error ...
-    np.maximum(st, m1.view(np.uint8), out=st)                 # ... else 1 where warn
-
-
-def _wrap_atan2_deg(w, mask, tmp):
-    """frames.wrap360 in place for values in (-360, 360) such as atan2 in degrees: adding 360 to
-    the negatives is exactly what ``np.mod`` does there (fmod is the identity); adding 0.0 to the
-    others changes nothing.  Branch-free, so it vectorizes."""
-    np.less(w, 0.0, out=mask)
-    np.multiply(mask, 360.0, out=tmp)
-    np.add(w, tmp, out=w)
-    _fix360(w, mask)
-    return w
-
-
-def _fix360(w, mask):
-    """360.0 (a tiny negative plus 360, rounded) → 0.0, as frames.wrap360."""
-    np.greater_equal(w, 360.0, out=mask)
-    if mask.any():
-        w[mask] = 0.0
-
-
-def _wrap360_inplace(w):
-    """frames.wrap360 in place: mod 360, and 360.0 (from rounding of tiny negatives) → 0."""
-    np.mod(w, 360.0, out=w)
-    w[w >= 360.0] = 0.0
-    return w

@@ -64,7 +64,7 @@ def _assert_same(out, ref, what):
 
 @has_numba
 def test_kernel_atan2_is_within_an_ulp_of_numpy_with_its_special_values():
-    from inclinometer_calib.core._batch_numba import _atan2
+    _atan2 = batchkernel._kernels()._atan2          # through batchkernel: its cache directory
 
     rng = np.random.default_rng(3)
     y = rng.normal(size=3000) * 10.0 ** rng.uniform(-6, 6, 3000)
@@ -84,7 +84,7 @@ def test_kernel_atan2_is_within_an_ulp_of_numpy_with_its_special_values():
 
 @has_numba
 def test_the_fast_arc_tangent_is_the_careful_one_bit_for_bit_or_nan_where_a_special_value_decides():
-    from inclinometer_calib.core._batch_numba import _atan2_core
+    _atan2_core = batchkernel._kernels()._atan2_core
 
     rng = np.random.default_rng(4)
     y = rng.normal(size=3000) * 10.0 ** rng.uniform(-6, 6, 3000)
@@ -198,3 +198,18 @@ def test_cache_dir_is_the_users(monkeypatch, tmp_path):
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert batchkernel.cache_dir() == str(tmp_path / "xdg" / "inclinometer_calib" / "numba")
+
+
+@has_numba
+def test_the_kernel_is_cached_apart_for_each_text_of_the_formulas():
+    """numba checks the kernel's own file for changes, not formulas.py, whose functions it inlines:
+    the cache directory carries that file's hash, so an edited formula is compiled afresh."""
+    import hashlib
+    import os
+
+    from inclinometer_calib.core import formulas
+
+    kernels = batchkernel._kernels()
+    with open(formulas.__file__, "rb") as fh:
+        want = "formulas-" + hashlib.sha256(fh.read()).hexdigest()[:16]
+    assert want in kernels.fused._cache._cache_path.split(os.sep)

@@ -231,3 +231,34 @@ def test_a_stations_status_is_decided_in_one_place():
     callers = sorted(m for m, t in MODULES.items() if any(
         isinstance(n, ast.Call) and getattr(n.func, "id", "") == "station_status" for n in ast.walk(t)))
     assert callers == ["correct/pipeline.py"], callers
+
+
+#: Arc tangents, arc sines, norms and degrees outside formulas.py in the modules that apply the survey's
+#: formulas: other ideas (a rotation matrix's angles, the angle between two vectors) and the kernel's
+#: arc tangent, a primitive formulas.bind compiles the formulas against.
+TRIG_ELSEWHERE = {"core/frames.py": {"attitude_angles", "angle_between_deg"},
+                  "core/_batch_numba.py": {"_atan2", "_primitives"}}
+
+
+def _own_call(node, names) -> bool:
+    """A call of one of ``names`` that is not ``formulas.<name>``."""
+    if not isinstance(node, ast.Call) or _callee(node) not in names:
+        return False
+    f = node.func
+    return not (isinstance(f, ast.Attribute) and isinstance(f.value, ast.Name) and f.value.id == "formulas")
+
+
+def test_the_survey_formulas_are_written_once():
+    """The correction v = C·(h − B), drift, azimuth, toolface, dip, |G|, |B|, the QC and the status are
+    formulas.py's: frames, survey, the models and the batch kernel call them, none computes an angle
+    or a norm of its own (a copy kept in line by bit-equality tests alone is what this replaced)."""
+    trig = {"arctan2", "atan2", "arcsin", "asin", "_atan2_core", "degrees", "hypot", "norm"}
+    found = {}
+    for module in ("core/frames.py", "core/survey.py", "core/errormodel.py", "core/model.py", "core/batchkernel.py",
+                   "core/_batch_numba.py"):
+        for top in MODULES[module].body:
+            defs = top.body if isinstance(top, ast.ClassDef) else [top]
+            for d in defs:
+                if isinstance(d, ast.FunctionDef) and any(_own_call(n, trig) for n in ast.walk(d)):
+                    found.setdefault(module, set()).add(d.name)
+    assert found == TRIG_ELSEWHERE, found
