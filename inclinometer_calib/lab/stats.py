@@ -47,14 +47,17 @@ def regress_many(pairs) -> list:
         y = np.asarray(y, dtype=float)
         x = np.asarray(x, dtype=float)
         x = x[:, None] if x.ndim == 1 else x
-        if not (np.isfinite(y).all() and np.isfinite(x).all()):
-            ok = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
-            y, x = y[ok], x[ok]
-        groups.setdefault(x.shape, []).append((i, y, x))
-    for (n, k), items in groups.items():
-        fits = _fit(np.array([y for _, y, _ in items]).reshape(len(items), n),
-                    np.array([x for _, _, x in items]).reshape(len(items), n, k))
-        for (i, _, _), tr in zip(items, fits):
+        groups.setdefault((len(y),) + x.shape, []).append((i, y, x))
+    for (_, n, k), items in groups.items():
+        ys = np.array([y for _, y, _ in items]).reshape(len(items), n)
+        xs = np.array([x for _, _, x in items]).reshape(len(items), n, k)
+        finite = np.isfinite(ys).all(axis=1) & np.isfinite(xs).all(axis=(1, 2))
+        if not finite.all():
+            for b in np.flatnonzero(~finite).tolist():        # NaNs left out: a stack of one
+                ok = np.isfinite(ys[b]) & np.all(np.isfinite(xs[b]), axis=1)
+                out[items[b][0]] = _fit(ys[b][ok][None], xs[b][ok][None])[0]
+            items, ys, xs = [it for it, f in zip(items, finite) if f], ys[finite], xs[finite]
+        for (i, _, _), tr in zip(items, _fit(ys, xs)):
             out[i] = tr
     return out
 
