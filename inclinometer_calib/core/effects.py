@@ -541,12 +541,12 @@ class CrossCoupling(Effect):
 
     def _apply(self, v, ctx):
         fs = FULL_SCALE["acc"]
-        src = v.copy()
-        for n, a in enumerate(self.axes):
-            i = AXIS_INDEX[a]
-            j, k = [m for m in range(3) if m != i]
-            v[:, i] += (self.values["k_ij"][n] * src[:, i] * src[:, j] + self.values["k_ik"][n] * src[:, i] * src[:, k]
-                        + self.values["k_jk"][n] * src[:, j] * src[:, k]) / fs
+        # every output axis at once from the input as it was: per element the same products and
+        # sums as axis by axis, so the same bits
+        i = self._idx()
+        si, sj, sk = v[:, i], v[:, [OTHER_AXES[a][0] for a in i]], v[:, [OTHER_AXES[a][1] for a in i]]
+        val = self.values
+        v[:, i] += (val["k_ij"] * si * sj + val["k_ik"] * si * sk + val["k_jk"] * sj * sk) / fs
 
 
 # ---------------------------------------------------------------------------------------------

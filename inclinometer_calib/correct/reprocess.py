@@ -44,7 +44,7 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 
-from ..io.bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageEncoder, open_bag, read_messages
+from ..io.bag import DEFAULT_QOS_PROFILE, BagError, BagWriter, MessageEncoder, message_encoder, open_bag, read_messages
 from ..calibrate.capture import CaptureSession
 from ..io.cdr import (DECODE_ERRORS, Patcher, decode_float64, decode_imu_covariance, decode_imu_gravity, decode_mag_covariance,
                   decode_string, decode_temperature, decode_vector3, header)
@@ -160,9 +160,7 @@ class BagFeeder:
     @property
     def codec(self) -> MessageEncoder:
         """Our messages' CDR (the records here, a resuming node's progress and stations)."""
-        if not hasattr(self, "_enc"):
-            self._enc = MessageEncoder()
-        return self._enc
+        return message_encoder()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -314,7 +312,7 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
         if not engine.record(calibration, None, "given"):
             raise ReprocessError(f"{src}: {engine.refusal.split(': ', 1)[1]}: not applied (--force-probe applies it "
                                  "anyway)")
-    encoder = MessageEncoder()
+    encoder = message_encoder()
 
     # FileExistsError before anything is read; no destination: the stations only (the lab's input)
     writer = BagWriter(dst, compression=compression) if dst is not None else _NoWriter()

@@ -99,7 +99,7 @@ __all__ = [
     "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
     "normalize_type", "qos_profiles_yaml", "parse_qos_profiles", "DEFAULT_QOS_PROFILE",
     "BagWriter", "BagReader", "BagMessage", "TopicInfo", "RecoveryReport", "open_bag", "recover",
-    "available_compressions", "BagDecoder", "read_messages", "DECODE_ERRORS", "MessageEncoder",
+    "available_compressions", "BagDecoder", "read_messages", "DECODE_ERRORS", "MessageEncoder", "message_encoder",
 ]
 
 PathLike = Union[str, "os.PathLike[str]"]
@@ -1202,6 +1202,19 @@ class MessageEncoder:
         out = {k: getattr(msg, k) for k in msg.__dataclass_fields__ if k != "header"}
         out["stamp"] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
         return out
+
+
+_default_encoder: Optional[MessageEncoder] = None
+
+
+def message_encoder() -> MessageEncoder:
+    """The process's :class:`MessageEncoder` of the installed definitions, made on the first call
+    (registering our types into a type store takes about 16 ms, once per run of ``reprocess``
+    before; encoding and decoding leave it as it is)."""
+    global _default_encoder
+    if _default_encoder is None:
+        _default_encoder = MessageEncoder()
+    return _default_encoder
 
 
 def _decode_errors() -> tuple:

@@ -33,7 +33,7 @@ import numpy as np
 from ..core import effects as fx
 from ..core.frames import angles_from_vectors, rotate
 from ..core.survey import Tolerances
-from .stats import regress
+from .stats import regress_many
 
 #: The residual channels: (field of a SurveyStation, name in words, unit, tolerance attribute).
 CHANNELS = (("delta_g_mps2", "ΔG", "m/s²", "gravity_mps2"), ("delta_b_nt", "ΔB", "nT", "field_nt"),
@@ -74,6 +74,7 @@ class FieldMonitor:
         self.tolerances = tolerances
         self.calibration = None
         self._rows = collections.deque(maxlen=self.window)
+        self._effects = None                # (record, catalogue, its candidate effects): _candidate_effects
         self.last = Verdict()
 
     def reset(self, calibration) -> None:
@@ -104,11 +105,15 @@ class FieldMonitor:
         regs = self._regressors(rows)
         cands = self._candidates(rows)
         n_tests = len(CHANNELS) * (len(regs) + len(cands)) or 1
+        # every test of the window at once (regress_many: each one's figures as alone), in the order
+        # they are read below: per channel each regressor, then per candidate each channel
+        fits = iter(regress_many([(y[c[0]], x) for c in CHANNELS for x in regs.values()]
+                                 + [(y[c[0]], cols[c[0]]) for _, cols in cands for c in CHANNELS]))
         trends = []
         for key, name, unit, tol_attr in CHANNELS:
             floor = self.materiality * getattr(self.tolerances, tol_attr)
-            for rname, x in regs.items():
-                tr = regress(y[key], x)
+            for rname in regs:
+                tr = next(fits)
                 if tr is not None and tr.p * n_tests < self.alpha and tr.explained_rms >= floor:
                     trends.append({"channel": name, "regressor": rname, "r2": tr.r2, "p": tr.p * n_tests,
                                    "explained_rms": tr.explained_rms, "unit": unit})
@@ -117,7 +122,7 @@ class FieldMonitor:
         for eff, cols in cands:
             chans, score, sigma = [], 0.0, {}
             for key, name, unit, tol_attr in CHANNELS:
-                tr = regress(y[key], cols[key])
+                tr = next(fits)
                 floor = self.materiality * getattr(self.tolerances, tol_attr)
                 if tr is not None:
                     sigma[key] = max(tr.residual_rms, 1e-3 * getattr(self.tolerances, tol_attr))
@@ -156,48 +161,101 @@ class FieldMonitor:
         corrected |G|, |B| and dip, per unit of the parameter — to first order, the change of the
         model's output at the corrected vectors, taken back through the base correction matrix
         (a Newton step of :meth:`model.ProbeModel.correct`, which is what the full correction
-        would add up to for an effect this small)."""
-        from .diagnose import candidate_effects
-        from ..calibrate.labmodel import LabModel
+        would add up to for an effect this small).
 
+        The arithmetic is that of ``apply_chain(x, chain + [effect])`` per parameter, then
+        :func:`frames.rotate` and :func:`_invariants`, element by element; it is only arranged
+        for fewer numpy calls: the record's chain is applied once, stage by stage, and an effect
+        starts from its stage's output (the effects of the stages before, and of its own stage
+        before it in the chain, are the record's); the parameters of all candidates go through
+        the rotation and the invariants in one stacked array (elementwise operations: the same
+        bits as one at a time)."""
         cal = self.calibration
         if cal is None or "history" in cal.needs:
             # a model that depends on the sequence of holds (a settling) cannot be evaluated on the
             # window's rows, which keep no hold timing: its trends are still tested, no candidate
             return []
         x = {"acc": np.array([r["g"] for r in rows]), "mag": np.array([r["b"] for r in rows])}
+        n = len(rows)
         temp = np.array([r["temp"] for r in rows])
         time = np.array([r["time"] for r in rows])
         known_t = bool(np.all(np.isfinite(temp)))
-        ctx = fx.Context(temperature_c=temp if known_t else np.full(len(rows), fx.T_REF_C), time_s=time)
+        ctx = fx.Context(temperature_c=temp if known_t else np.full(n, fx.T_REF_C), time_s=time)
         t_span = float(np.ptp(temp)) if known_t else 0.0
+        time_span = float(np.ptp(time))
         base_inv = _invariants(x["acc"], x["mag"])
-        base_out = {s: fx.apply_chain(x[s], cal.model.chain(s, "val"), ctx) for s in ("acc", "mag")}
-        out = []
-        seen = set()
-        for eff, _ in candidate_effects(LabModel(site=cal.site, probe=cal.model)):
-            if eff.key in seen or eff.identifiability(t_span, float(np.ptp(time)), frozenset({"free"})):
+        chains = {s: cal.model.chain(s, "val") for s in ("acc", "mag")}
+        pctx = {s: fx.chain_context(chains[s], ctx) for s in chains}
+        after = {}                           # sensor -> the record's output after each stage
+        for s, chain in chains.items():
+            v, after[s] = x[s], []
+            for stage in fx.STAGES:
+                v = fx.apply_chain(v, chain, pctx[s], stages=(stage,), prepared=True)
+                after[s].append(v)
+        base_out = {s: after[s][-1] for s in chains}
+        terms, diffs, typs = [], {"acc": [], "mag": []}, {"acc": [], "mag": []}
+        for term in self._candidate_effects():
+            if term.identifiability(t_span, time_span, frozenset({"free"})):
                 continue
-            if "history" in type(eff).context_needs():   # the window's rows carry no station sequence
-                continue
-            seen.add(eff.key)
-            term = eff                     # a fresh effect of the lab's list, its parameters zero
             sensor = term.sensor
-            chain = cal.model.chain(sensor, "val") + [term]   # apply_chain orders by stage
-            mt = cal.plan.matrix_t[sensor]
+            chain = chains[sensor]
             typ = np.where(term.param_typical() > 0, term.param_typical(), 1.0)
-            cols = {c[0]: np.empty((len(rows), term.n_params)) for c in CHANNELS}
+            own_context = type(term).chain_context is not fx.Effect.chain_context
             for j in range(term.n_params):
                 v = np.zeros(term.n_params)
                 v[j] = typ[j]
                 term.set_vector(v)
-                dx = -rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
-                inv = _invariants(x["acc"] + dx, x["mag"]) if sensor == "acc" else _invariants(x["acc"], x["mag"] + dx)
-                for k, c in enumerate(CHANNELS):
-                    cols[c[0]][:, j] = (inv[k] - base_inv[k]) / typ[j]
+                if own_context or term.stage not in fx.STAGES:   # it changes what the others see
+                    out = fx.apply_chain(x[sensor], chain + [term], ctx)   # apply_chain orders by stage
+                else:
+                    i = fx.STAGES.index(term.stage)
+                    out = fx.apply_chain(term.apply(after[sensor][i], pctx[sensor]), chain, pctx[sensor],
+                                         stages=fx.STAGES[i + 1:], prepared=True)
+                diffs[sensor].append(out - base_out[sensor])
+            typs[sensor].append(typ)
             term.set_vector(np.zeros(term.n_params))
-            out.append((term, cols))
+            terms.append(term)
+        # every parameter's change of the corrected vectors, then of the invariants, stacked
+        inv = {}
+        for sensor, d in diffs.items():
+            if not d:
+                continue
+            m = len(d)
+            dx = -rotate(cal.plan.matrix_t[sensor], np.concatenate(d))
+            g = np.tile(x["acc"], (m, 1))
+            b = np.tile(x["mag"], (m, 1))
+            if sensor == "acc":
+                g += dx
+            else:
+                b += dx
+            typ = np.concatenate(typs[sensor])[:, None]
+            inv[sensor] = [((v.reshape(m, n) - base_inv[k]) / typ) for k, v in enumerate(_invariants(g, b))]
+        out, used = [], {"acc": 0, "mag": 0}
+        for term in terms:
+            j0, j1 = used[term.sensor], used[term.sensor] + term.n_params
+            used[term.sensor] = j1
+            out.append((term, {c[0]: np.ascontiguousarray(inv[term.sensor][k][j0:j1].T) if j1 > j0
+                               else np.empty((n, 0)) for k, c in enumerate(CHANNELS)}))
         return out
+
+    def _candidate_effects(self) -> list:
+        """The effects the lab would try on the record in force (:func:`diagnose.candidate_effects`),
+        one per key, without those that need the hold sequence (the window's rows carry none):
+        made once per record, their parameters zero between checks."""
+        cal = self.calibration
+        catalogue = tuple(fx.CATALOGUE.items())          # a plug-in registered since: made again
+        if self._effects is None or self._effects[0] is not cal or self._effects[1] != catalogue:
+            from ..calibrate.labmodel import LabModel
+            from .diagnose import candidate_effects
+
+            effects, seen = [], set()
+            for eff, _ in candidate_effects(LabModel(site=cal.site, probe=cal.model)):
+                if eff.key in seen or "history" in type(eff).context_needs():
+                    continue
+                seen.add(eff.key)
+                effects.append(eff)
+            self._effects = (cal, catalogue, effects)
+        return self._effects[2]
 
     def _text(self, n, trends, found) -> str:
         cal = self.calibration

@@ -32,29 +32,67 @@ def regress(y, x) -> Trend | None:
     """F-test of the regressors ``x`` ((N,) or (N, k)) on the channel ``y`` (N,), NaNs left out.
 
     None when it cannot be tested (too few points, no regressor that varies, a perfect fit)."""
-    y = np.asarray(y, dtype=float)
-    x = np.asarray(x, dtype=float)
-    x = x[:, None] if x.ndim == 1 else x
-    ok = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
-    y, x = y[ok], x[ok]
-    n = len(y)
-    xc = x - x.mean(axis=0)
-    yc = y - y.mean()
+    return regress_many([(y, x)])[0]
+
+
+def regress_many(pairs) -> list:
+    """:func:`regress` of each ``(y, x)`` pair, in order: the same test, in fewer numpy calls.
+
+    The pairs without a NaN are fitted together, stacked by shape (one SVD call per shape, numpy's
+    stacked linear algebra): each one's figures are those it gets alone, bit for bit (the same
+    operations on each pair's own numbers, whatever else is in the stack)."""
+    out: list = [None] * len(pairs)
+    groups: dict = {}
+    for i, (y, x) in enumerate(pairs):
+        y = np.asarray(y, dtype=float)
+        x = np.asarray(x, dtype=float)
+        x = x[:, None] if x.ndim == 1 else x
+        groups.setdefault((len(y),) + x.shape, []).append((i, y, x))
+    for (_, n, k), items in groups.items():
+        ys = np.array([y for _, y, _ in items]).reshape(len(items), n)
+        xs = np.array([x for _, _, x in items]).reshape(len(items), n, k)
+        finite = np.isfinite(ys).all(axis=1) & np.isfinite(xs).all(axis=(1, 2))
+        if not finite.all():
+            for b in np.flatnonzero(~finite).tolist():        # NaNs left out: a stack of one
+                ok = np.isfinite(ys[b]) & np.all(np.isfinite(xs[b]), axis=1)
+                out[items[b][0]] = _fit(ys[b][ok][None], xs[b][ok][None])[0]
+            items, ys, xs = [it for it, f in zip(items, finite) if f], ys[finite], xs[finite]
+        for (i, _, _), tr in zip(items, _fit(ys, xs)):
+            out[i] = tr
+    return out
+
+
+def _fit(y, x) -> list:
+    """The test of :func:`regress` on stacked finite data: ``y`` (B, N), ``x`` (B, N, k)."""
+    nb, n, k_all = x.shape
+    if n == 0 or k_all == 0:
+        return [None] * nb
+    xc = x - x.mean(axis=1, keepdims=True)
+    yc = y - y.mean(axis=1, keepdims=True)
     # regressors that do not vary (or repeat another) carry no information: the test's degrees of
-    # freedom are the rank of what varies (lstsq gives them the minimum-norm coefficients)
-    if n == 0:
-        return None
+    # freedom are the rank of what varies (the dropped directions get no coefficient: the
+    # minimum-norm least-squares solution)
     u, sv, vt = np.linalg.svd(xc, full_matrices=False)      # one SVD: the rank and the solution
-    k = int(np.sum(sv > sv[0] * max(xc.shape) * np.finfo(float).eps)) if sv.size and sv[0] > 0 else 0
-    if k == 0 or n < k + 3:
-        return None
-    coef = vt[:k].T @ ((u[:, :k].T @ yc) / sv[:k])
-    fitted = xc @ coef
-    ss_reg = float(fitted @ fitted)
-    ss_res = float(np.sum((yc - fitted) ** 2))
-    dof = n - k - 1
-    if ss_res <= 0 or dof <= 0:
-        return None
-    f = (ss_reg / k) / (ss_res / dof)
-    return Trend(f=float(f), p=float(fdtrc(k, dof, f)), r2=ss_reg / (ss_reg + ss_res), coef=coef,
-                 explained_rms=float(np.sqrt(ss_reg / n)), residual_rms=float(np.sqrt(ss_res / dof)), n=int(n))
+    rank = np.sum(sv > sv[:, :1] * max(n, k_all) * np.finfo(float).eps, axis=1) * (sv[:, 0] > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):    # a rank below k: done again below
+        coef = np.matmul(vt.transpose(0, 2, 1), np.matmul(u.transpose(0, 2, 1), yc[:, :, None]) / sv[:, :, None])
+    coef = coef[:, :, 0]
+    coef[rank == 0] = 0.0                                   # nothing varies: not tested
+    for b in np.flatnonzero((rank < k_all) & (rank > 0)).tolist():   # the dropped directions left out
+        k = rank[b]
+        coef[b] = vt[b, :k].T @ ((u[b, :, :k].T @ yc[b]) / sv[b, :k])
+    fitted = np.matmul(xc, coef[:, :, None])[:, :, 0]
+    ss_reg = np.matmul(fitted[:, None, :], fitted[:, :, None])[:, 0, 0]
+    ss_res = np.sum((yc - fitted) ** 2, axis=1)
+    dof = n - rank - 1
+    ok = np.flatnonzero((rank > 0) & (n >= rank + 3) & (ss_res > 0) & (dof > 0))
+    out: list = [None] * nb
+    if not ok.size:
+        return out
+    k, dof, sr, se = rank[ok], dof[ok], ss_reg[ok], ss_res[ok]
+    f = (sr / k) / (se / dof)
+    fields = zip(ok.tolist(), f.tolist(), fdtrc(k, dof, f).tolist(), (sr / (sr + se)).tolist(),
+                 np.sqrt(sr / n).tolist(), np.sqrt(se / dof).tolist())
+    for b, fb, pb, r2, explained, residual in fields:
+        out[b] = Trend(f=fb, p=pb, r2=r2, coef=coef[b], explained_rms=explained, residual_rms=residual, n=int(n))
+    return out

@@ -52,6 +52,16 @@ def test_cross_coupling_uses_the_ieee_products():
     np.testing.assert_allclose(out[:, 2], z + (0.01 * z * x + 0.02 * z * y + 0.03 * x * y) / 9.80665)
 
 
+def test_cross_coupling_on_all_axes_gives_each_axis_the_bits_it_gets_alone():
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(40, 3)) * 9.8
+    k = {n: rng.normal(size=3) * 1e-3 for n in ("k_ij", "k_ik", "k_jk")}
+    together = fx.make_effect("cross_coupling", "acc", "xyz", **k).apply(v, CTX)
+    for i, a in enumerate("xyz"):
+        alone = fx.make_effect("cross_coupling", "acc", a, **{n: k[n][i] for n in k}).apply(v, CTX)
+        assert np.array_equal(together[:, i], alone[:, i])
+
+
 def test_bias_drift_is_per_hour():
     e = fx.make_effect("bias_drift", "mag", "x", rate=60.0)
     np.testing.assert_allclose(e.apply(V, CTX)[:, 0] - V[:, 0], [0, 30, 60])

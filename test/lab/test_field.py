@@ -71,3 +71,45 @@ def test_the_window_starts_again_with_another_record(tmp_path):
     proc.set_calibration(truth)
     f = proc.process(stations[60])
     assert not f["model_misfit"] and proc.monitor.last.stations == 1
+
+
+def test_each_candidate_signature_has_the_bits_of_its_parameter_alone():
+    """The monitor applies the record's chain once, stage by stage, and stacks every parameter
+    (FieldMonitor._candidates): each signature column is still, bit for bit, the plain derivation
+    — the chain with the effect at its typical size, back through the correction matrix, the
+    invariants' change per unit of the parameter."""
+    from inclinometer_calib.calibrate import simulate as sim
+    from inclinometer_calib.core import effects as fx
+    from inclinometer_calib.core.frames import Site, rotate
+    from inclinometer_calib.lab.field import CHANNELS, _invariants
+
+    probe = sim.build_probe(3)
+    cal = Calibration(acc=probe.acc, mag=probe.mag, site=Site())
+    rng = np.random.default_rng(4)
+    n = 30
+    g = rng.normal(size=(n, 3))
+    g *= 9.80665 / np.linalg.norm(g, axis=1)[:, None]
+    b = rng.normal(size=(n, 3))
+    b *= 50000.0 / np.linalg.norm(b, axis=1)[:, None]
+    temp, time = np.linspace(20.0, 45.0, n), np.linspace(0.0, 3600.0, n)
+    monitor = FieldMonitor()
+    monitor.reset(cal)
+    cands = monitor._candidates([{"g": g[i], "b": b[i], "temp": temp[i], "time": time[i]} for i in range(n)])
+    stages = {eff.stage for eff, _ in cands}
+    assert {"tool", "gain", "output"} <= stages and any(eff.n_params == 9 for eff, _ in cands)
+    ctx = fx.Context(temperature_c=temp, time_s=time)
+    x = {"acc": g, "mag": b}
+    base_inv = _invariants(g, b)
+    for eff, cols in cands:
+        chain = cal.model.chain(eff.sensor, "val")
+        base = fx.apply_chain(x[eff.sensor], chain, ctx)
+        typ = np.where(eff.param_typical() > 0, eff.param_typical(), 1.0)
+        for j in range(eff.n_params):
+            v = np.zeros(eff.n_params)
+            v[j] = typ[j]
+            eff.set_vector(v)
+            dx = -rotate(cal.plan.matrix_t[eff.sensor], fx.apply_chain(x[eff.sensor], chain + [eff], ctx) - base)
+            inv = _invariants(g + dx, b) if eff.sensor == "acc" else _invariants(g, b + dx)
+            for k, c in enumerate(CHANNELS):
+                assert np.array_equal(cols[c[0]][:, j], (inv[k] - base_inv[k]) / typ[j]), (eff.key, j, c[1])
+        eff.set_vector(np.zeros(eff.n_params))
