@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import shutil
 import tempfile
 from contextlib import contextmanager
@@ -126,6 +127,18 @@ def _remove(path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
     else:
         path.unlink(missing_ok=True)
+
+
+_PART = re.compile(r"^\.(?P<stem>.+)\.part-\d+(?P<suffix>\.[^.]*)?$")
+
+
+def final_name(path) -> Path:
+    """The name a file written under :func:`output_path`'s temporary name (``.x.part-<pid>.mcap``)
+    will have (``x.mcap``); any other path unchanged.  What a file records of its own name (a
+    bag's rosbag2 metadata) is this, not the temporary name."""
+    p = Path(path)
+    m = _PART.match(p.name)
+    return p.with_name(m["stem"] + (m["suffix"] or "")) if m else p
 
 
 @contextmanager

@@ -94,6 +94,7 @@ from typing import Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional
 import yaml
 
 from ..core.deps import MissingDependency, require
+from ..core.output import final_name
 
 __all__ = [
     "BagError", "UnknownTypeError", "MessageDefinitions", "message_definition", "type_hash",
@@ -717,7 +718,8 @@ class BagWriter:
         """The ``rosbag2_bagfile_information`` mapping (metadata.yaml) for what was written."""
         start, end = self._time_range()
         counts = self.message_counts()
-        return _rosbag2_info(self.mcap_path.name, start, end,
+        # the name it will have: output_path writes under a temporary one, renamed at the end
+        return _rosbag2_info(final_name(self.mcap_path).name, start, end,
                              [(r, counts[t]) for t, r in self.topics.items()])
 
     # -- finalize ------------------------------------------------------------------------------

@@ -662,3 +662,21 @@ def test_a_refused_write_ends_the_file_where_readers_read_it_whole(tmp_path):
         w.write(cid, data[0], T0 + n * dt)
     w.close()                                                 # no finalizing after a refusal
     assert os.path.getsize(path) == size
+
+
+def test_a_bag_written_under_a_temporary_name_records_the_name_it_ends_with(tmp_path):
+    """``output_path`` writes ``.x.part-<pid>.mcap`` and renames it ``x.mcap``: the bag's rosbag2
+    metadata names ``x.mcap`` (it named the temporary file)."""
+    import yaml
+
+    from inclinometer_calib.core.output import final_name, output_path
+
+    assert final_name(tmp_path / ".run.part-123.mcap") == tmp_path / "run.mcap"
+    assert final_name(tmp_path / "run.mcap") == tmp_path / "run.mcap"
+    with output_path(tmp_path / "x.mcap") as tmp:
+        assert tmp.name != "x.mcap"
+        write_imu_bag(tmp, n=3)
+    with open(tmp_path / "x.mcap", "rb") as f:
+        meta = [m for m in make_reader(f).iter_metadata() if m.name == "rosbag2"]
+    info = yaml.safe_load(meta[0].metadata["serialized_metadata"])
+    assert info["relative_file_paths"] == ["x.mcap"] and info["files"][0]["path"] == "x.mcap"
