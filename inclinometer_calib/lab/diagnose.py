@@ -42,7 +42,7 @@ from ..calibrate.fit import fit, physical_hints, residual_groups, residual_vecto
 from ..calibrate.labmodel import N_POSES, POSES_LABEL, LabModel
 from .noise import noise_json, noise_model, walk_axes
 from ..calibrate.wander import penalty_total
-from .stats import regress
+from .stats import regress_channels
 from .uncertainty import noise_floor, normalised_errors
 
 #: Family-wise false-alarm rate of a diagnosis (Bonferroni over the candidates tested).
@@ -387,10 +387,12 @@ def residual_structure(model: LabModel, data, alpha: float = 1e-3, top: int = 8)
         chans["azimuth error"] = np.where(has, np.nan_to_num(r["azimuth_err"], nan=np.nan), np.nan)
     regs = regressors(d, model)
     n_tests = len(chans) * len(regs)
+    # y = a + b x: the F-test the field monitor uses too, each regressor against every channel at once
+    tested = {rname: dict(zip(chans, regress_channels(list(chans.values()), x))) for rname, x in regs.items()}
     found = []
-    for cname, y in chans.items():
-        for rname, x in regs.items():
-            tr = regress(y, x)          # y = a + b x: the F-test the field monitor uses too
+    for cname in chans:
+        for rname in regs:
+            tr = tested[rname][cname]
             if tr is None or tr.n < 8:
                 continue
             if tr.p * n_tests < alpha:

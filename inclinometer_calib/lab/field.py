@@ -33,7 +33,7 @@ import numpy as np
 from ..core import effects as fx
 from ..core.frames import angles_from_vectors, rotate
 from ..core.survey import Tolerances
-from .stats import regress
+from .stats import regress, regress_channels
 
 #: The residual channels: (field of a SurveyStation, name in words, unit, tolerance attribute).
 CHANNELS = (("delta_g_mps2", "ΔG", "m/s²", "gravity_mps2"), ("delta_b_nt", "ΔB", "nT", "field_nt"),
@@ -104,11 +104,13 @@ class FieldMonitor:
         regs = self._regressors(rows)
         cands = self._candidates(rows)
         n_tests = len(CHANNELS) * (len(regs) + len(cands)) or 1
+        # each regressor against the three channels at once (its SVD shared: regress_channels)
+        tested = {rname: dict(zip(y, regress_channels(list(y.values()), x))) for rname, x in regs.items()}
         trends = []
         for key, name, unit, tol_attr in CHANNELS:
             floor = self.materiality * getattr(self.tolerances, tol_attr)
-            for rname, x in regs.items():
-                tr = regress(y[key], x)
+            for rname in regs:
+                tr = tested[rname][key]
                 if tr is not None and tr.p * n_tests < self.alpha and tr.explained_rms >= floor:
                     trends.append({"channel": name, "regressor": rname, "r2": tr.r2, "p": tr.p * n_tests,
                                    "explained_rms": tr.explained_rms, "unit": unit})
@@ -171,8 +173,23 @@ class FieldMonitor:
         known_t = bool(np.all(np.isfinite(temp)))
         ctx = fx.Context(temperature_c=temp if known_t else np.full(len(rows), fx.T_REF_C), time_s=time)
         t_span = float(np.ptp(temp)) if known_t else 0.0
-        base_inv = _invariants(x["acc"], x["mag"])
+        norms = {s: np.linalg.norm(x[s], axis=1) for s in ("acc", "mag")}
+        base_inv = _invariants(x["acc"], x["mag"], norms["acc"], norms["mag"])
         base_out = {s: fx.apply_chain(x[s], cal.model.chain(s, "val"), ctx) for s in ("acc", "mag")}
+        # the record's chain up to a candidate's stage, the same for each of its parameters and for
+        # every candidate of that sensor and stage: applied once (apply_chain stage by stage, the
+        # same operations on the same numbers) — unless an effect changes the context the chain
+        # sees (a thermal lag), which then depends on the candidate's parameters
+        before = {}
+
+        def chained(chain, sensor, stage):
+            if any(type(e).chain_context is not fx.Effect.chain_context for e in chain):
+                return fx.apply_chain(x[sensor], chain, ctx)
+            k = fx.STAGES.index(stage)
+            if (sensor, stage) not in before:
+                before[sensor, stage] = fx.apply_chain(x[sensor], chain, ctx, stages=fx.STAGES[:k], prepared=True)
+            return fx.apply_chain(before[sensor, stage], chain, ctx, stages=fx.STAGES[k:], prepared=True)
+
         out = []
         seen = set()
         for eff, _ in candidate_effects(LabModel(site=cal.site, probe=cal.model)):
@@ -191,8 +208,9 @@ class FieldMonitor:
                 v = np.zeros(term.n_params)
                 v[j] = typ[j]
                 term.set_vector(v)
-                dx = -rotate(mt, fx.apply_chain(x[sensor], chain, ctx) - base_out[sensor])
-                inv = _invariants(x["acc"] + dx, x["mag"]) if sensor == "acc" else _invariants(x["acc"], x["mag"] + dx)
+                dx = -rotate(mt, chained(chain, sensor, term.stage) - base_out[sensor])
+                inv = (_invariants(x["acc"] + dx, x["mag"], bn=norms["mag"]) if sensor == "acc" else
+                       _invariants(x["acc"], x["mag"] + dx, gn=norms["acc"]))
                 for k, c in enumerate(CHANNELS):
                     cols[c[0]][:, j] = (inv[k] - base_inv[k]) / typ[j]
             term.set_vector(np.zeros(term.n_params))
@@ -263,10 +281,11 @@ def _joint_estimate(y, cols, sigma):
     return -coef[:k]
 
 
-def _invariants(g, b):
-    """|g| (m/s²), |B| (nT) and dip (deg) of corrected vectors (N, 3) — the order of CHANNELS."""
-    gn = np.linalg.norm(g, axis=1)
-    bn = np.linalg.norm(b, axis=1)
+def _invariants(g, b, gn=None, bn=None):
+    """|g| (m/s²), |B| (nT) and dip (deg) of corrected vectors (N, 3) — the order of CHANNELS
+    (``gn``, ``bn``: the norms of ``g``, ``b`` when the caller has them)."""
+    gn = np.linalg.norm(g, axis=1) if gn is None else gn
+    bn = np.linalg.norm(b, axis=1) if bn is None else bn
     dip = np.degrees(np.arcsin(np.clip(np.sum(g * b, axis=1) / (gn * bn), -1.0, 1.0)))
     return gn, bn, dip
 

@@ -32,22 +32,48 @@ def regress(y, x) -> Trend | None:
     """F-test of the regressors ``x`` ((N,) or (N, k)) on the channel ``y`` (N,), NaNs left out.
 
     None when it cannot be tested (too few points, no regressor that varies, a perfect fit)."""
-    y = np.asarray(y, dtype=float)
+    return regress_channels([y], x)[0]
+
+
+def regress_channels(ys, x) -> list:
+    """:func:`regress` of each channel of ``ys`` on the same regressors ``x``: the regressors'
+    centring and SVD done once for the channels that leave out the same points (the field monitor
+    tests three channels against each regressor at every station) — each result the same numbers
+    as :func:`regress` alone."""
     x = np.asarray(x, dtype=float)
     x = x[:, None] if x.ndim == 1 else x
-    ok = np.isfinite(y) & np.all(np.isfinite(x), axis=1)
-    y, x = y[ok], x[ok]
-    n = len(y)
+    x_ok = np.all(np.isfinite(x), axis=1)
+    out, done = [], {}
+    for y in ys:
+        y = np.asarray(y, dtype=float)
+        ok = np.isfinite(y) & x_ok
+        key = ok.tobytes()
+        if key not in done:
+            done[key] = _design(x[ok])
+        out.append(_trend(y[ok], *done[key]))
+    return out
+
+
+def _design(x):
+    """The centred regressors of the points used, their SVD and rank (None: nothing to test)."""
+    n = len(x)
+    if n == 0:
+        return None, n
     xc = x - x.mean(axis=0)
-    yc = y - y.mean()
     # regressors that do not vary (or repeat another) carry no information: the test's degrees of
     # freedom are the rank of what varies (lstsq gives them the minimum-norm coefficients)
-    if n == 0:
-        return None
     u, sv, vt = np.linalg.svd(xc, full_matrices=False)      # one SVD: the rank and the solution
     k = int(np.sum(sv > sv[0] * max(xc.shape) * np.finfo(float).eps)) if sv.size and sv[0] > 0 else 0
     if k == 0 or n < k + 3:
+        return None, n
+    return (xc, u, sv, vt, k), n
+
+
+def _trend(y, design, n) -> Trend | None:
+    if design is None:
         return None
+    xc, u, sv, vt, k = design
+    yc = y - y.mean()
     coef = vt[:k].T @ ((u[:, :k].T @ yc) / sv[:k])
     fitted = xc @ coef
     ss_reg = float(fitted @ fitted)
