@@ -52,10 +52,12 @@ class ResidualCache:
     steps).  :meth:`forget` when the model changes outside its parameter vector (a wandering
     bias's path)."""
 
-    __slots__ = ("split", "prior_mask", "prior_den", "own", "shared", "_last")
+    __slots__ = ("split", "free_sigmas", "prior_mask", "prior_den", "own", "shared", "_last")
 
     def __init__(self, model: LabModel, data):
         self.split = split_oriented(data)
+        # the free stations' σ of |g|, |B| and dip: their noise and the site's, which a fit holds
+        self.free_sigmas = _free_sigmas(self.split[1], model) if self.split[1] is not None else None
         self.prior_mask, self.prior_den = _prior_scales(model)
         n = len(model.get_vector())
         sensor = np.array([t.effect.sensor for t in model.probe.terms for _ in range(t.effect.n_params)]
@@ -107,13 +109,13 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
         d = d_free
         g = triad("free acc", "acc", lambda: model.correct_triad("acc", d))
         b = triad("free mag", "mag", lambda: model.correct_triad("mag", d))
-        sg, sb, sdip = _free_sigmas(d, model)
+        sg, sb, sdip = _free_sigmas(d, model) if cache is None else cache.free_sigmas
         gn, bn = np.linalg.norm(g, axis=1), np.linalg.norm(b, axis=1)
         dip = np.degrees(np.arcsin(np.clip(np.sum(g * b, axis=1) / (gn * bn), -1, 1)))
         parts += [(gn - model.site.gravity_mps2) / sg, (bn - model.site.total_field_nt) / sb,
                   (dip - model.dip_deg) / sdip]
     if prior:
-        parts.append(_prior_residual(model, cache))
+        parts.append(_prior_residual(model, cache, None if cache is None else vec))
     return np.concatenate(parts)
 
 
@@ -131,11 +133,11 @@ def residual_groups(data) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, dtype=str)
 
 
-def _prior_residual(model: LabModel, cache: ResidualCache | None = None) -> np.ndarray:
+def _prior_residual(model: LabModel, cache: ResidualCache | None = None, vec=None) -> np.ndarray:
     """The weak prior rows (extra parameters over 100× their typical size), then the gauge rows
-    (:meth:`LabModel.gauge_residual`)."""
+    (:meth:`LabModel.gauge_residual`); ``vec``: the model's parameter vector when the caller has it."""
     mask, den = _prior_scales(model) if cache is None else (cache.prior_mask, cache.prior_den)
-    return np.concatenate([model.get_vector()[mask] / den, model.gauge_residual()])
+    return np.concatenate([(model.get_vector() if vec is None else vec)[mask] / den, model.gauge_residual()])
 
 
 def _prior_scales(model: LabModel) -> tuple:

@@ -308,11 +308,7 @@ class CorrectionPlan:
         # what each triad's own chain needs (a magnetometer-only effect never stops the accelerometer)
         self.triad_needs = {sn: tuple(dict.fromkeys(n for e in self.chains[sn] for n in type(e).context_needs()))
                             for sn in sensors}
-        # per-sample form of a base-only triad (correct_sample): C row by row, then B, as floats
-        self._floats = {s: None if self.extra[s] else
-                        (tuple(float(x) for x in self.matrix_t[s].T.ravel()),
-                         tuple(float(x) for x in self.triads[s].bias))
-                        for s in sensors}
+        self._floats = {}          # correct_sample's per-sample form, on its first use
 
     def correct(self, g, b, temperature_c=None, time_s=None, history=None):
         """Both triads (see :meth:`ProbeModel.correct`)."""
@@ -342,6 +338,12 @@ class CorrectionPlan:
         For a triad with nothing beyond the base model this is ``v = C·(h − B)`` in plain floats,
         each row's three products added in :func:`frames.rotate`'s order (≈ 1 µs); a triad with
         effects goes through :meth:`correct_triad` (which raises ValueError as it does)."""
+        if sensor not in self._floats:
+            # per-sample form of a base-only triad: C row by row, then B, as floats (worked out on
+            # the first sample: the lab's fits make thousands of plans and never use it)
+            self._floats[sensor] = None if self.extra[sensor] else \
+                (tuple(float(x) for x in self.matrix_t[sensor].T.ravel()),
+                 tuple(float(x) for x in self.triads[sensor].bias))
         floats = self._floats[sensor]
         if floats is None:
             v = self.correct_triad(sensor, (h[0], h[1], h[2]), temperature_c, time_s)
