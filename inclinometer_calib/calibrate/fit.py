@@ -29,6 +29,9 @@ from .labmodel import LabModel
 from .wander import _free_sigmas, clear_paths, edf_total, smooth, stochastic_terms
 
 PRIOR_FACTOR = 100.0
+#: A wandering bias's path and the other parameters alternate until the path changes by less than
+#: this (in units of its density over the mean station spacing: :func:`wander.smooth`).
+SMOOTH_CHANGE = 0.01
 
 
 def split_oriented(data) -> tuple:
@@ -335,11 +338,12 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     if len(x0):
         res = solve(x0)
         # a wandering bias: its path (the smoother) and the other parameters, each holding the other
-        for _ in range(6 if stochastic else 0):
-            change = smooth(model, data)
+        for k in range(6 if stochastic else 0):
+            # the path's σ and degrees of freedom from the smoothing that ends the alternation only
+            change = smooth(model, data, posterior_below=SMOOTH_CHANGE if k < 5 else None)
             cache.forget()
             res = solve(res.x)
-            if change < 0.01:
+            if change < SMOOTH_CHANGE:
                 break
         x, jac, ok, msg, nfev = res.x, res.jac, bool(res.success), str(res.message), int(res.nfev)
     else:

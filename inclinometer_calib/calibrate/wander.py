@@ -51,10 +51,13 @@ def _free_sigmas(data, model):
     return sg, sb, sdip
 
 
-def smooth(model, data) -> float:
+def smooth(model, data, posterior_below: float | None = None) -> float:
     """Estimate the paths of ``model``'s stochastic effects from ``data`` (in place); the other
     parameters are held.  Returns the largest change of a path, in units of its density over the
-    mean station spacing (0 when the model has no stochastic effect).
+    mean station spacing (0 when the model has no stochastic effect).  ``posterior_below``: the
+    path's σ and effective degrees of freedom only when the change is below it (else NaN: the fit's
+    alternation keeps only the last smoothing's, and the covariance is most of a smoothing's work);
+    None: always.
 
     The normal matrix ``N = AᵀA`` of the rows below (the data's, the walk's, the gauge's) is solved
     by its Cholesky factor (LAPACK ``potrf``/``potrs``), and the posterior covariance ``N⁻¹`` taken
@@ -170,9 +173,9 @@ def smooth(model, data) -> float:
     # the posterior σ of the path and the effective degrees of freedom per axis
     std = np.full(n_state, np.nan)
     edf = np.full(n_state, np.nan)
-    solved = _dense_posterior(normal, atb, a, n_data) if n_state <= DENSE_STATES else None
-    if solved is not None:
-        x, std, edf = solved
+    factor = _cholesky(normal, atb) if n_state <= DENSE_STATES else None
+    if factor is not None:
+        c, x = factor
     else:
         from scipy.sparse.linalg import spsolve
         x = spsolve(normal.tocsc(), atb)
@@ -183,8 +186,6 @@ def smooth(model, data) -> float:
         blk = slice(offset[i], offset[i + 1])
         e.knots_s = knots.copy()
         e.path = x[blk].reshape(nk, n_ax[i])
-        e.path_std = std[blk].reshape(nk, n_ax[i])
-        e.edf = edf[blk].reshape(nk, n_ax[i]).sum(axis=0)
         e.penalty = float(np.sum(r_prior[prior_rows[i]] ** 2))
         k0, p0 = old[i]
         if len(k0):
@@ -194,31 +195,45 @@ def smooth(model, data) -> float:
             change = max(change, float(np.max(np.abs(e.path - prev) / scale)))
         else:
             change = float("inf")
+    if factor is not None and (posterior_below is None or change < posterior_below):
+        std, edf = _posterior(c, a, n_data)
+    for i, t in enumerate(terms):
+        blk = slice(offset[i], offset[i + 1])
+        t.effect.path_std = std[blk].reshape(nk, n_ax[i])
+        t.effect.edf = edf[blk].reshape(nk, n_ax[i]).sum(axis=0)
     return change
 
 
-def _dense_posterior(normal, atb, a, n_data: int):
-    """``(path, σ, edf)`` from the dense Cholesky factor of the normal matrix ``normal`` (``AᵀA``,
-    sparse): the path ``N⁻¹·Aᵀb``, the posterior σ ``√diag(N⁻¹)`` and per state the effective
-    degrees of freedom ``(N⁻¹·AdᵀAd)ᵢᵢ`` (``Ad`` the first ``n_data`` rows of ``a``, the data's; only
-    the entries of ``AdᵀAd`` that are not zero are needed).  None when ``normal`` is not
-    numerically positive definite (the caller solves it sparsely, without σ)."""
+def _cholesky(normal, atb):
+    """``(factor, path)``: the dense Cholesky factor of the normal matrix ``normal`` (``AᵀA``,
+    sparse) and the path ``N⁻¹·Aᵀb`` from it; None when ``normal`` is not numerically positive
+    definite (the caller solves it sparsely, without σ)."""
     from scipy.linalg import lapack
 
     c, info = lapack.dpotrf(normal.toarray(), lower=True, clean=False, overwrite_a=True)
     if info != 0:
         return None
     x, info = lapack.dpotrs(c, atb, lower=True)
-    cov, info2 = lapack.dpotri(c, lower=True, overwrite_c=True)
-    if info or info2:
-        return None
-    diag = np.diag(cov).copy()
+    return None if info else (c, x)
+
+
+def _posterior(c, a, n_data: int):
+    """``(σ, edf)`` per state from the Cholesky factor ``c`` of ``N``: the posterior σ
+    ``√diag(N⁻¹)`` and the effective degrees of freedom ``(N⁻¹·AdᵀAd)ᵢᵢ`` (``Ad`` the first
+    ``n_data`` rows of ``a``, the data's; only the entries of ``AdᵀAd`` that are not zero are
+    needed).  NaN when the inverse cannot be formed."""
+    from scipy.linalg import lapack
+
+    n = c.shape[0]
+    cov, info = lapack.dpotri(c, lower=True)
+    if info:
+        return np.full(n, np.nan), np.full(n, np.nan)
     ad = a[:n_data]
     data_info = (ad.T @ ad).tocoo()
     # N⁻¹ is symmetric: its lower triangle (what potri gives) serves every entry
     r, k = np.maximum(data_info.row, data_info.col), np.minimum(data_info.row, data_info.col)
-    edf = np.bincount(data_info.row, weights=cov[r, k] * data_info.data, minlength=len(atb))
-    return x, np.sqrt(np.maximum(diag, 0.0)), edf
+    edf = np.bincount(data_info.row, weights=cov[r, k] * data_info.data, minlength=n)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0)), edf
 
 
 def penalty_total(model) -> float:
