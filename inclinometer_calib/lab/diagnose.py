@@ -524,15 +524,20 @@ def _walk_untestable(eff, noise) -> dict:
 
 @one_thread
 def diagnose(data, model: LabModel | None = None, site=None, candidates=None, progress=None,
-             alpha: float | None = None) -> Diagnosis:
-    """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
+             alpha: float | None = None, fitted=None) -> Diagnosis:
+    """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects.
+    ``fitted``: ``(copy of model, its field_fit(..., give_hint=True))`` when the caller has made that
+    very fit (:func:`ladder`), taken instead of making it again."""
     a_level = ALPHA if alpha is None else alpha
     say = progress or (lambda m: None)
     if model is None:
         model = LabModel.base(site)
-    model = copy.deepcopy(model)
     say(f"fitting {model.describe()}")
-    base_fit = field_fit(model, data, give_hint=True)     # its Jacobian serves every candidate's first
+    if fitted is not None:
+        model, base_fit = fitted
+    else:
+        model = copy.deepcopy(model)
+        base_fit = field_fit(model, data, give_hint=True)     # its Jacobian serves every candidate's first
     base_val = validation(model, data)
     base_score = base_val.get("pointing_rms_deg", float("nan"))
     fd = fit_data(data)
@@ -1079,8 +1084,10 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
     model = start if start is not None else LabModel.base(site)
     steps = []
     notes = []
+    fitted = None
     for _ in range(max_steps + 1):
-        dg = diagnose(data, model, progress=progress, candidates=candidates)
+        dg = diagnose(data, model, progress=progress, candidates=candidates, fitted=fitted)
+        fitted = None
         dg.notes = notes + dg.notes
         steps.append(dg)
         rec = dg.recommended
@@ -1098,11 +1105,16 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
         # (a wander has no parameters for a Wald test; it is tried after the deterministic effects)
         earlier = [t.label for t in model.extra_terms if t.label != new_label and not t.effect.stochastic]
         if earlier:
-            f = field_fit(copy.deepcopy(model), data)
+            # the next rung's base fit (give_hint: as diagnose makes it), which it takes when no
+            # effect is removed
+            fm = copy.deepcopy(model)
+            f = field_fit(fm, data, give_hint=True)
+            fitted = (fm, f)
             for label in earlier:
                 _, _, p = f.wald(model.param_index(label))
                 if p * len(earlier) > ALPHA:
                     model = model.without(label)
+                    fitted = None
                     notes.append(f"removed {label}: made redundant by {new_label} (its parameters are no longer "
                                  f"significant with {new_label} in the model, p {min(p * len(earlier), 1):.2f})")
     return steps
