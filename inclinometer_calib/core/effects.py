@@ -945,10 +945,16 @@ def apply_chain(v: np.ndarray, effects, ctx: Context, stages=STAGES, prepared: b
     out = np.asarray(v, dtype=float)
     if not prepared:
         ctx = chain_context(effects, ctx)
+    own = False     # ``out`` is a copy Effect.apply made in this call: the next effect may change it in place
     for stage in stages:
         for eff in effects:
             if eff.stage == stage:
-                out = eff.apply(out, ctx)
+                plain = type(eff).apply is Effect.apply
+                if own and plain:
+                    eff._apply(out, ctx)          # what apply() does, without its copy
+                else:
+                    out = eff.apply(out, ctx)
+                    own = plain
     return out
 
 
