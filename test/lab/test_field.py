@@ -12,8 +12,19 @@ from inclinometer_calib.correct.pipeline import SurveyProcessor
 from inclinometer_calib.io.probelog import read_csv, segment_stations
 
 
+_SURVEYS = {}
+
+
 def _survey(tmp_path, effects=(), val_temp="25:60:40"):
-    """The stand's record (twelve poses at 25 °C) and the survey's stations of a simulated probe."""
+    """The stand's record (twelve poses at 25 °C) and the survey's stations of a simulated probe
+    (made once per module for the same effects and temperatures: the tests only read them)."""
+    key = (tuple(effects), val_temp)
+    if key not in _SURVEYS:
+        _SURVEYS[key] = _simulated_survey(tmp_path, effects, val_temp)
+    return _SURVEYS[key]
+
+
+def _simulated_survey(tmp_path, effects, val_temp):
     args = ["simulate", "--out", str(tmp_path), "--seed", "31", "--val-temp", val_temp]
     for e in effects:
         args += ["--effect", e]
