@@ -224,6 +224,9 @@ class FitResult:
     #: the data rows of the fit's last Jacobian, for the fits of this model with one effect more
     #: (with ``fit(..., give_hint=True)``, else None)
     hint: "JacobianHint | None" = None
+    #: the noise-normalised data residuals at the solution (:func:`residual_vector` without the
+    #: prior rows: ``chi2`` is their sum of squares)
+    residuals: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def z_rms(self) -> float:
@@ -376,7 +379,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=model.get_vector(),
                      std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=ok,
                      message=msg, seconds=time.perf_counter() - t0, nfev=nfev, not_identifiable=notid,
-                     covariance=cov, n_free=p_eff, hint=hint)
+                     covariance=cov, n_free=p_eff, hint=hint, residuals=r_data)
 
 
 #: Gauss–Newton steps (each on a Jacobian of its own point) before the fit falls back to

@@ -217,51 +217,47 @@ def field_fit(model: LabModel, data: Stations, uncertainty: bool = True, progres
                give_hint=give_hint)
 
 
-def validation(model: LabModel, data: Stations, survey_invariants: bool = True) -> dict:
+def validation(model: LabModel, data: Stations, survey_invariants: bool = True, pointing: bool = False):
     """The headline errors of a field-fitted model (:func:`field_fit`): drift, azimuth and pointing
     RMS on every validation station with a reference (a vertical one counts for drift; its azimuth
     is undefined), labelled ``kind``: ``field`` (the validation references were not fitted) or
-    ``in-sample`` (no validation log: the calibration stations the model was fitted on)."""
+    ``in-sample`` (no validation log: the calibration stations the model was fitted on).
+    ``pointing``: also each of those stations' pointing error (deg, :func:`val_metrics`'s, from the
+    same corrected angles; None in-sample): ``(figures, errors)``."""
     val = data.role == "val"
     has_val = val & np.isfinite(data.ref[:, 0])
     if has_val.any():
-        out = val_metrics(model, data.subset(has_val))
+        out, pe = _val_metrics(model, data.subset(has_val))
         out["kind"] = "field"
         cal = "calibration log" + ("s" if _n_sources(data, "cal") > 1 else "")
         out["label"] = (f"field: fitted on the {cal}" + (" and the survey's |g|, |B|, dip" if survey_invariants else
                         " only") + f", errors on the whole validation log ({int(has_val.sum())} stations, its "
                         "reference angles never fitted)")
-        return out
+        return (out, pe) if pointing else out
     has = np.isfinite(data.ref[:, 0])
     out = val_metrics(model, data.subset(has)) if has.any() else {"stations": 0}
     out["kind"] = "in-sample"
     out["label"] = ("in-sample: no validation log — errors on the calibration stations the model was fitted on "
                     "(they understate the field error)")
-    return out
+    return (out, None) if pointing else out
 
 
 def _n_sources(data, role):
     return len(set(data.source[data.role == role]))
 
 
-def pointing_errors(model: LabModel, data) -> np.ndarray:
-    """Per validation station with a reference drift: the pointing error (deg) of ``model``."""
-    d = data.subset((data.role == "val") & np.isfinite(data.ref[:, 0]))
-    if not len(d):
-        return np.zeros(0)
-    r = model.angle_errors(d)
-    ae = np.asarray(r["azimuth_err"], dtype=float)
-    ok = np.isfinite(ae) & np.isfinite(d.ref[:, 1])
-    return np.sqrt(r["drift_err"] ** 2 + np.where(ok, np.sin(np.radians(d.ref[:, 0])) * np.nan_to_num(ae), 0.0) ** 2)
-
-
 def val_metrics(model: LabModel, data) -> dict:
     """Angle errors of the stations with a reference drift: drift RMS over all of them, azimuth
     and pointing (``sqrt(Δdrift² + (sin(drift)·Δazimuth)²)``) over those with a reference azimuth
     (deg); the counts of each."""
+    return _val_metrics(model, data)[0]
+
+
+def _val_metrics(model: LabModel, data) -> tuple:
+    """:func:`val_metrics` and the per-station pointing errors its RMS is taken from."""
     has = np.isfinite(data.ref[:, 0])
     if not has.any():
-        return {"stations": 0}
+        return {"stations": 0}, np.zeros(0)
     d = data.subset(has)
     r = model.angle_errors(d)
     de = r["drift_err"]
@@ -276,7 +272,7 @@ def val_metrics(model: LabModel, data) -> dict:
     return {"stations": int(has.sum()), "azimuth_stations": int(ok.sum()),
             "drift_rms_deg": rms(de), "drift_max_abs_deg": float(np.max(np.abs(de))),
             "azimuth_rms_deg": rms(ae[ok]), "azimuth_max_abs_deg": float(np.max(np.abs(ae[ok]))) if ok.any()
-            else float("nan"), "pointing_rms_deg": rms(pe)}
+            else float("nan"), "pointing_rms_deg": rms(pe)}, pe
 
 
 def blocked_folds(data, k):
@@ -538,7 +534,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     else:
         model = copy.deepcopy(model)
         base_fit = field_fit(model, data, give_hint=True)     # its Jacobian serves every candidate's first
-    base_val = validation(model, data)
+    base_val, pe_base = validation(model, data, pointing=True)   # and the stations' pointing errors
     base_score = base_val.get("pointing_rms_deg", float("nan"))
     fd = fit_data(data)
     r_base = residual_vector(model, fd, prior=False)
@@ -574,7 +570,6 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     n_tests = max(len(trials) + int(bool(heading)), 1)
     ranked = []
     by_field = base_val.get("kind") == "field"
-    pe_base = pointing_errors(model, data) if by_field else None
     groups = residual_groups(fd)
     cal_rows = np.char.startswith(groups.astype(str), "cal ") & np.isin(groups, ["cal acc", "cal mag"])
     cal_misfit = bool(cal_rows.any() and np.mean(r_base[cal_rows] ** 2) > Z_RMS_LIMIT ** 2)
@@ -595,10 +590,10 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
                 label = trial.probe.terms[-1].label
                 f, wchi2, p, _ = test(trial, label)
                 axes = sig_axes
-        val = validation(trial, data)
+        val, pe = validation(trial, data, pointing=True)     # and the stations' pointing errors
         sc = val.get("pointing_rms_deg", float("nan"))
         gain = 1.0 - sc / base_score if base_score > 0 and np.isfinite(sc) else 0.0
-        r = residual_vector(trial, fd, prior=False)
+        r = f.residuals           # the fit's at its solution (residual_vector(trial, fd, prior=False))
         transfers, p_field, why = True, float("nan"), ""
         # An effect whose evidence lies only in the survey's invariants, while the calibration
         # itself is not explained (its poses misfit beyond the noise, and the effect does not help
@@ -613,7 +608,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
             # the stations' squared pointing errors, candidate minus base)
             from scipy.stats import ttest_1samp   # here: scipy.stats costs every process that imports the lab 0.3 s
 
-            diff = pointing_errors(trial, data) ** 2 - pe_base ** 2
+            diff = pe ** 2 - pe_base ** 2
             p_field = float(ttest_1samp(diff, 0.0, alternative="greater").pvalue) if np.any(diff != 0) else 1.0
             if p_field < WORSE:
                 transfers = False
