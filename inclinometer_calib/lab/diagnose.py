@@ -38,7 +38,7 @@ from scipy.special import chdtrc
 from ..core import effects as fx
 from ..core.station import Stations
 from ..calibrate.blas import one_thread
-from ..calibrate.fit import fit, physical_hints, residual_groups, residual_vector
+from ..calibrate.fit import fit, physical_hints, residual_groups
 from ..calibrate.labmodel import N_POSES, POSES_LABEL, LabModel
 from .noise import noise_json, noise_model, walk_axes
 from ..calibrate.wander import penalty_total
@@ -537,7 +537,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     base_val, pe_base = validation(model, data, pointing=True)   # and the stations' pointing errors
     base_score = base_val.get("pointing_rms_deg", float("nan"))
     fd = fit_data(data)
-    r_base = residual_vector(model, fd, prior=False)
+    r_base = base_fit.residuals          # residual_vector(model, fd, prior=False) at its solution
     losses = list(data.losses)
     missing = _base_unidentified(base_fit)
     if missing:
