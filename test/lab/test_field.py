@@ -48,6 +48,8 @@ def test_a_model_that_explains_the_survey_raises_no_alarm(tmp_path):
     assert not any(f["model_misfit"] for f in fields)
 
 
+# the temperature-bias survey serves two tests: one xdist group, so that they share it under scripts/test.sh
+@pytest.mark.xdist_group("lab-field-temperature")
 def test_a_missing_temperature_effect_is_named_with_its_size(tmp_path):
     base, truth, stations = _survey(tmp_path, ["temperature_bias:mag=3"])
     fields, monitor = _run(base, stations)
@@ -73,6 +75,7 @@ def test_axial_interference_is_told_from_a_temperature_effect(tmp_path):
     assert monitor.last.candidates[0]["label"] == "axial_interference:mag:z", monitor.last.text
 
 
+@pytest.mark.xdist_group("lab-field-temperature")
 def test_the_window_starts_again_with_another_record(tmp_path):
     base, truth, stations = _survey(tmp_path, ["temperature_bias:mag=3"])
     proc = SurveyProcessor(calibration=base, monitor=FieldMonitor(window=20))
