@@ -797,6 +797,7 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
     by ``D``.  Otherwise the wander is fitted on top, and if ``D`` is no longer significant (Wald,
     Bonferroni) ``D`` is explained by the wander; else both stay, the wander ranked after ``D``."""
     det = [c for c in ranked if c.significant and c.transfers and not c.stochastic and not c.note.startswith(SET_ASIDE)]
+    with_d = {}        # the model with D, fitted, its noise model and held-out figure: the same for every wander
     for sc in [c for c in ranked if c.stochastic and c.significant and not c.note]:
         if not det:
             return
@@ -805,11 +806,13 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
             sc.after = True
             continue
         say(f"weighing {sc.label} against {d.label}")
-        md = model.with_effect(copy.deepcopy(d.instance), d.scope)
+        if not with_d:
+            md = model.with_effect(copy.deepcopy(d.instance), d.scope)
+            field_fit(md, data, uncertainty=False)
+            with_d.update(md=md, noise=noise_model(md, data))
+        md = with_d["md"]
         d_label = md.probe.terms[-1].label
-        field_fit(md, data, uncertainty=False)
-        nz = noise_model(md, data)
-        k = nz[sc.sensor].walk_density()
+        k = with_d["noise"][sc.sensor].walk_density()
         axes = "".join(a for a in sc.axes if k["xyz".index(a)] > 0)
         if not axes:
             sc.note = (f"explained by {d.label}: with it in the model the noise model resolves no random walk on "
@@ -831,7 +834,10 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
             # held-out blocks of the survey better than D does (else D first, the wander after it)
             folds = blocked_folds(data, HELD_OUT_FOLDS)
             a = cross_validate(ms, data, folds).get("pointing_rms_deg", float("nan")) if folds else float("nan")
-            b = cross_validate(md, data, folds).get("pointing_rms_deg", float("nan")) if folds else float("nan")
+            if "held_out" not in with_d:
+                with_d["held_out"] = cross_validate(md, data, folds).get("pointing_rms_deg", float("nan")) \
+                    if folds else float("nan")
+            b = with_d["held_out"]
             if a < b:
                 d.note = (f"explained by {sc.label}: no longer significant once the wander is fitted "
                           f"(likelihood ratio χ² {lr:.1f}, p {min(p * n_tests, 1.0):.2g}), and the wander predicts "
