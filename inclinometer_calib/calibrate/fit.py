@@ -52,10 +52,14 @@ class ResidualCache:
     effects' parameters and the shared ones (dip, heading, the stand's poses) only, so a
     finite-difference step in one triad's parameter recomputes that triad and takes the other's
     as it was — the same bits, in about half the time (most of a fit's evaluations are such
-    steps).  :meth:`forget` when the model changes outside its parameter vector (a wandering
-    bias's path)."""
+    steps).  The free stations' corrected vectors do not depend on the shared parameters at all
+    (the site's dip and the stand's heading and poses enter their residuals after the correction),
+    unless an effect of the model takes the previous hold's input, which a free station may have
+    from a pose's attitude in the site's field: a step in the dip or a pose recomputes the
+    oriented stations only.  :meth:`forget` when the model changes outside its parameter vector
+    (a wandering bias's path)."""
 
-    __slots__ = ("split", "free_sigmas", "prior_mask", "prior_den", "own", "shared", "_last")
+    __slots__ = ("split", "free_sigmas", "prior_mask", "prior_den", "own", "shared", "free_shared", "_last")
 
     def __init__(self, model: LabModel, data):
         self.split = split_oriented(data)
@@ -67,15 +71,18 @@ class ResidualCache:
                           + [""] * (n - len(model.probe.param_names())))
         self.own = {s: np.flatnonzero(sensor == s) for s in ("acc", "mag")}
         self.shared = np.flatnonzero((sensor != "acc") & (sensor != "mag"))
+        # the shared parameters reach the free stations' correction through the history only
+        self.free_shared = any("history" in type(t.effect).context_needs() for t in model.probe.terms)
         self._last = {}
 
     def forget(self) -> None:
         self._last = {}
 
-    def triad(self, slot: str, sensor: str, vec, compute):
+    def triad(self, slot: str, sensor: str, vec, compute, shared: bool = True):
         """``compute()`` (``sensor``'s outputs, kept as ``slot``), or its last result when the
-        parameters it depends on are those of the last call."""
-        key = (vec[self.own[sensor]].tobytes(), vec[self.shared].tobytes())
+        parameters it depends on (its own, and the shared ones if ``shared``) are those of the
+        last call."""
+        key = (vec[self.own[sensor]].tobytes(), vec[self.shared].tobytes() if shared else b"")
         last = self._last.get(slot)
         if last is None or last[0] != key:
             last = self._last[slot] = (key, compute())
@@ -90,13 +97,13 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
     parts = []
     d_ori, d_free = split_oriented(data) if cache is None else cache.split
     if cache is None:
-        def triad(slot, sensor, compute):
+        def triad(slot, sensor, compute, shared=True):
             return compute()
     else:
         vec = model.get_vector()
 
-        def triad(slot, sensor, compute):
-            return cache.triad(slot, sensor, vec, compute)
+        def triad(slot, sensor, compute, shared=True):
+            return cache.triad(slot, sensor, vec, compute, shared)
     if d_ori is not None:
         d = d_ori
         true = []
@@ -110,8 +117,8 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
         parts += [((d.g - h_g) / d.g_sigma).ravel(), ((d.b - h_b) / d.b_sigma).ravel()]
     if d_free is not None:
         d = d_free
-        g = triad("free acc", "acc", lambda: model.correct_triad("acc", d))
-        b = triad("free mag", "mag", lambda: model.correct_triad("mag", d))
+        g = triad("free acc", "acc", lambda: model.correct_triad("acc", d), cache is not None and cache.free_shared)
+        b = triad("free mag", "mag", lambda: model.correct_triad("mag", d), cache is not None and cache.free_shared)
         sg, sb, sdip = _free_sigmas(d, model) if cache is None else cache.free_sigmas
         gn, bn = np.linalg.norm(g, axis=1), np.linalg.norm(b, axis=1)
         dip = np.degrees(np.arcsin(np.clip(np.sum(g * b, axis=1) / (gn * bn), -1, 1)))
