@@ -29,6 +29,9 @@ from .labmodel import LabModel
 from .wander import _free_sigmas, clear_paths, edf_total, smooth, stochastic_terms
 
 PRIOR_FACTOR = 100.0
+#: A wandering bias's path and the other parameters alternate until the path changes by less than
+#: this (in units of its density over the mean station spacing: :func:`wander.smooth`).
+SMOOTH_CHANGE = 0.01
 
 
 def split_oriented(data) -> tuple:
@@ -49,28 +52,37 @@ class ResidualCache:
     effects' parameters and the shared ones (dip, heading, the stand's poses) only, so a
     finite-difference step in one triad's parameter recomputes that triad and takes the other's
     as it was — the same bits, in about half the time (most of a fit's evaluations are such
-    steps).  :meth:`forget` when the model changes outside its parameter vector (a wandering
-    bias's path)."""
+    steps).  The free stations' corrected vectors do not depend on the shared parameters at all
+    (the site's dip and the stand's heading and poses enter their residuals after the correction),
+    unless an effect of the model takes the previous hold's input, which a free station may have
+    from a pose's attitude in the site's field: a step in the dip or a pose recomputes the
+    oriented stations only.  :meth:`forget` when the model changes outside its parameter vector
+    (a wandering bias's path)."""
 
-    __slots__ = ("split", "prior_mask", "prior_den", "own", "shared", "_last")
+    __slots__ = ("split", "free_sigmas", "prior_mask", "prior_den", "own", "shared", "free_shared", "_last")
 
     def __init__(self, model: LabModel, data):
         self.split = split_oriented(data)
+        # the free stations' σ of |g|, |B| and dip: their noise and the site's, which a fit holds
+        self.free_sigmas = _free_sigmas(self.split[1], model) if self.split[1] is not None else None
         self.prior_mask, self.prior_den = _prior_scales(model)
         n = len(model.get_vector())
         sensor = np.array([t.effect.sensor for t in model.probe.terms for _ in range(t.effect.n_params)]
                           + [""] * (n - len(model.probe.param_names())))
         self.own = {s: np.flatnonzero(sensor == s) for s in ("acc", "mag")}
         self.shared = np.flatnonzero((sensor != "acc") & (sensor != "mag"))
+        # the shared parameters reach the free stations' correction through the history only
+        self.free_shared = any("history" in type(t.effect).context_needs() for t in model.probe.terms)
         self._last = {}
 
     def forget(self) -> None:
         self._last = {}
 
-    def triad(self, slot: str, sensor: str, vec, compute):
+    def triad(self, slot: str, sensor: str, vec, compute, shared: bool = True):
         """``compute()`` (``sensor``'s outputs, kept as ``slot``), or its last result when the
-        parameters it depends on are those of the last call."""
-        key = (vec[self.own[sensor]].tobytes(), vec[self.shared].tobytes())
+        parameters it depends on (its own, and the shared ones if ``shared``) are those of the
+        last call."""
+        key = (vec[self.own[sensor]].tobytes(), vec[self.shared].tobytes() if shared else b"")
         last = self._last.get(slot)
         if last is None or last[0] != key:
             last = self._last[slot] = (key, compute())
@@ -85,13 +97,13 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
     parts = []
     d_ori, d_free = split_oriented(data) if cache is None else cache.split
     if cache is None:
-        def triad(slot, sensor, compute):
+        def triad(slot, sensor, compute, shared=True):
             return compute()
     else:
         vec = model.get_vector()
 
-        def triad(slot, sensor, compute):
-            return cache.triad(slot, sensor, vec, compute)
+        def triad(slot, sensor, compute, shared=True):
+            return cache.triad(slot, sensor, vec, compute, shared)
     if d_ori is not None:
         d = d_ori
         true = []
@@ -105,15 +117,15 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
         parts += [((d.g - h_g) / d.g_sigma).ravel(), ((d.b - h_b) / d.b_sigma).ravel()]
     if d_free is not None:
         d = d_free
-        g = triad("free acc", "acc", lambda: model.correct_triad("acc", d))
-        b = triad("free mag", "mag", lambda: model.correct_triad("mag", d))
-        sg, sb, sdip = _free_sigmas(d, model)
+        g = triad("free acc", "acc", lambda: model.correct_triad("acc", d), cache is not None and cache.free_shared)
+        b = triad("free mag", "mag", lambda: model.correct_triad("mag", d), cache is not None and cache.free_shared)
+        sg, sb, sdip = _free_sigmas(d, model) if cache is None else cache.free_sigmas
         gn, bn = np.linalg.norm(g, axis=1), np.linalg.norm(b, axis=1)
         dip = np.degrees(np.arcsin(np.clip(np.sum(g * b, axis=1) / (gn * bn), -1, 1)))
         parts += [(gn - model.site.gravity_mps2) / sg, (bn - model.site.total_field_nt) / sb,
                   (dip - model.dip_deg) / sdip]
     if prior:
-        parts.append(_prior_residual(model, cache))
+        parts.append(_prior_residual(model, cache, None if cache is None else vec))
     return np.concatenate(parts)
 
 
@@ -131,11 +143,11 @@ def residual_groups(data) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, dtype=str)
 
 
-def _prior_residual(model: LabModel, cache: ResidualCache | None = None) -> np.ndarray:
+def _prior_residual(model: LabModel, cache: ResidualCache | None = None, vec=None) -> np.ndarray:
     """The weak prior rows (extra parameters over 100× their typical size), then the gauge rows
-    (:meth:`LabModel.gauge_residual`)."""
+    (:meth:`LabModel.gauge_residual`); ``vec``: the model's parameter vector when the caller has it."""
     mask, den = _prior_scales(model) if cache is None else (cache.prior_mask, cache.prior_den)
-    return np.concatenate([model.get_vector()[mask] / den, model.gauge_residual()])
+    return np.concatenate([(model.get_vector() if vec is None else vec)[mask] / den, model.gauge_residual()])
 
 
 def _prior_scales(model: LabModel) -> tuple:
@@ -219,6 +231,9 @@ class FitResult:
     #: the data rows of the fit's last Jacobian, for the fits of this model with one effect more
     #: (with ``fit(..., give_hint=True)``, else None)
     hint: "JacobianHint | None" = None
+    #: the noise-normalised data residuals at the solution (:func:`residual_vector` without the
+    #: prior rows: ``chi2`` is their sum of squares)
+    residuals: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def z_rms(self) -> float:
@@ -333,11 +348,12 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     if len(x0):
         res = solve(x0)
         # a wandering bias: its path (the smoother) and the other parameters, each holding the other
-        for _ in range(6 if stochastic else 0):
-            change = smooth(model, data)
+        for k in range(6 if stochastic else 0):
+            # the path's σ and degrees of freedom from the smoothing that ends the alternation only
+            change = smooth(model, data, posterior_below=SMOOTH_CHANGE if k < 5 else None)
             cache.forget()
             res = solve(res.x)
-            if change < 0.01:
+            if change < SMOOTH_CHANGE:
                 break
         x, jac, ok, msg, nfev = res.x, res.jac, bool(res.success), str(res.message), int(res.nfev)
     else:
@@ -370,7 +386,7 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
     return FitResult(model=model, names=model.param_names(), units=model.param_units(), values=model.get_vector(),
                      std=std, correlation=corr, chi2=chi2, dof=dof, n_data=n_data, success=ok,
                      message=msg, seconds=time.perf_counter() - t0, nfev=nfev, not_identifiable=notid,
-                     covariance=cov, n_free=p_eff, hint=hint)
+                     covariance=cov, n_free=p_eff, hint=hint, residuals=r_data)
 
 
 #: Gauss–Newton steps (each on a Jacobian of its own point) before the fit falls back to

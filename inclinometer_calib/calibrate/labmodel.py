@@ -181,7 +181,7 @@ class LabModel:
 
     def set_vector(self, vec) -> None:
         vec = np.asarray(vec, dtype=float)
-        n = len(self.probe.param_names())
+        n = sum(t.effect.n_params for t in self.probe.terms)      # len(param_names()), without the names
         self.probe.set_vector(vec[:n])
         i = n
         if self.fit_dip:
@@ -226,7 +226,8 @@ class LabModel:
         """The stations' :class:`effects.History` (of those in ``mask``), or None when no effect
         of the model needs it.  The previous hold's input is its true vectors where its attitude
         is known (a pose or a reference), else its measured means."""
-        if "history" not in self.probe.needs("cal") + self.probe.needs("val"):
+        # (every term acts on cal or val data: needs("cal") + needs("val") in one pass over the terms)
+        if not any("history" in type(t.effect).context_needs() for t in self.probe.terms):
             return None
         m = np.ones(len(data), bool) if mask is None else mask
         rt = np.swapaxes(data.prev_rotation[m], -1, -2)

@@ -51,10 +51,20 @@ def _free_sigmas(data, model):
     return sg, sb, sdip
 
 
-def smooth(model, data) -> float:
+def smooth(model, data, posterior_below: float | None = None) -> float:
     """Estimate the paths of ``model``'s stochastic effects from ``data`` (in place); the other
     parameters are held.  Returns the largest change of a path, in units of its density over the
-    mean station spacing (0 when the model has no stochastic effect)."""
+    mean station spacing (0 when the model has no stochastic effect).  ``posterior_below``: the
+    path's σ and effective degrees of freedom only when the change is below it (else NaN: the fit's
+    alternation keeps only the last smoothing's, and the covariance is most of a smoothing's work);
+    None: always.
+
+    The normal matrix ``N = AᵀA`` of the rows below (the data's, the walk's, the gauge's) is solved
+    by its Cholesky factor (LAPACK ``potrf``/``potrs``), and the posterior covariance ``N⁻¹`` taken
+    from the same factor (``potri``): ``N`` is symmetric positive definite (the walk joins the knots,
+    the gauge holds the constant the data might leave), a third of the work of a general inverse,
+    and no second factorisation for the path (a sparse solve of the same ``N``, which the gauge's
+    full rows make dense, was as dear as the inverse)."""
     terms = stochastic_terms(model)
     if not terms or not len(data):
         return 0.0
@@ -68,26 +78,28 @@ def smooth(model, data) -> float:
     n_ax = [len(t.effect.axes) for t in terms]
     offset = np.concatenate([[0], np.cumsum([nk * n for n in n_ax])])
     n_state = int(offset[-1])
-    rows, cols, vals, rhs = [], [], [], []
-    n_row = [0]
+    rows, cols, vals, rhs = [], [], [], []          # blocks of triplets (row numbers from 0 per block)
+    n_row = 0
 
-    def add(row_cols, row_vals, b):
-        rows.extend([n_row[0]] * len(row_cols))
-        cols.extend(row_cols)
-        vals.extend(row_vals)
-        rhs.append(b)
-        n_row[0] += 1
-
-    def states(i, station_k):
-        """Column of each acted-on axis of term i at knot ``station_k``, as {tool axis: column}."""
-        e = terms[i].effect
-        return {"xyz".index(a): int(offset[i] + station_k * n_ax[i] + j) for j, a in enumerate(e.axes)}
+    def block(r, c, v, b):
+        """Rows ``r`` (numbered within the block) with columns ``c`` and values ``v``; right sides ``b``."""
+        nonlocal n_row
+        rows.append(np.asarray(r, dtype=np.int64) + n_row)
+        cols.append(np.asarray(c, dtype=np.int64))
+        vals.append(np.asarray(v, dtype=float))
+        rhs.append(np.asarray(b, dtype=float))
+        n_row += len(rhs[-1])
 
     def acts(i, role):
-        return terms[i].acts_on(role)
+        return np.array([terms[i].acts_on(r) for r in role], dtype=bool)
+
+    def axis_cols(i):
+        """The tool axis of each of term i's state columns within a knot."""
+        return np.array(["xyz".index(a) for a in terms[i].effect.axes], dtype=np.int64)
 
     ori = data.oriented
     if ori.any():
+        # an oriented station says w = its residual on each acted-on axis (H = I)
         d = data.subset(ori)
         g_t, b_t = model.true_vectors(d)
         h_g, h_b = model.forward(d, g_t, b_t)
@@ -96,11 +108,11 @@ def smooth(model, data) -> float:
         ks = kidx[ori]
         for i, t in enumerate(terms):
             s = t.effect.sensor
-            for n in range(len(d)):
-                if not acts(i, d.role[n]):
-                    continue
-                for ax, c in states(i, ks[n]).items():
-                    add([c], [1.0 / sig[s][n, ax]], res[s][n, ax] / sig[s][n, ax])
+            n = np.flatnonzero(acts(i, d.role))
+            ax = axis_cols(i)
+            c = offset[i] + ks[n][:, None] * n_ax[i] + np.arange(n_ax[i])[None, :]
+            sg = sig[s][n][:, ax]
+            block(np.arange(c.size), c.ravel(), (1.0 / sg).ravel(), (res[s][n][:, ax] / sg).ravel())
     if (~ori).any():
         d = data.subset(~ori)
         g, b = model.correct(d)
@@ -113,67 +125,67 @@ def smooth(model, data) -> float:
         e_b = bn - model.site.total_field_nt
         e_dip = np.degrees(np.arcsin(sin_d)) - model.dip_deg
         ks = kidx[~ori]
-        for n in range(len(d)):
-            # ∂(invariant)/∂w per sensor (3,), see the module docstring
-            dg = {"acc": -gh[n], "mag": np.zeros(3)}
-            db = {"acc": np.zeros(3), "mag": -bh[n]}
-            ddip = {"mag": -np.degrees((gh[n] - sin_d[n] * bh[n]) / bn[n] / cos_d[n]),
-                    "acc": -np.degrees((bh[n] - sin_d[n] * gh[n]) / gn[n] / cos_d[n])}
-            for jac, e, s_ in ((dg, e_g[n], sg[n]), (db, e_b[n], sb[n]), (ddip, e_dip[n], sdip[n])):
-                c_, v_ = [], []
-                for i, t in enumerate(terms):
-                    if not acts(i, d.role[n]):
-                        continue
-                    for ax, c in states(i, ks[n]).items():
-                        if jac[t.effect.sensor][ax] != 0:
-                            c_.append(c)
-                            v_.append(jac[t.effect.sensor][ax] / s_)
-                if c_:
-                    add(c_, v_, -e / s_)
-    n_data = n_row[0]
+        # ∂(invariant)/∂w per sensor, (stations, 3) each (see the module docstring)
+        zero = np.zeros_like(gh)
+        jacs = (({"acc": -gh, "mag": zero}, e_g, sg),
+                ({"acc": zero, "mag": -bh}, e_b, sb),
+                ({"mag": -np.degrees((gh - sin_d[:, None] * bh) / bn[:, None] / cos_d[:, None]),
+                  "acc": -np.degrees((bh - sin_d[:, None] * gh) / gn[:, None] / cos_d[:, None])}, e_dip, sdip))
+        # per station and invariant one row over every term's acted-on axes (those with a
+        # derivative); a row with none is left out
+        c_all = np.concatenate([offset[i] + ks[:, None] * n_ax[i] + np.arange(n_ax[i])[None, :]
+                                for i in range(len(terms))], axis=1)
+        for jac, e, s_ in jacs:
+            v_all = np.concatenate([np.where(acts(i, d.role)[:, None], jac[t.effect.sensor][:, axis_cols(i)], 0.0)
+                                    for i, t in enumerate(terms)], axis=1) / s_[:, None]
+            nz = v_all != 0
+            keep = nz.any(axis=1)
+            r = np.cumsum(keep) - 1
+            rr, cc = np.nonzero(nz)
+            block(r[rr], c_all[rr, cc], v_all[rr, cc], (-e / s_)[keep])
+    n_data = n_row
     # the random-walk prior between consecutive knots, and the gauge (the path's mean at zero)
     dt = np.diff(knots)
     span = max(float(knots[-1] - knots[0]), 1.0)
     prior_rows = []
     for i, t in enumerate(terms):
-        first = n_row[0]
+        first = n_row
         dens = np.asarray(t.effect.values["density"], dtype=float)
         for j in range(n_ax[i]):
             col = offset[i] + np.arange(nk) * n_ax[i] + j
             if dens[j] <= 0:           # no wander on this axis: held at zero
-                for c in col:
-                    add([int(c)], [1.0 / GAUGE], 0.0)
+                block(np.arange(nk), col, np.full(nk, 1.0 / GAUGE), np.zeros(nk))
                 continue
-            for k in range(nk - 1):
-                w = 1.0 / (dens[j] * np.sqrt(dt[k]))
-                add([int(col[k + 1]), int(col[k])], [w, -w], 0.0)
-            add([int(c) for c in col], [1.0 / (nk * GAUGE * dens[j] * np.sqrt(span))] * nk, 0.0)
-        prior_rows.append(slice(first, n_row[0]))
-    from scipy import sparse                      # here: scipy.sparse is 0.1 s of every process importing the lab
-    from scipy.sparse.linalg import spsolve
+            w = 1.0 / (dens[j] * np.sqrt(dt))
+            k = np.arange(nk - 1)
+            block(np.repeat(k, 2), np.column_stack([col[1:], col[:-1]]).ravel(), np.column_stack([w, -w]).ravel(),
+                  np.zeros(nk - 1))
+            block(np.zeros(nk, dtype=np.int64), col, np.full(nk, 1.0 / (nk * GAUGE * dens[j] * np.sqrt(span))), [0.0])
+        prior_rows.append(slice(first, n_row))
+    # here: scipy.sparse is 0.1 s of every process importing the lab
+    from scipy import sparse
 
-    a = sparse.csr_matrix((vals, (rows, cols)), shape=(n_row[0], n_state))
-    rhs = np.asarray(rhs)
-    normal = (a.T @ a).tocsc()
-    x = spsolve(normal, a.T @ rhs)
+    rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    a = sparse.csr_matrix((vals, (rows, cols)), shape=(n_row, n_state))
+    rhs = np.concatenate(rhs)
+    normal = a.T @ a
+    atb = a.T @ rhs
     # the posterior σ of the path and the effective degrees of freedom per axis
     std = np.full(n_state, np.nan)
     edf = np.full(n_state, np.nan)
-    if n_state <= DENSE_STATES:
-        cov = np.linalg.inv(normal.toarray())
-        ad = a[:n_data]
-        info = (ad.T @ ad).toarray()
-        std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        edf = np.einsum("ij,ji->i", cov, info)
+    factor = _cholesky(normal, atb) if n_state <= DENSE_STATES else None
+    if factor is not None:
+        c, x = factor
+    else:
+        from scipy.sparse.linalg import spsolve
+        x = spsolve(normal.tocsc(), atb)
     r_prior = a @ x - rhs          # each term's roughness penalty: its prior rows' χ²
     change = 0.0
     for i, t in enumerate(terms):
         e = t.effect
-        block = slice(offset[i], offset[i + 1])
+        blk = slice(offset[i], offset[i + 1])
         e.knots_s = knots.copy()
-        e.path = x[block].reshape(nk, n_ax[i])
-        e.path_std = std[block].reshape(nk, n_ax[i])
-        e.edf = edf[block].reshape(nk, n_ax[i]).sum(axis=0)
+        e.path = x[blk].reshape(nk, n_ax[i])
         e.penalty = float(np.sum(r_prior[prior_rows[i]] ** 2))
         k0, p0 = old[i]
         if len(k0):
@@ -183,7 +195,45 @@ def smooth(model, data) -> float:
             change = max(change, float(np.max(np.abs(e.path - prev) / scale)))
         else:
             change = float("inf")
+    if factor is not None and (posterior_below is None or change < posterior_below):
+        std, edf = _posterior(c, a, n_data)
+    for i, t in enumerate(terms):
+        blk = slice(offset[i], offset[i + 1])
+        t.effect.path_std = std[blk].reshape(nk, n_ax[i])
+        t.effect.edf = edf[blk].reshape(nk, n_ax[i]).sum(axis=0)
     return change
+
+
+def _cholesky(normal, atb):
+    """``(factor, path)``: the dense Cholesky factor of the normal matrix ``normal`` (``AᵀA``,
+    sparse) and the path ``N⁻¹·Aᵀb`` from it; None when ``normal`` is not numerically positive
+    definite (the caller solves it sparsely, without σ)."""
+    from scipy.linalg import lapack
+
+    c, info = lapack.dpotrf(normal.toarray(), lower=True, clean=False, overwrite_a=True)
+    if info != 0:
+        return None
+    x, info = lapack.dpotrs(c, atb, lower=True)
+    return None if info else (c, x)
+
+
+def _posterior(c, a, n_data: int):
+    """``(σ, edf)`` per state from the Cholesky factor ``c`` of ``N``: the posterior σ
+    ``√diag(N⁻¹)`` and the effective degrees of freedom ``(N⁻¹·AdᵀAd)ᵢᵢ`` (``Ad`` the first
+    ``n_data`` rows of ``a``, the data's; only the entries of ``AdᵀAd`` that are not zero are
+    needed).  NaN when the inverse cannot be formed."""
+    from scipy.linalg import lapack
+
+    n = c.shape[0]
+    cov, info = lapack.dpotri(c, lower=True)
+    if info:
+        return np.full(n, np.nan), np.full(n, np.nan)
+    ad = a[:n_data]
+    data_info = (ad.T @ ad).tocoo()
+    # N⁻¹ is symmetric: its lower triangle (what potri gives) serves every entry
+    r, k = np.maximum(data_info.row, data_info.col), np.minimum(data_info.row, data_info.col)
+    edf = np.bincount(data_info.row, weights=cov[r, k] * data_info.data, minlength=n)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0)), edf
 
 
 def penalty_total(model) -> float:

@@ -365,18 +365,34 @@ class NonOrthogonality(Effect):
     def _apply(self, v, ctx):
         # every output axis at once from the input as it was: per element the same two products
         # and sums as axis by axis, so the same bits
-        b = self._idx()
-        first = [OTHER_AXES[i][0] for i in b]
-        second = [OTHER_AXES[i][1] for i in b]
+        first, second = _other_axes(self.axes)
         v[:, self._cols()] += self.values["e1"] * v[:, first] + self.values["e2"] * v[:, second]
 
     @staticmethod
     def term_names(axis: str) -> tuple:
         """Paper names of (e1, e2) for output axis ``axis``: e.g. y → (e_xy, e_zy)."""
-        b = AXIS_INDEX[axis]
-        others = [i for i in range(3) if i != b]
-        inv = {v: k for k, v in E_TERMS.items()}
-        return inv[(b, others[0])], inv[(b, others[1])]
+        return _E_NAMES[axis]
+
+
+def _e_names(axis: str) -> tuple:
+    b = AXIS_INDEX[axis]
+    others = [i for i in range(3) if i != b]
+    inv = {v: k for k, v in E_TERMS.items()}
+    return inv[(b, others[0])], inv[(b, others[1])]
+
+
+#: :meth:`NonOrthogonality.term_names` of each axis (worked out once: a fit asks thousands of times).
+_E_NAMES = {a: _e_names(a) for a in "xyz"}
+_OTHER = {}
+
+
+def _other_axes(axes: str) -> tuple:
+    """The columns of the first and of the second other axis of each of ``axes`` (as index lists,
+    kept per ``axes``: the non-orthogonality is applied thousands of times a fit)."""
+    if axes not in _OTHER:
+        b = [AXIS_INDEX[a] for a in axes]
+        _OTHER[axes] = ([OTHER_AXES[i][0] for i in b], [OTHER_AXES[i][1] for i in b])
+    return _OTHER[axes]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -929,10 +945,16 @@ def apply_chain(v: np.ndarray, effects, ctx: Context, stages=STAGES, prepared: b
     out = np.asarray(v, dtype=float)
     if not prepared:
         ctx = chain_context(effects, ctx)
+    own = False     # ``out`` is a copy Effect.apply made in this call: the next effect may change it in place
     for stage in stages:
         for eff in effects:
             if eff.stage == stage:
-                out = eff.apply(out, ctx)
+                plain = type(eff).apply is Effect.apply
+                if own and plain:
+                    eff._apply(out, ctx)          # what apply() does, without its copy
+                else:
+                    out = eff.apply(out, ctx)
+                    own = plain
     return out
 
 

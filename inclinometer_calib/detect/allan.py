@@ -1,7 +1,7 @@
 """The sensors' noise model from static data: Allan deviation per axis and its IEEE figures — ROS-free.
 
 A static hold's samples of one axis are a constant (the input) plus the sensor's noise.  Their
-overlapping Allan variance at averaging time ``τ`` (computed by ``allantools.oadev``, the values
+overlapping Allan variance at averaging time ``τ`` (``allantools.oadev``'s, :func:`oadev_octaves`; the values
 treated as rate data) separates the noise processes by their slope (IEEE Std 952 / 1554)::
 
     σ²(τ) = N²/τ  +  (2·ln2/π)·B²  +  K²·τ/3
@@ -105,28 +105,55 @@ def _allan_curve(segs, rate_hz):
     ms = 2 ** np.arange(0, max(int(math.log2(max(n_max // 3, 1))) + 1, 1))
     acc = np.zeros((len(ms), 3))
     wsum = np.zeros((len(ms), 3))
+    edf = {}
     for s in segs:
         n = len(s)
         ok = ms[3 * ms <= n]
         if not len(ok):
             continue
-        for j in range(3):
-            x = s[:, 1 + j]
-            if not np.all(np.isfinite(x)) or np.ptp(x) == 0:      # a flat or broken axis says nothing
-                continue
-            _, ad, _, _ = allantools.oadev(x, rate=rate_hz, data_type="freq", taus=ok / rate_hz)
-            for k, m in enumerate(ok):
-                if k >= len(ad) or not np.isfinite(ad[k]):
-                    continue
+        x = s[:, 1:4].T            # axis by axis, each row contiguous (its sums as of a 1-D array's)
+        use = np.all(np.isfinite(x), axis=1) & (np.ptp(x, axis=1) != 0)   # a flat or broken axis says nothing
+        if not use.any():
+            continue
+        ad = oadev_octaves(np.ascontiguousarray(x[use]), rate_hz, ok)
+        for k, m in enumerate(ok):
+            if (n, m) not in edf:        # the same for every axis of a hold: worked out once
                 # the fewer of white and random-walk noise's (the process is not known yet)
-                e = min(float(allantools.edf_simple(n, int(m), 0)), float(allantools.edf_simple(n, int(m), -2)))
-                i = int(np.searchsorted(ms, m))
-                acc[i, j] += e * ad[k] ** 2
-                wsum[i, j] += e
+                edf[n, m] = min(float(allantools.edf_simple(n, int(m), 0)),
+                                float(allantools.edf_simple(n, int(m), -2)))
+            e = edf[n, m]
+            i = int(np.searchsorted(ms, m))
+            for j, a in zip(np.flatnonzero(use), ad[:, k]):
+                if np.isfinite(a):
+                    acc[i, j] += e * a ** 2
+                    wsum[i, j] += e
     keep = np.any(wsum > 0, axis=1)        # an axis without data at a τ (flat, broken) is NaN there
     with np.errstate(invalid="ignore", divide="ignore"):
         adev = np.where(wsum[keep] > 0, np.sqrt(acc[keep] / np.where(wsum[keep] > 0, wsum[keep], 1.0)), np.nan)
     return AllanCurve(ms[keep] / rate_hz, adev, wsum[keep], float(rate_hz), len(segs))
+
+
+def oadev_octaves(x, rate_hz: float, ms) -> np.ndarray:
+    """Overlapping Allan deviation of the rate data ``x`` (finite: one axis of a hold, or a row per
+    axis) at the averaging factors ``ms`` (each with ``3·m ≤`` the samples): per row
+    ``allantools.oadev(x, rate=rate_hz, data_type="freq", taus=ms / rate_hz)``'s values — the same
+    operations on the same numbers, each row's sums along its contiguous samples as of a 1-D array
+    (so the same bits: test/detect/test_allan.py holds them equal) — without its per-call
+    preparation of the τ list, and the axes of a hold at once (a diagnosis took a third of its time
+    in ``oadev``).  NIST SP 1065 eq. (11): the phase ``x_k = Σ (y − ȳ)·τ₀`` and
+    ``σ²(mτ₀) = Σ (x_{k+2m} − 2x_{k+m} + x_k)² / (2 (mτ₀)² (N − 2m))``."""
+    x = np.asarray(x, dtype=float)
+    one = x.ndim == 1
+    x = np.atleast_2d(x)
+    # allantools.frequency2phase: the mean taken off before the sum (its precision), a 0 in front
+    phase = np.insert(np.cumsum(x - np.mean(x, axis=1, keepdims=True), axis=1) * (1.0 / float(rate_hz)), 0, 0, axis=1)
+    out = np.empty((len(x), len(ms)))
+    for k, m in enumerate(ms):
+        m = int(m)
+        n = phase.shape[1] - 2 * m          # allantools.calc_adev_phase with stride 1
+        v = phase[:, 2 * m:][:, :n] - 2 * phase[:, m:][:, :n] + phase[:, :n]
+        out[:, k] = np.sqrt(np.sum(v * v, axis=1) / (2.0 * n)) / m * rate_hz
+    return out[0] if one else out
 
 
 @dataclass

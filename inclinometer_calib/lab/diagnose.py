@@ -38,11 +38,11 @@ from scipy.special import chdtrc
 from ..core import effects as fx
 from ..core.station import Stations
 from ..calibrate.blas import one_thread
-from ..calibrate.fit import fit, physical_hints, residual_groups, residual_vector
+from ..calibrate.fit import fit, physical_hints, residual_groups
 from ..calibrate.labmodel import N_POSES, POSES_LABEL, LabModel
 from .noise import noise_json, noise_model, walk_axes
 from ..calibrate.wander import penalty_total
-from .stats import regress
+from .stats import regress_many
 from .uncertainty import noise_floor, normalised_errors
 
 #: Family-wise false-alarm rate of a diagnosis (Bonferroni over the candidates tested).
@@ -217,51 +217,47 @@ def field_fit(model: LabModel, data: Stations, uncertainty: bool = True, progres
                give_hint=give_hint)
 
 
-def validation(model: LabModel, data: Stations, survey_invariants: bool = True) -> dict:
+def validation(model: LabModel, data: Stations, survey_invariants: bool = True, pointing: bool = False):
     """The headline errors of a field-fitted model (:func:`field_fit`): drift, azimuth and pointing
     RMS on every validation station with a reference (a vertical one counts for drift; its azimuth
     is undefined), labelled ``kind``: ``field`` (the validation references were not fitted) or
-    ``in-sample`` (no validation log: the calibration stations the model was fitted on)."""
+    ``in-sample`` (no validation log: the calibration stations the model was fitted on).
+    ``pointing``: also each of those stations' pointing error (deg, :func:`val_metrics`'s, from the
+    same corrected angles; None in-sample): ``(figures, errors)``."""
     val = data.role == "val"
     has_val = val & np.isfinite(data.ref[:, 0])
     if has_val.any():
-        out = val_metrics(model, data.subset(has_val))
+        out, pe = _val_metrics(model, data.subset(has_val))
         out["kind"] = "field"
         cal = "calibration log" + ("s" if _n_sources(data, "cal") > 1 else "")
         out["label"] = (f"field: fitted on the {cal}" + (" and the survey's |g|, |B|, dip" if survey_invariants else
                         " only") + f", errors on the whole validation log ({int(has_val.sum())} stations, its "
                         "reference angles never fitted)")
-        return out
+        return (out, pe) if pointing else out
     has = np.isfinite(data.ref[:, 0])
     out = val_metrics(model, data.subset(has)) if has.any() else {"stations": 0}
     out["kind"] = "in-sample"
     out["label"] = ("in-sample: no validation log — errors on the calibration stations the model was fitted on "
                     "(they understate the field error)")
-    return out
+    return (out, None) if pointing else out
 
 
 def _n_sources(data, role):
     return len(set(data.source[data.role == role]))
 
 
-def pointing_errors(model: LabModel, data) -> np.ndarray:
-    """Per validation station with a reference drift: the pointing error (deg) of ``model``."""
-    d = data.subset((data.role == "val") & np.isfinite(data.ref[:, 0]))
-    if not len(d):
-        return np.zeros(0)
-    r = model.angle_errors(d)
-    ae = np.asarray(r["azimuth_err"], dtype=float)
-    ok = np.isfinite(ae) & np.isfinite(d.ref[:, 1])
-    return np.sqrt(r["drift_err"] ** 2 + np.where(ok, np.sin(np.radians(d.ref[:, 0])) * np.nan_to_num(ae), 0.0) ** 2)
-
-
 def val_metrics(model: LabModel, data) -> dict:
     """Angle errors of the stations with a reference drift: drift RMS over all of them, azimuth
     and pointing (``sqrt(Δdrift² + (sin(drift)·Δazimuth)²)``) over those with a reference azimuth
     (deg); the counts of each."""
+    return _val_metrics(model, data)[0]
+
+
+def _val_metrics(model: LabModel, data) -> tuple:
+    """:func:`val_metrics` and the per-station pointing errors its RMS is taken from."""
     has = np.isfinite(data.ref[:, 0])
     if not has.any():
-        return {"stations": 0}
+        return {"stations": 0}, np.zeros(0)
     d = data.subset(has)
     r = model.angle_errors(d)
     de = r["drift_err"]
@@ -276,7 +272,7 @@ def val_metrics(model: LabModel, data) -> dict:
     return {"stations": int(has.sum()), "azimuth_stations": int(ok.sum()),
             "drift_rms_deg": rms(de), "drift_max_abs_deg": float(np.max(np.abs(de))),
             "azimuth_rms_deg": rms(ae[ok]), "azimuth_max_abs_deg": float(np.max(np.abs(ae[ok]))) if ok.any()
-            else float("nan"), "pointing_rms_deg": rms(pe)}
+            else float("nan"), "pointing_rms_deg": rms(pe)}, pe
 
 
 def blocked_folds(data, k):
@@ -387,10 +383,12 @@ def residual_structure(model: LabModel, data, alpha: float = 1e-3, top: int = 8)
         chans["azimuth error"] = np.where(has, np.nan_to_num(r["azimuth_err"], nan=np.nan), np.nan)
     regs = regressors(d, model)
     n_tests = len(chans) * len(regs)
+    # y = a + b x: the F-test the field monitor uses too, each regressor against every channel at once
+    tested = {rname: dict(zip(chans, regress_many([(y, x) for y in chans.values()]))) for rname, x in regs.items()}
     found = []
-    for cname, y in chans.items():
-        for rname, x in regs.items():
-            tr = regress(y, x)          # y = a + b x: the F-test the field monitor uses too
+    for cname in chans:
+        for rname in regs:
+            tr = tested[rname][cname]
             if tr is None or tr.n < 8:
                 continue
             if tr.p * n_tests < alpha:
@@ -522,19 +520,24 @@ def _walk_untestable(eff, noise) -> dict:
 
 @one_thread
 def diagnose(data, model: LabModel | None = None, site=None, candidates=None, progress=None,
-             alpha: float | None = None) -> Diagnosis:
-    """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects."""
+             alpha: float | None = None, fitted=None) -> Diagnosis:
+    """Field-fit ``model`` (default: the paper's base), test its residuals, rank candidate effects.
+    ``fitted``: ``(copy of model, its field_fit(..., give_hint=True))`` when the caller has made that
+    very fit (:func:`ladder`), taken instead of making it again."""
     a_level = ALPHA if alpha is None else alpha
     say = progress or (lambda m: None)
     if model is None:
         model = LabModel.base(site)
-    model = copy.deepcopy(model)
     say(f"fitting {model.describe()}")
-    base_fit = field_fit(model, data, give_hint=True)     # its Jacobian serves every candidate's first
-    base_val = validation(model, data)
+    if fitted is not None:
+        model, base_fit = fitted
+    else:
+        model = copy.deepcopy(model)
+        base_fit = field_fit(model, data, give_hint=True)     # its Jacobian serves every candidate's first
+    base_val, pe_base = validation(model, data, pointing=True)   # and the stations' pointing errors
     base_score = base_val.get("pointing_rms_deg", float("nan"))
     fd = fit_data(data)
-    r_base = residual_vector(model, fd, prior=False)
+    r_base = base_fit.residuals          # residual_vector(model, fd, prior=False) at its solution
     losses = list(data.losses)
     missing = _base_unidentified(base_fit)
     if missing:
@@ -567,7 +570,6 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
     n_tests = max(len(trials) + int(bool(heading)), 1)
     ranked = []
     by_field = base_val.get("kind") == "field"
-    pe_base = pointing_errors(model, data) if by_field else None
     groups = residual_groups(fd)
     cal_rows = np.char.startswith(groups.astype(str), "cal ") & np.isin(groups, ["cal acc", "cal mag"])
     cal_misfit = bool(cal_rows.any() and np.mean(r_base[cal_rows] ** 2) > Z_RMS_LIMIT ** 2)
@@ -588,10 +590,10 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
                 label = trial.probe.terms[-1].label
                 f, wchi2, p, _ = test(trial, label)
                 axes = sig_axes
-        val = validation(trial, data)
+        val, pe = validation(trial, data, pointing=True)     # and the stations' pointing errors
         sc = val.get("pointing_rms_deg", float("nan"))
         gain = 1.0 - sc / base_score if base_score > 0 and np.isfinite(sc) else 0.0
-        r = residual_vector(trial, fd, prior=False)
+        r = f.residuals           # the fit's at its solution (residual_vector(trial, fd, prior=False))
         transfers, p_field, why = True, float("nan"), ""
         # An effect whose evidence lies only in the survey's invariants, while the calibration
         # itself is not explained (its poses misfit beyond the noise, and the effect does not help
@@ -606,7 +608,7 @@ def diagnose(data, model: LabModel | None = None, site=None, candidates=None, pr
             # the stations' squared pointing errors, candidate minus base)
             from scipy.stats import ttest_1samp   # here: scipy.stats costs every process that imports the lab 0.3 s
 
-            diff = pointing_errors(trial, data) ** 2 - pe_base ** 2
+            diff = pe ** 2 - pe_base ** 2
             p_field = float(ttest_1samp(diff, 0.0, alternative="greater").pvalue) if np.any(diff != 0) else 1.0
             if p_field < WORSE:
                 transfers = False
@@ -795,6 +797,7 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
     by ``D``.  Otherwise the wander is fitted on top, and if ``D`` is no longer significant (Wald,
     Bonferroni) ``D`` is explained by the wander; else both stay, the wander ranked after ``D``."""
     det = [c for c in ranked if c.significant and c.transfers and not c.stochastic and not c.note.startswith(SET_ASIDE)]
+    with_d = {}        # the model with D, fitted, its noise model and held-out figure: the same for every wander
     for sc in [c for c in ranked if c.stochastic and c.significant and not c.note]:
         if not det:
             return
@@ -803,11 +806,13 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
             sc.after = True
             continue
         say(f"weighing {sc.label} against {d.label}")
-        md = model.with_effect(copy.deepcopy(d.instance), d.scope)
+        if not with_d:
+            md = model.with_effect(copy.deepcopy(d.instance), d.scope)
+            field_fit(md, data, uncertainty=False)
+            with_d.update(md=md, noise=noise_model(md, data))
+        md = with_d["md"]
         d_label = md.probe.terms[-1].label
-        field_fit(md, data, uncertainty=False)
-        nz = noise_model(md, data)
-        k = nz[sc.sensor].walk_density()
+        k = with_d["noise"][sc.sensor].walk_density()
         axes = "".join(a for a in sc.axes if k["xyz".index(a)] > 0)
         if not axes:
             sc.note = (f"explained by {d.label}: with it in the model the noise model resolves no random walk on "
@@ -829,7 +834,10 @@ def _settle_stochastic(ranked, model: LabModel, data, n_tests: int, say) -> None
             # held-out blocks of the survey better than D does (else D first, the wander after it)
             folds = blocked_folds(data, HELD_OUT_FOLDS)
             a = cross_validate(ms, data, folds).get("pointing_rms_deg", float("nan")) if folds else float("nan")
-            b = cross_validate(md, data, folds).get("pointing_rms_deg", float("nan")) if folds else float("nan")
+            if "held_out" not in with_d:
+                with_d["held_out"] = cross_validate(md, data, folds).get("pointing_rms_deg", float("nan")) \
+                    if folds else float("nan")
+            b = with_d["held_out"]
             if a < b:
                 d.note = (f"explained by {sc.label}: no longer significant once the wander is fitted "
                           f"(likelihood ratio χ² {lr:.1f}, p {min(p * n_tests, 1.0):.2g}), and the wander predicts "
@@ -1077,8 +1085,10 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
     model = start if start is not None else LabModel.base(site)
     steps = []
     notes = []
+    fitted = None
     for _ in range(max_steps + 1):
-        dg = diagnose(data, model, progress=progress, candidates=candidates)
+        dg = diagnose(data, model, progress=progress, candidates=candidates, fitted=fitted)
+        fitted = None
         dg.notes = notes + dg.notes
         steps.append(dg)
         rec = dg.recommended
@@ -1096,11 +1106,16 @@ def ladder(data, site, max_steps: int = 4, progress=None, candidates=None, start
         # (a wander has no parameters for a Wald test; it is tried after the deterministic effects)
         earlier = [t.label for t in model.extra_terms if t.label != new_label and not t.effect.stochastic]
         if earlier:
-            f = field_fit(copy.deepcopy(model), data)
+            # the next rung's base fit (give_hint: as diagnose makes it), which it takes when no
+            # effect is removed
+            fm = copy.deepcopy(model)
+            f = field_fit(fm, data, give_hint=True)
+            fitted = (fm, f)
             for label in earlier:
                 _, _, p = f.wald(model.param_index(label))
                 if p * len(earlier) > ALPHA:
                     model = model.without(label)
+                    fitted = None
                     notes.append(f"removed {label}: made redundant by {new_label} (its parameters are no longer "
                                  f"significant with {new_label} in the model, p {min(p * len(earlier), 1):.2f})")
     return steps

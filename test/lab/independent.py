@@ -20,7 +20,6 @@ station's mean output corrected with the true parameters (what a perfect model w
 """
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 
@@ -118,6 +117,7 @@ def _stream(holds, rate_hz, move_s, t0):
     ts, rots, idx = [], [], []
     t = t0
     prev = None
+    each = Rotation.concatenate([h.rot for h in holds])     # a hold's samples: its rotation, indexed
     for k, h in enumerate(holds):
         if prev is not None:
             n = max(int(round(move_s * rate_hz)), 2)
@@ -128,7 +128,7 @@ def _stream(holds, rate_hz, move_s, t0):
             t += n / rate_hz
         n = int(round(h.seconds * rate_hz))
         ts.append(t + np.arange(n) / rate_hz)
-        rots.append(Rotation.concatenate([h.rot] * n))
+        rots.append(each[np.full(n, k)])
         idx.append(np.full(n, k))
         t += n / rate_hz
         prev = h
@@ -208,25 +208,24 @@ class Generator:
         held = np.maximum.accumulate(np.where(idx >= 0, idx, -1))
         prev = np.where(idx >= 0, idx - 1, held)
         prev_ok = (prev >= 0).astype(float)
-        prev_rot = Rotation.concatenate([holds[max(k, 0)].rot for k in prev])
+        prev_rot = Rotation.concatenate([h.rot for h in holds])[np.maximum(prev, 0)]
         first = (idx >= 0) & np.r_[True, idx[1:] != idx[:-1]]          # each hold's first sample
         t_first = np.full(len(holds), np.nan)
         t_first[idx[first]] = t[first]
         since = np.where(idx >= 0, t - t_first[np.maximum(idx, 0)], np.nan)
         self.hold_starts += [(float(t_first[k]), holds[k - 1].rot if k else None) for k in range(len(holds))]
         acc, mag = self.outputs(t, rot, temp, prev_rot, prev_ok, survey, since)
+        # the rows as csv.writer writes them (no field needs quoting; "\r\n" ends each), column by column
+        f = -acc                                             # specific force: a resting probe reads -gravity
+        cols = [[format(v, spec) for v in x.tolist()] for x, spec in
+                ((t, ".3f"), (f[:, 0], ".6f"), (f[:, 1], ".6f"), (f[:, 2], ".6f"), (mag[:, 0], ".2f"),
+                 (mag[:, 1], ".2f"), (mag[:, 2], ".2f"), (temp, ".3f"))]
+        label = [",".join([str(h.pose) if h.pose else ""] + ["" if v is None else f"{v:.1f}" for v in h.ref])
+                 if labels else ",,," for h in holds]
+        lab = [label[k] if k >= 0 else ",,," for k in idx.tolist()]
+        head = "t_s,ax,ay,az,mx,my,mz,temp_c,pose,ref_drift_deg,ref_azimuth_deg,ref_toolface_deg"
         with open(path, "w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(["t_s", "ax", "ay", "az", "mx", "my", "mz", "temp_c", "pose", "ref_drift_deg",
-                        "ref_azimuth_deg", "ref_toolface_deg"])
-            for k in range(len(t)):
-                h = holds[idx[k]] if idx[k] >= 0 else None
-                lab = ["", "", "", ""]
-                if h is not None and labels:
-                    lab = [str(h.pose) if h.pose else ""] + ["" if v is None else f"{v:.1f}" for v in h.ref]
-                f = -acc[k]                                  # specific force: a resting probe reads -gravity
-                w.writerow([f"{t[k]:.3f}", f"{f[0]:.6f}", f"{f[1]:.6f}", f"{f[2]:.6f}", f"{mag[k, 0]:.2f}",
-                            f"{mag[k, 1]:.2f}", f"{mag[k, 2]:.2f}", f"{temp[k]:.3f}"] + lab)
+            fh.write(head + "\r\n" + "".join(",".join(row) + "\r\n" for row in zip(*cols, lab)))
         return t
 
     def walk_at(self, sensor, times):

@@ -36,20 +36,42 @@ def run(tmp_path_factory):
     return d
 
 
+class RunsKept:
+    """Within ``with RunsKept() as kept:``, what every :func:`compare.compare` the command line calls
+    returns (``kept.runs``, one list per call): the tests read the runs the command computed and
+    wrote out, instead of replaying the bag through the same records a second time."""
+
+    def __enter__(self):
+        self._compare, self.runs = compare.compare, []
+
+        def kept(*args, **kwargs):
+            self.runs.append(self._compare(*args, **kwargs))
+            return self.runs[-1]
+
+        compare.compare = kept
+        return self
+
+    def __exit__(self, *exc):
+        compare.compare = self._compare
+        return False
+
+
 @pytest.fixture(scope="module")
 def ladder(run):
-    """``reprocess --compare none base model``: its output and the collisions inside its figures."""
+    """``reprocess --compare none base model``: its output, the collisions inside its figures, and
+    the runs it computed (by name)."""
     d = run
     out = io.StringIO()
-    with contextlib.redirect_stdout(out), report_layout.FiguresChecked() as figures:
+    with contextlib.redirect_stdout(out), report_layout.FiguresChecked() as figures, RunsKept() as kept:
         assert main(["reprocess", str(d / "val.mcap"), "--compare", "none", str(d / "base.yaml"),
                      str(d / "model.yaml"), "-o", str(d / "cmp")]) == 0
-    return d / "cmp", out.getvalue(), figures
+    (runs,) = kept.runs
+    return d / "cmp", out.getvalue(), figures, {r.name: r for r in runs}
 
 
 def test_the_ladder_is_written_as_markdown_and_html_and_falls_with_the_labs_model(run, ladder):
     d = run
-    cmp, out, _ = ladder
+    cmp, out, _, runs = ladder
     assert "errors against the bag's reference attitudes" in out
     for name in ("compare.md", "compare.html", "uncorrected.mcap", "base.mcap", "model.mcap"):
         assert (cmp / name).is_file(), name
@@ -58,10 +80,12 @@ def test_the_ladder_is_written_as_markdown_and_html_and_falls_with_the_labs_mode
     assert [r.split("|")[1].strip() for r in rows] == ["uncorrected", "base", "model"]
     html = (cmp / "compare.html").read_text()
     assert html.count("<img alt=") == 3 and html.count("src='data:image/png;base64,") == 3
-    base, model = Calibration.load(d / "base.yaml"), Calibration.load(d / "model.yaml")
-    runs = compare.compare(d / "val.mcap", [("base", base), ("model", model)], d / "api")
-    assert runs[1].metrics["azimuth_rms_deg"] < 0.5 * runs[0].metrics["azimuth_rms_deg"]
-    assert runs[0].metrics["model_misfit_flagged"] > 0 == runs[1].metrics["model_misfit_flagged"]
+    # the runs the command wrote (compare.compare's, the same records from the same files)
+    base, model = runs["base"], runs["model"]
+    assert base.calibration.id == Calibration.load(d / "base.yaml").id and base.bag == str(cmp / "base.mcap")
+    assert model.calibration.id == Calibration.load(d / "model.yaml").id and model.bag == str(cmp / "model.mcap")
+    assert model.metrics["azimuth_rms_deg"] < 0.5 * base.metrics["azimuth_rms_deg"]
+    assert base.metrics["model_misfit_flagged"] > 0 == model.metrics["model_misfit_flagged"]
 
 
 def test_the_compare_report_reads_at_a_glance_in_a_browser(ladder):
@@ -69,7 +93,7 @@ def test_the_compare_report_reads_at_a_glance_in_a_browser(ladder):
     azimuth RMS model by model, the lowest record, what the field monitor says of the one that
     misses the effect), every plot drawn, nothing on top of anything, no nan — the uncorrected
     run's missing QC residuals (no site given) said why."""
-    cmp, _, _ = ladder
+    cmp, _, _, _ = ladder
     lay = report_layout.layout(cmp / "compare.html")
     report_layout.check(lay, images=3)
     said = lay["summary"]["text"]
@@ -89,7 +113,7 @@ def test_the_compare_report_reads_at_a_glance_in_a_browser(ladder):
 def test_no_text_collides_inside_the_compare_reports_figures(ladder):
     """The ladder, the residuals against temperature and time, the residuals against azimuth and
     toolface: matplotlib's own text boxes, none over another or over another panel."""
-    _, _, figures = ladder
+    _, _, figures, _ = ladder
     assert figures.figures == 3 and figures.collisions == []
 
 
@@ -97,17 +121,17 @@ def test_without_a_reference_the_ladder_is_the_qc_residuals(run, capsys):
     d = run
     log, _ = read_csv(d / "sim" / "val.csv")
     write_probe_bag(log, d / "noref.mcap", reference=False)
-    assert main(["reprocess", str(d / "noref.mcap"), "--compare", str(d / "base.yaml"), str(d / "model.yaml"),
-                 "-o", str(d / "cmp2")]) == 0
+    with RunsKept() as kept:
+        assert main(["reprocess", str(d / "noref.mcap"), "--compare", str(d / "base.yaml"), str(d / "model.yaml"),
+                     "-o", str(d / "cmp2")]) == 0
     out = capsys.readouterr().out
     assert "no reference attitude in the bag: QC residuals against the site reference" in out
     lay = report_layout.layout(d / "cmp2" / "compare.html")       # the page in the QC residuals' words
     report_layout.check(lay, images=3)
     said = lay["summary"]["text"]
     assert re.search(r"ΔB RMS \S+ nT base → \S+ nT model; Δdip RMS \S+° → \S+°, the QC residuals", said), said
-    runs = compare.compare(d / "noref.mcap", [("base", Calibration.load(d / "base.yaml")),
-                                              ("model", Calibration.load(d / "model.yaml"))], d / "api2",
-                           monitor_window=0)
+    (runs,) = kept.runs             # what the command computed and wrote: base, then model
+    assert [r.name for r in runs] == ["base", "model"]
     assert "drift_rms_deg" not in runs[0].metrics
     assert runs[1].metrics["delta_b_rms_nt"] < 0.5 * runs[0].metrics["delta_b_rms_nt"]
     assert runs[1].metrics["delta_dip_rms_deg"] < 0.5 * runs[0].metrics["delta_dip_rms_deg"]

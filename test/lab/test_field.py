@@ -12,8 +12,19 @@ from inclinometer_calib.correct.pipeline import SurveyProcessor
 from inclinometer_calib.io.probelog import read_csv, segment_stations
 
 
+_SURVEYS = {}
+
+
 def _survey(tmp_path, effects=(), val_temp="25:60:40"):
-    """The stand's record (twelve poses at 25 °C) and the survey's stations of a simulated probe."""
+    """The stand's record (twelve poses at 25 °C) and the survey's stations of a simulated probe
+    (made once per module for the same effects and temperatures: the tests only read them)."""
+    key = (tuple(effects), val_temp)
+    if key not in _SURVEYS:
+        _SURVEYS[key] = _simulated_survey(tmp_path, effects, val_temp)
+    return _SURVEYS[key]
+
+
+def _simulated_survey(tmp_path, effects, val_temp):
     args = ["simulate", "--out", str(tmp_path), "--seed", "31", "--val-temp", val_temp]
     for e in effects:
         args += ["--effect", e]
@@ -37,6 +48,8 @@ def test_a_model_that_explains_the_survey_raises_no_alarm(tmp_path):
     assert not any(f["model_misfit"] for f in fields)
 
 
+# the temperature-bias survey serves two tests: one xdist group, so that they share it under scripts/test.sh
+@pytest.mark.xdist_group("lab-field-temperature")
 def test_a_missing_temperature_effect_is_named_with_its_size(tmp_path):
     base, truth, stations = _survey(tmp_path, ["temperature_bias:mag=3"])
     fields, monitor = _run(base, stations)
@@ -62,6 +75,7 @@ def test_axial_interference_is_told_from_a_temperature_effect(tmp_path):
     assert monitor.last.candidates[0]["label"] == "axial_interference:mag:z", monitor.last.text
 
 
+@pytest.mark.xdist_group("lab-field-temperature")
 def test_the_window_starts_again_with_another_record(tmp_path):
     base, truth, stations = _survey(tmp_path, ["temperature_bias:mag=3"])
     proc = SurveyProcessor(calibration=base, monitor=FieldMonitor(window=20))
