@@ -24,6 +24,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from ..core import effects as fx
+from ..core.formulas import dip_of
 from .blas import one_thread
 from .labmodel import LabModel
 from .wander import _free_sigmas, clear_paths, edf_total, smooth, stochastic_terms
@@ -121,7 +122,7 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
         b = triad("free mag", "mag", lambda: model.correct_triad("mag", d), cache is not None and cache.free_shared)
         sg, sb, sdip = _free_sigmas(d, model) if cache is None else cache.free_sigmas
         gn, bn = np.linalg.norm(g, axis=1), np.linalg.norm(b, axis=1)
-        dip = np.degrees(np.arcsin(np.clip(np.sum(g * b, axis=1) / (gn * bn), -1, 1)))
+        dip = dip_of(np.sum(g * b, axis=1), gn, bn)
         parts += [(gn - model.site.gravity_mps2) / sg, (bn - model.site.total_field_nt) / sb,
                   (dip - model.dip_deg) / sdip]
     if prior:

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.errormodel import TriadModel
+from ..core.formulas import dip_of
 from ..core.frames import pose_matrix
 
 POSES = tuple(range(1, 13))
@@ -273,7 +274,7 @@ class TwelvePositionResult:
         m = self.mag.reference_ned
         g = self.acc.reference_ned
         b = float(np.linalg.norm(m))
-        dip = float(np.degrees(np.arcsin(np.clip(m @ g / (b * np.linalg.norm(g)), -1, 1))))
+        dip = float(dip_of(m @ g, b, np.linalg.norm(g)))
         tilt = float(np.degrees(np.arctan2(np.hypot(g[0], g[1]), g[2])))
         heading = float(np.degrees(np.arctan2(m[1], m[0])))
         return {"total_field": b, "dip_deg": dip, "gravity": float(np.linalg.norm(g)),

@@ -133,10 +133,16 @@ def clip(s, lo, hi):
 
 
 @formula
+def dip_of(dot, gn, bn):
+    """Magnetic dip (deg) from ``g·b`` and the norms ``|g|``, ``|B|``: ``asin(g·b / (|g||B|))``,
+    clipped to ±90° (for callers that have the dot product and the norms already: the lab's fits)."""
+    return asin(clip(dot / (gn * bn), -1.0, 1.0)) * R2D
+
+
+@formula
 def dip_deg(gx, gy, gz, bx, by, bz):
     """Magnetic dip, ``asin(g·b / (|g||b|))``: 90° minus the angle between g (down) and B."""
-    s = ((bx * gx + by * gy) + gz * bz) / (norm(gx, gy, gz) * norm(bx, by, bz))
-    return asin(clip(s, -1.0, 1.0)) * R2D
+    return dip_of((bx * gx + by * gy) + gz * bz, norm(gx, gy, gz), norm(bx, by, bz))
 
 
 @formula

@@ -72,6 +72,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..core import frames
+from ..core.formulas import dip_of
 from .axial import AxialSettings
 from .axial import correct as short_collar
 from ..core.frames import Site
@@ -524,7 +525,7 @@ def fit(g, b, site: Site, settings: MSASettings = MSASettings(), use=None) -> MS
     az_sigma = np.where(np.isfinite(az_sigma), az_sigma, np.inf)
     fn = np.linalg.norm(bp, axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        dip = np.degrees(np.arcsin(np.clip(np.sum(u * bp, axis=1) / fn, -1, 1)))
+        dip = dip_of(np.sum(u * bp, axis=1), 1.0, fn)       # u: unit vectors
     db = values.get("ref_field", 0.0)
     dd = values.get("ref_dip", 0.0)
     nan = ~finite

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core import effects as fx
+from ..core.formulas import dip_of
 from ..core.frames import angles_from_vectors, rotate
 from ..core.survey import Tolerances
 from .stats import regress_many
@@ -325,7 +326,7 @@ def _invariants(g, b):
     """|g| (m/s²), |B| (nT) and dip (deg) of corrected vectors (N, 3) — the order of CHANNELS."""
     gn = np.linalg.norm(g, axis=1)
     bn = np.linalg.norm(b, axis=1)
-    dip = np.degrees(np.arcsin(np.clip(np.sum(g * b, axis=1) / (gn * bn), -1.0, 1.0)))
+    dip = dip_of(np.sum(g * b, axis=1), gn, bn)
     return gn, bn, dip
 
 

@@ -262,3 +262,17 @@ def test_the_survey_formulas_are_written_once():
                 if isinstance(d, ast.FunctionDef) and any(_own_call(n, trig) for n in ast.walk(d)):
                     found.setdefault(module, set()).add(d.name)
     assert found == TRIG_ELSEWHERE, found
+
+
+def test_every_dip_of_corrected_vectors_is_the_formulas():
+    """The lab's fits, the field monitor, the twelve-position check of the site and the MSA report
+    their dip through :func:`formulas.dip_of` (the same bits as the survey's): no asin of a clipped
+    g·b/(|g||B|) written elsewhere (the dogleg's asin of a chord is another formula)."""
+    import pathlib
+    import re
+
+    pkg = pathlib.Path(__file__).resolve().parents[2] / "inclinometer_calib"
+    own = re.compile(r"arcsin\(np\.clip\(")
+    found = sorted(str(p.relative_to(pkg)) for p in pkg.rglob("*.py") if own.search(p.read_text())
+                   and p.name != "formulas.py")
+    assert found == ["correct/trajectory.py"], found
