@@ -325,10 +325,11 @@ def _hot(t):
 @pytest.fixture(scope="module")
 def lag_ramp(tmp_path_factory):
     """A magnetometer that feels the temperature 60 s late (3 nT/°C on z), heated by a ramp during
-    the calibration, the survey at a constant 45 °C; and the lab's diagnosis of it."""
-    gen, data, site = _session(tmp_path_factory.mktemp("lag"), 4, _ramp, _hot,
-                               mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
-    return gen, data, site, lab.diagnose(data, site=site)
+    the calibration, the survey at a constant 45 °C; the lab's diagnosis of it; and the folder of
+    its logs (cal.csv, val.csv, site.yaml)."""
+    logs = tmp_path_factory.mktemp("lag")
+    gen, data, site = _session(logs, 4, _ramp, _hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
+    return gen, data, site, lab.diagnose(data, site=site), logs
 
 
 @pytest.mark.xdist_group("lab-lag-ramp")
@@ -336,7 +337,7 @@ def test_a_drift_in_time_that_predicts_held_out_blocks_no_better_is_not_preferre
     """Under the ramp a drift in time fits the fitted data better than a temperature bias, but
     predicts held-out blocks of the survey no better — it is a proxy (effects.BiasDrift.proxy), not
     preferred, and the physical candidate is not called 'explained' by it."""
-    _, _, _, dg = lag_ramp
+    _, _, _, dg, _ = lag_ramp
     drift = next(c for c in dg.ranked if c.label == "bias_drift:mag:z")
     temp = next(c for c in dg.ranked if c.label == "temperature_bias:mag:z")
     assert drift.significant and drift.delta_chi2 > temp.delta_chi2          # in-sample it fits better
@@ -357,7 +358,7 @@ def test_a_lagged_temperature_found_beyond_the_models_terms_is_the_catalogues_la
     3 nT/°C with its 1σ), and recommends the temperature bias now (the lag acts through it) and
     the lag next."""
     pytest.importorskip("sklearn", reason="the lab's discovery needs scikit-learn (requirements/core.txt)")
-    gen, data, site, dg = lag_ramp
+    gen, data, site, dg, _ = lag_ramp
     assert dg.stand_in.startswith("bias_wander:mag"), dg.verdict
     assert dg.recommended is not None and dg.recommended.label == "temperature_bias:mag:z", dg.verdict
     assert "only as a stand-in" in dg.verdict and "thermal_lag:mag" in dg.verdict
@@ -651,15 +652,16 @@ def test_a_magnetometer_that_settles_after_each_move_is_trimmed_named_and_fitted
     np.testing.assert_allclose(a[both], b[both], atol=1e-9)
 
 
-def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits(tmp_path, capsys):
+@pytest.mark.xdist_group("lab-lag-ramp")
+def test_a_term_outside_the_catalogue_is_written_as_a_plugin_that_loads_and_fits(lag_ramp, tmp_path, capsys):
     """With the thermal lag taken out of the catalogue, a lagged temperature is outside it: `lab
     diagnose --plugin-out` writes the formula as a plug-in module (whole, never over a file), which
     the user names to `lab fit --plugin` and fits; with nothing outside, no file and the reason."""
     pytest.importorskip("sklearn", reason="the lab's discovery needs scikit-learn (requirements/core.txt)")
     from inclinometer_calib.core import effects as fx
 
-    gen, data, site = _session(tmp_path, 4, _ramp, _hot, mag={"temp_coef": [0.0, 0.0, 3.0], "temp_lag_s": 60.0})
-    logs = ["--cal", str(tmp_path / "cal.csv"), "--val", str(tmp_path / "val.csv"), "--site", str(tmp_path / "site.yaml")]
+    d = lag_ramp[-1]          # the logs of the lagged magnetometer under the ramp (read by the commands)
+    logs = ["--cal", str(d / "cal.csv"), "--val", str(d / "val.csv"), "--site", str(d / "site.yaml")]
     out = tmp_path / "found.py"
     lag = fx.CATALOGUE.pop("thermal_lag")
     try:
