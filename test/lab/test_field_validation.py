@@ -25,10 +25,11 @@ def _site(gen):
 
 
 def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, cal_hold_s=4.0, offsets=None, survey=False,
-             **probe_kw):
+             load=True, **probe_kw):
     """Two rounds of the twelve poses (``offsets``: poses the stand holds off) and a coarse stand
     grid (the calibration log), then a finer grid (the validation log), holds 4 s (``cal_hold_s``
-    in the calibration), moves 1.5 s, one power-on."""
+    in the calibration), moves 1.5 s, one power-on.  ``load``: the lab's stations of the two logs
+    (else None: a test that gives the logs to the commands only)."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     probe = ind.random_probe(seed)
     for sensor, kw in probe_kw.items():
@@ -42,7 +43,7 @@ def _session(tmp_path, seed, cal_temp, val_temp, cal_grid=True, cal_hold_s=4.0, 
     gen.write(tmp_path / "cal.csv", holds, cal_temp)
     gen.write(tmp_path / "val.csv", ind.grid(hold_s=4.0), val_temp, survey=survey)
     (tmp_path / "site.yaml").write_text(yaml.safe_dump(gen.site.as_yaml_dict()))
-    data = lab.load_logs(tmp_path / "cal.csv", tmp_path / "val.csv")
+    data = lab.load_logs(tmp_path / "cal.csv", tmp_path / "val.csv") if load else None
     return gen, data, _site(gen)
 
 
@@ -228,7 +229,7 @@ def test_temperature_and_time_are_said_confounded_when_the_warm_up_is_steady(tmp
 
 
 def test_the_cli_labels_its_figures_and_counts_what_it_left_out(tmp_path, capsys):
-    gen, data, site = _session(tmp_path, 9, _up_down(20, 45, 400.0), _up_down(22, 40, 300.0))
+    _session(tmp_path, 9, _up_down(20, 45, 400.0), _up_down(22, 40, 300.0), load=False)
     cal = tmp_path / "cal.csv"
     lines = cal.read_text().splitlines()
     lines[50] = lines[50].replace(lines[50].split(",")[2], "bad")     # one unreadable row
@@ -254,7 +255,7 @@ def test_the_cli_labels_its_figures_and_counts_what_it_left_out(tmp_path, capsys
 
 
 def test_a_log_with_no_usable_station_is_counted_and_the_rest_is_used(tmp_path):
-    gen, data, site = _session(tmp_path, 10, _up_down(20, 45, 400.0), _up_down(22, 40, 300.0))
+    gen, _, site = _session(tmp_path, 10, _up_down(20, 45, 400.0), _up_down(22, 40, 300.0), load=False)
     bad = tmp_path / "moving.csv"
     # a log in which the probe never holds still long enough for a station (0.2 s stops)
     gen.write(bad, ind.grid(hold_s=0.2))
