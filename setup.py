@@ -51,8 +51,8 @@ setup(
                       # one BLAS thread around the lab's small fits (inclinometer_calib/calibrate/blas.py)
                       "threadpoolctl>=3.1",
                       "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6",
-                      # WITSML 2.1 / 1.4.1.1 out (inclinometer_calib/rig/witsml.py): building/reading, schema validation
-                      "lxml>=6.1", "xmlschema>=4.3",
+                      # WITSML 2.1 / 1.4.1.1 out (inclinometer_calib/rig/witsml.py): building, reading, validating
+                      "lxml>=6.1",
                       "tqdm>=4.66"],
     data_files=INTERFACES,
     # the Energistics schemas the WITSML documents are validated against (rig/schemas/witsml21/README.md,

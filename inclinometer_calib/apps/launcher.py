@@ -398,10 +398,10 @@ def build_params(args, out):
 
 def _literal(text):
     """A --param value: YAML-like scalars/lists as ROS would read them."""
-    import yaml
+    from ..core import yamltext
     try:
-        return yaml.safe_load(text)
-    except yaml.YAMLError:
+        return yamltext.load(text)
+    except yamltext.YAMLError:
         return text
 
 
@@ -426,13 +426,13 @@ class GraphResult:
 
 def _config_value(cfg, node, key, default):
     """``key`` of ``config/<node>.yaml`` (``node: ros__parameters: ...``; dotted keys nest), else ``default``."""
-    import yaml
+    from ..core import yamltext
 
     path = os.path.join(cfg, f"{node}.yaml") if cfg else None
     if not path or not os.path.isfile(path):
         return default
     with open(path, encoding="utf-8") as fh:
-        value = ((yaml.safe_load(fh) or {}).get(node) or {}).get("ros__parameters") or {}
+        value = ((yamltext.load(fh) or {}).get(node) or {}).get("ros__parameters") or {}
     for part in key.split("."):
         if not isinstance(value, dict) or part not in value:
             return default

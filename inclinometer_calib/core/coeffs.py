@@ -32,7 +32,7 @@ import math
 import os
 
 import numpy as np
-import yaml
+from . import yamltext
 
 from . import effects as fx
 from .errormodel import E_TERMS, TriadModel
@@ -201,7 +201,7 @@ class Calibration:
     def to_yaml(self) -> str:
         head = ("# inclinometer_calib coefficient record — see README 'Coefficient files'.\n"
                 "# Accelerometer values are in the gravity-vector convention (down +, m/s^2 = -REP-145).\n")
-        return head + yaml.safe_dump(self.to_record(), sort_keys=False, width=120)
+        return head + yamltext.dump(self.to_record(), sort_keys=False, width=120)
 
     def save(self, path) -> None:
         atomic_write_text(path, self.to_yaml())
@@ -321,16 +321,16 @@ class Calibration:
     def load(cls, path) -> "Calibration":
         try:
             with open(path, encoding="utf-8") as fh:
-                rec = yaml.safe_load(fh)
-        except yaml.YAMLError as exc:
+                rec = yamltext.load(fh)
+        except yamltext.YAMLError as exc:
             raise CoefficientError(f"{path}: not valid YAML: {exc}") from None
         return cls.from_record(rec, source=str(path), base_dir=os.path.dirname(os.path.abspath(path)))
 
     @classmethod
     def from_yaml(cls, text: str, source: str = "<yaml>") -> "Calibration":
         try:
-            rec = yaml.safe_load(text)
-        except yaml.YAMLError as exc:
+            rec = yamltext.load(text)
+        except yamltext.YAMLError as exc:
             raise CoefficientError(f"{source}: not valid YAML: {exc}") from None
         return cls.from_record(rec, source=source)
 

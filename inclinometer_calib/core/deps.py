@@ -2,7 +2,7 @@
 
 ``pip install .`` installs the core only: numpy, scipy, PyYAML and what the core's own commands
 need (the noise model's allantools, the site's field and projection — pygeomag, ppigrf, pyproj —,
-WITSML's lxml and xmlschema, threadpoolctl, tqdm).  The rest comes with extras declared in
+WITSML's lxml, threadpoolctl, tqdm).  The rest comes with extras declared in
 ``setup.py``:
 
 =========  ==========================================  =============================================

@@ -295,14 +295,14 @@ def site_from_config(d, where: str = "site"):
 def read_site_section(path) -> dict:
     """The site section of a site file (YAML: the keys of :func:`site_from_config`, at the top or
     under ``site:``), as it is; ``ValueError`` (one line, naming the file) when it cannot be read."""
-    import yaml
+    from . import yamltext
 
     try:
         with open(path, encoding="utf-8") as fh:
-            d = yaml.safe_load(fh)
+            d = yamltext.load(fh)
     except OSError as exc:
         raise ValueError(f"{path}: cannot read site reference: {exc.strerror}") from None
-    except yaml.YAMLError as exc:
+    except yamltext.YAMLError as exc:
         raise ValueError(f"{path}: cannot read site reference: not YAML ({' '.join(str(exc).split())})") from None
     return d.get("site", d) if isinstance(d, dict) else d
 

@@ -91,7 +91,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, Iterable, Iterator, List, Mapping, NamedTuple, Optional, Sequence, Union
 
-import yaml
+from ..core import yamltext
 
 from ..core.deps import MissingDependency, require
 from ..core.output import final_name
@@ -334,7 +334,7 @@ def qos_profiles_yaml(profiles: Iterable[Mapping]) -> str:
             "lifespan": _sec_nsec(p["lifespan_ns"]), "liveliness": p["liveliness"],
             "liveliness_lease_duration": _sec_nsec(p["liveliness_lease_duration_ns"]),
             "avoid_ros_namespace_conventions": bool(p["avoid_ros_namespace_conventions"])})
-    return yaml.safe_dump(items, sort_keys=False).strip() if items else ""
+    return yamltext.dump(items, sort_keys=False).strip() if items else ""
 
 
 _QOS_ENUMS = {
@@ -353,7 +353,7 @@ def parse_qos_profiles(text) -> List[dict]:
     an already-parsed list. Returns mappings shaped like :data:`DEFAULT_QOS_PROFILE`."""
     if not text:
         return []
-    items = yaml.safe_load(text) if isinstance(text, str) else text
+    items = yamltext.load(text) if isinstance(text, str) else text
     out = []
     for item in items or []:
         p = dict(DEFAULT_QOS_PROFILE)
@@ -733,7 +733,7 @@ class BagWriter:
             info = self.rosbag2_metadata()
             self._mcap.flush()
             self._mcap.add_metadata("rosbag2", {
-                "serialized_metadata": yaml.safe_dump(info, sort_keys=False).strip(),
+                "serialized_metadata": yamltext.dump(info, sort_keys=False).strip(),
                 "ROS_DISTRO": os.environ.get("ROS_DISTRO", "jazzy"),
             })
             self._mcap.finish()
@@ -785,13 +785,13 @@ def _rosbag2_info(file_name: str, start: int, end: int, topics) -> dict:
 
 def _qos_for_yaml(qos_yaml: str):
     try:
-        return yaml.safe_load(qos_yaml) or []
-    except yaml.YAMLError:
+        return yamltext.load(qos_yaml) or []
+    except yamltext.YAMLError:
         return qos_yaml
 
 
 def _write_metadata_yaml(bag_dir: Path, info: dict) -> None:
-    text = yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False)
+    text = yamltext.dump({"rosbag2_bagfile_information": info}, sort_keys=False)
     tmp = bag_dir / "metadata.yaml.tmp"
     try:
         tmp.write_text(text, encoding="utf-8")
@@ -1093,11 +1093,11 @@ def _find_mcap(path: Path) -> Path:
         meta = path / "metadata.yaml"
         if meta.is_file():
             try:
-                info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
+                info = yamltext.load(meta.read_text())["rosbag2_bagfile_information"]
                 files = info.get("relative_file_paths") or []
                 if files and (path / Path(files[0]).name).is_file():
                     return path / Path(files[0]).name
-            except (yaml.YAMLError, KeyError, TypeError):
+            except (yamltext.YAMLError, KeyError, TypeError):
                 pass
         found = sorted(path.glob("*.mcap"))
         if not found:

@@ -84,7 +84,7 @@ class WitsNode(Node):
         self._notes_said = set()
         if self.witsml_file:
             witsml.Options(**self.witsml_options).check()   # a bad combination: said now, not at the first station
-            witsml.load_schemas(version)  # load the schema now (about a second), not at the first station
+            witsml.load_schemas(version)  # load the schema now, not at the first station
             self.create_subscription(CalibrationCoefficients, c.TOPIC_COEFFICIENTS, self._on_record, c.latched_qos())
         self.server = WitsServer(self.host, self.port, max_buffer=max_buffer, say=self.get_logger().info) \
             if self.port else None

@@ -1,6 +1,6 @@
 """WITSML out (:mod:`inclinometer_calib.rig.witsml`): a simulated well reprocessed into a bag, exported as
-WITSML 2.1 and 1.4.1.1, validated against the vendored Energistics schemas (xmlschema) and parsed back
-(lxml) to the same numbers; both versions and both units give the same stations, positions that
+WITSML 2.1 and 1.4.1.1, validated against the vendored Energistics schemas (libxml2 through lxml; xmlschema, a second
+implementation, agrees) and parsed back (lxml) to the same numbers; both versions and both units give the same stations, positions that
 agree with their own declared north, the ISCWSA covariance, datums, well and wellbore; documents
 the schemas must refuse (a wrong uom, a missing Md, a status outside the enum) are refused; which
 stations go in and how; times shifted to the survey's start; the CLI from a bag; the vendored
@@ -145,7 +145,7 @@ def test_a_valid_document_passes_and_a_wrong_uom_is_refused_naming_line_path_and
     with pytest.raises(witsml.WitsmlError) as info:
         witsml.validate(bad)
     msg = str(info.value)
-    assert "/Trajectory/TrajectoryStation[2]/Incl" in msg and "uom='deg'" in msg
+    assert "/Trajectory/TrajectoryStation[2]/Incl" in msg and "attribute 'uom'" in msg and "'deg'" in msg
     assert "(station station-2)" in msg and "line " in msg
     # dogleg severity in a unit the schema does not have ("deg/30m" is written "1/30 dega/m")
     with pytest.raises(witsml.WitsmlError, match="Dls"):
@@ -274,7 +274,7 @@ def test_the_launcher_summary_checks_the_live_document(tmp_path):
     assert witsml_summary(str(path), stations)["version"] == "1.4.1.1"
     path.write_bytes(path.read_bytes().replace(b'uom="dega"', b'uom="deg"'))
     res = witsml_summary(str(path), stations)
-    assert res["valid"] is False and "uom='deg'" in res["error"]
+    assert res["valid"] is False and "attribute 'uom'" in res["error"] and "The value 'deg'" in res["error"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -332,6 +332,26 @@ def test_both_versions_validate_with_their_well_wellbore_and_datum_and_refuse_ea
         witsml.validate(e.xml.replace(b'uom="dega/30m"', b'uom="1/30 dega/m"'))
     with pytest.raises(witsml.WitsmlError, match="Dls"):
         witsml.validate(exports["2.1", "m"][0].xml.replace(b'uom="1/30 dega/m"', b'uom="dega/30m"'))
+
+
+def test_a_second_schema_implementation_agrees_on_every_document_written_and_a_refused_one(exports):
+    """The package validates with libxml2 (lxml); xmlschema, a pure-Python XSD 1.1 processor that
+    shares nothing with it, says the same of each version's documents, in both units, and refuses
+    the document libxml2 refuses."""
+    xmlschema = pytest.importorskip("xmlschema")
+    checkers = {"2.1": xmlschema.XMLSchema(witsml.TRAJECTORY_XSD)}
+    checkers.update({f"1.4.1.1 {k}": xmlschema.XMLSchema(x) for k, x in zip(("trajectorys", "wells", "wellbores"),
+                                                                             witsml.XSD_1411)})
+    for (version, _), (e, _) in exports.items():
+        for xml in [e.xml] + [x for _, x in e.parents]:
+            root = etree.QName(etree.fromstring(xml)).localname
+            checker = checkers["2.1" if version == "2.1" else f"1.4.1.1 {root}"]
+            assert witsml.validate(xml) == version
+            assert checker.is_valid(etree.ElementTree(etree.fromstring(xml))), (version, root)
+    bad = exports["2.1", "m"][0].xml.replace(b'uom="1/30 dega/m"', b'uom="dega/30m"')
+    assert not checkers["2.1"].is_valid(etree.ElementTree(etree.fromstring(bad)))
+    with pytest.raises(witsml.WitsmlError, match="Dls"):
+        witsml.validate(bad)
 
 
 def test_both_versions_and_units_read_back_to_the_same_stations(well, exports):

@@ -8,7 +8,7 @@ import json
 import os
 
 import numpy as np
-import yaml
+from ...core import yamltext
 
 from ...calibrate import simulate as sim
 from ...calibrate.capture import CaptureSession
@@ -77,7 +77,7 @@ def _write_simulation(args, out, probe, site, rng, temps, val_temps, cal, val, c
                               "table_angles_written": not args.no_table_angles}
         written.append("turntable.csv")
     atomic_write_text(os.path.join(out, "truth.json"), json.dumps(truth, indent=2) + "\n")
-    atomic_write_text(os.path.join(out, "site.yaml"), yaml.safe_dump({"site": site.to_dict()}))
+    atomic_write_text(os.path.join(out, "site.yaml"), yamltext.dump({"site": site.to_dict()}))
     true_cal = Calibration(probe.model, probe_id=f"sim-{args.seed}", method="simulator truth", site=site)
     true_cal.save(os.path.join(out, "truth_coeffs.yaml"))
     return ([f"wrote {args.out}/cal.csv ({len(cal)} rows, {len(cal_session)} stations), "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import sys
 
-import yaml
+from ...core import yamltext
 
 from ...core.output import atomic_write_bytes, atomic_write_text, check_output
 from ..common import UserError
@@ -62,8 +62,8 @@ def cmd_witsml(args):
         try:
             with open(path, encoding="utf-8") as fh:
                 text = fh.read()
-            records.append({"id": str((yaml.safe_load(text) or {})["id"]), "coefficients_yaml": text})
-        except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+            records.append({"id": str((yamltext.load(text) or {})["id"]), "coefficients_yaml": text})
+        except (OSError, yamltext.YAMLError, KeyError, TypeError) as exc:
             raise UserError(f"--coeffs {path}: not a calibration record ({type(exc).__name__}: {exc})") from None
     try:
         export = trajectory_document(stations, models=mag_models(records), **options)
