@@ -389,6 +389,30 @@ def test_chunks_bounded_by_time_and_tick(tmp_path):
         assert c.message_end_time - c.message_start_time < 250_000_000
 
 
+def test_the_writers_message_path_gives_the_files_mcap_add_message_gives_byte_for_byte(tmp_path, monkeypatch):
+    """BagWriter adds messages to the mcap writer's open chunk itself (bag._fast_message_add); the
+    file is the one the library's ``Writer.add_message`` writes: several channels, times out of
+    order, chunks closed by size (a 4 kB chunk) and by time, message indexes and statistics."""
+    def write(folder):
+        folder.mkdir()
+        with bag.BagWriter(folder / "same.mcap", chunk_size=4096, max_chunk_s=0.5) as w:
+            a = w.add_topic("/probe/imu", IMU)
+            b = w.add_topic("/probe/temperature", "sensor_msgs/msg/Temperature")
+            for i in range(300):
+                w.write(a, imu_cdr(i), T0 + i * 10_000_000 + (7_000_000 if i % 5 == 0 else 0), T0 + i)
+                if i % 3 == 0:
+                    w.write(b, bytes(range(i % 40)), T0 + i * 10_000_000 - 3_000_000)
+        return (folder / "same.mcap").read_bytes()
+
+    fast = write(tmp_path / "fast")
+    monkeypatch.setattr(bag, "_fast_message_add", lambda writer, chunk_size: None)
+    library = write(tmp_path / "library")
+    assert fast == library
+    with open(tmp_path / "fast" / "same.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary.statistics.message_count == 400 and len(summary.chunk_indexes) > 10
+
+
 def test_compressions(tmp_path):
     assert "zstd" in bag.available_compressions()
     for comp in bag.available_compressions():
