@@ -512,7 +512,7 @@ def _fast_message_add(writer, chunk_size: int):
             stats.message_end_time = log_time
         counts[channel_id] += 1
         stats.message_count += 1
-        if log_time < builder.message_start_time:
+        if builder.num_messages == 0 or log_time < builder.message_start_time:
             builder.message_start_time = log_time
         if log_time > builder.message_end_time:
             builder.message_end_time = log_time
