@@ -153,17 +153,23 @@ def absolute_db_url(url: str) -> str:
 
 class RegistryResolver:
     """The valid record of a probe at a date from the registry at ``url`` (a picklable callable:
-    it travels to the workers as its URL; each worker process opens the registry once)."""
+    it travels to the workers as its URL and the schema revision the first process to open it
+    found; each worker process opens the registry once, checking it is still at that revision)."""
 
     def __init__(self, url: str):
         self.url = absolute_db_url(url)
+        self.revision = None
 
     def registry(self):
         reg = _REGISTRIES.get(self.url)
         if reg is None:
             from .registry import Registry
 
-            reg = _REGISTRIES[self.url] = Registry(self.url)
+            reg = _REGISTRIES[self.url] = Registry(self.url, revision=self.revision)
+        if self.revision is None:            # this process opened it, migrated: it is at the head now
+            from .registry import head_revision
+
+            self.revision = head_revision()
         return reg
 
     def __call__(self, serial: str, at: _dt.datetime):

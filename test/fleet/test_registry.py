@@ -138,6 +138,25 @@ def test_history_and_reopening(reg, cals, db_url):
         assert again.record(cals["y"].id).probe_id == "SN-2"
 
 
+def test_a_fleet_worker_opens_the_registry_at_the_revision_its_client_found_or_refuses_it(reg, cals, db_url):
+    """The client of a fleet run opens (and migrates) the registry; the resolver it sends to the
+    workers carries the revision it found, and a worker opens the registry checking it with one
+    query instead of Alembic; a registry at another revision by then is refused, naming both."""
+    import pickle
+
+    from inclinometer_calib.fleet.reprocess import RegistryResolver
+
+    client = RegistryResolver(db_url)
+    client.registry()
+    assert client.revision == rg.head_revision()
+    worker = pickle.loads(pickle.dumps(client))
+    assert worker.revision == client.revision
+    with Registry(worker.url, revision=worker.revision) as r:
+        assert r.valid_record("SN-1", T0 + DAY).id == cals["a"].id
+    with pytest.raises(RegistryError, match=r"schema revision '[0-9a-f]+', not 'f00' as when this run opened it"):
+        Registry(worker.url, revision="f00")
+
+
 def test_the_database_refuses_what_sql_should(reg, cals):
     """The constraints hold in the database itself (another client cannot break them either)."""
     with reg.engine.connect() as c:
