@@ -11,6 +11,23 @@ if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
 
+def pytest_configure(config):
+    config.addinivalue_line("markers", "long(cpu_s): one of the suite's long poles, ``cpu_s`` CPU-seconds "
+                                       "measured in one test or one xdist group: collected first, the longest "
+                                       "first (pytest_collection_modifyitems)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked ``long`` first, the longest first, then the others in their order (a stable
+    sort: a module's tests stay in order).  pytest-xdist hands tests (or groups) to its workers in
+    this order: a long one started last would run alone at the end while the other core idles
+    (scripts/test.sh; docs/benchmarks.md, section 10)."""
+    def weight(item):
+        mark = item.get_closest_marker("long")
+        return -float(mark.args[0]) if mark is not None else 0.0
+    items.sort(key=weight)
+
+
 FULL_DISK = r"""
 set -u
 mnt="$1"; ro="$2"; seed="$3"; shift 3

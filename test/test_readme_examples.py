@@ -31,6 +31,8 @@ import shutil
 import subprocess
 import time
 
+import pytest
+
 from inclinometer_calib.apps import rosenv
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -96,6 +98,7 @@ def test_runnable_blocks_hold_no_placeholders():
                      + "\n".join(bad))
 
 
+@pytest.mark.long(34)
 def test_readme_examples_run(tmp_path):
     cmds = commands()
     assert len(cmds) >= 8, cmds  # the CLI chain and the model lab at least

@@ -19,7 +19,7 @@ from inclinometer_calib.core.survey import evaluate, summarize
 
 # one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
 # fixtures, which build the data every test reads, run once, not once per worker
-pytestmark = pytest.mark.xdist_group("stranger-probe")
+pytestmark = [pytest.mark.xdist_group("stranger-probe"), pytest.mark.long(10)]
 
 
 def _run(capsys, argv):

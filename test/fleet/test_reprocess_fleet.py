@@ -32,7 +32,7 @@ from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
 
 # one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
 # fixtures, which build the data every test reads, run once, not once per worker
-pytestmark = pytest.mark.xdist_group("fleet-reprocess")
+pytestmark = [pytest.mark.xdist_group("fleet-reprocess"), pytest.mark.long(20)]
 
 UTC = dt.timezone.utc
 T0 = dt.datetime(2026, 3, 2, 8, 0, tzinfo=UTC)      # first calibration of every probe

@@ -1,6 +1,8 @@
 """`inclinometer-calib lab fit|diagnose|report` on data with a hidden effect."""
 import json
 
+import pytest
+
 from inclinometer_calib.apps.cli import main
 
 
@@ -10,6 +12,7 @@ def _run(capsys, argv):
     return code, capsys.readouterr()
 
 
+@pytest.mark.long(8)
 def test_lab_cli_names_fits_and_reports_the_hidden_effect(tmp_path, capsys):
     out = tmp_path / "sim"
     assert main(["simulate", "--out", str(out), "--seed", "61", "--effect", "axial_interference=300"]) == 0

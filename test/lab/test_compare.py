@@ -15,7 +15,7 @@ from inclinometer_calib.correct.reprocess import write_probe_bag
 
 # one worker runs the whole module (scripts/test.sh: --dist loadgroup), so that its module
 # fixtures, which build the data every test reads, run once, not once per worker
-pytestmark = pytest.mark.xdist_group("compare")
+pytestmark = [pytest.mark.xdist_group("compare"), pytest.mark.long(10)]
 
 pytest.importorskip("matplotlib")
 

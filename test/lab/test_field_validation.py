@@ -498,6 +498,7 @@ def test_the_predicted_uncertainty_holds_when_the_model_is_right_and_says_when_i
     assert "over their predicted 1σ" in dg.verdict and dg.to_json()["normalised_errors"]["azimuth"]["stations"] == 45
 
 
+@pytest.mark.long(8)
 def test_the_report_shows_the_ladder_to_the_noise_floor_what_was_left_out_and_the_uncertainty(tmp_path):
     pytest.importorskip("matplotlib")
     gen, data, site = _session(tmp_path, 3, _up_down(20, 45, 400.0), lambda t: 30 + 0.02 * (t - 400), cal_hold_s=6.0,

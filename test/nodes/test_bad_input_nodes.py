@@ -34,6 +34,9 @@ from inclinometer_calib.nodes.calibration import CalibrationNode  # noqa: E402
 from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
 from inclinometer_calib.io.probelog import write_csv  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(10)
+
 SITE = Site()
 SEED = 5
 

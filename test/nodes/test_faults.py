@@ -27,6 +27,9 @@ rclpy = pytest.importorskip("rclpy", reason="ROS 2 tests need `bash scripts/setu
 
 from inclinometer_calib.core.station import Station
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(36)
+
 
 def _node(name, env, log_path, *params):
     args = [sys.executable, "-m", f"inclinometer_calib.nodes.{name}", "--ros-args"]

@@ -35,6 +35,9 @@ except Exception as exc:  # ImportError or missing shared libraries
 
 from inclinometer_calib.io import bag  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(24)
+
 HOLD_S = 240  # longest life of a mount namespace (the holder's sleep), s
 
 PUBLISHER = textwrap.dedent("""

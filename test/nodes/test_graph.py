@@ -33,6 +33,9 @@ import report_layout  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
 from inclinometer_calib.core.frames import wrap180  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(40)
+
 N_STATIONS = 12
 SPEED = 8.0
 RATE_HZ = 50.0     # the graph's mechanics do not need the probe's 100 Hz: half the messages

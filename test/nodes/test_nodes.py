@@ -24,6 +24,9 @@ from inclinometer_calib.nodes.correction import CorrectionNode  # noqa: E402
 from inclinometer_calib.nodes.probe import ProbeNode  # noqa: E402
 from inclinometer_calib.io.probelog import ProbeLog  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(15)
+
 
 @pytest.fixture
 def spinning(ros):

@@ -24,6 +24,9 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 
 from inclinometer_calib.io import bag  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(13)
+
 REPO = Path(__file__).resolve().parents[2]
 
 PUBLISHER = textwrap.dedent("""

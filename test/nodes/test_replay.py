@@ -21,6 +21,9 @@ from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.io.bag import read_bag  # noqa: E402
 from inclinometer_calib.io.probelog import ProbeLog, read_csv, write_csv  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(24)
+
 VAL_STATIONS = 36
 CUT = 7
 

@@ -28,6 +28,9 @@ from north_well import receiver_positions  # noqa: E402
 from rig_clients import wits_client  # noqa: E402
 from inclinometer_calib.apps.common import load_site  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(14)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 SITE_FILE = os.path.join(ROOT, "config", "rig_site.yaml")
 N_STATIONS = 4

@@ -22,6 +22,9 @@ import strangers as S  # noqa: E402
 from inclinometer_calib.apps.cli import main  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(18)
+
 #: how far the live coefficients of the noisy 10 Hz mix may be from the CLI's, which reads the same CSV
 #: (a few σ of the stranger's calibration: bias ~1e-4 m/s² and 1 nT, scale and e-terms ~1e-5), times 5
 SAME = {"acc": {"bias": 3e-4, "scale": 5e-5, "e": 5e-5}, "mag": {"bias": 3.0, "scale": 1e-4, "e": 1e-4}}

@@ -16,6 +16,9 @@ from inclinometer_calib.apps.cli import main  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.calibrate.turntable import angles_from_matrix  # noqa: E402
 
+# the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
+pytestmark = pytest.mark.long(18)
+
 
 def test_the_live_node_calibrates_a_replayed_turntable_bag_as_the_cli_does(domain_env, tmp_path, capsys):
     sim = tmp_path / "sim"

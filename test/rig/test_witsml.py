@@ -339,15 +339,11 @@ def test_a_second_schema_implementation_agrees_on_every_document_written_and_a_r
     shares nothing with it, says the same of each version's documents, in both units, and refuses
     the document libxml2 refuses."""
     xmlschema = pytest.importorskip("xmlschema")
-    checkers = {"2.1": xmlschema.XMLSchema(witsml.TRAJECTORY_XSD)}
-    checkers.update({f"1.4.1.1 {k}": xmlschema.XMLSchema(x) for k, x in zip(("trajectorys", "wells", "wellbores"),
-                                                                             witsml.XSD_1411)})
+    checkers = {"2.1": xmlschema.XMLSchema(witsml.TRAJECTORY_XSD), "1.4.1.1": xmlschema.XMLSchema(list(witsml.XSD_1411))}
     for (version, _), (e, _) in exports.items():
         for xml in [e.xml] + [x for _, x in e.parents]:
-            root = etree.QName(etree.fromstring(xml)).localname
-            checker = checkers["2.1" if version == "2.1" else f"1.4.1.1 {root}"]
             assert witsml.validate(xml) == version
-            assert checker.is_valid(etree.ElementTree(etree.fromstring(xml))), (version, root)
+            assert checkers[version].is_valid(etree.ElementTree(etree.fromstring(xml))), (version, xml[:200])
     bad = exports["2.1", "m"][0].xml.replace(b'uom="1/30 dega/m"', b'uom="dega/30m"')
     assert not checkers["2.1"].is_valid(etree.ElementTree(etree.fromstring(bad)))
     with pytest.raises(witsml.WitsmlError, match="Dls"):
