@@ -12,6 +12,9 @@
 #   (nice 19): they take the CPU the graphs leave, which is most of it (a graph waits on its
 #   replay's clock), --dist loadgroup: a test runs wherever a worker is free, except the modules
 #   marked as one xdist_group (their costly module fixtures then run once, not once per worker).
+# Both hand out their units in collection order (--no-loadscope-reorder; xdist would sort them by
+# their number of tests): the long poles first (the ``long`` marker, test/conftest.py), so that
+# none is left running alone at the end.
 # Even at nice 19 the numerics slow the graphs (two vCPUs share caches and memory bandwidth, and
 # a niced task still runs until preempted): four graph tests at a time beside them at nice 10
 # failed in 3 of 6 fresh-clone runs, and three numerics workers beside two graph tests made
@@ -36,7 +39,7 @@ mmss() { printf '%d:%02d' $(($1 / 60)) $(($1 % 60)); }
 t0=$SECONDS
 graph_log="$(mktemp -t test-graph.XXXXXX)"
 # the graph tests' report waits in a file while the numerics print theirs, then follows it
-( rc_g=0; python -m pytest test/nodes test/ros -q -n 2 --dist loadscope >"$graph_log" 2>&1 || rc_g=$?
+( rc_g=0; python -m pytest test/nodes test/ros -q -n 2 --dist loadscope --no-loadscope-reorder >"$graph_log" 2>&1 || rc_g=$?
   echo "graph tests: $(mmss $((SECONDS - t0))) wall" >>"$graph_log"; exit "$rc_g" ) &
 graph=$!
 # the background run ignores Ctrl-C (a script's background jobs do): stop it with the numerics
@@ -45,7 +48,7 @@ trap 'stop_graph; exit 130' INT
 trap 'stop_graph; exit 143' TERM
 rc=0
 echo "test.sh: the ROS 2 graph tests run beside these numerics; their report follows"
-nice -n 19 python -m pytest test -q -n auto --dist loadgroup --ignore=test/nodes --ignore=test/ros || rc=$?
+nice -n 19 python -m pytest test -q -n auto --dist loadgroup --no-loadscope-reorder --ignore=test/nodes --ignore=test/ros || rc=$?
 t_num=$((SECONDS - t0))
 rc_g=0
 wait "$graph" || rc_g=$?

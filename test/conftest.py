@@ -26,6 +26,26 @@ def pytest_collection_modifyitems(config, items):
         mark = item.get_closest_marker("long")
         return -float(mark.args[0]) if mark is not None else 0.0
     items.sort(key=weight)
+    _xdist_groups(config, items)
+
+
+def _xdist_groups(config, items):
+    """``--dist loadgroup``'s groups, restored: pytest-xdist 3.8 puts a test's ``xdist_group`` in
+    its node id (``item._nodeid += "@group"``, the scheduler's unit of work), which pytest 9.2 no
+    longer reads (a node's id is ``item._id``).  Without this every test was a unit of its own, and
+    a group's module fixtures were built again on each worker that got one of its tests (the
+    fleet's bags and runs: 10 CPU-seconds).  The same suffix, where pytest 9.2 reads it."""
+    if not getattr(config.option, "loadgroup", False):
+        return
+    from _pytest.nodeid import NodeId
+
+    for item in items:
+        names = sorted({str(m.args[0] if m.args else m.kwargs.get("name", "default"))
+                        for m in item.iter_markers("xdist_group")})
+        suffix = "@" + "_".join(names)
+        if names and not item.nodeid.endswith(suffix):
+            item._id = NodeId.parse(item.nodeid + suffix)
+            assert item.nodeid.endswith(suffix), "pytest's node id moved again: see _xdist_groups"
 
 
 FULL_DISK = r"""
