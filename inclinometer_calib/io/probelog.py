@@ -636,14 +636,14 @@ def _arrow_columns(body, layout: _Layout, numbers_as_text: bool):
         table = table.drop_columns([c])      # its text or parsed chunks go once the array is made
         if text is not None:
             plain = pc.fill_null(pc.match_substring_regex(col, _PLAIN_NUMBER), True)
-            text |= ~plain.to_numpy()
+            text |= ~_numpy(plain)
             col = pc.cast(pc.if_else(plain, col, pa.scalar(None, pa.string())), pa.float64())
-        cols[c] = _writable(col.to_numpy())
+        cols[c] = _numpy(col)
         if c in ("pose", "table_deg", "md_m") or c in HEADER[9:12]:
-            cols[c + "_null"] = col.is_null().to_numpy()
+            cols[c + "_null"] = _numpy(col.is_null())
     if "mount" in names:
         col = pc.fill_null(table.column("mount"), "")
-        cols["mount"] = _writable(pc.fill_null(pc.index_in(col, value_set=pa.array(_MOUNTS)), -1).to_numpy())
+        cols["mount"] = _numpy(pc.fill_null(pc.index_in(col, value_set=pa.array(_MOUNTS)), -1))
     cols["_text"] = text if text is not None else np.zeros(n, dtype=bool)
     return cols, invalid
 
@@ -688,8 +688,38 @@ def _checks(cols, limits: Limits):
     return ok
 
 
-def _writable(x):
-    return x if x.flags.writeable else x.copy()          # a single chunk of pyarrow's comes read-only
+def _numpy(col) -> np.ndarray:
+    """A pyarrow float64, int32 or boolean (chunked) array as a new, writable numpy array read from
+    its buffers, a null as NaN (float64; the other types come without nulls here).  pyarrow's own
+    ``to_numpy`` gives the same values, but its conversion imports pandas, a quarter of a CPU-second
+    in every process that reads a log (test/io/test_probelog_engines.py compares the two)."""
+    import pyarrow as pa
+
+    arr = col.combine_chunks() if isinstance(col, pa.ChunkedArray) else col
+    n, off = len(arr), arr.offset
+    if pa.types.is_boolean(arr.type):
+        dtype = np.dtype(bool)
+    elif arr.type == pa.float64():
+        dtype = np.dtype(np.float64)
+    elif arr.type == pa.int32():
+        dtype = np.dtype(np.int32)
+    else:
+        raise TypeError(f"no numpy conversion for {arr.type}")
+    if not n:
+        return np.empty(0, dtype)
+    validity, data = arr.buffers()[:2]
+
+    def bits(buf):
+        return np.unpackbits(np.frombuffer(buf, np.uint8), count=off + n, bitorder="little")[off:].astype(bool)
+    if dtype == bool:
+        out = bits(data)
+    else:
+        out = np.frombuffer(data, dtype, count=n, offset=off * dtype.itemsize).copy()
+    if arr.null_count:
+        if dtype != np.float64:
+            raise TypeError(f"nulls in a {arr.type} column")
+        out[~bits(validity)] = np.nan
+    return out
 
 
 def _lines(body, which, has_cr: bool, block: int = 1 << 20):

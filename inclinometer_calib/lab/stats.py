@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import fdtrc
+from scipy.special import fdtrc, stdtr
 
 
 @dataclass
@@ -96,3 +96,16 @@ def _fit(y, x) -> list:
     for b, fb, pb, r2, explained, residual in fields:
         out[b] = Trend(f=fb, p=pb, r2=r2, coef=coef[b], explained_rms=explained, residual_rms=residual, n=int(n))
     return out
+
+
+def mean_above_zero_p(x) -> float:
+    """The p-value of the one-sided one-sample t-test that the mean of ``x`` is above 0:
+    ``t = mean / (s / √n)`` (``s`` with n − 1), ``p = P(T > t) = stdtr(n − 1, −t)`` for Student's
+    T with n − 1 degrees of freedom; ``scipy.stats.ttest_1samp(x, 0, alternative="greater")``'s,
+    without scipy.stats' imports (0.3 CPU-s in each process that diagnoses)."""
+    x = np.asarray(x, dtype=float)
+    n = len(x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.mean(x) / (np.std(x, ddof=1) / np.sqrt(n))
+    return float(stdtr(n - 1, -t))
+

@@ -2,7 +2,7 @@
 import numpy as np
 from scipy import stats as sps
 
-from inclinometer_calib.lab.stats import regress, regress_many
+from inclinometer_calib.lab.stats import mean_above_zero_p, regress, regress_many
 
 
 def _designs(rng):
@@ -77,3 +77,13 @@ def test_nothing_to_test_gives_none():
     assert regress(y, np.empty((10, 0))) is None              # no regressor
     assert regress(2.0 * np.arange(10.0) + 1.0, np.arange(10.0)) is None   # a perfect fit: no scatter to test against
     assert regress_many([]) == []
+
+
+def test_mean_above_zero_p_is_scipys_one_sided_one_sample_t_test():
+    rng = np.random.default_rng(9)
+    for n in (2, 3, 5, 17, 200):
+        for shift in (-1.0, 0.0, 0.3, 2.0):
+            x = rng.normal(shift, 1.5, n)
+            want = sps.ttest_1samp(x, 0.0, alternative="greater").pvalue
+            assert np.isclose(mean_above_zero_p(x), want, rtol=1e-12, atol=1e-300), (n, shift)
+    assert mean_above_zero_p([0.5, 0.5, 0.5]) == 0.0 and mean_above_zero_p([-0.5, -0.5]) == 1.0
