@@ -12,9 +12,9 @@ if ROOT not in sys.path:
 
 
 def pytest_configure(config):
-    config.addinivalue_line("markers", "long(cpu_s): one of the suite's long poles, ``cpu_s`` CPU-seconds "
-                                       "measured in one test or one xdist group: collected first, the longest "
-                                       "first (pytest_collection_modifyitems)")
+    config.addinivalue_line("markers", "long(seconds): one of the suite's long poles, the seconds measured "
+                                       "for one test or one xdist group (CPU-seconds; a graph module's wall "
+                                       "time): collected first, the longest first (pytest_collection_modifyitems)")
 
 
 def pytest_collection_modifyitems(config, items):

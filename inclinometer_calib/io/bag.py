@@ -484,9 +484,10 @@ _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 
 def _fast_message_add(writer, chunk_size: int):
     """``writer.add_message(channel_id, log_time, data, publish_time)`` of mcap 1.6's chunked
-    :class:`mcap.writer.Writer`, the same bytes in a fifth of the time (5.3 → 1 µs a message: the
-    writer builds a ``Message`` dataclass and writes its five fields one ``struct.pack`` and
-    ``BytesIO.write`` at a time; here one pack, one write).  It keeps the writer's own state as
+    :class:`mcap.writer.Writer`, the same bytes in less than half the time (:meth:`BagWriter.write`
+    5.1 → 2.3 µs a message, docs/benchmarks.md section 2: the writer builds a ``Message`` dataclass
+    and writes its five fields one ``struct.pack`` and ``BytesIO.write`` at a time; here one pack,
+    one write).  It keeps the writer's own state as
     ``add_message`` does: the file's statistics, the open chunk's time range, message index and
     records, and closes the chunk past ``chunk_size`` with the writer's own method.  None when the
     writer is not the one this was written against (another mcap version, no chunking): then the
