@@ -47,7 +47,7 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["inclinometer_calib", "inclinometer_calib.*"]),
     # the core: the numerics, the site's field (WMM/IGRF, projections), WITSML out, progress bars
-    install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0", "allantools>=2019.9",
+    install_requires=["numpy>=1.24", "scipy>=1.10", "PyYAML>=6.0",
                       # one BLAS thread around the lab's small fits (inclinometer_calib/calibrate/blas.py)
                       "threadpoolctl>=3.1",
                       "pygeomag>=1.1", "ppigrf>=2.1", "pyproj>=3.6",

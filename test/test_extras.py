@@ -29,7 +29,7 @@ from inclinometer_calib.correct.reprocess import write_probe_bag
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PKG = os.path.join(ROOT, "inclinometer_calib")
-CORE = {"numpy", "scipy", "pyyaml", "allantools", "pygeomag", "ppigrf", "pyproj", "lxml", "tqdm",
+CORE = {"numpy", "scipy", "pyyaml", "pygeomag", "ppigrf", "pyproj", "lxml", "tqdm",
         "threadpoolctl"}
 #: never in a core install (issue 24): the fleet stack, the live view, the numba kernel, pyarrow
 NOT_CORE = {"dask", "distributed", "sqlalchemy", "alembic", "psycopg", "pyarrow", "numba", "foxglove-sdk"}

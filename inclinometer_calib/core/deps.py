@@ -1,8 +1,8 @@
 """Optional dependencies: import them where they are needed, or say in one line how to get them.
 
 ``pip install .`` installs the core only: numpy, scipy, PyYAML and what the core's own commands
-need (the noise model's allantools, the site's field and projection — pygeomag, ppigrf, pyproj —,
-WITSML's lxml, threadpoolctl, tqdm).  The rest comes with extras declared in
+need (the site's field and projection — pygeomag, ppigrf, pyproj —, WITSML's lxml, threadpoolctl,
+tqdm).  The rest comes with extras declared in
 ``setup.py``:
 
 =========  ==========================================  =============================================

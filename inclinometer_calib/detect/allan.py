@@ -14,7 +14,7 @@ treated as rate data) separates the noise processes by their slope (IEEE Std 952
   that wanders by ``K·√Δt`` over ``Δt``.
 
 The variance at each τ is pooled over all holds (weighted by its equivalent degrees of freedom,
-``allantools.edf_simple``), and the three terms are fitted by non-negative weighted least squares
+:func:`edf_simple`), and the three terms are fitted by non-negative weighted least squares
 (the weights from those degrees of freedom, so a τ seen by few averages counts little).  A term is
 *resolved* when it exceeds three of its standard deviations; otherwise its one-sided 95 % upper
 bound is what the data say.
@@ -57,7 +57,7 @@ class AllanCurve:
 
     ``tau`` (s, ascending); ``adev`` (len(tau), 3) in the sensor's unit; ``edf`` (len(tau), 3)
     equivalent degrees of freedom of each point (summed over the holds that reach that τ; per
-    hold the fewer of white and random-walk noise's, ``allantools.edf_simple``)."""
+    hold the fewer of white and random-walk noise's, :func:`edf_simple`)."""
 
     tau: np.ndarray
     adev: np.ndarray
@@ -95,8 +95,6 @@ def allan_curve(segments, rate_hz: float | None = None) -> AllanCurve:
 
 def _allan_curve(segs, rate_hz):
     """:func:`allan_curve` of the usable segments, computed."""
-    import allantools   # here, not at import: it brings scipy.signal to every process that imports the lab
-
     if rate_hz is None:
         dts = np.concatenate([np.diff(s[:, 0]) for s in segs])
         dts = dts[dts > 0]
@@ -119,8 +117,7 @@ def _allan_curve(segs, rate_hz):
         for k, m in enumerate(ok):
             if (n, m) not in edf:        # the same for every axis of a hold: worked out once
                 # the fewer of white and random-walk noise's (the process is not known yet)
-                edf[n, m] = min(float(allantools.edf_simple(n, int(m), 0)),
-                                float(allantools.edf_simple(n, int(m), -2)))
+                edf[n, m] = min(edf_simple(n, int(m), 0), edf_simple(n, int(m), -2))
             e = edf[n, m]
             i = int(np.searchsorted(ms, m))
             for j, a in zip(np.flatnonzero(use), ad[:, k]):
@@ -131,6 +128,31 @@ def _allan_curve(segs, rate_hz):
     with np.errstate(invalid="ignore", divide="ignore"):
         adev = np.where(wsum[keep] > 0, np.sqrt(acc[keep] / np.where(wsum[keep] > 0, wsum[keep], 1.0)), np.nan)
     return AllanCurve(ms[keep] / rate_hz, adev, wsum[keep], float(rate_hz), len(segs))
+
+
+def edf_simple(n: int, m: int, alpha: int) -> float:
+    """Equivalent degrees of freedom of the overlapping Allan variance of ``n`` phase samples at
+    averaging factor ``m``, for white frequency noise (``alpha`` 0) or random-walk frequency
+    noise (``alpha`` −2): the simple approximations of NIST SP 1065, Table 5 (Howe, Allan and
+    Barnes; ``allantools.edf_simple``'s numbers, test/detect/test_allan.py holds them equal —
+    computed here because importing allantools, for these two lines, took 0.65 CPU-s of every
+    process that computes a noise model)::
+
+        white FM:        edf = [3(N−1)/(2m) − 2(N−2)/N] · 4m²/(4m² + 5)
+        random-walk FM:  edf = (N−2)/(m(N−3)²) · [(N−1)² − 3m(N−1) + 4m²]
+
+    The random-walk formula's limit at ``N`` = 3 (a hold of three samples, the shortest that has
+    an Allan variance) is +∞, returned as such (allantools divides by zero there), so that the
+    fewer of the two is the white noise's.
+    """
+    n, m = float(n), float(m)
+    if alpha == 0:
+        return ((3 * (n - 1) / (2 * m)) - (2 * (n - 2) / n)) * ((4 * pow(m, 2)) / ((4 * pow(m, 2)) + 5))
+    if alpha == -2:
+        if n == 3.0:
+            return math.inf
+        return (n - 2) / (m * (n - 3) ** 2) * ((n - 1) ** 2 - 3 * m * (n - 1) + 4 * m ** 2)
+    raise ValueError(f"edf_simple: alpha {alpha} is not 0 (white FM) or -2 (random-walk FM)")
 
 
 def oadev_octaves(x, rate_hz: float, ms) -> np.ndarray:

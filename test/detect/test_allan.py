@@ -3,7 +3,8 @@ walk across a sequence of stations — checked against series of known noise."""
 import numpy as np
 import pytest
 
-from inclinometer_calib.detect.allan import allan_curve, fit_terms, oadev_octaves, sensor_noise, sequence_walk
+from inclinometer_calib.detect.allan import (allan_curve, edf_simple, fit_terms, oadev_octaves, sensor_noise,
+                                             sequence_walk)
 
 RATE = 50.0
 
@@ -82,6 +83,26 @@ def test_a_flat_axis_says_nothing_and_is_left_out():
     terms = fit_terms(curve)
     assert terms[0]["N"].resolved
     assert len(curve.tau) == 0 or not np.isfinite(terms[2]["N"].upper) or not terms[2]["N"].resolved
+
+
+def test_the_degrees_of_freedom_are_allantools_edf_simple_bit_for_bit():
+    """:func:`edf_simple` gives NIST SP 1065 Table 5's white- and random-walk-FM degrees of freedom
+    as ``allantools.edf_simple`` does, to the last bit, over the holds' lengths and octaves; any
+    other noise type is refused, not defaulted; at three samples the random walk's is +∞ (allantools
+    divides by zero there), so a three-sample hold is weighted by its white noise's."""
+    allantools = pytest.importorskip("allantools")
+    assert edf_simple(3, 1, -2) == np.inf and edf_simple(3, 1, 0) == float(allantools.edf_simple(3, 1, 0))
+    t = np.arange(3) / RATE
+    curve = allan_curve([np.column_stack([t, [[0.0, 1.0, 2.0], [1.0, 0.0, 2.0], [2.0, 1.0, 0.0]]])])
+    assert curve.edf[0] == pytest.approx([edf_simple(3, 1, 0)] * 3)
+    for n in (4, 7, 37, 200, 1000, 30001):
+        for m in 2 ** np.arange(0, int(np.log2(max(n // 3, 1))) + 1):
+            for alpha in (0, -2):
+                assert edf_simple(n, int(m), alpha) == float(allantools.edf_simple(n, int(m), alpha)), (n, m, alpha)
+    # a hand value: 1000 samples at m = 1, white FM: (3·999/2 − 2·998/1000)·4/9
+    assert edf_simple(1000, 1, 0) == pytest.approx((1498.5 - 1.996) * 4 / 9, rel=1e-15)
+    with pytest.raises(ValueError, match="alpha"):
+        edf_simple(100, 1, -1)
 
 
 def test_the_octave_deviations_are_allantools_oadev_bit_for_bit():
