@@ -16,13 +16,39 @@ type is the package's one (:mod:`station`); this module only reads logs into it.
 """
 from __future__ import annotations
 
+import copy
+import hashlib
 import re
+from collections import OrderedDict
 
 import numpy as np
 
 from ..detect.gates import SettlingTally, apply_gates
 from ..io.probelog import read_csv, report, segment_stations
 from ..core.station import Loss, Stations
+
+
+#: The last logs read (:func:`load_logs`), by their paths, roles and contents: a process that
+#: works on one probe's logs reads them again and again — a diagnosis, the fit it recommends and the
+#: report of both, each round of the model loop — and reading a log (parsing it, finding its
+#: stations with the live detector, gating them) is most of what a fit on it costs after that.
+LOAD_CACHE_SIZE = 8
+_loaded: OrderedDict = OrderedDict()
+
+
+def _content_key(items) -> tuple | None:
+    """``(kind, path, blake2b of its bytes)`` of each log, or None when one cannot be read (the
+    reading then fails as it would, and says why)."""
+    key = []
+    for kind, path in items:
+        try:
+            with open(path, "rb") as fh:
+                digest = hashlib.file_digest(fh, "blake2b").hexdigest() if hasattr(hashlib, "file_digest") \
+                    else hashlib.blake2b(fh.read()).hexdigest()
+        except (OSError, TypeError, ValueError):
+            return None
+        key.append((kind, str(path), digest))
+    return tuple(key)
 
 
 def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Stations:
@@ -38,10 +64,40 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
     hand through many attitudes); their stations enter as ``free`` (role ``cal``), constrained by
     the site invariants only.  Time-dependent effects count from the earliest first sample of the
     logs (read together, they are one probe's data since power-on).
+
+    The same logs (the same paths, roles and bytes) read again in one process give a copy of the
+    stations read the first time, and ``warn`` hears the same lines again (:data:`LOAD_CACHE_SIZE`
+    sets of logs are kept).
     """
     cal_paths = [] if cal_path is None else ([cal_path] if isinstance(cal_path, (str, bytes)) or
                                              not hasattr(cal_path, "__iter__") else list(cal_path))
-    say = warn or (lambda msg: None)
+    items = ([("free", p) for p in (free_paths or ())] + [("cal", p) for p in cal_paths]
+             + ([("val", val_path)] if val_path is not None else []))
+    key = _content_key(items)
+    if key is not None and key in _loaded:
+        _loaded.move_to_end(key)
+        stations, said = _loaded[key]
+        for msg in said:
+            if warn:
+                warn(msg)
+        return copy.deepcopy(stations)
+    said = []
+
+    def say(msg):
+        said.append(msg)
+        if warn:
+            warn(msg)
+
+    out = _read_logs(cal_paths, val_path, say, free_paths)
+    if key is not None:
+        _loaded[key] = (copy.deepcopy(out), said)
+        while len(_loaded) > LOAD_CACHE_SIZE:
+            _loaded.popitem(last=False)
+    return out
+
+
+def _read_logs(cal_paths, val_path, say, free_paths) -> Stations:
+    """:func:`load_logs`, read."""
     parts, losses = [], []
     t_origin = None
     for path, role, labels in ([(p, "cal", False) for p in (free_paths or ())]
