@@ -32,7 +32,10 @@ from ..core.station import Loss, Stations
 #: works on one probe's logs reads them again and again — a diagnosis, the fit it recommends and the
 #: report of both, each round of the model loop — and reading a log (parsing it, finding its
 #: stations with the live detector, gating them) is most of what a fit on it costs after that.
-LOAD_CACHE_SIZE = 8
+LOAD_CACHE_SIZE = 4
+#: A set whose stations keep more samples than this (rows of time and six channels, 56 bytes each)
+#: is not kept: a process reading long logs one after the other does not hold them all.
+LOAD_CACHE_MAX_SAMPLES = 2_000_000
 _loaded: OrderedDict = OrderedDict()
 
 
@@ -67,7 +70,8 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
 
     The same logs (the same paths, roles and bytes) read again in one process give a copy of the
     stations read the first time, and ``warn`` hears the same lines again (:data:`LOAD_CACHE_SIZE`
-    sets of logs are kept).
+    sets of logs are kept, none whose stations hold more than :data:`LOAD_CACHE_MAX_SAMPLES`
+    samples).
     """
     cal_paths = [] if cal_path is None else ([cal_path] if isinstance(cal_path, (str, bytes)) or
                                              not hasattr(cal_path, "__iter__") else list(cal_path))
@@ -89,7 +93,8 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
             warn(msg)
 
     out = _read_logs(cal_paths, val_path, say, free_paths)
-    if key is not None:
+    kept = sum(len(x) for x in (out.samples if out.samples is not None else ()) if x is not None)
+    if key is not None and kept <= LOAD_CACHE_MAX_SAMPLES:
         _loaded[key] = (copy.deepcopy(out), said)
         while len(_loaded) > LOAD_CACHE_SIZE:
             _loaded.popitem(last=False)

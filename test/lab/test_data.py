@@ -50,6 +50,18 @@ def test_the_same_logs_read_again_are_a_copy_of_the_first_reading_and_say_the_sa
     assert len(reads) == 3 and len(half.g) < len(first.g)
 
 
+def test_a_set_of_logs_longer_than_the_cache_holds_is_read_each_time(logs, monkeypatch):
+    cal, val = logs
+    reads = []
+    read = data._read_logs
+    monkeypatch.setattr(data, "_read_logs", lambda *a: reads.append(a) or read(*a))
+    monkeypatch.setattr(data, "LOAD_CACHE_MAX_SAMPLES", 10)
+    data._loaded.clear()
+    data.load_logs(cal, val)
+    data.load_logs(cal, val)
+    assert len(reads) == 2 and not data._loaded
+
+
 def test_a_log_that_cannot_be_read_fails_as_it_did_and_is_not_kept(tmp_path, logs):
     cal, _ = logs
     missing = tmp_path / "nowhere.csv"
