@@ -28,14 +28,14 @@ statistic at ``τ`` = the spacing of the stations.
 """
 from __future__ import annotations
 
-import copy
 import hashlib
 import math
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
+
+from ..core.memo import CopyMemo
 
 #: (2·ln2/π): the Allan variance of flicker noise of bias instability B is this times B².
 FLICKER = 2.0 * math.log(2.0) / math.pi
@@ -48,7 +48,7 @@ UNITS = {"acc": "m/s^2", "mag": "nT"}
 #: holds again and again (each diagnosis, its stochastic check, every step of a ladder), and
 #: ``allantools.oadev`` per hold and axis is most of its cost (a third of a diagnosis).
 CURVE_CACHE_SIZE = 16
-_curves: OrderedDict = OrderedDict()
+_curves = CopyMemo(CURVE_CACHE_SIZE)
 
 
 @dataclass
@@ -84,12 +84,9 @@ def allan_curve(segments, rate_hz: float | None = None) -> AllanCurve:
         h.update(str(s.shape).encode())
     key = h.digest()
     if key in _curves:
-        _curves.move_to_end(key)
-        return copy.deepcopy(_curves[key])
+        return _curves.get(key)
     curve = _allan_curve(segs, rate_hz)
-    _curves[key] = copy.deepcopy(curve)
-    while len(_curves) > CURVE_CACHE_SIZE:
-        _curves.popitem(last=False)
+    _curves.put(key, curve)
     return curve
 
 

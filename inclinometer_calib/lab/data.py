@@ -16,15 +16,14 @@ type is the package's one (:mod:`station`); this module only reads logs into it.
 """
 from __future__ import annotations
 
-import copy
 import hashlib
 import re
-from collections import OrderedDict
 
 import numpy as np
 
 from ..detect.gates import SettlingTally, apply_gates
 from ..io.probelog import read_csv, report, segment_stations
+from ..core.memo import CopyMemo
 from ..core.station import Loss, Stations
 
 
@@ -36,7 +35,7 @@ LOAD_CACHE_SIZE = 4
 #: A set whose stations keep more samples than this (rows of time and six channels, 56 bytes each)
 #: is not kept: a process reading long logs one after the other does not hold them all.
 LOAD_CACHE_MAX_SAMPLES = 2_000_000
-_loaded: OrderedDict = OrderedDict()
+_loaded = CopyMemo(LOAD_CACHE_SIZE)
 
 
 def _content_key(items) -> tuple | None:
@@ -79,12 +78,10 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
              + ([("val", val_path)] if val_path is not None else []))
     key = _content_key(items)
     if key is not None and key in _loaded:
-        _loaded.move_to_end(key)
-        stations, said = _loaded[key]
-        for msg in said:
-            if warn:
-                warn(msg)
-        return copy.deepcopy(stations)
+        stations, said = _loaded.get(key)
+        for msg in said if warn else ():
+            warn(msg)
+        return stations
     said = []
 
     def say(msg):
@@ -95,9 +92,7 @@ def load_logs(cal_path=None, val_path=None, warn=None, free_paths=()) -> Station
     out = _read_logs(cal_paths, val_path, say, free_paths)
     kept = sum(len(x) for x in (out.samples if out.samples is not None else ()) if x is not None)
     if key is not None and kept <= LOAD_CACHE_MAX_SAMPLES:
-        _loaded[key] = (copy.deepcopy(out), said)
-        while len(_loaded) > LOAD_CACHE_SIZE:
-            _loaded.popitem(last=False)
+        _loaded.put(key, (out, said))
     return out
 
 

@@ -108,4 +108,3 @@ def mean_above_zero_p(x) -> float:
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.mean(x) / (np.std(x, ddof=1) / np.sqrt(n))
     return float(stdtr(n - 1, -t))
-

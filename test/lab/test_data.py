@@ -67,4 +67,4 @@ def test_a_log_that_cannot_be_read_fails_as_it_did_and_is_not_kept(tmp_path, log
     missing = tmp_path / "nowhere.csv"
     with pytest.raises(OSError):
         data.load_logs(cal, missing)
-    assert all(str(missing) not in str(k) for k in data._loaded)
+    assert all(str(missing) not in str(k) for k in data._loaded.keys())
