@@ -731,6 +731,20 @@ def _batches(entries, size):
     return [entries[i:i + size] for i in range(0, len(entries), size)]
 
 
+def _outcome(fut) -> tuple:
+    """``(result, None)`` of a completed task, or ``(None, exception)``.  A task that finished
+    may still fail when its result is fetched: the result lives in its worker's memory, and a
+    worker lost before the client fetched it (a batch-mate's bag killed it) makes Dask run the task
+    again — and give up with ``KilledWorker`` if more workers die with it.  That is the task's
+    outcome, handled as any other, not an exception out of the run."""
+    if fut.status != "finished":
+        return None, fut.exception()
+    try:
+        return fut.result(), None
+    except Exception as exc:   # noqa: BLE001 — any failure of the task is its outcome (the caller sorts them)
+        return None, exc
+
+
 def _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take, bar, client, scheduler, n_workers,
               before_bag):
     """Submit one task per batch (:func:`dask_batch`) and take results as they complete; a task that
@@ -787,11 +801,11 @@ def _run_dask(entries, bags_per_task, resolver, out_dir, settings, index, take, 
             submit(batch)
         for fut in running:
             batch, blind = futures.pop(fut)
-            if fut.status == "finished":
-                take(fut.result())
+            result, exc = _outcome(fut)
+            if exc is None:
+                take(result)
                 bar.update(len(batch))
                 continue
-            exc = fut.exception()
             if not isinstance(exc, KilledWorker):
                 take([BagResult(bag=e.path, status="failed", reason=f"task failed: {type(exc).__name__}: {exc}")
                       for e in batch])

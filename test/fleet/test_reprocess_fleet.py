@@ -23,9 +23,9 @@ from inclinometer_calib.apps.cli.bags import field_monitor
 from inclinometer_calib.calibrate import simulate as sim
 from inclinometer_calib.fleet.manifest import ManifestError, read_manifest
 from inclinometer_calib.fleet.registry import Registry
-from inclinometer_calib.fleet.reprocess import (DATASET_DIR, INDEX_FILE, LOST_REASON, RUNNING_DIR, _running_note,
-                                                local_cluster, lost_attempts, read_stations, reprocess_fleet,
-                                                write_fragment)
+from inclinometer_calib.fleet.reprocess import (DATASET_DIR, INDEX_FILE, LOST_REASON, RUNNING_DIR, _outcome,
+                                                _running_note, local_cluster, lost_attempts, read_stations,
+                                                reprocess_fleet, write_fragment)
 from inclinometer_calib.core.frames import Site
 from inclinometer_calib.io.bag import read_bag
 from inclinometer_calib.correct.reprocess import reprocess, write_probe_bag
@@ -329,6 +329,43 @@ def test_two_copies_of_a_bag_under_two_names_are_two_surveys(fleet, tmp_path):
     assert len(a) == len(b) > 0 and table.num_rows == len(a) + len(b)
     assert all(same(x[k], y[k]) for x, y in zip(a, b) for k in x if k != "bag")
     assert len({r.fragment for r in summary.results}) == 2
+
+
+def test_a_task_whose_result_is_lost_with_its_worker_is_a_lost_task_not_an_error_out_of_the_run():
+    """A task that finished keeps its result in its worker's memory; a worker that dies before the
+    client fetched it (killed by the bag of the next task it took) makes Dask run the task again, and
+    give up with KilledWorker when workers keep dying: fetching the result then raises.  Seen once
+    in a fresh-clone run of the worker-lost test below, as a traceback out of ``reprocess_fleet``;
+    the outcome is now the task's, handled as a task that failed (its bags retried or failed)."""
+    from distributed.scheduler import KilledWorker
+
+    class Finished:
+        status = "finished"
+
+        def __init__(self, fetch):
+            self.fetch = fetch
+
+        def result(self):
+            return self.fetch()
+
+        def exception(self):
+            raise AssertionError("a finished task's outcome is its result")
+
+    def lost():
+        raise KilledWorker("dask_batch-1", "tcp://127.0.0.1:1", 1)
+
+    assert _outcome(Finished(lambda: ["r"])) == (["r"], None)
+    result, exc = _outcome(Finished(lost))
+    assert result is None and isinstance(exc, KilledWorker) and exc.allowed_failures == 1
+
+    class Erred:
+        status = "error"
+
+        def exception(self):
+            return ValueError("bad")
+
+    result, exc = _outcome(Erred())
+    assert result is None and isinstance(exc, ValueError)
 
 
 @pytest.mark.parametrize("fleet", ["sqlite"], indirect=True)
