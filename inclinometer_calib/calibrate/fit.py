@@ -21,10 +21,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import chdtrc
-
 from ..core import effects as fx
 from ..core.formulas import dip_of
+from ..core.specfun import chdtrc
 from .blas import one_thread
 from .labmodel import LabModel
 from .wander import _free_sigmas, clear_paths, edf_total, smooth, stochastic_terms

@@ -9,7 +9,9 @@ plus effects), ``plugins`` (user effects), ``coeffs`` (the calibration record), 
 static hold and the one correction path of stations), ``survey`` (drift, azimuth, toolface and
 their QC from g and b; the batch path with ``batchkernel``/``_batch_numba``), ``output`` (every
 file written: temp name + rename), ``yamltext`` (YAML in and out, libyaml when present), ``memo`` (the
-last results of repeated work, handed out as copies) and ``deps`` (optional dependencies, one-line hints).
+last results of repeated work, handed out as copies), ``specfun`` (the χ², F and t distribution
+functions the detector and the lab's tests need, without scipy.special's imports) and ``deps``
+(optional dependencies, one-line hints).
 
 May import: nothing of the package outside ``core`` — and neither ``rclpy`` nor message types
 (test/core/test_layers.py, test/core/test_core_without_ros.py).

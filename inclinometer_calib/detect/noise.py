@@ -33,6 +33,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..core.specfun import gammaincinv
+
 AXES6 = ("acc x", "acc y", "acc z", "mag x", "mag y", "mag z")
 UNITS6 = ("m/s^2",) * 3 + ("nT",) * 3
 #: The quantile of the block scatters used for the first, motion-robust estimate.
@@ -48,18 +50,9 @@ def chi_quantile(n: int, q: float = LOW_QUANTILE) -> float:
     """Quantile ``q`` of ``s/σ`` for the sample std ``s`` of ``n`` white-noise samples:
     ``sqrt(χ²_q(n-1) / (n-1))``."""
     dof = max(int(n) - 1, 1)
-    return math.sqrt(2.0 * _gammaincinv()(0.5 * dof, q) / dof)   # χ²_q(k) = 2·P⁻¹(k/2, q), as scipy.stats' chi2.ppf
-
-
-def _gammaincinv():
-    """scipy.special's inverse regularised lower incomplete gamma function P⁻¹(a, q), imported on
-    the first call (scipy.stats' chi2.ppf is this, behind 0.4 CPU-s more of imports that every
-    CLI command and node would pay).  :class:`NoiseEstimator` calls it when it is made, so that a
-    live node imports it while it starts: on the first closed block it would stall the node's
-    sample callback while its best-effort queue overflows."""
-    from scipy.special import gammaincinv
-
-    return gammaincinv
+    # χ²_q(k) = 2·P⁻¹(k/2, q), what scipy.stats' chi2.ppf computes (core.specfun: without
+    # scipy.special's 0.25 CPU-s of imports in every node and CLI command that finds stations)
+    return math.sqrt(2.0 * gammaincinv(0.5 * dof, q) / dof)
 
 
 def estimate_from_blocks(block_std: np.ndarray, block_n: float) -> np.ndarray:
@@ -170,7 +163,6 @@ class NoiseEstimator:
         self.prior = (math.nan, math.nan)   # stated σ (from message covariance), per sensor
         self._sigma = (math.nan,) * 6
         self._reset_block()
-        _gammaincinv()     # now, not on the first closed block (see _gammaincinv)
 
     def _reset_block(self):
         self._bn = 0

@@ -33,9 +33,9 @@ import copy
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.special import chdtrc
 
 from ..core import effects as fx
+from ..core.specfun import chdtrc
 from ..core.station import Stations
 from ..calibrate.blas import one_thread
 from ..calibrate.fit import fit, physical_hints, residual_groups
