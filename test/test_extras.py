@@ -22,6 +22,8 @@ import pytest
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
+import pysource
+
 from inclinometer_calib.apps import cli
 from inclinometer_calib.core.deps import MissingDependency, require
 from inclinometer_calib.io.probelog import read_csv
@@ -92,9 +94,7 @@ def _python_files():
 
 
 def _imports(path):
-    with open(path, encoding="utf-8") as fh:
-        tree = ast.parse(fh.read(), path)
-    for node in ast.walk(tree):
+    for node in ast.walk(pysource.parse(path)):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 yield alias.name.split(".")[0], node.lineno
@@ -122,9 +122,7 @@ def test_require_calls_name_the_extra_that_provides_the_module(metadata):
     _, extras = metadata
     calls = []
     for path in _python_files():
-        with open(path, encoding="utf-8") as fh:
-            tree = ast.parse(fh.read(), path)
-        for node in ast.walk(tree):
+        for node in ast.walk(pysource.parse(path)):
             if (isinstance(node, ast.Call) and getattr(node.func, "id", None) == "require"
                     and len(node.args) >= 2 and all(isinstance(a, ast.Constant) for a in node.args[:2])):
                 module, extra = node.args[0].value, node.args[1].value

@@ -23,6 +23,8 @@ import re
 import pytest
 import yaml
 
+import pysource
+
 from inclinometer_calib.apps import launcher
 from inclinometer_calib.rig import liveview as lv
 
@@ -174,8 +176,7 @@ def published_diagnostic_names():
     it is in takes each constant that function is called with."""
     names = set()
     for path in glob.glob(os.path.join(ROOT, "inclinometer_calib", "nodes", "*.py")):
-        with open(path, encoding="utf-8") as fh:
-            tree = ast.parse(fh.read(), path)
+        tree = pysource.parse(path)
         parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
         for call in ast.walk(tree):
             if not (isinstance(call, ast.Call) and getattr(call.func, "id", None) == "DiagnosticStatus"):

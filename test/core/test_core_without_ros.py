@@ -35,15 +35,15 @@ def test_no_module_below_the_nodes_names_ros_even_inside_a_function():
     """Read from the source: an import inside a function is not run by the import above."""
     import ast
 
+    import pysource
+
     ros = ("rclpy", "rosidl", "rcl_interfaces", "builtin_interfaces", "inclinometer_calib.msg",
            "inclinometer_calib.srv")
     found = []
     for m in CORE:
         path = os.path.join(PKG, *m.split("."))
         path = os.path.join(path, "__init__.py") if os.path.isdir(path) else path + ".py"
-        with open(path, encoding="utf-8") as fh:
-            tree = ast.parse(fh.read())
-        for node in ast.walk(tree):
+        for node in ast.walk(pysource.parse(path)):
             names = ([a.name for a in node.names] if isinstance(node, ast.Import)
                      else [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
             found += [f"{m}: {n}" for n in names if n.startswith(ros) or n.split(".")[0].endswith("_msgs")]

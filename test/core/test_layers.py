@@ -10,17 +10,17 @@ import of the package, in it and in the tests, benchmarks, scripts and examples,
 the tree: the ROS install tree's copy of the package would otherwise answer a path that moved.
 """
 import ast
-import pathlib
 
 import pytest
 
-PKG = pathlib.Path(__file__).resolve().parents[2] / "inclinometer_calib"
+import pysource
+from pysource import PKG
 NAME = "inclinometer_calib"
 #: Bottom to top: a module may import its own layer and the ones before it, never one after it.
 LAYERS = ("core", "detect", "io", "calibrate", "correct", "rig", "lab", "fleet", "nodes", "apps")
 
 
-def _module(path: pathlib.Path) -> tuple:
+def _module(path) -> tuple:
     parts = list(path.relative_to(PKG.parent).with_suffix("").parts)
     is_pkg = parts[-1] == "__init__"
     return ".".join(parts[:-1] if is_pkg else parts), is_pkg
@@ -61,7 +61,7 @@ def _targets(name: str, is_pkg: bool, tree, modules) -> set:
 @pytest.fixture(scope="module")
 def sources() -> dict:
     """(module, is a package) -> its parsed source, for every module of the tree."""
-    return {_module(p): ast.parse(p.read_text()) for p in PKG.rglob("*.py") if "__pycache__" not in p.parts}
+    return {_module(p): pysource.parse(p) for p in pysource.files()}
 
 
 @pytest.fixture(scope="module")
@@ -92,9 +92,9 @@ def test_every_import_of_the_package_names_a_module_of_the_tree(sources):
     trees = {name: tree for (name, _), tree in sources.items()}
     defined = {name: _defined(tree) for name, tree in trees.items()}
     generated = (NAME + ".msg", NAME + ".srv")
-    users = {(str(p.relative_to(PKG.parent)), False): ast.parse(p.read_text())
+    users = {(str(p.relative_to(PKG.parent)), False): pysource.parse(p)
              for folder in ("test", "benchmarks", "scripts", "examples", "launch")
-             for p in (PKG.parent / folder).rglob("*.py") if "__pycache__" not in p.parts}
+             for p in pysource.files(PKG.parent / folder)}
     stale = []
     for (name, is_pkg), tree in {**sources, **users}.items():
         for node in ast.walk(tree):

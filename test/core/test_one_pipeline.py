@@ -7,14 +7,19 @@ sign flip only where samples enter and leave (through :mod:`frames`), effect met
 classes, one effect grammar.
 """
 import ast
-import pathlib
+import functools
 import re
 
 import pytest
 
-PKG = pathlib.Path(__file__).resolve().parents[2] / "inclinometer_calib"
-MODULES = {p.relative_to(PKG).as_posix(): ast.parse(p.read_text()) for p in PKG.rglob("*.py")
-           if "__pycache__" not in p.parts}
+import pysource
+from pysource import PKG
+
+
+@functools.lru_cache(maxsize=1)
+def modules() -> dict:
+    """module path -> its parsed source (read when a test first asks, not while tests are collected)."""
+    return {p.relative_to(PKG).as_posix(): pysource.parse(p) for p in pysource.files()}
 
 
 def _classes(tree):
@@ -44,7 +49,7 @@ def _calls(tree, attr):
 @pytest.mark.parametrize("name", ["StaticSegment", "Capture", "LabData", "StationRecord", "Stationary",
                                   "FastCorrection", "ProbeModel", "Station", "Stations"])
 def test_each_station_and_model_type_is_defined_once(name):
-    where = [m for m, t in MODULES.items() if name in _classes(t)]
+    where = [m for m, t in modules().items() if name in _classes(t)]
     home = {"Station": ["core/station.py"], "Stations": ["core/station.py"], "ProbeModel": ["core/model.py"]}.get(name, [])
     assert where == home, f"class {name} defined in {where}"
 
@@ -61,7 +66,7 @@ def test_the_paths_import_the_one_station_type_and_the_one_correction_path():
         "lab/loop.py": {("compare", "*")},
     }
     for module, need in uses.items():
-        have = _imports(MODULES[module])
+        have = _imports(modules()[module])
         if ("compare", "*") in need:
             assert ("", "compare") in have, module
             continue
@@ -70,12 +75,12 @@ def test_the_paths_import_the_one_station_type_and_the_one_correction_path():
 
 def test_only_the_model_inverts_a_triad_and_only_the_pipeline_feeds_it_stations():
     # TriadModel.inverse: the model's correction (model.py) and the twelve-position solver's own triad
-    callers = sorted(m for m, t in MODULES.items() if _calls(t, "inverse"))
+    callers = sorted(m for m, t in modules().items() if _calls(t, "inverse"))
     assert callers == ["calibrate/twelve_position.py", "core/model.py"], callers
     # .correct(...): Calibration -> ProbeModel (coeffs, model), of stations (station.correct_stations), of
     # samples (the batch path, survey.py), the lab's model, fit, wander smoother and predicted uncertainty
     # (LabModel.correct -> ProbeModel.correct; the fit one triad at a time, correct_triad)
-    callers = sorted(m for m, t in MODULES.items()
+    callers = sorted(m for m, t in modules().items()
                      if (_calls(t, "correct") or _calls(t, "correct_triad")) and m != "correct/axial.py")
     assert callers == ["calibrate/fit.py", "calibrate/labmodel.py", "calibrate/wander.py", "core/coeffs.py", "core/model.py",
                        "core/station.py", "core/survey.py", "lab/uncertainty.py"], callers
@@ -137,14 +142,14 @@ def _negations(nodes):
 
 
 def test_the_specific_force_sign_flip_happens_at_the_entries_only():
-    defs = [m for m, t in MODULES.items() if {"gravity_from_specific_force", "specific_force_from_gravity"}
+    defs = [m for m, t in modules().items() if {"gravity_from_specific_force", "specific_force_from_gravity"}
             & _functions(t)]
     assert defs == ["core/frames.py"]
     # used: called or passed on (coeffs picks it per sensor), not merely imported or named in a docstring
     names = ("gravity_from_specific_force", "specific_force_from_gravity")
     calls = {name: [] for name in names}
     flips = {}
-    for m, t in MODULES.items():
+    for m, t in modules().items():
         nodes = list(ast.walk(t))       # one walk per module: the whole package costs about a second
         used = {n.id if isinstance(n, ast.Name) else n.attr for n in nodes if isinstance(n, (ast.Name, ast.Attribute))}
         for name in names:
@@ -176,7 +181,7 @@ def test_the_core_apis_take_the_gravity_vector():
              ("core/survey.py", "correct_samples"): 0, ("core/batchkernel.py", "fused"): 0,
              ("core/_batch_numba.py", "fused"): 0, ("nodes/stream.py", "StreamDriver.feed"): 1}
     for (module, func), k in first.items():
-        body = MODULES[module].body
+        body = modules()[module].body
         *cls, name = func.split(".")
         if cls:
             body = next(n.body for n in body if isinstance(n, ast.ClassDef) and n.name == cls[0])
@@ -192,7 +197,7 @@ def test_effect_metadata_is_asked_of_the_classes_not_keyed_by_name_elsewhere():
 
     # the base model's names are also the record's parameter fields (bias_x, scale_x ...): the others
     names = set(fx.CATALOGUE) - set(fx.BASE)
-    for module, tree in MODULES.items():
+    for module, tree in modules().items():
         if module == "core/effects.py":
             continue
         docstrings = {id(n.body[0].value) for n in ast.walk(tree)
@@ -204,7 +209,7 @@ def test_effect_metadata_is_asked_of_the_classes_not_keyed_by_name_elsewhere():
 
 
 def test_one_grammar_parses_effect_specifications():
-    parsers = [(m, f) for m, t in MODULES.items() for f in _functions(t) if f.startswith("parse_effect")]
+    parsers = [(m, f) for m, t in modules().items() for f in _functions(t) if f.startswith("parse_effect")]
     assert parsers == [("core/effects.py", "parse_effects")], parsers
 
 
@@ -213,13 +218,13 @@ def test_the_nodes_and_reprocess_drive_the_one_stream_engine():
     force: ``engine.StreamEngine`` — the calibration and correction nodes and ``reprocess`` drive
     it; nothing else pairs the streams or holds stations back."""
     for module in ("correct/reprocess.py", "nodes/correction.py", "nodes/calibration.py"):
-        assert ("engine", "StreamEngine") in _imports(MODULES[module]), module
-    pairers = sorted(m for m, t in MODULES.items() if any(
+        assert ("engine", "StreamEngine") in _imports(modules()[module]), module
+    pairers = sorted(m for m, t in modules().items() if any(
         isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", "")) == "StreamPairer"
         for n in ast.walk(t)))
     assert pairers == ["correct/engine.py"], pairers
     # the tracks a station waits on are the engine's alone
-    tracks = sorted(m for m, t in MODULES.items() if any(
+    tracks = sorted(m for m, t in modules().items() if any(
         isinstance(n, ast.Call) and getattr(n.func, "id", getattr(n.func, "attr", "")) == "ReferenceTrack"
         for n in ast.walk(t)))
     assert tracks == ["correct/engine.py"], tracks
@@ -228,7 +233,7 @@ def test_the_nodes_and_reprocess_drive_the_one_stream_engine():
 def test_a_stations_status_is_decided_in_one_place():
     """``pipeline.station_status``: the nodes' and reprocess's fields (``station_fields``) and
     ``correct``'s table and figures."""
-    callers = sorted(m for m, t in MODULES.items() if any(
+    callers = sorted(m for m, t in modules().items() if any(
         isinstance(n, ast.Call) and getattr(n.func, "id", "") == "station_status" for n in ast.walk(t)))
     assert callers == ["correct/pipeline.py"], callers
 
@@ -256,7 +261,7 @@ def test_the_survey_formulas_are_written_once():
     found = {}
     for module in ("core/frames.py", "core/survey.py", "core/errormodel.py", "core/model.py", "core/batchkernel.py",
                    "core/_batch_numba.py"):
-        for top in MODULES[module].body:
+        for top in modules()[module].body:
             defs = top.body if isinstance(top, ast.ClassDef) else [top]
             for d in defs:
                 if isinstance(d, ast.FunctionDef) and any(_own_call(n, trig) for n in ast.walk(d)):
