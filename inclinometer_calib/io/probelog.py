@@ -834,15 +834,19 @@ def _column(values, fmt, blank_nan: bool = True) -> list:
 def format_csv(log: ProbeLog, mag_unit: str = "nT") -> str:
     """Render a ProbeLog in the CSV format (full precision where it matters); the magnetometer in
     ``mag_unit`` (the file then needs that unit given when it is read).  Built column by column (a
-    10⁶-row log: 3.3 s against 9.2 s row by row, the same text)."""
+    10⁶-row log: 3.3 s against 9.2 s row by row, the same text; the sensor columns by row: below)."""
     scale = 1.0 / MAG_UNITS[mag_unit]
     mfmt = ".3f" if mag_unit == "nT" else ".6g"
     turntable = log.is_turntable
     depth = bool(np.any(np.isfinite(log.md_m)))
     mag = log.mag * scale
-    cols = [_column(log.t_s, ".4f", blank_nan=False),
-            *(_column(log.acc[:, j], ".6f", blank_nan=False) for j in range(3)),
-            *(_column(mag[:, j], mfmt, blank_nan=False) for j in range(3)),
+    # the time and the six sensor columns (never blank) one row at a time through a %-template:
+    # one formatting call a row instead of seven and a join (the same digits: both are Python's
+    # float formatting; the simulator's survey log, 39 500 rows, 0.16 → 0.13 s)
+    row = "%.4f,%.6f,%.6f,%.6f" + (",%" + mfmt) * 3
+    sensors = [row % r for r in zip(log.t_s.tolist(), *(log.acc[:, j].tolist() for j in range(3)),
+                                    *(mag[:, j].tolist() for j in range(3)))]
+    cols = [sensors,
             _column(log.temp_c, ".3f"),
             [str(p) if p else "" for p in log.pose.astype(int).tolist()],
             *(_column(log.ref[:, j], ".4f") for j in range(3))]
