@@ -12,7 +12,8 @@ Residuals (each divided by its noise, so the cost is a χ²):
 
 Solved by undamped Gauss–Newton steps (:func:`gauss_newton`: the residuals are close to linear
 near a calibration), else by ``scipy.optimize.least_squares`` (Levenberg–Marquardt), both on
-finite-difference Jacobians of a vectorised residual.  Uncertainties from the Jacobian at the solution, scaled by the
+finite-difference Jacobians of a vectorised residual (the steps in one triad's own parameters
+evaluated together, :func:`residual_rows`, the same bits).  Uncertainties from the Jacobian at the solution, scaled by the
 reduced χ² when that exceeds 1; identifiability from its singular values, with physical hints.
 """
 from __future__ import annotations
@@ -94,8 +95,8 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
     (``cache``: :class:`ResidualCache` of this model and data, when the caller has it)."""
     if theta is not None:
         model.set_vector(theta)
-    parts = []
     d_ori, d_free = split_oriented(data) if cache is None else cache.split
+    vec = None
     if cache is None:
         def triad(slot, sensor, compute, shared=True):
             return compute()
@@ -104,6 +105,7 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
 
         def triad(slot, sensor, compute, shared=True):
             return cache.triad(slot, sensor, vec, compute, shared)
+    h_g = h_b = g = b = None
     if d_ori is not None:
         d = d_ori
         true = []
@@ -114,19 +116,126 @@ def residual_vector(model: LabModel, data, theta=None, prior=True, cache: Residu
             return model.forward_triad(sensor, d, true[0] if sensor == "acc" else true[1])
         h_g = triad("oriented acc", "acc", lambda: predicted("acc"))
         h_b = triad("oriented mag", "mag", lambda: predicted("mag"))
-        parts += [((d.g - h_g) / d.g_sigma).ravel(), ((d.b - h_b) / d.b_sigma).ravel()]
+    sigmas = None
     if d_free is not None:
         d = d_free
         g = triad("free acc", "acc", lambda: model.correct_triad("acc", d), cache is not None and cache.free_shared)
         b = triad("free mag", "mag", lambda: model.correct_triad("mag", d), cache is not None and cache.free_shared)
-        sg, sb, sdip = _free_sigmas(d, model) if cache is None else cache.free_sigmas
-        gn, bn = np.linalg.norm(g, axis=1), np.linalg.norm(b, axis=1)
-        dip = dip_of(np.sum(g * b, axis=1), gn, bn)
+        sigmas = _free_sigmas(d, model) if cache is None else cache.free_sigmas
+    return _assemble(model, d_ori, d_free, sigmas, (h_g, h_b, g, b),
+                     _prior_residual(model, cache, vec) if prior else None)
+
+
+def _assemble(model: LabModel, d_ori, d_free, free_sigmas, outputs, prior=None, rows: int = 0) -> np.ndarray:
+    """The residual vector from the triads' ``outputs`` — the oriented stations' predicted outputs
+    and the free ones' corrected vectors, ``(h_g, h_b, g, b)``, (N, 3) each (None where there are
+    none) — then the ``prior`` rows.  With ``rows`` K: any of them may be K sets at once, (K, N, 3)
+    (``prior`` (K, n)), and the result is K residual vectors (K, n_res): each the bits of its set
+    alone (element by element, sums over three axes)."""
+    h_g, h_b, g, b = outputs
+    parts = []
+    if d_ori is not None:
+        for meas, pred, sigma in ((d_ori.g, h_g, d_ori.g_sigma), (d_ori.b, h_b, d_ori.b_sigma)):
+            z = (meas - pred) / sigma
+            parts.append(z.reshape(z.shape[:-2] + (-1,)))
+    if d_free is not None:
+        sg, sb, sdip = free_sigmas
+        gn, bn = np.linalg.norm(g, axis=-1), np.linalg.norm(b, axis=-1)
+        dip = dip_of(np.sum(g * b, axis=-1), gn, bn)
         parts += [(gn - model.site.gravity_mps2) / sg, (bn - model.site.total_field_nt) / sb,
                   (dip - model.dip_deg) / sdip]
-    if prior:
-        parts.append(_prior_residual(model, cache, None if cache is None else vec))
-    return np.concatenate(parts)
+    if prior is not None:
+        parts.append(prior)
+    if rows:
+        parts = [np.broadcast_to(p, (rows, p.shape[-1])) for p in parts]
+    return np.concatenate(parts, axis=-1)
+
+
+def _rows_sensors(model: LabModel, cache: ResidualCache, stochastic: bool) -> tuple:
+    """The triads whose finite-difference steps :func:`residual_rows` evaluates together: those
+    whose every effect takes one row of values per sample (:func:`effects.takes_rows`), in a model
+    without effects that need the history of holds or a wandering bias (those step one by one)."""
+    if stochastic or cache.free_shared:
+        return ()
+    return tuple(s for s in ("acc", "mag")
+                 if all(fx.takes_rows(t.effect) for t in model.probe.terms if t.effect.sensor == s))
+
+
+def _term_rows(model: LabModel, sensor: str, V, n: int) -> None:
+    """Give ``sensor``'s effects the values of the K parameter vectors ``V`` (K, n_all), each
+    repeated for ``n`` rows: (K·n, axes) arrays, the K sets one after the other."""
+    i = 0
+    for t in model.probe.terms:
+        e = t.effect
+        na = e.n_params // len(e.specs) if e.specs else 0
+        if e.sensor == sensor:
+            for k, s in enumerate(e.specs):
+                e.values[s.name] = np.repeat(V[:, i + k * na:i + (k + 1) * na], n, axis=0)
+        i += e.n_params
+
+
+def _triad_rows(model: LabModel, sensor: str, d, V, true=None) -> np.ndarray:
+    """``sensor``'s outputs on the stations ``d`` for the K parameter vectors ``V`` (K, n_all) in
+    one evaluation per role, (K, N, 3): the predicted outputs of oriented stations for their true
+    vectors ``true`` (:meth:`LabModel.forward_triad`), else the corrected vectors of free ones
+    (:meth:`LabModel.correct_triad`) — each set the bits of its vector alone.  Leaves the model's
+    effects holding rows: the caller sets its vector back."""
+    from ..core.model import CorrectionPlan
+
+    k = len(V)
+    out = np.empty((k, len(d), 3))
+    for role in ("cal", "val"):
+        m = d.role == role
+        n = int(m.sum())
+        if not n:
+            continue
+        temp, tim = np.tile(d.temp_c[m], k), np.tile(d.time_s[m], k)
+        if true is not None:
+            _term_rows(model, sensor, V, n)
+            y = model.probe.forward_triad(sensor, np.tile(true[m], (k, 1)), temp, tim, role)
+        else:
+            c, bias = np.empty((k, 9)), np.empty((k, 3))
+            for q in range(k):                   # each vector's base triad, as CorrectionPlan takes it
+                model.set_vector(V[q])
+                tri = model.probe.triad(sensor)
+                c[q], bias[q] = tri.correction_matrix.ravel(), tri.bias
+            plan = CorrectionPlan(model.probe, role, (sensor,))
+            _term_rows(model, sensor, V, n)
+            y = plan.correct_triad_rows(sensor, np.tile((d.g if sensor == "acc" else d.b)[m], (k, 1)),
+                                        tuple(np.repeat(c[:, q], n) for q in range(9)),
+                                        tuple(np.repeat(bias[:, q], n) for q in range(3)), temp, tim)
+        out[:, m] = y.reshape(k, n, 3)
+    return out
+
+
+def residual_rows(model: LabModel, data, cache: ResidualCache, base, V, sensor: str) -> np.ndarray:
+    """:func:`residual_vector` at each of the K parameter vectors ``V`` (K, n_all), which differ from
+    ``base`` in ``sensor``'s own parameters only (a Jacobian's steps, :func:`forward_jacobian`): the
+    other triad's outputs are ``base``'s, ``sensor``'s are evaluated for all K at once
+    (:func:`_triad_rows`: about a fifth of the time of K evaluations).  Each row is the bits
+    :func:`residual_vector` gives (test/lab/test_fit.py).  The model is left at ``base``."""
+    model.set_vector(base)
+    d_ori, d_free = cache.split
+    other = "mag" if sensor == "acc" else "acc"
+    si = 0 if sensor == "acc" else 1
+    outs = [None] * 4
+    try:
+        if d_ori is not None:
+            true = model.true_vectors(d_ori)
+            outs[1 - si] = cache.triad(f"oriented {other}", other, base,
+                                       lambda: model.forward_triad(other, d_ori, true[1 - si]))
+            outs[si] = _triad_rows(model, sensor, d_ori, V, true[si])
+            model.set_vector(base)
+        if d_free is not None:
+            outs[3 - si] = cache.triad(f"free {other}", other, base, lambda: model.correct_triad(other, d_free),
+                                       cache.free_shared)
+            outs[2 + si] = _triad_rows(model, sensor, d_free, V)
+    finally:
+        model.set_vector(base)
+    gauge = model.gauge_residual()
+    prior = np.concatenate([V[:, cache.prior_mask] / cache.prior_den,
+                            np.broadcast_to(gauge, (len(V), len(gauge)))], axis=1)
+    return _assemble(model, d_ori, d_free, cache.free_sigmas, outs, prior, rows=len(V))
 
 
 def residual_groups(data) -> np.ndarray:
@@ -324,13 +433,31 @@ def fit(model: LabModel, data, progress=None, max_nfev: int = 200, uncertainty: 
 
     stochastic = bool(stochastic_terms(model))
     first = [None if hint is None or stochastic else hint.columns(model, free, x_all, n_data)]
+    # the steps in one triad's own parameters evaluated together (residual_rows)
+    free_idx = np.flatnonzero(free)
+    together = {s: set(cache.own[s].tolist()) for s in _rows_sensors(model, cache, stochastic)}
+
+    def batch(x, h, columns):
+        out = {}
+        base = full(x)
+        for sensor, own in together.items():
+            js = [j for j in columns if free_idx[j] in own]
+            if len(js) < 2:
+                continue
+            v = np.repeat(base[None], len(js), axis=0)
+            for k, j in enumerate(js):
+                v[k, free_idx[j]] = x[j] + h[j]
+            calls[0] += len(js)
+            out.update(zip(js, residual_rows(model, data, cache, base, v, sensor)))
+        return out
 
     def solve(x_start):
         """Gauss–Newton (:func:`gauss_newton`), else Levenberg–Marquardt, from ``x_start``
         (with the stand's pose errors, the poses found off leave the gauge and the fit is repeated)."""
         for _ in range(3 if model.fit_poses else 1):
             res = gauss_newton(fun, x_start, scale,
-                               known=(lambda r, x, h: first[0](r, x, h, prior_at)) if first[0] else None)
+                               known=(lambda r, x, h: first[0](r, x, h, prior_at)) if first[0] else None,
+                               batch=batch if together else None)
             first[0] = None          # the hint is of the start point: the first Jacobian only
             if res is None:
                 from scipy.optimize import least_squares   # here: 0.2 s of every process that imports the lab
@@ -409,18 +536,23 @@ class Solution:
         self.x, self.jac, self.success, self.message, self.nfev = x, jac, True, message, nfev
 
 
-def forward_jacobian(fun, x, r, scale, known=None) -> tuple:
+def forward_jacobian(fun, x, r, scale, known=None, batch=None) -> tuple:
     """Forward differences of ``fun`` at ``x`` (``r = fun(x)``), the step of each parameter
     ``√ε·max(|x|, scale)`` (ε the float64 resolution): relative to the parameter, or to its
     typical magnitude where it is near zero.  ``known(r, x, h)``: the columns known without
-    evaluating ``fun`` (:class:`JacobianHint`).  Returns (Jacobian, evaluations of ``fun``)."""
+    evaluating ``fun`` (:class:`JacobianHint`).  ``batch(x, h, columns)``: ``{column: fun at the
+    step}`` for those of ``columns`` it evaluates together (:func:`residual_rows`: the same
+    bits); the rest one by one.  Returns (Jacobian, evaluations of ``fun``)."""
     h = np.sqrt(np.finfo(float).eps) * np.maximum(np.abs(x), scale)
     jac = np.empty((len(r), len(x)))
     have = known(r, x, h) if known is not None else {}
     for j, column in have.items():
         jac[:, j] = column
+    stepped = batch(x, h, [j for j in range(len(x)) if j not in have]) if batch is not None else {}
+    for j, rj in stepped.items():
+        jac[:, j] = (rj - r) / ((x[j] + h[j]) - x[j])
     for j in range(len(x)):
-        if j in have:
+        if j in have or j in stepped:
             continue
         xj = x.copy()
         xj[j] += h[j]
@@ -428,7 +560,7 @@ def forward_jacobian(fun, x, r, scale, known=None) -> tuple:
     return jac, len(x) - len(have)
 
 
-def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS, known=None):
+def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS, known=None, batch=None):
     """Least squares by undamped Gauss–Newton steps, or None when they do not serve.
 
     The lab's residuals are close to linear in the parameters near a calibration (the base model
@@ -441,7 +573,7 @@ def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS, known=None):
     than :data:`GN_LAST` is the last.  The last Jacobian is the solution's (its covariance).
     Returns None — the caller falls back to Levenberg–Marquardt — when a step raises χ² or after
     ``max_jac`` Jacobians (a strongly nonlinear problem).  ``known``: the first Jacobian's known
-    columns (:func:`forward_jacobian`)."""
+    columns, ``batch``: its steps evaluated together (:func:`forward_jacobian`)."""
     x = np.asarray(x0, dtype=float).copy()
     if not len(x):
         return None
@@ -449,7 +581,7 @@ def gauss_newton(fun, x0, scale, max_jac: int = GN_JACOBIANS, known=None):
     cost = float(r @ r)
     nfev = 1
     for n_jac in range(1, max_jac + 1):
-        jac, evaluations = forward_jacobian(fun, x, r, scale, known if n_jac == 1 else None)
+        jac, evaluations = forward_jacobian(fun, x, r, scale, known if n_jac == 1 else None, batch)
         nfev += evaluations
         u, sv, vt = np.linalg.svd(jac * scale, full_matrices=False)
         keep = sv > sv[0] * 1e-12 if len(sv) and sv[0] > 0 else sv > 0

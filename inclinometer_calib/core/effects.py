@@ -175,6 +175,12 @@ class Effect(abc.ABC):
     #: A stochastic effect: its parameters (``specs``) are the roughness of a path the lab
     #: estimates from the data (:mod:`calibrate.wander`), not values a least-squares fit moves.
     stochastic: ClassVar[bool] = False
+    #: ``_apply`` also takes ``values`` with one row per sample (arrays (N, axes) instead of
+    #: (axes,)) and gives each sample what its own values alone would, bit for bit (element by
+    #: element arithmetic): the lab's fits then evaluate many parameter vectors in one call
+    #: (:func:`calibrate.fit.forward_jacobian`).  Said by the class itself (:func:`takes_rows`: a
+    #: subclass that changes ``_apply`` says it again).
+    row_parameters: ClassVar[bool] = False
 
     def __post_init__(self):
         if self.sensor not in self.sensors:
@@ -320,6 +326,7 @@ class Bias(Effect):
     """Zero bias B (paper eqs. 3–4)."""
 
     iscwsa: ClassVar[dict] = {"acc": "ABXY-TI1S/ABZ", "mag": "MBXY/MBZ"}
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "bias"
     base: ClassVar[bool] = True
     needs: ClassVar[tuple] = ()
@@ -335,6 +342,7 @@ class Scale(Effect):
     """Scale-factor error: K = 1 + k (paper eqs. 3–4)."""
 
     iscwsa: ClassVar[dict] = {"acc": "ASXY/ASZ", "mag": "MSXY/MSZ"}
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "scale"
     base: ClassVar[bool] = True
     needs: ClassVar[tuple] = ()
@@ -352,6 +360,7 @@ class NonOrthogonality(Effect):
     ``axes`` here selects the *output* axes b whose two terms are included.
     """
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "nonorthogonality"
     stage: ClassVar[str] = "axes"
     base: ClassVar[bool] = True
@@ -453,6 +462,7 @@ class AxialInterference(Effect):
     """
 
     iscwsa: ClassVar[dict] = {"mag": "AMIL"}
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "axial_interference"
     stage: ClassVar[str] = "tool"
     sensors: ClassVar[tuple] = ("mag",)
@@ -480,6 +490,7 @@ class AxialInterference(Effect):
 class TemperatureScale(Effect):
     """Scale factor varying with temperature: K(T) = K·(1 + c·(T - T_ref))."""
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "temperature_scale"
     stage: ClassVar[str] = "gain"
     needs: ClassVar[tuple] = ("temperature",)
@@ -497,6 +508,7 @@ class TemperatureScale(Effect):
 class ScaleAsymmetry(Effect):
     """Different scale for positive and negative input: y = s·(1 + a·sign(s))."""
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "scale_asymmetry"
     discovery_features: ClassVar[tuple] = ("sign(input)",)
     stage: ClassVar[str] = "gain"
@@ -517,6 +529,7 @@ class Nonlinearity(Effect):
     ``q`` and ``c`` are dimensionless: the error, as a fraction of full scale, at full-scale input.
     """
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "nonlinearity"
     discovery_features: ClassVar[tuple] = ("input²",)
     stage: ClassVar[str] = "gain"
@@ -543,6 +556,7 @@ class CrossCoupling(Effect):
     Coefficients are dimensionless (error as a fraction of 1 g at 1 g × 1 g).
     """
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "cross_coupling"
     stage: ClassVar[str] = "gain"
     sensors: ClassVar[tuple] = ("acc",)
@@ -572,6 +586,7 @@ class CrossCoupling(Effect):
 class TemperatureBias(Effect):
     """Bias varying with temperature: b(T) = c·(T - T_ref)."""
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "temperature_bias"
     discovery_features: ClassVar[tuple] = ("temperature",)
     stage: ClassVar[str] = "output"
@@ -589,6 +604,7 @@ class TemperatureBias(Effect):
 class BiasDrift(Effect):
     """Slowly varying bias: b(t) = r·t/3600 (r per hour, t from the start of the log)."""
 
+    row_parameters: ClassVar[bool] = True
     name: ClassVar[str] = "bias_drift"
     discovery_features: ClassVar[tuple] = ("time",)
     stage: ClassVar[str] = "output"
@@ -927,6 +943,12 @@ def register(cls):
         raise ValueError(f"effect {cls.name!r}: stage must be one of {STAGES}")
     CATALOGUE[cls.name] = cls
     return cls
+
+
+def takes_rows(effect) -> bool:
+    """Whether ``effect``'s class itself says its ``_apply`` takes one row of values per sample
+    (:attr:`Effect.row_parameters`; inherited, it would claim it for an ``_apply`` it never saw)."""
+    return type(effect).__dict__.get("row_parameters", False) is True
 
 
 def chain_context(effects, ctx: Context) -> Context:

@@ -173,3 +173,64 @@ def test_a_candidates_first_jacobian_takes_the_base_fits_columns_where_the_effec
     moved = x.copy()
     moved[0] += 1e-3 * trial.param_scale()[0]
     assert hint.columns(trial, free, moved, n_data) is None
+
+
+@pytest.mark.parametrize("effects", ["", "axial_interference,temperature_bias:acc",
+                                     "nonlinearity:mag,cross_coupling,bias_drift:mag,temperature_scale:acc,scale_asymmetry:mag"])
+def test_a_triads_steps_evaluated_together_give_the_jacobian_of_one_by_one_bit_for_bit(sim_factory, effects):
+    """calibrate.fit.residual_rows: the finite-difference steps in one triad's own parameters are
+    evaluated at once (the effects holding a row of values per station, the base triad's correction
+    per row); the Jacobian must be the bits of the steps taken one by one, on oriented and on free
+    stations, with effects at every stage — and a step that took the wrong triad, axis or row would
+    change it."""
+    import copy
+
+    from inclinometer_calib.calibrate import fit as F
+
+    data, _, site = sim_factory(22, ["axial_interference=300"])
+    for survey_free in (False, True):
+        d = copy.deepcopy(data)
+        if survey_free:
+            d.kind[d.role == "val"] = "free"       # the survey's |g|, |B| and dip only
+        model = build_model(site, effects) if effects else lab.LabModel.base(site)
+        cache = F.ResidualCache(model, d)
+        sensors = F._rows_sensors(model, cache, stochastic=False)
+        assert sensors == ("acc", "mag")
+        x = model.get_vector() + 1e-4 * model.param_scale()
+
+        def fun(v):
+            return F.residual_vector(model, d, v, cache=cache)
+
+        def batch(xx, h, columns):
+            out = {}
+            for s in sensors:
+                js = [j for j in columns if j in set(cache.own[s].tolist())]
+                v = np.repeat(xx[None], len(js), axis=0)
+                v[np.arange(len(js)), js] = xx[js] + h[js]
+                out.update(zip(js, F.residual_rows(model, d, cache, xx, v, s)))
+            return out
+        one_by_one, n1 = F.forward_jacobian(fun, x, fun(x), model.param_scale())
+        together, n2 = F.forward_jacobian(fun, x, fun(x), model.param_scale(), batch=batch)
+        np.testing.assert_array_equal(together, one_by_one)
+        assert n1 == n2 == len(x)
+        batch(x, np.full(len(x), 1e-6), list(range(len(x))))
+        np.testing.assert_array_equal(model.get_vector(), x)          # the model left where it was
+
+
+def test_effects_that_need_the_history_or_say_nothing_of_rows_step_one_by_one(sim_factory):
+    """Only an effect class that says its ``_apply`` takes rows of values (effects.takes_rows, not
+    inherited: a subclass may change ``_apply``) has its triad's steps evaluated together; a model
+    whose effects need the history of holds steps one by one."""
+    from inclinometer_calib.calibrate import fit as F
+    from inclinometer_calib.core import effects as fx
+
+    class MyBias(fx.Bias):
+        def _apply(self, v, ctx):
+            v[:, self._cols()] += float(self.values["b"][0])
+
+    assert fx.takes_rows(fx.Bias(sensor="mag")) and not fx.takes_rows(MyBias(sensor="mag"))
+    data, _, site = sim_factory(22, ["axial_interference=300"])
+    lagged = build_model(site, "thermal_lag:mag,temperature_bias:mag")
+    assert F._rows_sensors(lagged, F.ResidualCache(lagged, data), stochastic=False) == ()
+    plain = build_model(site, "axial_interference")
+    assert F._rows_sensors(plain, F.ResidualCache(plain, data), stochastic=True) == ()
