@@ -87,28 +87,30 @@ def _by_series(a: float, x: float) -> bool:
     return x <= 1.0 or x <= a
 
 
-def gammainc(a: float, x: float) -> float:
-    """The regularised lower incomplete gamma function ``P(a, x)`` (``a > 0``, ``x ≥ 0``)."""
+def _incomplete_gamma(a: float, x: float) -> tuple:
+    """``(P(a, x), Q(a, x))``: the one summed or continued (:func:`_by_series`), the other one minus it."""
     a, x = float(a), float(x)
     if math.isnan(a) or math.isnan(x) or a <= 0.0 or x < 0.0:
-        return math.nan
+        return math.nan, math.nan
     if x == 0.0:
-        return 0.0
+        return 0.0, 1.0
     if math.isinf(x):
-        return 1.0
-    return _gamma_series(a, x) if _by_series(a, x) else 1.0 - _gamma_fraction(a, x)
+        return 1.0, 0.0
+    if _by_series(a, x):
+        p = _gamma_series(a, x)
+        return p, 1.0 - p
+    q = _gamma_fraction(a, x)
+    return 1.0 - q, q
+
+
+def gammainc(a: float, x: float) -> float:
+    """The regularised lower incomplete gamma function ``P(a, x)`` (``a > 0``, ``x ≥ 0``)."""
+    return _incomplete_gamma(a, x)[0]
 
 
 def gammaincc(a: float, x: float) -> float:
     """The regularised upper incomplete gamma function ``Q(a, x) = 1 − P(a, x)``."""
-    a, x = float(a), float(x)
-    if math.isnan(a) or math.isnan(x) or a <= 0.0 or x < 0.0:
-        return math.nan
-    if x == 0.0:
-        return 1.0
-    if math.isinf(x):
-        return 0.0
-    return 1.0 - _gamma_series(a, x) if _by_series(a, x) else _gamma_fraction(a, x)
+    return _incomplete_gamma(a, x)[1]
 
 
 def gammaincinv(a: float, p: float) -> float:
@@ -151,6 +153,18 @@ def gammaincinv(a: float, p: float) -> float:
     return x
 
 
+def _lentz(d: float, c: float, aa: float) -> tuple:
+    """One step of the modified Lentz recurrence for a term ``aa``: the new ``(d, c)`` and their product."""
+    d = 1.0 + aa * d
+    if abs(d) < _TINY:
+        d = _TINY
+    c = 1.0 + aa / c
+    if abs(c) < _TINY:
+        c = _TINY
+    d = 1.0 / d
+    return d, c, d * c
+
+
 def _beta_fraction(a: float, b: float, x: float) -> float:
     """The continued fraction of ``I_x(a, b)`` (modified Lentz)."""
     qab, qap, qam = a + b, a + 1.0, a - 1.0
@@ -162,24 +176,9 @@ def _beta_fraction(a: float, b: float, x: float) -> float:
     h = d
     for m in range(1, _MAX_ITER):
         m2 = 2 * m
-        aa = m * (b - m) * x / ((qam + m2) * (a + m2))
-        d = 1.0 + aa * d
-        if abs(d) < _TINY:
-            d = _TINY
-        c = 1.0 + aa / c
-        if abs(c) < _TINY:
-            c = _TINY
-        d = 1.0 / d
-        h *= d * c
-        aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
-        d = 1.0 + aa * d
-        if abs(d) < _TINY:
-            d = _TINY
-        c = 1.0 + aa / c
-        if abs(c) < _TINY:
-            c = _TINY
-        d = 1.0 / d
-        delta = d * c
+        d, c, delta = _lentz(d, c, m * (b - m) * x / ((qam + m2) * (a + m2)))          # the even step
+        h *= delta
+        d, c, delta = _lentz(d, c, -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2)))  # the odd step
         h *= delta
         if abs(delta - 1.0) < _EPS:
             break
