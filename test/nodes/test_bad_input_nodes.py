@@ -379,13 +379,15 @@ def test_nan_interference_near_vertical_over_dds(ros_env, coeffs_file, tmp_path)
     out = open(tmp_path / "correction.log", "w+")
     proc = subprocess.Popen([sys.executable, "-m", "inclinometer_calib.nodes.correction", "--ros-args",
                              "-p", f"coeffs_file:={coeffs_file}", "-p", "use_topic:=false",
-                             "-p", "qos.reliability:=reliable", "-p", "idle_flush_s:=0.5"],
+                             "-p", "qos.reliability:=reliable", "-p", "qos.depth:=10000", "-p", "idle_flush_s:=0.5"],
                             env=ros_env, stdout=out, stderr=subprocess.STDOUT, text=True)
     rclpy.init()
     node = rclpy.create_node("bad_input_feeder")
     stations = []
     try:
-        qos = c.sensor_qos(1000, "reliable")
+        # reliable, and histories deeper than the log's 1 500 samples: none is dropped however far the
+        # node falls behind (the verdict must not depend on the machine's speed)
+        qos = c.sensor_qos(10000, "reliable")
         pub_imu = node.create_publisher(Imu, c.TOPIC_IMU, qos)
         pub_mag = node.create_publisher(MagneticField, c.TOPIC_MAG, qos)
         pub_temp = node.create_publisher(Temperature, c.TOPIC_TEMPERATURE, qos)
