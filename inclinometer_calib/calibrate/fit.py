@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from ..core import effects as fx
 from ..core.formulas import dip_of
 from ..core.specfun import chdtrc
