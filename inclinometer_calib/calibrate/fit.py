@@ -233,10 +233,7 @@ def residual_rows(model: LabModel, data, cache: ResidualCache, base, V, sensor: 
             outs[2 + si] = _triad_rows(model, sensor, d_free, V)
     finally:
         model.set_vector(base)
-    gauge = model.gauge_residual()
-    prior = np.concatenate([V[:, cache.prior_mask] / cache.prior_den,
-                            np.broadcast_to(gauge, (len(V), len(gauge)))], axis=1)
-    return _assemble(model, d_ori, d_free, cache.free_sigmas, outs, prior, rows=len(V))
+    return _assemble(model, d_ori, d_free, cache.free_sigmas, outs, _prior_residual(model, cache, V), rows=len(V))
 
 
 def residual_groups(data) -> np.ndarray:
@@ -255,9 +252,12 @@ def residual_groups(data) -> np.ndarray:
 
 def _prior_residual(model: LabModel, cache: ResidualCache | None = None, vec=None) -> np.ndarray:
     """The weak prior rows (extra parameters over 100× their typical size), then the gauge rows
-    (:meth:`LabModel.gauge_residual`); ``vec``: the model's parameter vector when the caller has it."""
+    (:meth:`LabModel.gauge_residual`); ``vec``: the model's parameter vector when the caller has it,
+    or K vectors (K, n) that differ from the model's outside the stand's poses (K sets of rows)."""
     mask, den = _prior_scales(model) if cache is None else (cache.prior_mask, cache.prior_den)
-    return np.concatenate([(model.get_vector() if vec is None else vec)[mask] / den, model.gauge_residual()])
+    vec = model.get_vector() if vec is None else vec
+    gauge = model.gauge_residual()
+    return np.concatenate([vec[..., mask] / den, np.broadcast_to(gauge, vec.shape[:-1] + gauge.shape)], axis=-1)
 
 
 def _prior_scales(model: LabModel) -> tuple:

@@ -105,7 +105,7 @@ class TriadModel:
         """Sensor output ``H = K·E·M + B`` for true vectors ``m`` of shape (..., 3)."""
         return np.asarray(m, dtype=float) @ self.A.T + self.bias
 
-    def inverse(self, h, c=None) -> np.ndarray:
+    def inverse(self, h, c=None, b=None) -> np.ndarray:
         """The linear part of the correction, ``M = C·(H - B)``, for outputs ``h`` (N, 3):
         :func:`formulas.corrected`, element by element, so that every batch size gives the same bits.
 
@@ -113,11 +113,13 @@ class TriadModel:
         adds the effects beyond the paper); the twelve-position solver also uses it on its own
         triad before any record exists.  ``c``: C's nine entries row by row, when the caller
         keeps them (:class:`model.CorrectionPlan`: the lab's fits correct a triad thousands of
-        times, and inverting ``K·E`` again each time was 3% of their CPU)."""
+        times, and inverting ``K·E`` again each time was 3% of their CPU); ``b``: the bias's three,
+        when the caller gives C and B of its own (one per row: :meth:`model.CorrectionPlan.correct_triad_rows`)."""
         h = np.asarray(h, dtype=float)
         c = tuple(self.correction_matrix.ravel()) if c is None else c
         h2 = h.reshape(-1, 3)
-        return np.stack(corrected(c, self.bias, h2[:, 0], h2[:, 1], h2[:, 2]), axis=1).reshape(h.shape)
+        return np.stack(corrected(c, self.bias if b is None else b, h2[:, 0], h2[:, 1], h2[:, 2]),
+                        axis=1).reshape(h.shape)
 
     # ---- records ---------------------------------------------------------------------------
     def parameters(self) -> dict:

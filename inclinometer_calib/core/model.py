@@ -31,7 +31,6 @@ import numpy as np
 from . import effects as fx
 from .errormodel import TriadModel
 from .formulas import corrected, mat_vec
-from .frames import rotate
 
 SENSORS = ("acc", "mag")
 #: The data an effect's scope selects: the calibration stand (cal) or the survey (val).
@@ -323,35 +322,26 @@ class CorrectionPlan:
     def correct_triad(self, sensor: str, h, temperature_c=None, time_s=None, history=None):
         """One triad's corrected vectors (a node corrects each stream as its samples come)."""
         h = np.asarray(h, dtype=float)
-        h2 = h.reshape(-1, 3)
-        x = self.triads[sensor].inverse(h2, self.coefficients[sensor][0])
+        c, b = self.coefficients[sensor]
+        return self.correct_triad_rows(sensor, h.reshape(-1, 3), c, b, temperature_c, time_s, history).reshape(h.shape)
+
+    def correct_triad_rows(self, sensor: str, h, c, b, temperature_c=None, time_s=None, history=None):
+        """:meth:`correct_triad` of ``h`` (N, 3) with the base model ``c`` (C's nine entries row by
+        row) and ``b`` (the bias's three) — numbers, or arrays of one value per row with the chain's
+        effects holding one row of values per row too (:attr:`effects.Effect.row_parameters`, set
+        by the caller: many parameter vectors corrected in one call, the lab's Jacobians,
+        :func:`calibrate.fit.residual_rows`).  ``v = C·(h − B)``, then the Newton steps
+        ``v ← v + C·(h − forward(v))``, element by element: each row the bits it gets alone."""
+        h2 = np.asarray(h, dtype=float)
+        x = self.triads[sensor].inverse(h2, c, b)
         if self.extra[sensor]:
             ctx = self.model.context(len(h2), temperature_c, time_s, self.role, history=history,
                                      needs=self.triad_needs[sensor])
-            m = self.matrix_t[sensor]
             chain = self.chains[sensor]
             ctx = fx.chain_context(chain, ctx)          # once, not at every Newton step
             for _ in range(CORRECTION_ITERATIONS):
-                x = x + rotate(m, h2 - fx.apply_chain(x, chain, ctx, prepared=True))
-        return x.reshape(h.shape)
-
-    def correct_triad_rows(self, sensor: str, h, c, b, temperature_c=None, time_s=None):
-        """:meth:`correct_triad` of ``h`` (N, 3) with the base model given row by row — ``c`` C's nine
-        entries and ``b`` the bias's three, each an array of one value per row — and the chain's
-        effects holding one row of values per row (:attr:`effects.Effect.row_parameters`, set by
-        the caller): many parameter vectors corrected in one call, each row the bits
-        :meth:`correct_triad` gives it alone (the same element by element arithmetic; the lab's
-        Jacobians, :func:`calibrate.fit.forward_jacobian`).  Effects that need the history are
-        not taken."""
-        h2 = np.asarray(h, dtype=float)
-        x = np.stack(corrected(c, b, h2[:, 0], h2[:, 1], h2[:, 2]), axis=1)
-        if self.extra[sensor]:
-            ctx = self.model.context(len(h2), temperature_c, time_s, self.role, needs=self.triad_needs[sensor])
-            chain = self.chains[sensor]
-            ctx = fx.chain_context(chain, ctx)
-            for _ in range(CORRECTION_ITERATIONS):
                 d = h2 - fx.apply_chain(x, chain, ctx, prepared=True)
-                x = x + np.stack(mat_vec(c, d[:, 0], d[:, 1], d[:, 2]), axis=1)     # rotate(Cᵀ, d), C per row
+                x = x + np.stack(mat_vec(c, d[:, 0], d[:, 1], d[:, 2]), axis=1)
         return x
 
     def correct_sample(self, sensor: str, h, temperature_c=None, time_s=None) -> tuple:
