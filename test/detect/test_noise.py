@@ -6,7 +6,8 @@ import pytest
 
 from inclinometer_calib.calibrate import simulate as sim
 from inclinometer_calib.core.frames import Site
-from inclinometer_calib.detect.noise import NoiseEstimator, chi_quantile, estimate_from_blocks, estimate_noise
+from inclinometer_calib.detect.noise import (LONG_HISTORY, NoiseEstimator, chi_quantile, estimate_from_blocks,
+                                          estimate_noise)
 
 
 def _feed(est, t, x):
@@ -83,3 +84,21 @@ def test_a_gap_drops_the_open_block_and_nothing_before_the_blocks_are_in_is_read
     _feed(est, np.arange(10) * 0.01, np.zeros((10, 6)) + np.arange(10)[:, None])
     est.gap()
     assert est.blocks == 0                # 10 samples over 0.09 s: no block closed, and the gap dropped it
+
+
+def test_the_estimate_follows_each_fourth_block_then_each_sixteenth_once_the_history_is_long():
+    est = NoiseEstimator(block_s=0.25, history_s=600.0)
+    rng = np.random.default_rng(5)
+    changed_at, last = [], None
+    for b in range(600):
+        est.add_block(25, 0.002 * (1.0 + 0.1 * rng.standard_normal(6)))
+        sigma = np.array(est.level.sigma6)
+        if last is None or not np.array_equal(sigma, last, equal_nan=True):
+            changed_at.append(b + 1)   # blocks closed when the estimate moved (the first: unknown)
+            last = sigma
+    early = [c for c in changed_at[1:] if c <= 4 * est.ready_blocks]
+    assert early == list(range(est.ready_blocks, 4 * est.ready_blocks + 1))     # every block at first
+    mid = [c for c in changed_at if 4 * est.ready_blocks < c < LONG_HISTORY]
+    assert mid and all(c % 4 == 0 for c in mid) and len(mid) == (LONG_HISTORY - 1) // 4 - est.ready_blocks
+    late = [c for c in changed_at if c >= LONG_HISTORY]
+    assert late and all(c % 16 == 0 for c in late) and len(late) == 600 // 16 - (LONG_HISTORY - 1) // 16
