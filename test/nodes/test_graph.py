@@ -297,7 +297,7 @@ def test_replaying_the_bag_reproduces_the_stations(sim_run, ros_env, tmp_path):
     out, _, _ = sim_run
     replay = tmp_path / "replay"
     proc, seconds = launch(["--out", str(replay), "--source", "mcap", "--input", str(out / "survey.mcap"),
-                            "--coeffs", str(out / "coeffs.yaml"), "--no-calibration", "--speed", "8",
+                            "--coeffs", str(out / "coeffs.yaml"), "--no-calibration", "--speed", "100",
                             "--reliable", "--timeout", "120"], ros_env, timeout=180)
     print(f"bag replay through probe(source:=mcap) -> correction: {seconds:.1f} s")
     assert proc.returncode == 0, proc.stdout[-5000:] + proc.stderr[-2000:]

@@ -30,7 +30,7 @@ from inclinometer_calib.core.survey import Tolerances  # noqa: E402
 # the suite's long poles run first (test/conftest.py): its wall time on a quiet 2-core machine, s
 pytestmark = pytest.mark.long(35)
 
-SPEED = 40.0
+SPEED = 100.0
 VAL_TEMP = "25:60:40"
 
 

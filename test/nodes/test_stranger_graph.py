@@ -55,7 +55,7 @@ def test_a_noisy_unlabelled_10_hz_probe_in_tesla_is_calibrated_live_as_reprocess
     assert main(["reprocess", str(bag), "--calibrate", "--site", str(p["site"]), "-o", str(tmp_path / "re.mcap")]) == 0
     re_stations, re_coefs = S.stations_of_bag(tmp_path / "re.mcap")
     proc = subprocess.run([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "csv",
-                           "--input", str(p["both"]), "--speed", "20.0", "--site", str(p["site"]),
+                           "--input", str(p["both"]), "--speed", "100.0", "--site", str(p["site"]),
                            "--param", "probe:mag_unit:=T", "--timeout", "120", *NO_LOOP],
                           env=env, capture_output=True, text=True, timeout=180)
     assert proc.returncode == 0, proc.stdout[-6000:]

@@ -32,7 +32,7 @@ def test_the_live_node_calibrates_a_replayed_turntable_bag_as_the_cli_does(domai
     env, _ = domain_env
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "mcap", "--input",
-           str(tmp_path / "tt.mcap"), "--speed", "10", "--site", str(sim / "site.yaml"), "--param",
+           str(tmp_path / "tt.mcap"), "--speed", "100", "--site", str(sim / "site.yaml"), "--param",
            "calibration:method:=turntable", "--no-loop", "--timeout", "150"]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=200)
     log = proc.stdout + proc.stderr
