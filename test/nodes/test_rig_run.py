@@ -88,7 +88,7 @@ def rig_run(domain_env, tmp_path_factory):
                threading.Thread(target=_foxglove_client, args=(fox_port, fox, stop), daemon=True)]
     for t in threads:
         t.start()
-    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--speed", "6",
+    cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--speed", "30",
            "--stations", str(N_STATIONS), "--seed", "5", "--reliable", "--timeout", "120", "--no-loop",
            "--param", "probe:rate_hz:=50.0",
            "--site", SITE_FILE, "--witsml", "--wits-port", str(wits_port), "--foxglove-port", str(fox_port)]
