@@ -234,3 +234,26 @@ def test_effects_that_need_the_history_or_say_nothing_of_rows_step_one_by_one(si
     assert F._rows_sensors(lagged, F.ResidualCache(lagged, data), stochastic=False) == ()
     plain = build_model(site, "axial_interference")
     assert F._rows_sensors(plain, F.ResidualCache(plain, data), stochastic=True) == ()
+
+
+@pytest.mark.parametrize("effects", ["", "axial_interference,temperature_bias:mag"])
+def test_levenberg_marquardt_on_the_triads_steps_together_is_scipys_two_point_fit_bit_for_bit(sim_factory, monkeypatch,
+                                                                                             effects):
+    """When Gauss–Newton gives up, the fit falls back to MINPACK's Levenberg–Marquardt; its
+    Jacobian (fit's ``lm_jacobian``: scipy's 2-point step and arithmetic, a triad's steps evaluated
+    together) must leave the solution, the evaluations and the uncertainties of ``jac="2-point"``
+    unchanged, bit for bit — a step of another size or sign would move them."""
+    from inclinometer_calib.calibrate import fit as F
+
+    data, _, site = sim_factory(22, ["axial_interference=300"])
+    monkeypatch.setattr(F, "gauss_newton", lambda *a, **k: None)     # Levenberg–Marquardt throughout
+    results = []
+    for together in (True, False):
+        if not together:   # no triad stepped together: fit passes jac="2-point" to scipy
+            monkeypatch.setattr(F, "_rows_sensors", lambda *a, **k: ())
+        model = build_model(site, effects) if effects else lab.LabModel.base(site)
+        results.append(F.fit(model, data))
+    a, b = results
+    np.testing.assert_array_equal(a.values, b.values)
+    np.testing.assert_array_equal(a.std, b.std)
+    assert (a.nfev, a.message, a.chi2) == (b.nfev, b.message, b.chi2)
