@@ -513,6 +513,12 @@ class _BatchRun:
     # ---- the rows -------------------------------------------------------------------------------
     def run(self) -> list:
         det, t, x, n = self.det, self.t, self.x, self.n
+        if n and float(t[0]) > det.temps.latest + TIME_EPS and bool(np.all(np.diff(t) > TIME_EPS)):
+            # the rows' temperatures at once, not row by row as update() adds them: a station's
+            # temperature is the mean of those stamped within it (± TIME_EPS), and where the times
+            # rise by more than that each row, a row after the one that closes a station is
+            # stamped outside it: the same means
+            self._temps_through(n - 1)
         fin, gaps, t_prev, dt_last = self._timing()
         blocks, open_start = self._blocks(fin, gaps)
         # the thresholds change only where a block's close recomputes the estimate: there the
@@ -599,9 +605,17 @@ class _BatchRun:
         candidate without a decision — inside the tolerance on every axis against the running
         mean, before ``max_duration_s`` — and return how many (the row after them is a stop)."""
         det = self.det
+        n0 = det._n
+        # the first row alone, as _step judges it (the same operations on the same doubles): while
+        # the probe moves it is a stop, and the window's numpy calls would cost ten times more
+        t0, x0, s1, tol = det._t0, det._x0, det._s1, det._tol
+        xa = self.x[a].tolist()
+        if float(self.t[a]) - t0 >= det.max_duration_s - TIME_EPS or any(
+                abs((xa[k] - x0[k]) - s1[k] / n0) > tol[k] for k in range(6)):
+            self._w = self.W_MIN
+            return 0
         w = min(b - a, self._w)
         xs, ts = self.x[a:a + w], self.t[a:a + w]
-        n0 = det._n
         d = xs - np.array(det._x0)
         s1 = np.cumsum(np.vstack([np.array(det._s1)[None], d]), axis=0)     # s1 before each row, then after
         dev = d - s1[:-1] / (n0 + np.arange(w))[:, None]                    # x − x₀ − s₁/n, as _step
