@@ -607,7 +607,8 @@ class _BatchRun:
         det = self.det
         n0 = det._n
         # the first row alone, as _step judges it (the same operations on the same doubles): while
-        # the probe moves it is a stop, and the window's numpy calls would cost ten times more
+        # the probe moves it is a stop, and the window's numpy calls would cost ten times more (a
+        # row called a stop here goes through _step itself, the authority, whatever this says)
         t0, x0, s1, tol = det._t0, det._x0, det._s1, det._tol
         xa = self.x[a].tolist()
         if float(self.t[a]) - t0 >= det.max_duration_s - TIME_EPS or any(

@@ -239,3 +239,17 @@ def test_the_batch_path_continues_exactly_where_the_per_sample_path_takes_over_a
     _both_ways(log, noise_acc=0.002, noise_mag=20.0)          # no warm-up: the noise is given
     segs, det = _both_ways(log, k_sigma=2.5)                  # too tight: holds cut into pieces, said so
     assert det.events
+
+
+def test_the_batch_path_gives_the_per_sample_temperatures_when_stamps_repeat():
+    """run() takes a log's temperatures at once only where every row is stamped after the one
+    before it (by more than TIME_EPS); stamps that repeat (a logger's coarse clock) go row by row,
+    as update() takes them: a hold that a non-finite sample ends, whose next rows share its last
+    stamp, must not take their temperatures into its mean."""
+    log = _long_hold_log()
+    log.t_s[:] = np.floor(log.t_s * 50.0) / 50.0          # 200 Hz rows, 50 Hz stamps: four rows a stamp
+    log.temp_c[:] = 20.0 + np.arange(len(log)) * 1e-3       # every row's own temperature
+    ends = np.arange(2000, len(log) - 2000, 1501)           # mid-hold; most share their stamp with the next row
+    log.acc[ends, 0] = np.nan
+    segs, _ = _both_ways(log)
+    assert sum(s.ended_by == "gap" for s in segs) >= 10
