@@ -266,7 +266,7 @@ def to_markdown(runs, bag, title: str = "Field effect ladder") -> str:
 
 def ladder_figure(runs) -> str:
     """The ladder plot (PNG data URI): the figures of merit model by model."""
-    from .report import figure_png, pyplot
+    from .report import figure_png, plain_log_ticks, pyplot
 
     plt = pyplot()
     ref = has_reference(runs)
@@ -280,6 +280,7 @@ def ladder_figure(runs) -> str:
         ok = np.isfinite(y)
         if ok.any() and (y[ok] > 0).all():
             a.set_yscale("log")
+            plain_log_ticks(a.yaxis)
         a.margins(x=0.12, y=0.18)      # room for the values written above the points
         a.set_xticks(x)
         a.set_xticklabels([r.name for r in runs], rotation=20, ha="right", fontsize=8)

@@ -62,3 +62,30 @@ def test_a_collision_inside_a_figure_is_found_and_a_tight_layout_clears_it():
     axs[1].set_title("another")
     assert report_layout.figure_collisions(fig) == []
     plt.close(fig)
+
+
+def test_a_log_axis_is_labelled_in_plain_numbers_at_matplotlibs_ticks():
+    """plain_log_ticks: the ticks, and the minor ones labelled on a short span, are matplotlib's
+    own; the labels are 0.001, 0.02, 0.1 — not math text (each of which pyparsing parses)."""
+    from inclinometer_calib.lab.report import plain_log_ticks, pyplot
+
+    plt = pyplot()
+    fig, axes = plt.subplots(2, 2)
+    for row, y in zip(axes, ([0.0015, 0.015, 0.35], [0.012, 0.03, 0.05])):    # three decades; under one
+        for ax in row:
+            ax.plot([0, 1, 2], y)
+            ax.set_yscale("log")
+        plain_log_ticks(row[1].yaxis)
+    fig.canvas.draw()
+
+    def labels(ax, minor):
+        return [(t.get_position()[1], t.get_text()) for t in ax.yaxis.get_ticklabels(minor=minor) if t.get_text()]
+
+    for (mathtext, plain), minor in ((axes[0], False), (axes[1], True)):
+        mathtext, plain = labels(mathtext, minor), labels(plain, minor)
+        assert plain and [p for p, _ in plain] == [p for p, _ in mathtext]     # the same ticks labelled
+        assert all("$" in s for _, s in mathtext)
+        assert [s for _, s in plain] == [f"{p:g}" for p, _ in plain]
+    assert [s for _, s in labels(axes[0][1], False)][:3] == ["0.001", "0.01", "0.1"]
+    assert "0.02" in [s for _, s in labels(axes[1][1], True)]
+    plt.close(fig)
