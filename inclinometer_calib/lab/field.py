@@ -115,7 +115,8 @@ class FieldMonitor:
             floor = self.materiality * getattr(self.tolerances, tol_attr)
             for rname in regs:
                 tr = next(fits)
-                if tr is not None and tr.p * n_tests < self.alpha and tr.explained_rms >= floor:
+                # material first: a trend too small to matter needs no p-value (Trend.p: computed when read)
+                if tr is not None and tr.explained_rms >= floor and tr.p * n_tests < self.alpha:
                     trends.append({"channel": name, "regressor": rname, "r2": tr.r2, "p": tr.p * n_tests,
                                    "explained_rms": tr.explained_rms, "unit": unit})
         trends.sort(key=lambda e: -e["r2"])
@@ -127,7 +128,7 @@ class FieldMonitor:
                 floor = self.materiality * getattr(self.tolerances, tol_attr)
                 if tr is not None:
                     sigma[key] = max(tr.residual_rms, 1e-3 * getattr(self.tolerances, tol_attr))
-                if tr is not None and tr.p * n_tests < self.alpha and tr.explained_rms >= floor:
+                if tr is not None and tr.explained_rms >= floor and tr.p * n_tests < self.alpha:
                     chans.append({"channel": name, "r2": tr.r2, "p": tr.p * n_tests, "explained_rms": tr.explained_rms,
                                   "unit": unit})
                     score += tr.r2

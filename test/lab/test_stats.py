@@ -70,6 +70,20 @@ def test_regress_many_gives_each_pair_the_bits_it_gets_alone():
         assert np.array_equal(tr.coef, alone.coef)
 
 
+def test_a_trends_p_value_is_computed_when_first_read_and_is_the_f_tests():
+    """The field monitor reads p only for a trend large enough to matter: a regression leaves it
+    uncomputed until read; then it is P(F(k, dof) > f) of the trend's own figures, kept."""
+    from inclinometer_calib.core.specfun import fdtrc
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(40, 2))
+    tr = regress(0.3 * x[:, 0] + rng.normal(size=40), x)
+    assert tr._p is None and (tr.k, tr.dof) == (2, 37)
+    p = tr.p
+    assert p == fdtrc(2, 37, tr.f) == tr._p
+    np.testing.assert_allclose(p, sps.f.sf(tr.f, 2, 37), rtol=1e-9)
+
+
 def test_nothing_to_test_gives_none():
     y = np.arange(10.0)
     assert regress(y, np.ones(10)) is None                    # the regressor does not vary
