@@ -280,13 +280,27 @@ def _take_all(streams, lock) -> None:
 WAKE_S = 0.5
 
 
+#: Set when a Ctrl-C or SIGTERM landed inside a finalizer, where Python cannot raise it (see
+#: :func:`_quiet_interrupted_task`); :func:`spin` then stops as if it had been raised.
+INTERRUPTED = threading.Event()
+
+
 def _quiet_interrupted_task(unraisable, _default=sys.unraisablehook) -> None:
-    """``sys.unraisablehook`` of a node: a Ctrl-C or SIGTERM that lands while rclpy builds a
-    ``Task`` (its executor does, for every callback) leaves an object without the fields its
-    ``Future.__del__`` reads, and the garbage collector then prints a traceback at exit
-    ("'Task' object has no attribute '_exception'"); it says nothing about the node, which
-    stopped as asked.  Anything else goes to the default hook."""
+    """``sys.unraisablehook`` of a node: the stop signal's marks in rclpy's finalizers, silenced.
+
+    * A Ctrl-C or SIGTERM that lands while rclpy builds a ``Task`` (its executor does, for every
+      callback) leaves an object without the fields its ``Future.__del__`` reads, and the garbage
+      collector then prints a traceback at exit ("'Task' object has no attribute '_exception'").
+    * The ``KeyboardInterrupt`` itself can be raised inside a finalizer (``Task.__del__`` runs
+      whenever a callback's task is dropped); Python prints it as an ignored exception and goes
+      on.  The node was asked to stop: :data:`INTERRUPTED` is set and :func:`spin` ends.
+
+    Neither says anything about the node, which stopped as asked.  Anything else goes to the
+    default hook."""
     exc, obj = unraisable.exc_value, unraisable.object
+    if isinstance(exc, KeyboardInterrupt):
+        INTERRUPTED.set()
+        return
     if isinstance(exc, AttributeError) and getattr(obj, "__qualname__", "") == "Future.__del__":
         return
     _default(unraisable)
@@ -300,12 +314,25 @@ def spin(node, executor, done=None) -> None:
     than :data:`WAKE_S` at a time: rclpy's signal handling shuts the context down on SIGINT or
     SIGTERM and wakes the executor's wait, but under load the wake-up was seen lost (a node left
     waiting for ever after SIGTERM: 2 of about 10 loaded stops with a peer); looking at the context again every
-    half second ends the node whatever happened to the wake-up."""
+    half second ends the node whatever happened to the wake-up.
+
+    rclpy shuts the context down from its signal thread, so it can go down between the loop's
+    look and the executor's next step: the step then fails in rclpy (``RCLError`` "failed to
+    create timer: the given context is not valid", or a ``RuntimeError`` from a take whose
+    subscription is being destroyed).  Such a failure once the context is down, or after
+    :data:`INTERRUPTED`, is the stop it is and ends the spin quietly; with the context up it is
+    raised."""
     executor.add_node(node)
     if done is not None:
         done.add_done_callback(lambda _: executor.wake())
     try:
-        while executor.context.ok() and not (done is not None and done.done()):
-            executor.spin_once(timeout_sec=WAKE_S)
+        while (executor.context.ok() and not INTERRUPTED.is_set()
+               and not (done is not None and done.done())):
+            try:
+                executor.spin_once(timeout_sec=WAKE_S)
+            except RuntimeError:    # rclpy's RCLError and InvalidHandle are RuntimeErrors
+                if executor.context.ok() and not INTERRUPTED.is_set():
+                    raise
+                break
     finally:
         executor.remove_node(node)

@@ -268,8 +268,10 @@ def test_launcher_on_a_disk_that_fills_ends_with_words_not_a_traceback(small_dis
     disk = small_disk("300k")   # a short simulated run records ~650 kB: full about half-way
     out = disk.mnt / "run"
     t0 = time.monotonic()
+    # --speed 100 is a ceiling (the run is paced by its readers) and the recorder's chunks span at
+    # most 1 s of the log's time: the disk fills at the same place of the log whatever the speed
     proc = disk.popen([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--stations", "3",
-                       "--speed", "8", "--no-loop", "--drain", "1.5", "--timeout", "60"],
+                       "--speed", "100", "--no-loop", "--drain", "1.5", "--timeout", "60"],
                       env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     stdout = ""
     try:
@@ -320,7 +322,7 @@ def test_launcher_does_not_restart_a_recorder_that_dies_on_a_full_disk(small_dis
     disk = small_disk("300k")
     out = disk.mnt / "run"
     proc = disk.popen([sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--stations", "3",
-                       "--speed", "8", "--no-loop", "--drain", "1.5", "--timeout", "60"],
+                       "--speed", "100", "--no-loop", "--drain", "1.5", "--timeout", "60"],
                       env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines, pid = [], None
     try:

@@ -4,7 +4,8 @@ on a wait set of their own, drained in batches, everything else as rclpy serves 
 Over real DDS in the test's own domain (rclpy in-process): the node spun by it gives the same
 stations and the same corrected samples as the node's callbacks called directly, message by
 message; the timer (the idle flush closes the last station) and the parameter services go on;
-an error in a sample callback ends the spin with that error; shutdown stops its thread."""
+an error in a sample callback ends the spin with that error; shutdown stops its thread.  ``spin``
+(every node's loop) ends quietly on a stop signal that lands mid-step."""
 import math
 import threading
 import time
@@ -211,6 +212,76 @@ def test_an_error_in_a_sample_callback_ends_the_spin_with_that_error(ros):
     assert isinstance(box["error"], RuntimeError) and "failed on 'boom'" in str(box["error"])
     executor.shutdown()
     assert not executor._hot_thread.is_alive()
+
+
+def test_a_context_shut_down_between_the_spins_look_and_its_wait_ends_the_spin_quietly(ros_env):
+    """rclpy's signal thread shuts the context down whenever SIGINT lands: here right after
+    ``spin``'s look at the context, before the executor's wait builds its timer (rclpy raises
+    RCLError "failed to create timer: the given context is not valid"); the node stopped as asked,
+    so the spin ends without an error.  With the context up, the same error is raised."""
+    from rclpy.executors import SingleThreadedExecutor
+
+    class ShutAtTheWait(SingleThreadedExecutor):
+        def spin_once(self, timeout_sec=None):
+            rclpy.shutdown(context=self.context)       # what the signal thread does, at the worst moment
+            super().spin_once(timeout_sec=timeout_sec)
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("spin_shut_at_the_wait", context=context)
+    c.spin(node, ShutAtTheWait(context=context))      # returns: no RCLError
+    assert not context.ok()
+    node.destroy_node()
+
+    class FailsWhileUp(SingleThreadedExecutor):
+        def spin_once(self, timeout_sec=None):
+            raise RuntimeError("an rclpy failure with the context up")
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("spin_fails_while_up", context=context)
+    with pytest.raises(RuntimeError, match="context up"):
+        c.spin(node, FailsWhileUp(context=context))
+    node.destroy_node()
+    rclpy.shutdown(context=context)
+
+
+def test_a_stop_signal_raised_inside_a_finalizer_is_silent_and_ends_the_spin(ros_env, capsys):
+    """A KeyboardInterrupt that lands in ``Task.__del__`` cannot be raised there: Python hands it
+    to ``sys.unraisablehook``, which printed a traceback and let the node spin on.  The node's hook
+    says nothing and the spin ends, the context still up."""
+    import sys
+    from rclpy.executors import SingleThreadedExecutor
+    from inclinometer_calib.nodes import executor as ex
+
+    assert sys.unraisablehook is ex._quiet_interrupted_task
+
+    class InterruptedFinalizer:
+        def __del__(self):
+            raise KeyboardInterrupt
+
+    class DropsATask(SingleThreadedExecutor):
+        turns = 0
+
+        def spin_once(self, timeout_sec=None):
+            DropsATask.turns += 1
+            if DropsATask.turns > 3:                        # a spin that went on: end it, the test fails
+                rclpy.shutdown(context=self.context)
+                return
+            InterruptedFinalizer()                          # collected at once: its __del__ raises
+            super().spin_once(timeout_sec=0.0)
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("spin_interrupted_in_a_finalizer", context=context)
+    try:
+        c.spin(node, DropsATask(context=context))
+        assert DropsATask.turns == 1 and context.ok()
+        assert "Traceback" not in capsys.readouterr().err
+    finally:
+        ex.INTERRUPTED.clear()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
 
 
 def _two_station_node(ros, tmp_path, with_temperature_effect=False, params=()):
