@@ -528,6 +528,7 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
         p_mag = Patcher.vector3(bytes(ser(Mag(header=hdr0, magnetic_field=v0, magnetic_field_covariance=cov_mag),
                                           MAG_TYPE)))
         p_tmp = Patcher.temperature(bytes(ser(Temp(header=hdr0, temperature=0.0, variance=0.0), TEMPERATURE_TYPE)))
+        p_ref = Patcher.vector3(bytes(ser(V3S(header=hdr0, vector=v0), REFERENCE_TYPE)))
         last_md, md_sent = None, -np.inf
         t_s = np.asarray(log.t_s, float)
         stamps = (epoch_ns + np.round(t_s * 1e9).astype(np.int64)).tolist()
@@ -558,9 +559,7 @@ def write_probe_bag(log, path, *, epoch_ns: int = 1_700_000_000_000_000_000, fra
                     w.write(c_dep, bytes(ser(F64(data=md_l[i]), DEPTH_TYPE)), lt)
                     last_md, md_sent = md_l[i], t_l[i]
             if i in ref_rows:
-                r = ref_l[i]
-                hdr = Header(stamp=Time(sec=sec, nanosec=nsec), frame_id=frame_id)
-                w.write(c_ref, bytes(ser(V3S(header=hdr, vector=Vec(x=r[0], y=r[1], z=r[2])), REFERENCE_TYPE)), lt)
+                w.write(c_ref, p_ref(sec, nsec, *ref_l[i]), lt)
             w.write(c_imu, p_imu(sec, nsec, *acc[i]), lt)
             w.write(c_mag, p_mag(sec, nsec, *mag_l[i]), lt)
             w.write(c_tmp, p_tmp(sec, nsec, temp[i]), lt)

@@ -311,6 +311,18 @@ def _triad_figure(h: History, sensor: str, name: str) -> str:
         ax.tick_params(labelsize=7)
     for ax in axs.flat[len(pars):]:
         ax.set_visible(False)
+    # every panel shows the same dates (shared x): matplotlib's date ticks, found once and fixed;
+    # left to each panel, its date-rule search ran at each of the layout's and the PNG's passes,
+    # for every panel: a third of the page's time
+    from matplotlib.dates import AutoDateFormatter, AutoDateLocator
+    from matplotlib.ticker import FixedLocator
+
+    dates_axis = axs.flat[0].xaxis
+    auto = AutoDateLocator()
+    auto.set_axis(dates_axis)
+    ticks = auto()
+    dates_axis.set_major_locator(FixedLocator(ticks))        # sharex: one locator for all
+    dates_axis.set_major_formatter(AutoDateFormatter(auto))
     fig.autofmt_xdate()
     fig.suptitle(f"probe {h.probe.serial}: {name} parameters by calibration date (red ring: moved beyond "
                  f"{h.k:g}σ combined from the calibration before; red span: overdue)", fontsize=10)
