@@ -88,7 +88,7 @@ def test_overdue_at_the_date_asked(reg):
     assert never.overdue is not None and "never calibrated" in never.overdue.describe()
 
 
-def test_text_table_and_html(reg, cals):
+def test_text_table_and_html(reg, cals, db_url):
     h = hi.analyse(reg.probe("SN-H"), reg.history("SN-H"), at=T0 + 200 * DAY)
     text = hi.format_history(h)
     row = next(ln for ln in text.splitlines() if ln.startswith("mag bias_x"))
@@ -99,6 +99,8 @@ def test_text_table_and_html(reg, cals):
     assert "FLAG #3 2026-03-11" in text and "mag bias_x" in text.split("FLAG #3")[1]
     assert "FLAG #2" not in text
     assert "OVERDUE at 2026-07-29" in text
+    if not db_url.startswith("sqlite"):
+        return   # the page is drawn from the History the text above pins for each database: once (2 s)
     page = hi.to_html(h)
     assert page.count("<img") == 2 and page.count("data:image/png;base64,") == 2
     assert "moved beyond 3σ combined" in page and "OVERDUE" in page
