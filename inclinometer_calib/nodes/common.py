@@ -30,7 +30,7 @@ from ..core.coeffs import Calibration, message_fields
 from ..core.frames import NT_PER_TESLA, Site, gravity_from_specific_force, specific_force_from_gravity
 from ..core.geomag import site_from_parameters, site_parameter_defaults
 from ..core.survey import Tolerances
-from .executor import HotPathExecutor, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
+from .executor import HotPathExecutor, install_stop_hook, spin  # noqa: F401  (HotPathExecutor re-exported: c.HotPathExecutor)
 
 TESLA_PER_NT = 1.0 / NT_PER_TESLA
 NAN = float("nan")
@@ -51,6 +51,7 @@ def run(node_factory, args=None) -> int:
     one-line error on stderr and exit status 2.  A node with ``hot_subscriptions`` (its sample
     streams) is spun by a :class:`HotPathExecutor`, any other by rclpy's global executor.
     """
+    install_stop_hook()
     rclpy.init(args=args)
     node = executor = None
     try:
@@ -67,11 +68,22 @@ def run(node_factory, args=None) -> int:
         print(f"{name}: error: {exc}", file=sys.stderr)
         return 2
     finally:
+        # each step to its end even if a second stop signal lands in it (it would end the
+        # node with a traceback, and skip the steps after it)
         if executor is not None:
-            executor.shutdown()   # its hot-path thread has ended before the node goes
+            _uninterrupted(executor.shutdown)   # its hot-path thread has ended before the node goes
         if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+            _uninterrupted(node.destroy_node)
+        _uninterrupted(rclpy.try_shutdown)
+
+
+def _uninterrupted(step) -> None:
+    """``step()``; a ``KeyboardInterrupt`` raised in it (a second Ctrl-C while the node stops)
+    is dropped: the node is stopping already."""
+    try:
+        step()
+    except KeyboardInterrupt:
+        pass
 
 
 # --------------------------------------------------------------------------------------------

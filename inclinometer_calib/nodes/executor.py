@@ -166,7 +166,8 @@ class HotPathExecutor(Executor):
             self._hot_gc.destroy()   # an ordinary guard: no signal thread knows it
         except InvalidHandle:
             pass
-        if self._interrupted and _rclpy.get_current_signal_handlers_options() in _RCLPY_HANDLES_SIGINT:
+        if ((self._interrupted or INTERRUPTED.is_set())     # (the Ctrl-C raised in a finalizer: the same wait)
+                and _rclpy.get_current_signal_handlers_options() in _RCLPY_HANDLES_SIGINT):
             # rclpy's signal thread shuts the context down once it has triggered every SIGINT guard
             end = time.monotonic() + self._signal_wait_s
             while self._context.ok() and time.monotonic() < end:
@@ -281,12 +282,16 @@ WAKE_S = 0.5
 
 
 #: Set when a Ctrl-C or SIGTERM landed inside a finalizer, where Python cannot raise it (see
-#: :func:`_quiet_interrupted_task`); :func:`spin` then stops as if it had been raised.
+#: :func:`_quiet_interrupted_task`); :func:`spin` then stops as if it had been raised, and
+#: :meth:`HotPathExecutor.shutdown` waits for rclpy's signal thread as after a raised one.
 INTERRUPTED = threading.Event()
 
+_previous_unraisablehook = sys.__unraisablehook__
 
-def _quiet_interrupted_task(unraisable, _default=sys.unraisablehook) -> None:
-    """``sys.unraisablehook`` of a node: the stop signal's marks in rclpy's finalizers, silenced.
+
+def _quiet_interrupted_task(unraisable) -> None:
+    """``sys.unraisablehook`` of a node process (:func:`install_stop_hook`): the stop signal's
+    marks in rclpy's finalizers, silenced.
 
     * A Ctrl-C or SIGTERM that lands while rclpy builds a ``Task`` (its executor does, for every
       callback) leaves an object without the fields its ``Future.__del__`` reads, and the garbage
@@ -296,17 +301,25 @@ def _quiet_interrupted_task(unraisable, _default=sys.unraisablehook) -> None:
       on.  The node was asked to stop: :data:`INTERRUPTED` is set and :func:`spin` ends.
 
     Neither says anything about the node, which stopped as asked.  Anything else goes to the
-    default hook."""
+    hook that was in place before."""
     exc, obj = unraisable.exc_value, unraisable.object
     if isinstance(exc, KeyboardInterrupt):
         INTERRUPTED.set()
         return
     if isinstance(exc, AttributeError) and getattr(obj, "__qualname__", "") == "Future.__del__":
         return
-    _default(unraisable)
+    _previous_unraisablehook(unraisable)
 
 
-sys.unraisablehook = _quiet_interrupted_task
+def install_stop_hook() -> None:
+    """Make this process a node's: :func:`_quiet_interrupted_task` as ``sys.unraisablehook`` and
+    :data:`INTERRUPTED` cleared.  Called by every node's ``main`` (``common.run``, the recorder's),
+    not at import: a process that only imports the nodes (a test run, a tool) keeps its own hook."""
+    global _previous_unraisablehook
+    INTERRUPTED.clear()
+    if sys.unraisablehook is not _quiet_interrupted_task:
+        _previous_unraisablehook = sys.unraisablehook
+        sys.unraisablehook = _quiet_interrupted_task
 
 
 def spin(node, executor, done=None) -> None:
@@ -330,8 +343,12 @@ def spin(node, executor, done=None) -> None:
                and not (done is not None and done.done())):
             try:
                 executor.spin_once(timeout_sec=WAKE_S)
-            except RuntimeError:    # rclpy's RCLError and InvalidHandle are RuntimeErrors
-                if executor.context.ok() and not INTERRUPTED.is_set():
+            except RuntimeError as exc:
+                # rclpy's RCLError and InvalidHandle, and pybind11's "Unable to convert call
+                # argument" of a take during the shutdown (a plain RuntimeError), are RuntimeErrors;
+                # its subclasses that are Python's own (recursion, not implemented) are bugs
+                if (executor.context.ok() and not INTERRUPTED.is_set()) or isinstance(
+                        exc, (RecursionError, NotImplementedError)):
                     raise
                 break
     finally:

@@ -68,7 +68,7 @@ from ..io.bag import (BagError, BagWriter, UnknownTypeError, normalize_type, ope
 from ..core.output import refused_write_words
 from ..io.topics import (TOPIC_COEFFICIENTS, TOPIC_DEPTH, TOPIC_IMU, TOPIC_MAG, TOPIC_PROGRESS, TOPIC_REFERENCE,
                       TOPIC_STATION, TOPIC_TEMPERATURE)
-from .executor import HotPathExecutor, spin
+from .executor import HotPathExecutor, install_stop_hook, spin
 
 NODE_NAME = "recorder"
 DEFAULT_EXCLUDE = ["/rosout", "/parameter_events"]
@@ -598,6 +598,7 @@ class Recorder(Node):
 
 def main(args: Optional[List[str]] = None) -> int:
     # rclpy 7 (Jazzy) init() returns None, not a context manager: shut down in finally
+    install_stop_hook()
     rclpy.init(args=args)
     node: Optional[Recorder] = None
     executor: Optional[HotPathExecutor] = None
