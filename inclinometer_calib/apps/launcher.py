@@ -16,8 +16,8 @@ written by the probe) and the survey station angles against their reference atti
 ``--out DIR`` leaves ``survey.mcap``, ``coeffs.yaml``, ``truth.json`` (+ ``truth_coeffs.yaml``),
 ``correction_state.json`` and ``summary.json``.
 
-Recovery.  A recorder that dies while the graph runs is restarted at once into a new file in the
-same directory (``survey_1.mcap``, ``survey_2.mcap``, …: the bag writer never overwrites); the
+Recovery.  A recorder that dies while the graph runs is restarted into a new file in the
+same directory (once the other nodes have forgotten the process that died: :func:`restart_delay_s`) (``survey_1.mcap``, ``survey_2.mcap``, …: the bag writer never overwrites); the
 latched ``/calibration/coefficients`` reach the new recorder again (transient local).  The
 correction node is restarted the same way; it applies the calibration node's ``coeffs.yaml``
 (``fallback_coeffs_file``) until a record arrives on the topic and continues the station ids from
@@ -84,6 +84,11 @@ STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder") 
 RESTARTABLE = ("recorder", "correction", "calibration")
 #: The transports of a restarted node (Fast DDS): UDP only (see ``run``'s ``start``)
 RESTART_TRANSPORTS = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+#: Fast DDS's participant lease (s) where no profile sets one
+FASTDDS_DEFAULT_LEASE_S = 20.0
+#: A node that died is restarted this long (s) after its DDS participant's lease has run out, so
+#: that every other participant has forgotten it first (see :func:`restart_delay_s`)
+RESTART_AFTER_LEASE_S = 1.0
 #: --reliable: the raw streams' history depth (keep last), messages: 20 s at 1 kHz
 RELIABLE_DEPTH = 20_000
 MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
@@ -127,6 +132,47 @@ def dds_profile_env(env: dict, cfg) -> str:
     for v in DDS_PROFILE_VARS:
         env[v] = path
     return f"Fast DDS profile {path} (heartbeats 0.1 s, announcements 0.5 s)"
+
+
+def participant_lease_s(env: dict):
+    """The lease (s) after which the graph's Fast DDS participants take a silent one as gone: the
+    default participant profile's ``leaseDuration`` in the profiles file the nodes read (ours,
+    ``config/fastdds.xml``: 5 s, or a rig's own), else Fast DDS's default (20 s).  ``None`` under
+    another RMW (its restarts are not delayed) or for an infinite lease."""
+    if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
+        return None
+    path = next((env[v] for v in DDS_PROFILE_VARS if env.get(v)), "")
+    if not path or not os.path.isfile(path):
+        return FASTDDS_DEFAULT_LEASE_S
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return FASTDDS_DEFAULT_LEASE_S    # Fast DDS itself will say what is wrong with it
+    local = lambda e: e.tag.rsplit("}", 1)[-1]                                    # noqa: E731
+    profiles = [e for e in root.iter() if local(e) == "participant"]
+    profile = next((e for e in profiles if e.get("is_default_profile") == "true"), None)
+    lease = next((e for e in profile.iter() if local(e) == "leaseDuration"), None) if profile is not None else None
+    if lease is None:
+        return FASTDDS_DEFAULT_LEASE_S
+    parts = {local(e): (e.text or "").strip() for e in lease}
+    if any(v.upper().startswith("DURATION_INFINITY") for v in parts.values()):
+        return None
+    try:
+        return float(parts.get("sec", 0) or 0) + float(parts.get("nanosec", 0) or 0) * 1e-9
+    except ValueError:
+        return FASTDDS_DEFAULT_LEASE_S
+
+
+def restart_delay_s(env: dict) -> float:
+    """How long after a node died the launcher restarts it: until the other participants have
+    forgotten the dead one (its lease, :func:`participant_lease_s`, and a second).  A successor
+    matched while the writers still hold the dead reader (and, over shared memory, its port) can
+    stay matched but deaf: no sample ever reaches it (eProsima/Fast-DDS #5053, #5469; seen here,
+    once in 21 runs, with the restart 0.1 s after the kill).  A paced replay waits meanwhile."""
+    lease = participant_lease_s(env)
+    return 0.0 if lease is None else lease + RESTART_AFTER_LEASE_S
 
 
 def config_dir():
@@ -497,6 +543,8 @@ def run_graph(args, out, env) -> GraphResult:
     log = RunLog(os.path.join(out, "launch.log"))
     children = {}
     restarts = {n: 0 for n in RESTARTABLE}
+    due = {}      # node -> monotonic time of its restart (it died; the graph forgets it first)
+    delay = restart_delay_s(env)
     stop = {"requested": 0}
 
     def say(text):
@@ -549,9 +597,13 @@ def run_graph(args, out, env) -> GraphResult:
             if drain_until is not None and time.monotonic() >= drain_until:
                 reason = "probe finished and the graph drained"
                 break
+            for name, when in list(due.items()):
+                if time.monotonic() >= when:
+                    del due[name]
+                    start(name, restart=True)
             for name, ch in list(children.items()):
                 code = ch.poll()
-                if code is None or (name == "probe" and drain_until is not None):
+                if code is None or name in due or (name == "probe" and drain_until is not None):
                     continue
                 if name == "probe":
                     if code == 0:
@@ -587,25 +639,30 @@ def run_graph(args, out, env) -> GraphResult:
                     restarts[name] += 1
                     result.restarts[name] = restarts[name]
                     result.problems.append(f"{died}; restarted")
+                    when = (f" in {delay:g} s, once the graph has forgotten the process that died (its DDS "
+                            f"participant's lease)") if delay else ""
                     if name == "recorder":
                         params["recorder"]["output"] = next_bag_part(out)
-                        say(f"{died}: restarting it into {os.path.basename(params['recorder']['output'])} "
+                        say(f"{died}: restarting it into {os.path.basename(params['recorder']['output'])}{when} "
                             f"(restart {restarts[name]} of at most {MAX_RESTARTS}); the run goes on")
                     else:
                         parts = bag_parts(out) if "recorder" in children else []
                         if parts:
                             params[name]["resume.bags"] = parts
-                        say(f"{died}: restarting it (restart {restarts[name]} of at most {MAX_RESTARTS})"
+                        say(f"{died}: restarting it{when} (restart {restarts[name]} of at most {MAX_RESTARTS})"
                             + (f", resuming from the recording ({', '.join(os.path.basename(x) for x in parts)})"
                                if parts else ", without a recording to resume from") + "; the run goes on")
-                    start(name, restart=True)
+                    due[name] = time.monotonic() + delay
                     continue
                 reason = died + (f" after {restarts[name]} restarts" if restarts.get(name) else "")
                 result.problems.append(reason)
                 break
         say(f"{reason}; stopping the graph")
+        for name in due:
+            say(f"{name}: not restarted: the run ended before its restart was due")
+            result.problems.append(f"{name} was not restarted: the run ended before its restart was due")
         for name in STOP_ORDER:
-            if name in children:
+            if name in children and name not in due:
                 code = children[name].stop()
                 say(f"{name} stopped ({_exit_text(code)})")
                 if name == "recorder" and code == RECORDING_INCOMPLETE:

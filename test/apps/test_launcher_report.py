@@ -183,3 +183,31 @@ def test_the_nodes_get_the_packages_fast_dds_profile_unless_the_user_names_one(t
     assert mine == {"FASTDDS_DEFAULT_PROFILES_FILE": "/rig/dds.xml"}
     bare = {}
     assert launcher.dds_profile_env(bare, str(tmp_path)) == "Fast DDS defaults" and bare == {}
+
+
+def test_a_node_that_died_is_restarted_once_the_graph_has_forgotten_it(tmp_path):
+    """The restart waits for the dead participant's lease (and a second): the lease of the default
+    participant profile in the profiles file the nodes read (ours: 5 s; a rig's own), Fast DDS's
+    20 s without one; no wait under another RMW or with an infinite lease."""
+    env = {}
+    launcher.dds_profile_env(env, launcher.config_dir())
+    assert launcher.participant_lease_s(env) == 5.0 and launcher.restart_delay_s(env) == 6.0
+    assert launcher.participant_lease_s({}) == launcher.FASTDDS_DEFAULT_LEASE_S == 20.0
+    assert launcher.restart_delay_s(dict(env, RMW_IMPLEMENTATION="rmw_cyclonedds_cpp")) == 0.0
+
+    def rig(lease_xml):
+        path = tmp_path / f"rig{len(list(tmp_path.iterdir()))}.xml"
+        path.write_text(
+            '<?xml version="1.0"?><dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"><profiles>'
+            '<participant profile_name="other"><rtps><builtin><discovery_config><leaseDuration><sec>99</sec>'
+            '</leaseDuration></discovery_config></builtin></rtps></participant>'
+            '<participant profile_name="rig" is_default_profile="true"><rtps><builtin><discovery_config>'
+            f'{lease_xml}</discovery_config></builtin></rtps></participant></profiles></dds>')
+        return launcher.participant_lease_s({"FASTRTPS_DEFAULT_PROFILES_FILE": str(path)})
+
+    assert rig("<leaseDuration><sec>3</sec><nanosec>250000000</nanosec></leaseDuration>") == 3.25
+    assert rig("<leaseDuration><sec>DURATION_INFINITY</sec></leaseDuration>") is None
+    assert rig("") == 20.0                         # the default profile sets none: Fast DDS's
+    bad = tmp_path / "bad.xml"
+    bad.write_text("<dds><profiles>")
+    assert launcher.participant_lease_s({"FASTDDS_DEFAULT_PROFILES_FILE": str(bad)}) == 20.0

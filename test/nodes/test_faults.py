@@ -195,8 +195,18 @@ class Launch:
         self.proc = subprocess.Popen([sys.executable, "-m", "inclinometer_calib.apps.launcher", *map(str, args)],
                                      env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.lines = []
-        self._th = threading.Thread(target=lambda: self.lines.extend(self.proc.stdout), daemon=True)
+        self.arrived = []     # time.monotonic() of each line's arrival
+        self._th = threading.Thread(target=self._read, daemon=True)
         self._th.start()
+
+    def _read(self):
+        for line in self.proc.stdout:
+            self.arrived.append(time.monotonic())
+            self.lines.append(line)
+
+    def arrival(self, pattern):
+        """When the last line matching ``pattern`` arrived (monotonic s)."""
+        return max(t for t, line in zip(self.arrived, self.lines) if re.search(pattern, line))
 
     @property
     def text(self):
@@ -295,6 +305,7 @@ def fault_runs(tmp_path_factory):
         time.sleep(0.3)
         for pid in pids.values():
             os.kill(pid, signal.SIGKILL)
+        killed = time.monotonic()
         rc_a, rc_b = a.finish(150), b.finish(150)
     finally:
         for run in (a, b):
@@ -303,7 +314,9 @@ def fault_runs(tmp_path_factory):
     print(f"two launcher runs with faults, side by side: {time.monotonic() - t0:.1f} s")
     for name, run in (("A", a), ("B", b)):       # shown with a failure (captured output of the setup)
         print(f"---- launcher {name} ----\n{run.text}")
-    return {"root": root, "bag": bag, "a": (rc_a, a.text), "b": (rc_b, b.text), "c": refused, "a_domain": a_domain}
+    restarted = {n: a.arrival(rf"^\[launch\] starting {n} \(") - killed for n in pids}
+    return {"root": root, "bag": bag, "a": (rc_a, a.text), "b": (rc_b, b.text), "c": refused, "a_domain": a_domain,
+            "restarted_after_s": restarted}
 
 
 def test_killed_recorder_correction_and_calibration_are_restarted_and_nothing_is_lost(fault_runs):
@@ -316,7 +329,14 @@ def test_killed_recorder_correction_and_calibration_are_restarted_and_nothing_is
     assert rc == 1, text[-6000:]
     for name in ("recorder", "correction", "calibration"):
         assert f"[launch] {name} died unexpectedly (killed by SIGKILL)" in text
-    assert "[launch] recorder died unexpectedly (killed by SIGKILL): restarting it into survey_1.mcap" in text
+    assert "[launch] recorder died unexpectedly (killed by SIGKILL): restarting it into survey_1.mcap in 6 s, once " \
+           "the graph has forgotten the process that died" in text
+    # each restarted once the graph forgot the dead one (its lease, 5 s: a successor matched before
+    # could stay deaf), over UDP only
+    for name, after in fault_runs["restarted_after_s"].items():
+        died, started = text.index(f"[launch] {name} died unexpectedly"), text.rindex(f"[launch] starting {name} (")
+        assert died < started and f"[launch] {name}: restarted over UDP only" in text[died:started]
+        assert after >= 6.0, (name, after)
     for name in ("correction", "calibration"):
         assert re.search(rf"\[{name}\] \[WARN\].*resumed from the run's recording \(survey\.mcap", text), name
     last = text.strip().splitlines()[-1]
