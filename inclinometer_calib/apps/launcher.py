@@ -543,7 +543,7 @@ def run_graph(args, out, env) -> GraphResult:
     log = RunLog(os.path.join(out, "launch.log"))
     children = {}
     restarts = {n: 0 for n in RESTARTABLE}
-    due = {}      # node -> monotonic time of its restart (it died; the graph forgets it first)
+    due = {}      # node -> (monotonic time of its restart, why): it died; the graph forgets it first
     delay = restart_delay_s(env)
     stop = {"requested": 0}
 
@@ -597,9 +597,11 @@ def run_graph(args, out, env) -> GraphResult:
             if drain_until is not None and time.monotonic() >= drain_until:
                 reason = "probe finished and the graph drained"
                 break
-            for name, when in list(due.items()):
+            for name, (when, died) in list(due.items()):
                 if time.monotonic() >= when:
                     del due[name]
+                    result.restarts[name] = restarts[name]
+                    result.problems.append(f"{died}; restarted")
                     start(name, restart=True)
             for name, ch in list(children.items()):
                 code = ch.poll()
@@ -637,8 +639,6 @@ def run_graph(args, out, env) -> GraphResult:
                     break
                 if name in restarts and restarts[name] < MAX_RESTARTS:
                     restarts[name] += 1
-                    result.restarts[name] = restarts[name]
-                    result.problems.append(f"{died}; restarted")
                     when = (f" in {delay:g} s, once the graph has forgotten the process that died (its DDS "
                             f"participant's lease)") if delay else ""
                     if name == "recorder":
@@ -652,15 +652,15 @@ def run_graph(args, out, env) -> GraphResult:
                         say(f"{died}: restarting it{when} (restart {restarts[name]} of at most {MAX_RESTARTS})"
                             + (f", resuming from the recording ({', '.join(os.path.basename(x) for x in parts)})"
                                if parts else ", without a recording to resume from") + "; the run goes on")
-                    due[name] = time.monotonic() + delay
+                    due[name] = (time.monotonic() + delay, died)
                     continue
                 reason = died + (f" after {restarts[name]} restarts" if restarts.get(name) else "")
                 result.problems.append(reason)
                 break
         say(f"{reason}; stopping the graph")
-        for name in due:
+        for name, (_, died) in due.items():
             say(f"{name}: not restarted: the run ended before its restart was due")
-            result.problems.append(f"{name} was not restarted: the run ended before its restart was due")
+            result.problems.append(f"{died}; not restarted: the run ended before its restart was due")
         for name in STOP_ORDER:
             if name in children and name not in due:
                 code = children[name].stop()
