@@ -16,13 +16,15 @@ written by the probe) and the survey station angles against their reference atti
 ``--out DIR`` leaves ``survey.mcap``, ``coeffs.yaml``, ``truth.json`` (+ ``truth_coeffs.yaml``),
 ``correction_state.json`` and ``summary.json``.
 
-Recovery.  A recorder that dies while the graph runs is restarted into a new file in the
-same directory (once the other nodes have forgotten the process that died: :func:`restart_delay_s`) (``survey_1.mcap``, ``survey_2.mcap``, …: the bag writer never overwrites); the
-latched ``/calibration/coefficients`` reach the new recorder again (transient local).  The
-correction node is restarted the same way; it applies the calibration node's ``coeffs.yaml``
+Recovery.  A recorder that dies while the graph runs is restarted, once the other nodes have
+forgotten the process that died (:func:`restart_delay_s`), into a new file in the same directory
+(``survey_1.mcap``, ``survey_2.mcap``, …: the bag writer never overwrites); the latched
+``/calibration/coefficients`` reach the new recorder again (transient local).  The calibration
+and correction nodes are restarted the same way, resuming from the run's recording
+(``resume.bags``); the correction node applies the calibration node's ``coeffs.yaml``
 (``fallback_coeffs_file``) until a record arrives on the topic and continues the station ids from
 ``correction_state.json`` (``state_file``).  At most :data:`MAX_RESTARTS` restarts per node; a
-probe or calibration node that dies ends the run.  The summary is built from all bag parts in
+probe that dies ends the run, and the run waits for a restart still due when the probe ends.  The summary is built from all bag parts in
 time order; a part the killed recorder left without its summary is first recovered
 (:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the temporary directory when ``--out``
 has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its
@@ -89,6 +91,9 @@ FASTDDS_DEFAULT_LEASE_S = 20.0
 #: A node that died is restarted this long (s) after its DDS participant's lease has run out, so
 #: that every other participant has forgotten it first (see :func:`restart_delay_s`)
 RESTART_AFTER_LEASE_S = 1.0
+#: The least drain (s, wall) after a node restarted once the probe had finished: its start-up and
+#: what its publishers' history gives it
+RESTART_DRAIN_S = 5.0
 #: --reliable: the raw streams' history depth (keep last), messages: 20 s at 1 kHz
 RELIABLE_DEPTH = 20_000
 MAX_RESTARTS = 3  # per node: a node that keeps dying ends the run
@@ -137,11 +142,15 @@ def dds_profile_env(env: dict, cfg) -> str:
 def participant_lease_s(env: dict):
     """The lease (s) after which the graph's Fast DDS participants take a silent one as gone: the
     default participant profile's ``leaseDuration`` in the profiles file the nodes read (ours,
-    ``config/fastdds.xml``: 5 s, or a rig's own), else Fast DDS's default (20 s).  ``None`` under
-    another RMW (its restarts are not delayed) or for an infinite lease."""
-    if env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") != "rmw_fastrtps_cpp":
+    ``config/fastdds.xml``: 5 s, or a rig's own), else Fast DDS's default (20 s).  A file named by
+    ``FASTDDS_DEFAULT_PROFILES_FILE`` alone, which Fast DDS 2 (Jazzy's) does not read, gives at
+    least the default.  ``None`` under another RMW (its restarts are not delayed) or for an infinite
+    lease (any of Fast DDS's ``DURATION_INFINITY``, ``DURATION_INFINITE_SEC``,
+    ``DURATION_INFINITE_NSEC``: the dead one is never forgotten, waiting would not help)."""
+    if not env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps"):
         return None
     path = next((env[v] for v in DDS_PROFILE_VARS if env.get(v)), "")
+    floor = FASTDDS_DEFAULT_LEASE_S if path and not env.get(DDS_PROFILE_VARS[0]) else 0.0
     if not path or not os.path.isfile(path):
         return FASTDDS_DEFAULT_LEASE_S
     import xml.etree.ElementTree as ET
@@ -157,10 +166,11 @@ def participant_lease_s(env: dict):
     if lease is None:
         return FASTDDS_DEFAULT_LEASE_S
     parts = {local(e): (e.text or "").strip() for e in lease}
-    if any(v.upper().startswith("DURATION_INFINITY") for v in parts.values()):
+    texts = [(lease.text or "").strip(), *parts.values()]
+    if any(t.upper() in ("DURATION_INFINITY", "DURATION_INFINITE_SEC", "DURATION_INFINITE_NSEC") for t in texts):
         return None
     try:
-        return float(parts.get("sec", 0) or 0) + float(parts.get("nanosec", 0) or 0) * 1e-9
+        return max(floor, float(parts.get("sec", 0) or 0) + float(parts.get("nanosec", 0) or 0) * 1e-9)
     except ValueError:
         return FASTDDS_DEFAULT_LEASE_S
 
@@ -555,7 +565,7 @@ def run_graph(args, out, env) -> GraphResult:
     def start(name, restart=False):
         cmd = node_command(name, params[name], cfg)
         child_env = env
-        if restart and env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") == "rmw_fastrtps_cpp" \
+        if restart and env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps") \
                 and "FASTDDS_BUILTIN_TRANSPORTS" not in env:
             # Fast DDS 2.14's shared-memory transport can leave a subscriber restarted after its
             # predecessor was killed matched but deaf (no sample ever arrives; eProsima/Fast-DDS
@@ -594,7 +604,7 @@ def run_graph(args, out, env) -> GraphResult:
                 reason = f"timeout after {args.timeout:g} s"
                 result.problems.append(f"the run timed out after {args.timeout:g} s")
                 break
-            if drain_until is not None and time.monotonic() >= drain_until:
+            if drain_until is not None and not due and time.monotonic() >= drain_until:
                 reason = "probe finished and the graph drained"
                 break
             for name, (when, died) in list(due.items()):
@@ -603,6 +613,10 @@ def run_graph(args, out, env) -> GraphResult:
                     result.restarts[name] = restarts[name]
                     result.problems.append(f"{died}; restarted")
                     start(name, restart=True)
+                    if drain_until is not None:
+                        # restarted after the probe's end: the drain gives it time to take what its
+                        # publishers' history holds (the latched stations and records)
+                        drain_until = max(drain_until, time.monotonic() + max(args.drain, RESTART_DRAIN_S))
             for name, ch in list(children.items()):
                 code = ch.poll()
                 if code is None or name in due or (name == "probe" and drain_until is not None):

@@ -203,11 +203,19 @@ def test_a_node_that_died_is_restarted_once_the_graph_has_forgotten_it(tmp_path)
             '</leaseDuration></discovery_config></builtin></rtps></participant>'
             '<participant profile_name="rig" is_default_profile="true"><rtps><builtin><discovery_config>'
             f'{lease_xml}</discovery_config></builtin></rtps></participant></profiles></dds>')
+        rig.path = str(path)
         return launcher.participant_lease_s({"FASTRTPS_DEFAULT_PROFILES_FILE": str(path)})
 
     assert rig("<leaseDuration><sec>3</sec><nanosec>250000000</nanosec></leaseDuration>") == 3.25
-    assert rig("<leaseDuration><sec>DURATION_INFINITY</sec></leaseDuration>") is None
+    for infinite in ("<sec>DURATION_INFINITY</sec>", "<sec>DURATION_INFINITE_SEC</sec>",
+                     "<sec>5</sec><nanosec>DURATION_INFINITE_NSEC</nanosec>", "DURATION_INFINITY"):
+        assert rig(f"<leaseDuration>{infinite}</leaseDuration>") is None, infinite
     assert rig("") == 20.0                         # the default profile sets none: Fast DDS's
+    rig("<leaseDuration><sec>3</sec></leaseDuration>")
+    assert launcher.participant_lease_s({"FASTRTPS_DEFAULT_PROFILES_FILE": rig.path,
+                                         "RMW_IMPLEMENTATION": "rmw_fastrtps_dynamic_cpp"}) == 3.0
+    # named only where Fast DDS 3 looks: Jazzy's Fast DDS 2 may run on its default, 20 s
+    assert launcher.participant_lease_s({"FASTDDS_DEFAULT_PROFILES_FILE": rig.path}) == 20.0
     bad = tmp_path / "bad.xml"
     bad.write_text("<dds><profiles>")
     assert launcher.participant_lease_s({"FASTDDS_DEFAULT_PROFILES_FILE": str(bad)}) == 20.0
