@@ -24,8 +24,9 @@ def pytest_collection_finish(session):
     230 000 objects after collection) and what the module fixtures hold — and a numerics worker
     made 21–33 of them, 0.3 s each: 13–16 CPU-seconds of the numerics' 270 (measured with
     ``gc.callbacks``).  The objects alive after collection are frozen (never walked again) and a
-    full collection waits for 100 young-generation ones, not 10; cyclic garbage is still collected
-    (the two younger generations as before, and at the end of the session)."""
+    full collection waits for 100 middle-generation collections, not 10; cyclic garbage is still
+    collected (the two younger generations as before, the full ones less often, and at the end of
+    the session)."""
     gc.collect()
     gc.freeze()
     young, middle, _ = gc.get_threshold()

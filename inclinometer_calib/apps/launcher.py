@@ -24,10 +24,10 @@ and correction nodes are restarted the same way, resuming from the run's recordi
 (``resume.bags``); the correction node applies the calibration node's ``coeffs.yaml``
 (``fallback_coeffs_file``) until a record arrives on the topic and continues the station ids from
 ``correction_state.json`` (``state_file``).  At most :data:`MAX_RESTARTS` restarts per node; a
-probe that dies ends the run, and the run waits for a restart still due when the probe ends.  The summary is built from all bag parts in
-time order; a part the killed recorder left without its summary is first recovered
-(:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the temporary directory when ``--out``
-has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its
+probe that dies ends the run, and the run waits for a restart still due when the probe ends.
+The summary is built from all bag parts in time order; a part the killed recorder left without
+its summary is first recovered (:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the
+temporary directory when ``--out`` has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its
 recording incomplete: a write the disk refused), or dies while the disk holding ``--out`` has less
 than :data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.
 
