@@ -1,6 +1,7 @@
-"""The launcher's ROS-free parts: honest labels in the run report and summary, and the choice of
-the run's ROS_DOMAIN_ID (a free one, or exactly the one asked for and refused while another run
-holds it).  Nothing here starts ROS."""
+"""The launcher's ROS-free parts: honest labels in the run report and summary, the choice of the
+run's ROS_DOMAIN_ID (a free one, or exactly the one asked for and refused while another run holds
+it), the restart delay read from the nodes' Fast DDS profile, and the watch loop's restarts that
+fall due at the end of a run (on stand-in processes).  Nothing here starts ROS."""
 import math
 import os
 
@@ -219,3 +220,84 @@ def test_a_node_that_died_is_restarted_once_the_graph_has_forgotten_it(tmp_path)
     bad = tmp_path / "bad.xml"
     bad.write_text("<dds><profiles>")
     assert launcher.participant_lease_s({"FASTDDS_DEFAULT_PROFILES_FILE": str(bad)}) == 20.0
+
+
+#: A stand-in for a node process (argv: its name, the folder it reports to): it writes the
+#: monotonic time of its start to ``<name>.starts``; the correction dies (exit 1) at its first
+#: start, writing ``correction.died``; the probe ends (exit 0) once the correction has died, or
+#: runs like the others until SIGINT.  CLOCK_MONOTONIC is the machine's: the launcher's and the
+#: stand-ins' times compare.
+STAND_IN = r"""
+import os, signal, sys, time
+name, d = sys.argv[1], sys.argv[2]
+first = not os.path.exists(os.path.join(d, name + ".starts"))
+with open(os.path.join(d, name + ".starts"), "a") as f:
+    f.write(f"{time.monotonic()}\n")
+if name == "correction" and first:
+    with open(os.path.join(d, "correction.died"), "w") as f:
+        f.write(f"{time.monotonic()}\n")
+    sys.exit(1)
+signal.signal(signal.SIGINT, lambda *_: sys.exit(0))
+while True:
+    if name == "probe" and os.environ.get("STAND_IN_PROBE_ENDS") and os.path.exists(os.path.join(d, "correction.died")):
+        time.sleep(0.2)
+        sys.exit(0)
+    time.sleep(0.05)
+"""
+
+
+def _stand_in_graph(tmp_path, monkeypatch, lease_s, *argv):
+    """``run_graph`` on stand-in processes (:data:`STAND_IN`), no ROS: a probe and a correction
+    node, the nodes' Fast DDS profile giving ``lease_s``."""
+    profile = tmp_path / "dds.xml"
+    profile.write_text(
+        '<?xml version="1.0"?><profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">'
+        '<participant profile_name="p" is_default_profile="true"><rtps><builtin><discovery_config>'
+        f'<leaseDuration><sec>{lease_s}</sec></leaseDuration></discovery_config></builtin></rtps></participant>'
+        '</profiles>')
+    monkeypatch.setattr(launcher, "node_command",
+                        lambda name, params, cfg: [launcher.sys.executable, "-c", STAND_IN, name, str(tmp_path)])
+    out = tmp_path / "run"
+    out.mkdir()
+    env = dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(profile))
+    env.pop("FASTDDS_BUILTIN_TRANSPORTS", None)
+    env.pop("RMW_IMPLEMENTATION", None)
+    args = launcher.parse_args(["--no-calibration", "--no-recorder", "--drain", "0.5", *argv])
+    t0 = launcher.time.monotonic()
+    result = launcher.run_graph(args, str(out), env)
+    starts = {n: [float(x) for x in (tmp_path / f"{n}.starts").read_text().split()] for n in ("probe", "correction")}
+    return result, t0, starts, (out / "launch.log").read_text()
+
+
+def test_a_restart_due_after_the_probe_has_ended_is_made_and_the_drain_waits_for_it(tmp_path, monkeypatch):
+    """The correction dies, then the probe ends before the restart is due (the lease: 1 s, and a
+    second): the restart is still made, counted, and the drain waits for the restarted node
+    (RESTART_DRAIN_S: here 1 s) before the graph stops."""
+    monkeypatch.setattr(launcher, "RESTART_DRAIN_S", 1.0)
+    monkeypatch.setenv("STAND_IN_PROBE_ENDS", "1")
+    result, _, starts, log = _stand_in_graph(tmp_path, monkeypatch, 1)
+    died = float((tmp_path / "correction.died").read_text())
+    assert len(starts["correction"]) == 2, log
+    assert starts["correction"][1] - died >= 2.0, log            # not before the lease and a second
+    assert result.restarts["correction"] == 1
+    assert any(p.startswith("correction died unexpectedly") and p.endswith("; restarted") for p in result.problems), \
+        result.problems
+    assert not any("not restarted" in p for p in result.problems), result.problems
+    assert "restarting it in 2 s, once the graph has forgotten the process that died" in log
+    assert "probe finished and the graph drained; stopping the graph" in log
+    assert "correction stopped (exit status 0)" in log   # the restarted one, stopped by the launcher
+    assert log.index("probe finished\n") < log.index("starting correction (pid", log.index("probe finished\n"))
+
+
+def test_a_restart_still_due_when_the_run_times_out_is_said_undone(tmp_path, monkeypatch):
+    """The correction dies at once; the run's --timeout (3 s) comes before its restart (lease 30 s):
+    it is not restarted, not counted as restarted, and the summary's problems say so."""
+    result, t0, starts, log = _stand_in_graph(tmp_path, monkeypatch, 30, "--timeout", "3")
+    assert len(starts["correction"]) == 1, log
+    assert result.restarts.get("correction", 0) == 0
+    assert "the run timed out after 3 s" in result.problems
+    assert any(p.startswith("correction died unexpectedly")
+               and p.endswith("; not restarted: the run ended before its restart was due") for p in result.problems), \
+        result.problems
+    assert "correction: not restarted: the run ended before its restart was due" in log
+    assert "restarting it in 31 s" in log
