@@ -7,7 +7,8 @@ have no wheels).  It starts ``probe``, ``calibration``, ``correction`` and (if i
 each with ``config/<name>.yaml`` when present plus the run's parameters), forwards their output
 line by line with a ``[name]`` prefix, and stops everything when the probe finishes (after a
 short drain so the last station is closed and recorded) or on Ctrl-C/SIGTERM: SIGINT first,
-then SIGTERM and SIGKILL after timeouts; the recorder is stopped last.
+then SIGTERM and SIGKILL after timeouts (a node still running 10 s after SIGINT is first asked
+for its threads' stacks, which the log then shows: where it hangs); the recorder is stopped last.
 
 Then it prints a summary, read back from the recorded bag (:func:`bag.read_messages`: the
 definitions the bag records, ``rosbags``' deserializer, not the recorder's code): the calibration coefficients against the simulator truth (``truth.json``
@@ -108,6 +109,11 @@ PROBE_INPUT_DAMAGED = 3
 #: ``nodes.recorder.RECORDING_INCOMPLETE``); its last line, after this mark, says what is missing
 RECORDING_INCOMPLETE = 4
 INCOMPLETE_MARK = "recording incomplete: "
+#: The signal on which a node prints every thread's Python stack and goes on
+#: (``nodes.executor.STACKS_SIGNAL``, registered by every node's ``main``); the launcher sends it
+#: to a node still running after SIGINT, and waits this long (s) for the stacks to be said.
+STACKS_SIGNAL = signal.SIGUSR1
+STACKS_WAIT_S = 1.0
 #: Free bytes below which the disk holding --out counts as full: a recorder that dies then is not
 #: restarted into a new part (it would not get past its first chunk)
 RESTART_MIN_FREE_BYTES = 1 << 20
@@ -244,7 +250,9 @@ class Child:
         return self.proc.poll()
 
     def stop(self, sigint_s=10.0, sigterm_s=5.0):
-        """SIGINT, then SIGTERM, then SIGKILL; returns the exit status."""
+        """SIGINT, then SIGTERM, then SIGKILL; returns the exit status.  A node still running
+        ``sigint_s`` after SIGINT is first asked for its threads' stacks (:data:`STACKS_SIGNAL`),
+        which its output carries into the run's log: where it hangs, said before it is killed."""
         for sig, wait in ((signal.SIGINT, sigint_s), (signal.SIGTERM, sigterm_s), (signal.SIGKILL, 5.0)):
             if self.proc.poll() is not None:
                 break
@@ -255,12 +263,30 @@ class Child:
             try:
                 self.proc.wait(wait)
             except subprocess.TimeoutExpired:
-                with self._lock:
-                    print(f"[launch] {self.name} still running {wait:g} s after {signal.Signals(sig).name}",
-                          flush=True)
+                self._say(f"[launch] {self.name} still running {wait:g} s after {signal.Signals(sig).name}"
+                          + (": its threads' stacks follow" if sig == signal.SIGINT else ""))
+                if sig == signal.SIGINT:
+                    self._stacks()
         rc = self.proc.wait()
         self._thread.join(2.0)
         return rc
+
+    def _say(self, text):
+        with self._lock:
+            print(text, flush=True)
+            if self._log:
+                self._log.write(text + "\n")
+
+    def _stacks(self, wait_s=STACKS_WAIT_S):
+        """Ask the node for every thread's Python stack (:data:`STACKS_SIGNAL`) and give its
+        output that long to reach the log."""
+        try:
+            self.proc.send_signal(STACKS_SIGNAL)
+            self.proc.wait(wait_s)
+        except ProcessLookupError:
+            pass
+        except subprocess.TimeoutExpired:
+            pass
 
 
 def refused_write(path, exc, print_fn=print, who="launch", name=None) -> dict:

@@ -5,6 +5,8 @@ core (the recorder) can use it without importing numpy and scipy (``common`` re-
 """
 from __future__ import annotations
 
+import faulthandler
+import signal
 import sys
 import threading
 import time
@@ -311,15 +313,24 @@ def _quiet_interrupted_task(unraisable) -> None:
     _previous_unraisablehook(unraisable)
 
 
+#: The signal on which a node prints every thread's Python stack to stderr and goes on
+#: (:mod:`faulthandler`, from its own C handler: it is said even when the main thread is blocked
+#: inside rclpy or DDS).  The launcher sends it to a node still running 10 s after SIGINT, so the
+#: run's log shows where that node hangs (``apps.launcher.Child.stop``).
+STACKS_SIGNAL = signal.SIGUSR1
+
+
 def install_stop_hook() -> None:
-    """Make this process a node's: :func:`_quiet_interrupted_task` as ``sys.unraisablehook`` and
-    :data:`INTERRUPTED` cleared.  Called by every node's ``main`` (``common.run``, the recorder's),
-    not at import: a process that only imports the nodes (a test run, a tool) keeps its own hook."""
+    """Make this process a node's: :func:`_quiet_interrupted_task` as ``sys.unraisablehook``,
+    :data:`INTERRUPTED` cleared, and :data:`STACKS_SIGNAL` printing every thread's stack.  Called
+    by every node's ``main`` (``common.run``, the recorder's), not at import: a process that only
+    imports the nodes (a test run, a tool) keeps its own hook and signals."""
     global _previous_unraisablehook
     INTERRUPTED.clear()
     if sys.unraisablehook is not _quiet_interrupted_task:
         _previous_unraisablehook = sys.unraisablehook
         sys.unraisablehook = _quiet_interrupted_task
+    faulthandler.register(STACKS_SIGNAL, file=sys.stderr, all_threads=True)
 
 
 def spin(node, executor, done=None) -> None:

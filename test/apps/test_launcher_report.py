@@ -1,7 +1,8 @@
 """The launcher's ROS-free parts: honest labels in the run report and summary, the choice of the
 run's ROS_DOMAIN_ID (a free one, or exactly the one asked for and refused while another run holds
-it), the restart delay read from the nodes' Fast DDS profile, and the watch loop's restarts that
-fall due at the end of a run (on stand-in processes).  Nothing here starts ROS."""
+it), the restart delay read from the nodes' Fast DDS profile, the watch loop's restarts that
+fall due at the end of a run, and the stacks of a node that hangs at its stop (on stand-in
+processes).  Nothing here starts ROS."""
 import math
 import os
 
@@ -301,3 +302,40 @@ def test_a_restart_still_due_when_the_run_times_out_is_said_undone(tmp_path, mon
         result.problems
     assert "correction: not restarted: the run ended before its restart was due" in log
     assert "restarting it in 31 s" in log
+
+
+#: A node that does not stop on SIGINT (it hangs in a wait), set up as every node's ``main`` sets
+#: itself up (``nodes.executor.install_stop_hook``).
+HANGING_NODE = r"""
+import signal, sys, threading
+from inclinometer_calib.nodes.executor import install_stop_hook
+install_stop_hook()
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+def stuck_in_a_wait_for_ever():
+    open(sys.argv[1], "w").close()
+    threading.Event().wait()
+
+stuck_in_a_wait_for_ever()
+"""
+
+
+def test_a_node_still_running_after_sigint_says_where_it_hangs_before_it_is_killed(tmp_path):
+    """The launcher asks a node that did not stop on SIGINT for its threads' stacks (faulthandler,
+    registered by every node's main), and the run's log has them, then SIGTERM ends it."""
+    ready = tmp_path / "ready"
+    log = launcher.RunLog(str(tmp_path / "launch.log"))
+    child = launcher.Child("probe", [launcher.sys.executable, "-c", HANGING_NODE, str(ready)], dict(os.environ),
+                           launcher.threading.Lock(), log)
+    for _ in range(600):                      # up to a minute for its start on a loaded machine
+        if ready.exists() or child.poll() is not None:
+            break
+        launcher.time.sleep(0.1)
+    assert ready.exists(), "the stand-in node never started"
+    rc = child.stop(sigint_s=0.5, sigterm_s=5.0)
+    log.close()
+    text = (tmp_path / "launch.log").read_text()
+    assert rc == -launcher.signal.SIGTERM, text
+    assert "[launch] probe still running 0.5 s after SIGINT: its threads' stacks follow" in text
+    assert "[probe] Current thread" in text and "in stuck_in_a_wait_for_ever" in text, text
+    assert "still running" not in text.split("stuck_in_a_wait_for_ever", 2)[-1], text   # SIGTERM was enough
