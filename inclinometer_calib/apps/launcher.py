@@ -85,8 +85,8 @@ STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder") 
 #: calibration and correction nodes rebuild theirs from the run's recording (``resume.bags``) and go
 #: on where the node that died left off (a paced replay waits for them meanwhile).
 RESTARTABLE = ("recorder", "correction", "calibration")
-#: The transports of a restarted node (Fast DDS): UDP only (see ``run``'s ``start``)
-RESTART_TRANSPORTS = {"FASTDDS_BUILTIN_TRANSPORTS": "UDPv4"}
+#: The Fast DDS transport a restarted node uses instead of shared memory (:func:`restart_profile`)
+RESTART_TRANSPORT_ID = "inclinometer_calib_udp_loopback"
 #: Fast DDS's participant lease (s) where no profile sets one
 FASTDDS_DEFAULT_LEASE_S = 20.0
 #: A node that died is restarted this long (s) after its DDS participant's lease has run out, so
@@ -143,6 +143,72 @@ def dds_profile_env(env: dict, cfg) -> str:
     for v in DDS_PROFILE_VARS:
         env[v] = path
     return f"Fast DDS profile {path} (heartbeats 0.1 s, announcements 0.5 s)"
+
+
+def restart_profile(env: dict, cfg):
+    """``(environment of a restarted node, profiles file to remove at the end)``: the node talks
+    over UDP on the loopback only, never through shared memory.  A Fast DDS subscriber restarted
+    after its predecessor was SIGKILLed can stay matched but deaf over shared memory, or never
+    hear the probe's discovery (eProsima/Fast-DDS #5053, #5469; seen here 3 times in about 75
+    restarts of the killed-nodes test, with the restart after the lease, the recorder each time).
+
+    ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` makes rmw_fastrtps set the transports itself
+    (shared memory and UDP), whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says: the restarted node runs
+    instead with the range left to the profile (``SYSTEM_DEFAULT``) and a copy of the graph's
+    profile (``config/fastdds.xml``: its lease, announcements, heartbeats) that adds what LOCALHOST
+    gives — a UDPv4 transport on 127.0.0.1 only, peers looked for on 127.0.0.1 among 32
+    participants, discovery on its unicast port — without the shared memory.  The others still
+    find it, and it them, on this machine only.  ``(env, None)`` unchanged where the graph does not
+    run on the package's profile under Fast DDS with LOCALHOST (a rig's own DDS set-up is left as
+    it is), or where the copy cannot be written."""
+    import xml.etree.ElementTree as ET
+
+    ours = os.path.join(cfg, DDS_PROFILE) if cfg else ""
+    if not (env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps")
+            and env.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST" and ours and os.path.isfile(ours)
+            and all(env.get(v) == ours for v in DDS_PROFILE_VARS)):
+        return env, None
+    ns = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
+    q = lambda tag: f"{{{ns}}}{tag}"                                               # noqa: E731
+
+    def sub(parent, tag, text=None, first=False):
+        e = ET.Element(q(tag))
+        e.text = text
+        parent.insert(0, e) if first else parent.append(e)
+        return e
+
+    def loopback(parent, tag):
+        sub(sub(sub(sub(parent, tag), "locator"), "udpv4"), "address", "127.0.0.1")
+
+    ET.register_namespace("", ns)
+    try:
+        tree = ET.parse(ours)
+    except (ET.ParseError, OSError):
+        return env, None
+    root = tree.getroot()
+    participant = next((e for e in root.iter(q("participant")) if e.get("is_default_profile") == "true"), None)
+    if participant is None:
+        return env, None
+    descriptor = sub(sub(root, "transport_descriptors", first=True), "transport_descriptor")
+    sub(descriptor, "transport_id", RESTART_TRANSPORT_ID)
+    sub(descriptor, "type", "UDPv4")
+    sub(sub(descriptor, "interfaceWhiteList"), "address", "127.0.0.1")
+    sub(descriptor, "maxInitialPeersRange", "32")
+    rtps = participant.find(q("rtps"))
+    rtps = rtps if rtps is not None else sub(participant, "rtps")
+    builtin = rtps.find(q("builtin"))
+    builtin = builtin if builtin is not None else sub(rtps, "builtin")
+    loopback(builtin, "metatrafficUnicastLocatorList")
+    loopback(builtin, "initialPeersList")
+    sub(sub(rtps, "userTransports"), "transport_id", RESTART_TRANSPORT_ID)
+    sub(rtps, "useBuiltinTransports", "false")
+    try:
+        fd, path = tempfile.mkstemp(prefix="inclinometer_calib_restart_", suffix=".xml")
+        with os.fdopen(fd, "wb") as fh:
+            tree.write(fh, encoding="UTF-8", xml_declaration=True)
+    except OSError:
+        return env, None
+    return dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SYSTEM_DEFAULT", **{v: path for v in DDS_PROFILE_VARS}), path
 
 
 def participant_lease_s(env: dict):
@@ -581,6 +647,7 @@ def run_graph(args, out, env) -> GraphResult:
     restarts = {n: 0 for n in RESTARTABLE}
     due = {}      # node -> (monotonic time of its restart, why): it died; the graph forgets it first
     delay = restart_delay_s(env)
+    udp = {}      # the restarted nodes' environment and profile (restart_profile), made at the first
     stop = {"requested": 0}
 
     def say(text):
@@ -591,14 +658,13 @@ def run_graph(args, out, env) -> GraphResult:
     def start(name, restart=False):
         cmd = node_command(name, params[name], cfg)
         child_env = env
-        if restart and env.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps") \
-                and "FASTDDS_BUILTIN_TRANSPORTS" not in env:
-            # Fast DDS 2.14's shared-memory transport can leave a subscriber restarted after its
-            # predecessor was killed matched but deaf (no sample ever arrives; eProsima/Fast-DDS
-            # #5053, #5469, seen here under load): the restarted node talks over UDP (loopback)
-            child_env = dict(env, **RESTART_TRANSPORTS)
-            say(f"{name}: restarted over UDP only (FASTDDS_BUILTIN_TRANSPORTS=UDPv4: a killed process's "
-                "shared-memory ports can leave its successor deaf)")
+        if restart:
+            if "env" not in udp:
+                udp["env"], udp["file"] = restart_profile(env, cfg)
+            child_env = udp["env"]
+            if udp["file"]:
+                say(f"{name}: restarted over UDP on the loopback only, not shared memory (a killed process's "
+                    f"shared-memory ports can leave its successor deaf): Fast DDS profile {udp['file']}")
         children[name] = Child(name, cmd, child_env, lock, log)
         say(f"starting {name} (pid {children[name].proc.pid}): {' '.join(cmd[1:])}")
 
@@ -722,6 +788,11 @@ def run_graph(args, out, env) -> GraphResult:
         log.close()
         if log.not_written is not None:
             result.not_written.append(log.not_written)
+        if udp.get("file"):
+            try:
+                os.remove(udp["file"])
+            except OSError:
+                pass
     return result
 
 

@@ -339,3 +339,39 @@ def test_a_node_still_running_after_sigint_says_where_it_hangs_before_it_is_kill
     assert "[launch] probe still running 0.5 s after SIGINT: its threads' stacks follow" in text
     assert "[probe] Current thread" in text and "in stuck_in_a_wait_for_ever" in text, text
     assert "still running" not in text.split("stuck_in_a_wait_for_ever", 2)[-1], text   # SIGTERM was enough
+
+
+def test_a_restarted_node_gets_a_loopback_udp_profile_without_shared_memory(tmp_path):
+    """Under LOCALHOST rmw_fastrtps adds shared memory whatever FASTDDS_BUILTIN_TRANSPORTS says: a
+    restarted node gets a copy of the graph's profile (its lease and heartbeats kept) with a UDPv4
+    transport on 127.0.0.1 only, the built-in transports off, peers on 127.0.0.1, and the range
+    left to that profile; a rig's own profile, another RMW or another range are left alone."""
+    import xml.etree.ElementTree as ET
+
+    cfg = launcher.config_dir()
+    env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": "7"}
+    launcher.dds_profile_env(env, cfg)
+    new, path = launcher.restart_profile(env, cfg)
+    try:
+        assert path and new["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT" and new["ROS_DOMAIN_ID"] == "7"
+        assert all(new[v] == path for v in launcher.DDS_PROFILE_VARS)
+        assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "LOCALHOST"          # the graph's own untouched
+        ns = {"p": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
+        root = ET.parse(path).getroot()
+        (desc,) = root.findall("p:transport_descriptors/p:transport_descriptor", ns)
+        assert desc.findtext("p:type", namespaces=ns) == "UDPv4"
+        assert [a.text for a in desc.findall("p:interfaceWhiteList/p:address", ns)] == ["127.0.0.1"]
+        rtps = root.find("p:participant[@is_default_profile='true']/p:rtps", ns)
+        assert rtps.findtext("p:useBuiltinTransports", namespaces=ns) == "false"
+        assert rtps.findtext("p:userTransports/p:transport_id", namespaces=ns) == desc.findtext("p:transport_id",
+                                                                                               namespaces=ns)
+        for where in ("initialPeersList", "metatrafficUnicastLocatorList"):
+            assert rtps.findtext(f"p:builtin/p:{where}/p:locator/p:udpv4/p:address", namespaces=ns) == "127.0.0.1"
+        assert launcher.participant_lease_s(new) == launcher.participant_lease_s(env) == 5.0
+        assert root.find("p:data_writer/p:times/p:heartbeatPeriod/p:nanosec", ns).text == "100000000"
+    finally:
+        os.remove(path)
+    rig = dict(env, FASTRTPS_DEFAULT_PROFILES_FILE=str(tmp_path / "rig.xml"))
+    for other in (rig, dict(env, RMW_IMPLEMENTATION="rmw_cyclonedds_cpp"),
+                  dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")):
+        assert launcher.restart_profile(other, cfg) == (other, None)

@@ -332,10 +332,10 @@ def test_killed_recorder_correction_and_calibration_are_restarted_and_nothing_is
     assert "[launch] recorder died unexpectedly (killed by SIGKILL): restarting it into survey_1.mcap in 6 s, once " \
            "the graph has forgotten the process that died" in text
     # each restarted once the graph forgot the dead one (its lease, 5 s: a successor matched before
-    # could stay deaf), over UDP only
+    # could stay deaf), over UDP on the loopback, not shared memory (launcher.restart_profile)
     for name, after in fault_runs["restarted_after_s"].items():
         died, started = text.index(f"[launch] {name} died unexpectedly"), text.rindex(f"[launch] starting {name} (")
-        assert died < started and f"[launch] {name}: restarted over UDP only" in text[died:started]
+        assert died < started and f"[launch] {name}: restarted over UDP on the loopback only" in text[died:started]
         assert after >= 6.0, (name, after)
     for name in ("correction", "calibration"):
         assert re.search(rf"\[{name}\] \[WARN\].*resumed from the run's recording \(survey\.mcap", text), name
