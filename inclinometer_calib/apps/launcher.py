@@ -85,8 +85,8 @@ STOP_ORDER = ("probe", "calibration", "correction", "wits", "live", "recorder") 
 #: calibration and correction nodes rebuild theirs from the run's recording (``resume.bags``) and go
 #: on where the node that died left off (a paced replay waits for them meanwhile).
 RESTARTABLE = ("recorder", "correction", "calibration")
-#: The Fast DDS transport a restarted node uses instead of shared memory (:func:`restart_profile`)
-RESTART_TRANSPORT_ID = "inclinometer_calib_udp_loopback"
+#: The Fast DDS transport the nodes use instead of shared memory (:func:`loopback_profile`)
+LOOPBACK_TRANSPORT_ID = "inclinometer_calib_udp_loopback"
 #: Fast DDS's participant lease (s) where no profile sets one
 FASTDDS_DEFAULT_LEASE_S = 20.0
 #: A node that died is restarted this long (s) after its DDS participant's lease has run out, so
@@ -145,22 +145,28 @@ def dds_profile_env(env: dict, cfg) -> str:
     return f"Fast DDS profile {path} (heartbeats 0.1 s, announcements 0.5 s)"
 
 
-def restart_profile(env: dict, cfg):
-    """``(environment of a restarted node, profiles file to remove at the end)``: the node talks
-    over UDP on the loopback only, never through shared memory.  A Fast DDS subscriber restarted
-    after its predecessor was SIGKILLed can stay matched but deaf over shared memory, or never
-    hear the probe's discovery (eProsima/Fast-DDS #5053, #5469; seen here 3 times in about 75
-    restarts of the killed-nodes test, with the restart after the lease, the recorder each time).
+def loopback_profile(env: dict, cfg):
+    """``(the nodes' environment, profiles file to remove at the end)``: every node of the graph
+    talks over UDP on the loopback only, never through shared memory.
+
+    Why: with Fast DDS 2.14's shared-memory transport a node SIGKILLed while the probe writes to
+    it can leave the probe's ``publish`` blocked for good (its stack, taken by the launcher at the
+    stop: ``rclpy/publisher.py ... in publish``, the process deaf to SIGINT and SIGTERM), or its
+    restarted successor matched but never served, or never hearing the probe's discovery
+    (eProsima/Fast-DDS #5053, #5469): 5 times in about 95 runs of the killed-nodes test.  With
+    every node on UDP: none in 92 runs (docs/benchmarks.md, section 10).  The cost is
+    the loopback's system calls: the graph tests' CPU 103 → 119 s.
 
     ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` makes rmw_fastrtps set the transports itself
-    (shared memory and UDP), whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says: the restarted node runs
-    instead with the range left to the profile (``SYSTEM_DEFAULT``) and a copy of the graph's
-    profile (``config/fastdds.xml``: its lease, announcements, heartbeats) that adds what LOCALHOST
-    gives — a UDPv4 transport on 127.0.0.1 only, peers looked for on 127.0.0.1 among 32
-    participants, discovery on its unicast port — without the shared memory.  The others still
-    find it, and it them, on this machine only.  ``(env, None)`` unchanged where the graph does not
-    run on the package's profile under Fast DDS with LOCALHOST (a rig's own DDS set-up is left as
-    it is), or where the copy cannot be written."""
+    (shared memory and UDP), whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says: the nodes run instead
+    with the range left to the profile (``SYSTEM_DEFAULT``) and a copy of the graph's profile
+    (``config/fastdds.xml``: its lease, announcements, heartbeats) that adds what LOCALHOST gives —
+    a UDPv4 transport on 127.0.0.1 only, peers looked for on 127.0.0.1 among 32 participants,
+    discovery on its unicast port — without the shared memory: discovery stays on this machine,
+    and a process of the domain under plain LOCALHOST (``ros2 topic echo``, a test) still finds
+    them over UDP.  ``(env, None)`` unchanged where the graph does not run on the package's profile
+    under Fast DDS with LOCALHOST (a rig's own DDS set-up is left as it is), or where the copy
+    cannot be written."""
     import xml.etree.ElementTree as ET
 
     ours = os.path.join(cfg, DDS_PROFILE) if cfg else ""
@@ -190,7 +196,7 @@ def restart_profile(env: dict, cfg):
     if participant is None:
         return env, None
     descriptor = sub(sub(root, "transport_descriptors", first=True), "transport_descriptor")
-    sub(descriptor, "transport_id", RESTART_TRANSPORT_ID)
+    sub(descriptor, "transport_id", LOOPBACK_TRANSPORT_ID)
     sub(descriptor, "type", "UDPv4")
     sub(sub(descriptor, "interfaceWhiteList"), "address", "127.0.0.1")
     sub(descriptor, "maxInitialPeersRange", "32")
@@ -200,7 +206,7 @@ def restart_profile(env: dict, cfg):
     builtin = builtin if builtin is not None else sub(rtps, "builtin")
     loopback(builtin, "metatrafficUnicastLocatorList")
     loopback(builtin, "initialPeersList")
-    sub(sub(rtps, "userTransports"), "transport_id", RESTART_TRANSPORT_ID)
+    sub(sub(rtps, "userTransports"), "transport_id", LOOPBACK_TRANSPORT_ID)
     sub(rtps, "useBuiltinTransports", "false")
     try:
         fd, path = tempfile.mkstemp(prefix="inclinometer_calib_restart_", suffix=".xml")
@@ -647,7 +653,7 @@ def run_graph(args, out, env) -> GraphResult:
     restarts = {n: 0 for n in RESTARTABLE}
     due = {}      # node -> (monotonic time of its restart, why): it died; the graph forgets it first
     delay = restart_delay_s(env)
-    udp = {}      # the restarted nodes' environment and profile (restart_profile), made at the first
+    node_env, node_profile = loopback_profile(env, cfg)
     stop = {"requested": 0}
 
     def say(text):
@@ -655,17 +661,9 @@ def run_graph(args, out, env) -> GraphResult:
             print(f"[launch] {text}", flush=True)
             log.write(f"[launch] {text}\n")
 
-    def start(name, restart=False):
+    def start(name):
         cmd = node_command(name, params[name], cfg)
-        child_env = env
-        if restart:
-            if "env" not in udp:
-                udp["env"], udp["file"] = restart_profile(env, cfg)
-            child_env = udp["env"]
-            if udp["file"]:
-                say(f"{name}: restarted over UDP on the loopback only, not shared memory (a killed process's "
-                    f"shared-memory ports can leave its successor deaf): Fast DDS profile {udp['file']}")
-        children[name] = Child(name, cmd, child_env, lock, log)
+        children[name] = Child(name, cmd, node_env, lock, log)
         say(f"starting {name} (pid {children[name].proc.pid}): {' '.join(cmd[1:])}")
 
     def on_signal(signum, _frame):
@@ -678,6 +676,10 @@ def run_graph(args, out, env) -> GraphResult:
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     t0 = time.monotonic()
     try:
+        if node_profile:
+            say(f"the nodes talk over UDP on the loopback only, not shared memory (a node killed while the probe "
+                f"writes to it can leave the probe's writer blocked, or its successor deaf): Fast DDS profile "
+                f"{node_profile}")
         # the consumers first, so that they are up when the probe starts publishing
         for name in consumers + [n for n in names if n in ("wits", "live")] + ["probe"]:
             start(name)
@@ -704,7 +706,7 @@ def run_graph(args, out, env) -> GraphResult:
                     del due[name]
                     result.restarts[name] = restarts[name]
                     result.problems.append(f"{died}; restarted")
-                    start(name, restart=True)
+                    start(name)
                     if drain_until is not None:
                         # restarted after the probe's end: the drain gives it time to take what its
                         # publishers' history holds (the latched stations and records)
@@ -788,9 +790,9 @@ def run_graph(args, out, env) -> GraphResult:
         log.close()
         if log.not_written is not None:
             result.not_written.append(log.not_written)
-        if udp.get("file"):
+        if node_profile:
             try:
-                os.remove(udp["file"])
+                os.remove(node_profile)
             except OSError:
                 pass
     return result

@@ -341,17 +341,17 @@ def test_a_node_still_running_after_sigint_says_where_it_hangs_before_it_is_kill
     assert "still running" not in text.split("stuck_in_a_wait_for_ever", 2)[-1], text   # SIGTERM was enough
 
 
-def test_a_restarted_node_gets_a_loopback_udp_profile_without_shared_memory(tmp_path):
-    """Under LOCALHOST rmw_fastrtps adds shared memory whatever FASTDDS_BUILTIN_TRANSPORTS says: a
-    restarted node gets a copy of the graph's profile (its lease and heartbeats kept) with a UDPv4
-    transport on 127.0.0.1 only, the built-in transports off, peers on 127.0.0.1, and the range
-    left to that profile; a rig's own profile, another RMW or another range are left alone."""
+def test_the_nodes_get_a_loopback_udp_profile_without_shared_memory(tmp_path):
+    """Under LOCALHOST rmw_fastrtps adds shared memory whatever FASTDDS_BUILTIN_TRANSPORTS says: the
+    nodes get a copy of the graph's profile (its lease and heartbeats kept) with a UDPv4 transport
+    on 127.0.0.1 only, the built-in transports off, peers on 127.0.0.1, and the range left to that
+    profile; a rig's own profile, another RMW or another range are left alone."""
     import xml.etree.ElementTree as ET
 
     cfg = launcher.config_dir()
     env = {"ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_DOMAIN_ID": "7"}
     launcher.dds_profile_env(env, cfg)
-    new, path = launcher.restart_profile(env, cfg)
+    new, path = launcher.loopback_profile(env, cfg)
     try:
         assert path and new["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT" and new["ROS_DOMAIN_ID"] == "7"
         assert all(new[v] == path for v in launcher.DDS_PROFILE_VARS)
@@ -374,4 +374,4 @@ def test_a_restarted_node_gets_a_loopback_udp_profile_without_shared_memory(tmp_
     rig = dict(env, FASTRTPS_DEFAULT_PROFILES_FILE=str(tmp_path / "rig.xml"))
     for other in (rig, dict(env, RMW_IMPLEMENTATION="rmw_cyclonedds_cpp"),
                   dict(env, ROS_AUTOMATIC_DISCOVERY_RANGE="SUBNET")):
-        assert launcher.restart_profile(other, cfg) == (other, None)
+        assert launcher.loopback_profile(other, cfg) == (other, None)
