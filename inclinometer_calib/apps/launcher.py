@@ -155,7 +155,7 @@ def loopback_profile(env: dict, cfg):
     restarted successor matched but never served, or never hearing the probe's discovery
     (eProsima/Fast-DDS #5053, #5469): 5 times in about 95 runs of the killed-nodes test.  With
     every node on UDP: none in 92 runs (docs/benchmarks.md, section 10).  The cost is
-    the loopback's system calls: the graph tests' CPU 103 → 119 s.
+    the loopback's system calls: the graph tests' CPU 103 → 113–119 s.
 
     ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` makes rmw_fastrtps set the transports itself
     (shared memory and UDP), whatever ``FASTDDS_BUILTIN_TRANSPORTS`` says: the nodes run instead
