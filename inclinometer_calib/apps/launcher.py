@@ -209,7 +209,7 @@ def loopback_profile(env: dict, cfg):
     sub(sub(rtps, "userTransports"), "transport_id", LOOPBACK_TRANSPORT_ID)
     sub(rtps, "useBuiltinTransports", "false")
     try:
-        fd, path = tempfile.mkstemp(prefix="inclinometer_calib_restart_", suffix=".xml")
+        fd, path = tempfile.mkstemp(prefix="inclinometer_calib_fastdds_", suffix=".xml")
         with os.fdopen(fd, "wb") as fh:
             tree.write(fh, encoding="UTF-8", xml_declaration=True)
     except OSError:
