@@ -20,17 +20,17 @@ written by the probe) and the survey station angles against their reference atti
 Recovery.  A recorder that dies while the graph runs is restarted, once the other nodes have
 forgotten the process that died (:func:`restart_delay_s`), into a new file in the same directory
 (``survey_1.mcap``, ``survey_2.mcap``, …: the bag writer never overwrites); the latched
-``/calibration/coefficients`` reach the new recorder again (transient local).  The calibration
-and correction nodes are restarted the same way, resuming from the run's recording
-(``resume.bags``); the correction node applies the calibration node's ``coeffs.yaml``
-(``fallback_coeffs_file``) until a record arrives on the topic and continues the station ids from
-``correction_state.json`` (``state_file``).  At most :data:`MAX_RESTARTS` restarts per node; a
-probe that dies ends the run, and the run waits for a restart still due when the probe ends.
-The summary is built from all bag parts in time order; a part the killed recorder left without
-its summary is first recovered (:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the
-temporary directory when ``--out`` has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its
-recording incomplete: a write the disk refused), or dies while the disk holding ``--out`` has less
-than :data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.
+``/calibration/coefficients`` reach the new recorder again (transient local).  The calibration and
+correction nodes are restarted the same way, resuming from the run's recording (``resume.bags``);
+the correction node applies the calibration node's ``coeffs.yaml`` (``fallback_coeffs_file``) until
+a record arrives on the topic and continues the station ids from ``correction_state.json``
+(``state_file``).  At most :data:`MAX_RESTARTS` restarts per node; a probe that dies ends the run,
+and the run waits for a restart still due when the probe ends.  The summary is built from all bag
+parts in time order; a part the killed recorder left without its summary is first recovered
+(:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the temporary directory when ``--out``
+has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its recording
+incomplete: a write the disk refused), or dies while the disk holding ``--out`` has less than
+:data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.
 
 Domain.  Without ``--domain-id`` and without ``ROS_DOMAIN_ID`` in the environment the launcher
 reserves a free domain (:func:`rosenv.reserve_domain_id`) for the whole run and prints it; a
@@ -355,9 +355,7 @@ class Child:
         try:
             self.proc.send_signal(STACKS_SIGNAL)
             self.proc.wait(wait_s)
-        except ProcessLookupError:
-            pass
-        except subprocess.TimeoutExpired:
+        except (ProcessLookupError, subprocess.TimeoutExpired):
             pass
 
 
