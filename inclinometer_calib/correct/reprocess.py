@@ -445,9 +445,15 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     report.log_span_s = (t_last_pair - t_first_pair) if t_first_pair is not None else 0.0   # the data's own time
     report.seconds = time.perf_counter() - t_wall
     if not report.pairs:
-        reasons = "; ".join(report.warnings() + [str(e) for e in report.bag_errors]) or "no messages"
-        raise ReprocessError(f"{src}: no usable {TOPIC_IMU}/{TOPIC_MAG} sample pairs ({reasons}); "
-                             f"{dst} holds the copied input only")
+        # what is missing first, in words (a bag without one of the two streams said so, not as
+        # thousands of samples "without a partner"); the output is the caller's to remove
+        c = engine.counts
+        absent = [t for t, n in ((TOPIC_IMU, c.imu), (TOPIC_MAG, c.mag)) if not n]
+        if absent:
+            reasons = f"no {' and no '.join(absent)} messages in the bag"
+        else:
+            reasons = "; ".join(report.warnings() + [str(e) for e in report.bag_errors]) or "no messages"
+        raise ReprocessError(f"{src}: no usable {TOPIC_IMU} + {TOPIC_MAG} sample pairs ({reasons})")
     return report
 
 

@@ -429,8 +429,32 @@ def test_field_in_nT_written_as_tesla_in_a_bag_is_refused_with_the_unit_hint(sim
     write_probe_bag(wrong, p, compression="")
     code, _, err = _run(capsys, ["reprocess", str(p), "--coeffs", "none", "-o", str(tmp_path / "o.mcap")])
     assert code == 2
-    assert "no usable /probe/imu//probe/mag sample pairs" in err
+    assert "no usable /probe/imu + /probe/mag sample pairs" in err and "holds the copied input" not in err
     assert "looks like nT written into a tesla field" in err and "/probe/mag at log time" in err
+
+
+def test_a_bag_without_magnetometer_messages_says_so_and_leaves_no_output(bag, tmp_path, capsys):
+    """Not thousands of samples "without a partner", nor an output file said to hold the copied
+    input (the CLI removes it): the stream that is missing, in words."""
+    from inclinometer_calib.io.bag import BagWriter, open_bag
+
+    src, _ = bag
+    p = tmp_path / "nomag.mcap"
+    w = BagWriter(p, compression="none")
+    channels = {}
+    for m in open_bag(src).messages():
+        if m.topic == "/probe/mag":
+            continue
+        if m.topic not in channels:
+            channels[m.topic] = w.add_topic(m.topic, m.type)
+        w.write(channels[m.topic], m.data, m.log_time, m.publish_time)
+    w.close()
+    out = tmp_path / "o.mcap"
+    code, _, err = _run(capsys, ["reprocess", str(p), "--coeffs", "none", "-o", str(out)])
+    assert code == 2
+    assert "no /probe/mag messages in the bag" in err and "partner" not in err, err
+    assert "holds the copied input" not in err and not out.exists()
+    assert sum(line.startswith("error:") for line in err.splitlines()) == 1, err
 
 
 def test_a_killed_recorders_bag_is_recovered_by_the_cli_into_one_any_reader_opens(bag, tmp_path, capsys):
