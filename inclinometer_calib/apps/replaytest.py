@@ -124,10 +124,10 @@ def format_comparison(c: Comparison, tolerance: float, limit: int = 40) -> list:
         lines.append(f"  EXTRA   station at t={s['stamp']:.3f} s (id {s['station_id']})")
     if c.differences:
         lines.append(f"  {len(c.differences)} difference(s) beyond the tolerance ({tolerance:g} deg, scaled per field):")
-        lines.append(f"  {'t (s)':>10} {'id':>5}  {'field':<24} {'expected':>20} {'replayed':>20} {'delta':>12}")
+        lines.append(f"  {'t (s)':>14} {'id':>5}  {'field':<24} {'expected':>20} {'replayed':>20} {'delta':>12}")
         for d in c.differences[:limit]:
             delta = f"{d.delta:+.3g}" if not _nan(d.delta) else ""
-            lines.append(f"  {d.stamp:>10.3f} {d.station_id!s:>5}  {d.field:<24} {d.expected!s:>20.20} "
+            lines.append(f"  {d.stamp:>14.3f} {d.station_id!s:>5}  {d.field:<24} {d.expected!s:>20.20} "
                          f"{d.got!s:>20.20} {delta:>12}")
         if len(c.differences) > limit:
             lines.append(f"  ... and {len(c.differences) - limit} more")
@@ -143,7 +143,8 @@ def junit_xml(c: Comparison, problems, name: str) -> str:
     cases = []
     bad = {}
     for d in c.differences:
-        bad.setdefault(round(d.stamp, 6), []).append(f"{d.field}: expected {d.expected}, replayed {d.got}")
+        delta = "" if _nan(d.delta) else f" (delta {d.delta:+.6g} {NUMBERS[d.field][0]})"   # replayed - expected
+        bad.setdefault(round(d.stamp, 6), []).append(f"{d.field}: expected {d.expected}, replayed {d.got}{delta}")
     missing = {round(s["stamp"], 6) for s in c.missing}
     stamps = sorted({round(d.stamp, 6) for d in c.differences} | missing)
     n_ok = c.expected - len(stamps)
@@ -163,25 +164,47 @@ def junit_xml(c: Comparison, problems, name: str) -> str:
 
 
 def run(args) -> int:
-    """The ``replay-test`` command (see the module docstring)."""
-    from .common import UserError
-    from ..io.bag import read_bag
+    """The ``replay-test`` command (see the module docstring).
+
+    Everything the user gave is checked before the replay (a usage error must not cost one): the
+    bag opens as an MCAP, ``--out`` can be the run's folder, ``--junit`` can be written, the
+    plug-ins are named, the record and site load, the expected stations are read or reprocessed."""
+    from .cli.shared import load_plugins
+    from .common import UserError, load_calibration, load_site
+    from ..core.output import check_output
+    from ..io.bag import BagError, open_bag, read_bag
     from .launcher import readable_parts
 
     bag = Path(args.bag)
     if not bag.exists():
         raise UserError(f"{bag} does not exist")
+    try:
+        open_bag(bag)                   # its header only: an empty file, a folder without a bag
+    except BagError as exc:
+        raise UserError(f"{exc.path}: not a bag to replay: {exc.reason}") from None
+    except OSError as exc:
+        raise UserError(f"{bag}: {exc.strerror or exc}") from None
     out = Path(args.out or f"{bag.with_suffix('')}.replay")
-    if out.exists() and any(out.iterdir()) and not args.overwrite:
-        raise UserError(f"{out} already holds a run (use --overwrite or another --out)")
+    _check_out(out, args.overwrite)
+    if args.junit:
+        check_output(args.junit)        # OutputError: one line, exit 2 (cli.main)
+    # the plug-ins the records use, named (or run, to fit --effects) as reprocess names them
+    load_plugins(args.plugin, run=bool(args.calibrate and args.effects))
+    cal = load_calibration(args.coeffs) if args.coeffs else None
+    site = load_site(args.site) if args.site else None
     # the expected stations first: a usage error must not cost a replay
     if args.expect == "reprocess":
-        expected = _reprocessed(bag, out, args)
+        expected = _reprocessed(bag, args, cal, site)
     else:
         path = Path(args.expect)
         if not path.exists():
             raise UserError(f"--expect {path}: no such file (a bag with /survey/station, or 'reprocess')")
-        expected = read_bag(path)[0]
+        try:
+            expected = read_bag(path)[0]
+        except ValueError as exc:       # not a bag, a damaged one
+            raise UserError(f"--expect {path}: {exc}") from None
+        except OSError as exc:
+            raise UserError(f"--expect {path}: {exc.strerror or exc}") from None
         if not expected:
             raise UserError(f"--expect {path}: no /survey/station messages in it")
     cmd = [sys.executable, "-m", "inclinometer_calib.apps.launcher", "--out", str(out), "--source", "mcap", "--input",
@@ -232,19 +255,41 @@ def run(args) -> int:
     return 0 if ok else 1
 
 
-def _reprocessed(bag, out, args) -> list:
-    """The stations ``reprocess`` makes of the bag with the replay's calibration options."""
-    from .common import UserError, load_calibration, load_site
+def _check_out(out: Path, overwrite: bool) -> None:
+    """Refuse an ``--out`` that cannot be the run's folder (a file, under a file, unreadable) or
+    holds a run (without ``overwrite``); a missing one is made by the launcher, parents too."""
+    from .common import UserError
+
+    if out.exists():
+        if not out.is_dir():
+            raise UserError(f"--out {out}: a file of that name exists (the run's folder is meant)")
+        try:
+            held = any(out.iterdir())
+        except OSError as exc:
+            raise UserError(f"--out {out}: {exc.strerror or exc}") from None
+        if held and not overwrite:
+            raise UserError(f"{out} already holds a run (use --overwrite or another --out)")
+        return
+    above = out.absolute().parent
+    while not above.exists():
+        above = above.parent
+    if not above.is_dir():
+        raise UserError(f"--out {out}: {above} is a file, not a folder")
+
+
+def _reprocessed(bag, args, cal, site) -> list:
+    """The stations ``reprocess`` makes of the bag with the replay's calibration options (``cal``,
+    ``site``: the loaded ``--coeffs``, ``--site``)."""
+    from .common import UserError
+    from ..io.bag import BagError
     from ..lab.field import FieldMonitor
     from ..correct.reprocess import ReprocessError, reprocess
 
-    site = load_site(args.site) if args.site else None
-    cal = load_calibration(args.coeffs) if args.coeffs else None
     try:
         # the correction node's own settings: its field monitor (30 stations), the default QC tolerances
         rep = reprocess(bag, None, calibration=cal, site=site, calibrate=args.calibrate, effects=args.effects or "",
                         monitor=FieldMonitor(window=30), north=getattr(args, "north", "auto"))
-    except (ReprocessError, ValueError, OSError) as exc:
+    except (ReprocessError, BagError, ValueError, OSError) as exc:
         raise UserError(f"{bag}: reprocess: {exc}") from None
     print(f"expected: reprocess of {bag}: {len(rep.stations)} stations", flush=True)
     return rep.stamped_stations()
