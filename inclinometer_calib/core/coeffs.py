@@ -313,6 +313,12 @@ class Calibration:
                   not_identifiable=mod.get("not_identifiable", ()) if version >= 2 else (),
                   uncertainty=uncertainty)
         if "id" in rec and rec["id"] != cal._hash(version):
+            moved = _plugin_named_elsewhere(cal, version, items, rec["id"])
+            if moved:
+                name, theirs, ours = moved
+                fail(f"id {rec['id']!r} was issued with the plug-in of effect {name!r} at {theirs}, but that plug-in "
+                     f"is named here at {ours} (the same content): the id includes the plug-in's path as the record "
+                     f"names it, so name it at {theirs} (--plugin {theirs}, or the plugins parameter on a node)")
             fail(f"id {rec['id']!r} does not match the content (expected {cal._hash(version)!r}): edited without "
                  "re-issuing")
         return cal
@@ -333,6 +339,29 @@ class Calibration:
         except yamltext.YAMLError as exc:
             raise CoefficientError(f"{source}: not valid YAML: {exc}") from None
         return cls.from_record(rec, source=source)
+
+
+def _plugin_named_elsewhere(cal: Calibration, version: int, items, rec_id):
+    """When a record's id mismatches only because a plug-in of the same content (the same SHA-256:
+    :func:`plugins.require_plugin` checked it) was named at another path than the record's — the
+    id includes the path as the record names it — ``(effect, the record's path, the path named)``
+    of the first such plug-in; else None.  Says why, decides nothing: the record is refused as any
+    whose id mismatches."""
+    if version < 2 or not isinstance(items, list):
+        return None
+    blob = cal._id_blob(version)
+    moved = None
+    for have, item in zip(blob["effects"], items):
+        theirs = item.get("plugin") if isinstance(item, dict) else None
+        ours = have.get("plugin")
+        if isinstance(theirs, dict) and isinstance(ours, dict) and theirs != ours:
+            have["plugin"] = theirs
+            if moved is None:
+                moved = (have["name"], theirs.get("file") or theirs.get("module"),
+                         ours.get("file") or ours.get("module"))
+    if moved is None or hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:12] != rec_id:
+        return None
+    return moved
 
 
 # --------------------------------------------------------------------------------------------

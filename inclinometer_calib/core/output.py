@@ -38,10 +38,11 @@ _WORDS = {
 def refused_write_words(exc: OSError):
     """(short reason, one-line description) of a write the OS refused, for people:
     ``("disk full", "no space left on the device (ENOSPC)")``; others by strerror and errno name."""
-    name = errno.errorcode.get(exc.errno or 0, str(exc.errno))
     text = exc.strerror or str(exc)
     short, long = _WORDS.get(exc.errno, (text, text))
-    return short, f"{long} ({name})"
+    if exc.errno is None:          # a refusal said in words only: no errno name to add
+        return short, long
+    return short, f"{long} ({errno.errorcode.get(exc.errno, str(exc.errno))})"
 
 
 class OutputError(OSError):
@@ -68,6 +69,40 @@ class OutputError(OSError):
         else:
             cause = refused_write_words(exc)[1]
         return cls(path, cause, exc.errno)
+
+
+class OutputExistsError(FileExistsError):
+    """An output that exists already (the writers here never replace one), said in words:
+    ``x.mcap already exists; refusing to overwrite it (choose another output name)``, the
+    wording of :class:`io.bag.BagWriter`'s refusal.  ``errno`` EEXIST, ``filename`` the path."""
+
+    def __init__(self, path, text: str | None = None):
+        p = os.fspath(path)
+        super().__init__(errno.EEXIST, text or exists_words(p), p)
+
+    def __str__(self) -> str:
+        return self.strerror
+
+
+def exists_words(path) -> str:
+    """The one line for an output that exists already."""
+    return f"{os.fspath(path)} already exists; refusing to overwrite it (choose another output name)"
+
+
+#: What the OS says of a refused write when it names no file (a writer's ``OSError(errno, text)``).
+_WRITE_REFUSALS = frozenset(_WORDS)
+
+
+def _names_output(exc: OSError, *paths) -> bool:
+    """Whether ``exc`` is a refusal of writing the output at ``paths`` (a file, or a folder and
+    what is in it): it names one of them, or names no file and is a refusal of a write (a full
+    disk...).  Anything else raised while the output is written (an input that does not exist,
+    an input refused) is the input's error and keeps its own words."""
+    named = [os.fsdecode(f) for f in (exc.filename, exc.filename2) if isinstance(f, (str, bytes, os.PathLike))]
+    if not named:
+        return exc.errno in _WRITE_REFUSALS
+    outs = [os.path.abspath(os.fspath(p)) for p in paths]
+    return any(f == o or f.startswith(o + os.sep) for f in map(os.path.abspath, named) for o in outs)
 
 
 def check_output(path, *, folder: bool = False) -> None:
@@ -147,13 +182,13 @@ def output_path(path):
     never replace an output).  A file (``x.mcap``): ``.x.part-<pid>.mcap`` beside it, renamed to
     ``path`` when the block ends, removed when it raises.  A folder (a rosbag2 directory, whose
     files are named after it): ``path`` itself, removed with what it holds when the block raises.
-    A refusal of the OS (inside the block or at the rename) becomes :class:`OutputError` naming
-    ``path``."""
+    A refusal of the OS to write the output (inside the block or at the rename) becomes
+    :class:`OutputError` naming ``path``; any other error of the block (an input's) is raised as
+    it is.  An existing ``path``: :class:`OutputExistsError`."""
     p = Path(path)
     folder = p.suffix == ""
     if p.exists():
-        raise FileExistsError(errno.EEXIST, f"{p} already exists; refusing to overwrite it (choose another output "
-                                            "name)", str(p))
+        raise OutputExistsError(p)
     check_output(p, folder=folder)
     tmp = p if folder else p.with_name(f".{p.stem}.part-{os.getpid()}{p.suffix}")
     if not folder:
@@ -162,11 +197,13 @@ def output_path(path):
         yield tmp
         if not folder:
             if p.exists():
-                raise FileExistsError(errno.EEXIST, f"{p} appeared while it was written", str(p))
+                raise OutputExistsError(p, f"{p} appeared while it was written; refusing to overwrite it "
+                                           "(choose another output name)")
             os.rename(tmp, p)
     except BaseException as exc:
         _remove(tmp)
-        if isinstance(exc, OSError) and not isinstance(exc, (FileExistsError, OutputError)):
+        if isinstance(exc, OSError) and not isinstance(exc, (FileExistsError, OutputError)) \
+                and _names_output(exc, p, tmp):
             raise OutputError.from_os(p, exc) from None
         raise
 
@@ -176,7 +213,8 @@ def output_folder(path):
     """A folder for a command's several files.  A new one is made under a temporary name beside it
     (``.<name>.part-<pid>``) and renamed into place when the block ends, removed with what it holds
     when the block raises: all the files or none.  An existing folder is used as it is (each file
-    in it written whole).  A refusal of the OS becomes :class:`OutputError` naming ``path``."""
+    in it written whole).  A refusal of the OS to write in it becomes :class:`OutputError` naming
+    ``path``; any other error of the block (an input's) is raised as it is."""
     p = Path(path)
     check_output(p, folder=True)
     existing = p.exists()
@@ -193,6 +231,6 @@ def output_folder(path):
             _remove(tmp)
         if isinstance(exc, OutputError) and not existing:   # said of the folder's own name
             raise OutputError(exc.path.replace(os.fspath(tmp), os.fspath(p), 1), exc.cause, exc.errno) from None
-        if isinstance(exc, OSError) and not isinstance(exc, OutputError):
+        if isinstance(exc, OSError) and not isinstance(exc, OutputError) and _names_output(exc, p, tmp):
             raise OutputError.from_os(p, exc) from None
         raise

@@ -11,7 +11,9 @@ recorded bag (all its parts) this module puts that together with the recorded st
   different values;
 * **corrections**: the recorded stations without a correction and why
   (``SurveyStation.uncorrected_reason``): before the calibration solved (the stand's poses
-  themselves: expected), a record refused (another probe's), no record at all;
+  themselves: expected — but not every station: a record that came after the last of them, the
+  survey before the stand, left the whole survey raw, :func:`none_corrected`), a record refused
+  (another probe's), no record at all;
 * **patience**: stations that went out before their reference, temperatures, depth or the
   calibration's step arrived (a live source's wall-clock patience ran out);
 * **restarts** the launcher made.
@@ -100,13 +102,25 @@ def recorded_counts(paths) -> dict:
     return {k: len(v) for k, v in seen.items()}
 
 
+def none_corrected(stations, records: int) -> str:
+    """The problem of a run whose calibration solved (``records`` > 0) after every one of its
+    ``stations`` (survey first, the stand's poses last): all went out raw "before calibration",
+    which for the stand's poses alone is expected.  Empty when a station was corrected, or when
+    there are no stations or no record (said elsewhere: the calibration did not solve)."""
+    if not records or not stations or any(s["coefficients_id"] for s in stations):
+        return ""
+    return (f"none of the {len(stations)} stations was corrected: the calibration solved after the last of them "
+            "(the survey came before the stand's poses?), so the survey is raw")
+
+
 def account(stations, progress_messages, *, restarts=None, calibration_ran=True, paced=True,
             station_node: str = "correction", source: str = "probe", recorder: str = "recorder",
-            recorded=None) -> dict:
+            recorded=None, records: int = 0) -> dict:
     """The run's accounting (see the module docstring).  ``stations``: the recorded station dicts
     (all parts); ``progress_messages``: the recorded ``StreamProgress`` dicts in order;
     ``restarts``: node → count; ``calibration_ran``: stations before the calibration are then
-    expected to be raw."""
+    expected to be raw, unless ``records`` (calibration records the run made) came after every
+    station (:func:`none_corrected`)."""
     prog = last_progress(progress_messages)
     out: dict = {"problems": [], "readers": {}}
     problems = out["problems"]
@@ -174,6 +188,9 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
         example = next((s.get("uncorrected_reason") for s in uniq if not s["coefficients_id"]
                         and _reason_kind(s.get("uncorrected_reason", "")) == k), "")
         problems.append(f"{v} station(s) uncorrected: {example or k}")
+    late = none_corrected(uniq, records) if calibration_ran else ""
+    if late:
+        problems.append(late)
     out["restarts"] = dict(restarts or {})
     return out
 

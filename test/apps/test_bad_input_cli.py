@@ -433,6 +433,21 @@ def test_field_in_nT_written_as_tesla_in_a_bag_is_refused_with_the_unit_hint(sim
     assert "looks like nT written into a tesla field" in err and "/probe/mag at log time" in err
 
 
+def test_a_survey_recorded_before_its_calibration_is_not_a_clean_reprocess(simdir, tmp_path, capsys):
+    """The survey first, the stand's poses after: every station goes out raw "before calibration",
+    which for the stand's poses alone is expected: said, exit 1, as the live graph's summary does
+    (io/accounting.py); in the usual order, exit 0."""
+    pytest.importorskip("mcap")
+    rev, ok = tmp_path / "rev.mcap", tmp_path / "ok.mcap"
+    assert _run(capsys, ["bag", "from-csv", str(simdir / "val.csv"), str(simdir / "cal.csv"), "-o", str(rev)])[0] == 0
+    assert _run(capsys, ["bag", "from-csv", str(simdir / "cal.csv"), str(simdir / "val.csv"), "-o", str(ok)])[0] == 0
+    code, out, err = _run(capsys, ["reprocess", str(rev), "--calibrate", "-o", str(tmp_path / "r.mcap")])
+    assert code == 1, err
+    assert "error: none of the " in err and "the calibration solved after the last of them" in err, err
+    code, out, err = _run(capsys, ["reprocess", str(ok), "--calibrate", "-o", str(tmp_path / "o.mcap")])
+    assert code == 0 and "was corrected" not in err, err
+
+
 def test_a_bag_without_magnetometer_messages_says_so_and_leaves_no_output(bag, tmp_path, capsys):
     """Not thousands of samples "without a partner", nor an output file said to hold the copied
     input (the CLI removes it): the stream that is missing, in words."""

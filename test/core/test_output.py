@@ -56,6 +56,50 @@ def test_a_new_folder_of_several_files_appears_whole_or_not_at_all(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["sim"] and (tmp_path / "sim" / "a.csv").read_text() == "1\n"
 
 
+def test_an_inputs_error_inside_the_block_keeps_its_own_words_and_is_not_said_of_the_output(tmp_path):
+    missing = FileNotFoundError(f"{tmp_path / 'in.mcap'}: no such bag file or directory")   # io.bag's, no errno
+    refused = PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "in.mcap"))  # the OS's, naming it
+    for exc in (missing, refused):
+        with pytest.raises(type(exc)) as info:
+            with output_path(tmp_path / "out.mcap") as tmp:
+                tmp.write_bytes(b"partial")
+                raise exc
+        assert info.value is exc and not isinstance(info.value, OutputError)
+        with pytest.raises(type(exc)) as info:
+            with output_folder(tmp_path / "sim") as out:
+                atomic_write_text(out / "a.csv", "1\n")
+                raise exc
+        assert info.value is exc and not isinstance(info.value, OutputError)
+        assert list(tmp_path.iterdir()) == []            # and still no partial output
+    # a refusal naming the output (or naming no file: a writer's full disk) is the output's
+    with pytest.raises(OutputError, match=re.escape(f"cannot write {tmp_path / 'out.mcap'}: permission denied")):
+        with output_path(tmp_path / "out.mcap") as tmp:
+            raise PermissionError(errno.EACCES, "Permission denied", str(tmp))
+    with pytest.raises(OutputError, match=re.escape(f"cannot write {tmp_path / 'sim'}: no space left")):
+        with output_folder(tmp_path / "sim") as out:
+            raise OSError(errno.ENOSPC, "No space left on device", str(out / "a.csv"))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refusal_said_in_words_only_gets_no_errno_name():
+    from inclinometer_calib.core.output import refused_write_words
+
+    assert refused_write_words(OSError("the writer gave up")) == ("the writer gave up", "the writer gave up")
+    assert refused_write_words(OSError(errno.ENOSPC, "No space left on device"))[1] == \
+        "no space left on the device (ENOSPC)"
+
+
+def test_an_existing_output_is_refused_in_plain_words_without_errno_text(tmp_path):
+    target = tmp_path / "run.mcap"
+    target.write_bytes(b"earlier")
+    with pytest.raises(FileExistsError) as info:
+        with output_path(target):
+            pass
+    assert str(info.value) == f"{target} already exists; refusing to overwrite it (choose another output name)"
+    assert info.value.errno == errno.EEXIST and info.value.filename == str(target)
+    assert target.read_bytes() == b"earlier" and list(tmp_path.iterdir()) == [target]
+
+
 # ---- the commands ----------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")

@@ -55,3 +55,26 @@ def test_every_reader_complete_is_a_clean_account():
     assert a["problems"] == []
     assert [x for x in lines if x.startswith("  ")] == ["  calibration took every one", "  correction took every one",
                                                           "  recorder took every one"]
+
+
+def _station(i, cid="", reason=""):
+    return {"station_id": i, "coefficients_id": cid, "uncorrected_reason": reason, "drift_deg": 1.0,
+            "azimuth_deg": 2.0, "toolface_deg": 3.0, "stamp": float(i)}
+
+
+BEFORE = "before calibration: the calibration has not solved yet"
+
+
+def test_a_calibration_that_solved_after_every_station_leaves_a_raw_survey_and_no_clean_run():
+    """The survey before the calibration (a bag of the survey, then the stand): every station raw
+    "before calibration" although a record was made — not a clean run, said; the stand's own
+    poses raw before a survey that was corrected are expected; no record: said elsewhere."""
+    survey_first = [_station(i, reason=BEFORE) for i in range(210)]
+    a = account(survey_first, [], records=1)
+    assert [p for p in a["problems"] if "was corrected" in p] == [
+        "none of the 210 stations was corrected: the calibration solved after the last of them (the survey came "
+        "before the stand's poses?), so the survey is raw"]
+    stand_first = [_station(i, reason=BEFORE) for i in range(12)] + [_station(i, "abc") for i in range(12, 210)]
+    assert account(stand_first, [], records=1)["problems"] == []
+    assert account(survey_first, [], records=0)["problems"] == []          # did not solve: the launcher says so
+    assert account(survey_first, [], records=1, calibration_ran=False)["problems"] != []   # no record: said as before

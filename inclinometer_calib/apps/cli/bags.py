@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import sys
 
-from ...core.output import atomic_write_text, check_output, output_path
+from ...core.output import OutputError, atomic_write_text, check_output, output_path, refused_write_words
 from ...correct.pipeline import NO_SITE, site_override_note
 from ...io.probelog import MAG_UNITS, Limits, read_csv, report
 from ...io.progress import progress_bar
@@ -29,10 +29,12 @@ def cmd_reprocess(args):
     """Offline reprocessing of a recorded bag (see :mod:`inclinometer_calib.correct.reprocess`).
 
     Exit status 0; 1 when the input bag is damaged (everything readable was processed and
-    written, the damage is reported as ``error:``) or ``--calibrate`` did not solve; 2 when
-    nothing could be done.
+    written, the damage is reported as ``error:``), ``--calibrate`` did not solve, or it solved
+    after every station (the survey came before the stand's poses: all raw); 2 when nothing could
+    be done.
     """
     from ...io.bag import BagError
+    from ...io.accounting import none_corrected
     from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
@@ -70,6 +72,10 @@ def cmd_reprocess(args):
         raise UserError(str(exc)) from None
     except (BagError, ReprocessError) as exc:
         raise UserError(str(exc)) from None
+    except OutputError:
+        raise                   # "cannot write OUT: CAUSE", one line (cli.main)
+    except OSError as exc:      # the input refused by the OS (output_path passes those on as they are)
+        raise UserError(f"cannot read {exc.filename or args.bag}: {refused_write_words(exc)[1]}") from None
     for w in rep.warnings():
         if not w.startswith("skipped topic"):  # those were warned as they were met
             warn(f"{args.bag}: {w}")
@@ -104,6 +110,10 @@ def cmd_reprocess(args):
         else:
             print(f"error: calibration did not solve: {rep.calibration_message or 'no twelve-pose captures'}",
                   file=sys.stderr)
+            rc = 1
+        late = none_corrected(rep.stations, len(rep.calibrations))
+        if late:        # the live graph's summary says the same (io/accounting.py): not a clean run
+            print(f"error: {late}", file=sys.stderr)
             rc = 1
     print(f"wrote {args.output} ({n} {TOPIC_STATION} messages, "
           f"{sum(rep.copied.values())} input messages copied); {rep.log_span_s:.1f} s of data in "
