@@ -30,7 +30,15 @@ parts in time order; a part the killed recorder left without its summary is firs
 (:func:`bag.recover`) into ``<part>.recovered.mcap`` (into the temporary directory when ``--out``
 has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its recording
 incomplete: a write the disk refused), or dies while the disk holding ``--out`` has less than
-:data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.
+:data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.  Nor is
+a node that ends with exit status 2 (:data:`NODE_REFUSED`: its parameters or input refused, which a
+restart would repeat); the run stops and its last line gives the node's own error line.
+
+Pre-flight.  Before anything starts (no domain reserved, ``--out`` untouched, no node started)
+:func:`preflight` checks what the nodes would refuse at their start: ``--input`` (a CSV's header, a
+bag's /probe/imu and /probe/mag in its summary), the node parameters (``--plugin``, ``--site``,
+``--param``, ``--foxglove-port``) and ``--coeffs``, loaded as the correction node loads it (the
+``--plugin`` sources named first); a problem is one ``error:`` line, exit status 2.
 
 Domain.  Without ``--domain-id`` and without ``ROS_DOMAIN_ID`` in the environment the launcher
 reserves a free domain (:func:`rosenv.reserve_domain_id`) for the whole run and prints it; a
@@ -50,7 +58,9 @@ Exit status (the last line says why):
   be written (``launch.log``, ``summary.json``, ``report.md``, … : said once each, in words; the
   summary is still printed, and the last line says e.g. ``the disk is full: OUT: summary.json,
   report.md not written``).  The graph is still drained and summarized;
-* 2 — usage error, ``--out`` in use, or the requested ROS_DOMAIN_ID is in use by another run;
+* 2 — usage error (the pre-flight checks included: a bad ``--input``, ``--coeffs``, ``--plugin``,
+  ``--site`` or ``--param``; nothing has started), ``--out`` in use, or the requested ROS_DOMAIN_ID
+  is in use by another run;
 * 130 — interrupted (Ctrl-C / SIGTERM).
 """
 from __future__ import annotations
@@ -105,6 +115,11 @@ FLOW_GONE_S = 10.0
 FLOW_END_S = 30.0
 #: Exit status of the probe node when its MCAP input was damaged (it replayed the readable part).
 PROBE_INPUT_DAMAGED = 3
+#: Exit status of a node that refused its parameters or input (``nodes.common.run``; its reason in
+#: one line, ``<Node>: error: ...``): not restarted, a restart with the same parameters would fail
+#: the same way; the run's last line carries the node's reason (:attr:`Child.error`)
+NODE_REFUSED = 2
+ERROR_MARK = ": error: "
 #: Exit status of the recorder when its recording is incomplete (a write the disk refused:
 #: ``nodes.recorder.RECORDING_INCOMPLETE``); its last line, after this mark, says what is missing
 RECORDING_INCOMPLETE = 4
@@ -302,6 +317,7 @@ class Child:
         self._lock = out_lock
         self._log = log_file
         self.incomplete = ""   # the recorder's "recording incomplete: ..." words, if it said them
+        self.error = ""        # the reason of the node's last "<Node>: error: <reason>" line (exit status 2)
         self.proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                      stdin=subprocess.DEVNULL, text=True, bufsize=1, errors="replace",
                                      start_new_session=True)  # the launcher alone decides when to stop
@@ -313,6 +329,9 @@ class Child:
             text = f"[{self.name}] {line.rstrip()}"
             if INCOMPLETE_MARK in line:
                 self.incomplete = line.split(INCOMPLETE_MARK, 1)[1].strip()
+            head, mark, reason = line.partition(ERROR_MARK)
+            if mark and head and " " not in head:    # nodes.common.run's one line, not a log record
+                self.error = reason.strip()
             with self._lock:
                 print(text, flush=True)
                 if self._log:
@@ -602,6 +621,16 @@ def _exit_text(code) -> str:
     return f"exit status {code}"
 
 
+def _node_error(ch, code) -> str:
+    """``": <reason>"`` of a node that ended with :data:`NODE_REFUSED` — its own error line
+    (:attr:`Child.error`, read to the end of its output first) — else ``""``: the run's last line
+    then says why the node stopped, not only that it did."""
+    if code != NODE_REFUSED:
+        return ""
+    ch._thread.join(2.0)
+    return f": {ch.error}" if ch.error else ""
+
+
 def run_graph(args, out, env) -> GraphResult:
     """Start the nodes, watch them (restarting the :data:`RESTARTABLE` ones that die), drain and
     stop them; see the module docstring."""
@@ -721,7 +750,7 @@ def run_graph(args, out, env) -> GraphResult:
                         result.problems.append("the probe's input bag was damaged: only its readable part was "
                                                "replayed (see the [probe] warnings for where)")
                     else:
-                        reason = f"probe failed ({_exit_text(code)})"
+                        reason = f"probe failed ({_exit_text(code)})" + _node_error(ch, code)
                         result.problems.append(reason)
                         break
                     # the probe ends once every reader has taken the end (paced: and the recorder
@@ -729,6 +758,14 @@ def run_graph(args, out, env) -> GraphResult:
                     drain_until = time.monotonic() + args.drain
                     continue
                 died = f"{name} died unexpectedly ({_exit_text(code)})"
+                if code == NODE_REFUSED:
+                    # it refused its parameters or input: a restart would fail the same way; the
+                    # run's last line says why in the node's words
+                    reason = (f"{name} refused its parameters or input ({_exit_text(code)})"
+                              f"{_node_error(ch, code)}; not restarted: it would fail the same way")
+                    result.problems.append(reason)
+                    del children[name]   # it has ended: said once here, not again as a node that did not stop
+                    break
                 if name == "recorder" and code == RECORDING_INCOMPLETE:
                     # it ended by itself with a recording it says is incomplete: a new part would
                     # not mend that (a disk that refuses writes), so no restart
@@ -924,9 +961,12 @@ def readable_parts(out, print_fn=print) -> list:
     return parts
 
 
-def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: bool = True) -> dict:
+def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: bool = True,
+                  input_counts=None) -> dict:
     """Build (and print) the run summary from the files in ``out``; writes summary.json and report.md,
     and with ``loop`` the model loop (:func:`model_loop`): lab_model.yaml, compare/ and report.html.
+    ``input_counts``: an MCAP input's messages per topic (:func:`check_bag_input`), set against
+    what the probe sent.
 
     Stations and coefficient messages come from all bag parts (:func:`readable_parts`), in the
     order the parts were written, which is time order; a coefficient record that a restarted
@@ -967,7 +1007,8 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
 
     summary["accounting"] = account(stations, progress, restarts=getattr(graph, "restarts", None),
                                     calibration_ran=getattr(graph, "calibration_ran", True), paced=paced,
-                                    recorded=recorded_counts([p["read"] for p in parts if p["read"] is not None]))
+                                    recorded=recorded_counts([p["read"] for p in parts if p["read"] is not None]),
+                                    records=len(coef_msgs), input_counts=input_counts)
     stations, _ = unique_stations(stations)     # a restarted recorder received the latest ones again
     summary["stations_recorded"] = len(stations)
     cal = None
@@ -1386,12 +1427,120 @@ def calibration_problems(out, summary) -> list:
             f"coeffs.yaml was written{detail}"]
 
 
+def check_bag_input(path) -> dict | None:
+    """A replay's ``--input`` (``--source mcap``), checked cheaply before any node starts with the
+    package's bag reader: it opens as an MCAP bag (:func:`bag.open_bag`: the file, its magic and
+    header) and its summary section counts messages on /probe/imu and /probe/mag
+    (:meth:`bag.BagReader.summary_counts`: no message is read).  A bag without a usable summary (a
+    recorder that was killed) is left to the probe, which replays its readable part and says where
+    it is damaged (exit status 3).  Raises :class:`common.UserError`, one line naming the file and
+    what is wrong: the probe would refuse it (exit status 2) only once the graph had started.
+    Returns the summary's message count per topic (None: no usable summary), which the run summary
+    compares with what the probe sent (:func:`accounting.account`'s ``input_counts``)."""
+    from ..io.bag import BagError, open_bag
+    from ..io.topics import TOPIC_IMU, TOPIC_MAG
+    from .common import UserError
+
+    if os.path.isfile(path) and os.path.getsize(path) == 0:
+        raise UserError(f"--input {path}: empty file (expected an MCAP bag)")
+    try:
+        reader = open_bag(path)
+    except BagError as exc:
+        raise UserError(f"--input {exc.path}: {exc.reason}") from None
+    except OSError as exc:
+        raise UserError(f"--input {path}: {exc.strerror}" if exc.strerror else f"--input {exc}") from None
+    counts = reader.summary_counts()
+    if counts is None:
+        return None
+    missing = [t for t in (TOPIC_IMU, TOPIC_MAG) if not counts.get(t)]
+    if missing:
+        held = ", ".join(f"{n} on {t}" for t, n in sorted(counts.items()) if n) or "no messages"
+        raise UserError(f"--input {path}: no {' and no '.join(missing)} messages, nothing for the probe to "
+                        f"replay (the bag holds {held})")
+    return counts
+
+
+def check_csv_input(path) -> None:
+    """A ``--source csv`` ``--input``, checked before any node starts: it can be read (``.gz`` as
+    gzip, as the probe reads it), is not empty, and its first line is a probe-log header (the
+    reader's own check, :func:`probelog.canonical_text`, on that line alone); its rows are the
+    probe's to read.  Raises :class:`common.UserError`, one line naming the file."""
+    import gzip
+
+    from ..io.probelog import HEADER, canonical_text
+    from .common import UserError
+
+    opener = gzip.open if str(path).endswith(".gz") else open
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
+            first = fh.readline(1 << 16)
+    except (OSError, EOFError) as exc:   # missing, unreadable, a directory, not gzip
+        raise UserError(f"--input {path}: {getattr(exc, 'strerror', None) or exc}") from None
+    said = ("empty file" if not first else "line 1 is blank" if not first.strip()
+            else "not text (a binary file?)" if "\ufffd" in first or "\x00" in first else "")
+    if said:    # a binary file's "line 1" is not said back: it may be any length of bytes
+        raise UserError(f"--input {path}: {said}: expected a probe-log CSV with the header {','.join(HEADER)}")
+    try:
+        canonical_text(first.rstrip("\r\n"), f"--input {path}")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def check_coeffs(args) -> None:
+    """``--coeffs`` loaded before any node starts, as the correction node will load it and
+    ``reprocess`` loads its ``--coeffs`` (:func:`common.load_calibration`, :meth:`Calibration.load`),
+    with the ``--plugin`` sources named first (:func:`build_params`, as the nodes name their
+    ``plugins``): a missing or invalid record, or one that needs a plug-in not named, is refused
+    here in one line instead of a node that exits 2 at its start.  Raises :class:`common.UserError`."""
+    from .common import UserError, load_calibration
+
+    if not args.coeffs:
+        return
+    if str(args.coeffs).lower() == "none":    # reprocess's word for "no record": not the launcher's
+        raise UserError("--coeffs none: the launcher takes a coefficient file; leave --coeffs out to apply the "
+                        "calibration node's records")
+    try:
+        load_calibration(args.coeffs)
+    except UserError as exc:
+        raise UserError(f"--coeffs {exc}") from None
+
+
+def preflight(args) -> dict | None:
+    """Check what the nodes would otherwise refuse only once the graph runs, before anything starts
+    (no domain reserved, ``--out`` untouched, no node started): ``--input`` for csv/mcap
+    (:func:`check_csv_input`, :func:`check_bag_input`), the run's node parameters
+    (:func:`build_params`: ``--plugin``, ``--site``, ``--param``, ``--foxglove-port``) and ``--coeffs``
+    (:func:`check_coeffs`).  Raises :class:`common.UserError` (one line; ``main`` exits 2).  Returns
+    an MCAP input's message counts per topic (:func:`check_bag_input`; None otherwise)."""
+    from .common import UserError
+
+    if args.source != "simulate" and not args.input:
+        raise UserError("--source csv/mcap needs --input")
+    counts = None
+    try:
+        if args.source == "mcap":
+            counts = check_bag_input(args.input)
+        elif args.source == "csv":
+            check_csv_input(args.input)
+        try:
+            build_params(args, os.path.abspath(args.out))   # names the --plugin sources the record may need
+        except SystemExit as exc:
+            raise UserError(str(exc.code).removeprefix("error: ")) from None
+        check_coeffs(args)
+    except MissingDependency as exc:
+        raise UserError(str(exc)) from None
+    return counts
+
+
 def main(argv=None) -> int:
     from . import rosenv
+    from .common import UserError
 
     args = parse_args(argv)
-    if args.source != "simulate" and not args.input:
-        print("error: --source csv/mcap needs --input", file=sys.stderr)
+    try:
+        input_counts = preflight(args)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
     env = dict(os.environ)
     try:
@@ -1446,7 +1595,8 @@ def main(argv=None) -> int:
         summary = None
         if not args.no_recorder:
             try:
-                summary = summarize_run(out, loop=not args.no_loop, graph=result, paced=not args.unpaced)
+                summary = summarize_run(out, loop=not args.no_loop, graph=result, paced=not args.unpaced,
+                                        input_counts=input_counts)
                 problems += summary.get("accounting", {}).get("problems", [])
             except (OSError, ValueError, KeyError, MissingDependency) as exc:
                 print(f"[summary] failed: {type(exc).__name__}: {exc}", flush=True)

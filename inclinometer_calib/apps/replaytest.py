@@ -191,6 +191,10 @@ def run(args) -> int:
     # the plug-ins the records use, named (or run, to fit --effects) as reprocess names them
     load_plugins(args.plugin, run=bool(args.calibrate and args.effects))
     cal = load_calibration(args.coeffs) if args.coeffs else None
+    if args.coeffs and cal is None and not args.calibrate:      # --coeffs none
+        raise UserError("--coeffs none: the live graph has no uncorrected mode (every station would go out without "
+                        "a record, which its summary counts as not clean): give the record (--coeffs FILE) or "
+                        "--calibrate")
     site = load_site(args.site) if args.site else None
     # the expected stations first: a usage error must not cost a replay
     if args.expect == "reprocess":
@@ -211,7 +215,7 @@ def run(args) -> int:
            str(bag), "--speed", str(args.speed), "--no-loop", "--overwrite"]
     if args.site:
         cmd += ["--site", args.site]
-    if args.coeffs:
+    if cal is not None:
         cmd += ["--coeffs", args.coeffs, "--no-calibration"] if not args.calibrate else ["--coeffs", args.coeffs]
     elif not args.calibrate:
         cmd += ["--no-calibration"]

@@ -115,12 +115,15 @@ def none_corrected(stations, records: int) -> str:
 
 def account(stations, progress_messages, *, restarts=None, calibration_ran=True, paced=True,
             station_node: str = "correction", source: str = "probe", recorder: str = "recorder",
-            recorded=None, records: int = 0) -> dict:
+            recorded=None, records: int = 0, input_counts=None) -> dict:
     """The run's accounting (see the module docstring).  ``stations``: the recorded station dicts
     (all parts); ``progress_messages``: the recorded ``StreamProgress`` dicts in order;
     ``restarts``: node → count; ``calibration_ran``: stations before the calibration are then
     expected to be raw, unless ``records`` (calibration records the run made) came after every
-    station (:func:`none_corrected`)."""
+    station (:func:`none_corrected`).  ``input_counts``: a replayed bag's messages per topic (its
+    summary), set against what the source sent: samples of the input it did not send (an imu or mag
+    sample without a partner of the same stamp, one that does not decode) are counted and said —
+    the input's own defect, as ``reprocess`` warns of it, not a loss of the run."""
     prog = last_progress(progress_messages)
     out: dict = {"problems": [], "readers": {}}
     problems = out["problems"]
@@ -129,6 +132,10 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
         out["sent"] = {k: int(src[k]) for k in ALL_TOPICS}
         out["source_ended"] = bool(src["end"])
         out["window"] = int(src["window"])
+        if input_counts and src["end"]:
+            held = {k: int(input_counts.get(f"/probe/{k}", 0)) for k in SAMPLE_TOPICS}
+            out["input"] = {"held": held, "not_sent": {k: held[k] - out["sent"][k] for k in SAMPLE_TOPICS
+                                                       if held[k] > out["sent"][k]}}
         if not src["end"]:
             problems.append(f"the {source}'s end of the data is not in the recording (the recording stopped "
                             "before it, or the source did not finish)")
@@ -203,6 +210,12 @@ def format_account(a: dict) -> list:
         lines.append("samples: the probe sent " + ", ".join(f"{sent[k]} {k}" for k in ALL_TOPICS if sent[k]) +
                      (f" (paced: at most {a['window']} ahead of its slowest reader)" if a.get("window") else
                       " (not paced)"))
+        if a.get("input", {}).get("not_sent"):
+            held, not_sent = a["input"]["held"], a["input"]["not_sent"]
+            lines.append("  of the input bag's " + ", ".join(f"{held[k]} {k}" for k in SAMPLE_TOPICS if held[k]) +
+                         ", not sent: " + ", ".join(f"{v} {k}" for k, v in not_sent.items()) +
+                         " (without a partner of the same stamp on the other stream, or not decodable: the "
+                         "probe's warnings say which)")
         ended = a.get("source_ended")
         for name, r in a["readers"].items():
             if "lost" in r:

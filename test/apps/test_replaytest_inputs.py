@@ -180,6 +180,16 @@ def test_a_junit_file_in_a_missing_folder_is_refused_before_the_replay(bags, tmp
     assert not no_replay and not (tmp_path / "run").exists()
 
 
+def test_coeffs_none_is_refused_before_the_replay_as_the_graph_has_no_uncorrected_mode(bags, tmp_path, capsys,
+                                                                                       no_replay):
+    """It used to reach the launcher, which took "none" for a file name (now refused there too)."""
+    code, out, err = _run(capsys, bags["bag"], "--expect", bags["golden"], "--coeffs", "none", "--out",
+                          tmp_path / "run")
+    line = _one_error_line(err)
+    assert code == 2 and line.startswith("error: --coeffs none: the live graph has no uncorrected mode"), line
+    assert not no_replay and not (tmp_path / "run").exists()
+
+
 def test_a_golden_bag_and_good_options_reach_the_replay(bags, tmp_path, capsys, no_replay):
     """The checks above refuse only what is wrong: the same command with good input replays."""
     with pytest.raises(ReplayStarted):

@@ -78,3 +78,17 @@ def test_a_calibration_that_solved_after_every_station_leaves_a_raw_survey_and_n
     assert account(stand_first, [], records=1)["problems"] == []
     assert account(survey_first, [], records=0)["problems"] == []          # did not solve: the launcher says so
     assert account(survey_first, [], records=1, calibration_ran=False)["problems"] != []   # no record: said as before
+
+
+def test_samples_of_the_input_bag_the_probe_did_not_send_are_counted_and_said():
+    """A replayed bag with 300 imu samples whose mag partner is missing: the probe sends the pairs
+    only; the summary says how many of the input's it did not send (they were in the probe's
+    warnings only), as reprocess warns of them — the input's defect, not a loss of the run."""
+    held = {"/probe/imu": 1300, "/probe/mag": 1000, "/probe/temperature": 1000, "/probe/serial": 1}
+    a = account([], [progress("probe", True)], paced=True, input_counts=held)
+    assert a["input"] == {"held": {"imu": 1300, "mag": 1000, "temperature": 1000}, "not_sent": {"imu": 300}}
+    assert "  of the input bag's 1300 imu, 1000 mag, 1000 temperature, not sent: 300 imu (without a partner of " \
+           "the same stamp on the other stream, or not decodable: the probe's warnings say which)" in format_account(a)
+    assert a["problems"] == []
+    whole = account([], [progress("probe", True)], input_counts={"/probe/imu": 1000, "/probe/mag": 1000})
+    assert whole["input"]["not_sent"] == {} and not any("not sent" in x for x in format_account(whole))
