@@ -151,18 +151,24 @@ def test_a_usage_error_in_the_node_parameters_exits_2_before_any_node_starts(tmp
 
 
 # ---- --input: the replay's file checked before the graph starts ------------------------------------------------
-@pytest.mark.parametrize("name, make, said", [
-    ("nothere.mcap", None, "no such bag file or directory"),
-    ("empty.mcap", lambda p: p.write_bytes(b""), "empty file"),
-    ("notes.mcap", lambda p: p.write_text("not a bag\n"), "not an MCAP file"),
-    ("nomag.mcap", lambda p: _bag_with(p, ["/probe/imu", "/probe/temperature"]), "no /probe/mag messages"),
-    ("noimu.mcap", lambda p: _bag_with(p, ["/probe/mag"]), "no /probe/imu and no /probe/mag messages"),
-    ("folder", lambda p: p.mkdir(), "bag directory holds no .mcap file"),
+@pytest.mark.parametrize("source, name, make, said", [
+    ("mcap", "nothere.mcap", None, "no such bag file or directory"),
+    ("mcap", "empty.mcap", lambda p: p.write_bytes(b""), "empty file"),
+    ("mcap", "notes.mcap", lambda p: p.write_text("not a bag\n"), "not an MCAP file"),
+    ("mcap", "nomag.mcap", lambda p: _bag_with(p, ["/probe/imu", "/probe/temperature"]), "no /probe/mag messages"),
+    ("mcap", "noimu.mcap", lambda p: _bag_with(p, ["/probe/mag"]), "no /probe/imu and no /probe/mag messages"),
+    ("mcap", "folder", lambda p: p.mkdir(), "bag directory holds no .mcap file"),
+    ("csv", "nothere.csv", None, "No such file or directory"),
+    ("csv", "empty.csv", lambda p: p.write_text(""), "empty file"),
+    ("csv", "folder", lambda p: p.mkdir(), "Is a directory"),
+    ("csv", "notes.csv", lambda p: p.write_text("a,b,c\n1,2,3\n"), "line 1: the columns are"),
+    ("csv", "probe.mcap", lambda p: _bag_with(p, ["/probe/imu"]), "not text"),
+    ("csv", "notgzip.csv.gz", lambda p: p.write_text("t_s,ax\n"), "gzip"),
 ])
-def test_a_bad_mcap_input_is_refused_naming_the_file_before_any_node_starts(tmp_path, name, make, said):
+def test_a_bad_input_is_refused_naming_the_file_before_any_node_starts(tmp_path, source, name, make, said):
     if make is not None:
         make(tmp_path / name)
-    line = _refused(tmp_path, "--source", "mcap", "--input", name)
+    line = _refused(tmp_path, "--source", source, "--input", name)
     assert line.startswith(f"error: --input {name}") and said in line, line
 
 
@@ -177,21 +183,6 @@ def test_a_bag_without_probe_samples_names_what_it_holds(tmp_path):
             w.write(ch, data, k * 10**9, k * 10**9)
     line = _refused(tmp_path, "--source", "mcap", "--input", "temp.mcap")
     assert "no /probe/imu and no /probe/mag messages" in line and "3 on /probe/temperature" in line, line
-
-
-@pytest.mark.parametrize("name, make, said", [
-    ("nothere.csv", None, "No such file or directory"),
-    ("empty.csv", lambda p: p.write_text(""), "empty file"),
-    ("folder", lambda p: p.mkdir(), "Is a directory"),
-    ("notes.csv", lambda p: p.write_text("a,b,c\n1,2,3\n"), "line 1: the columns are"),
-    ("probe.mcap", lambda p: _bag_with(p, ["/probe/imu"]), "not text"),
-    ("notgzip.csv.gz", lambda p: p.write_text("t_s,ax\n"), "gzip"),
-])
-def test_a_bad_csv_input_is_refused_naming_the_file_before_any_node_starts(tmp_path, name, make, said):
-    if make is not None:
-        make(tmp_path / name)
-    line = _refused(tmp_path, "--source", "csv", "--input", name)
-    assert line.startswith(f"error: --input {name}") and said in line, line
 
 
 def test_an_unreadable_csv_input_is_refused_before_any_node_starts(tmp_path):
