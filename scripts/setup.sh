@@ -38,8 +38,14 @@ log "repo: $REPO"
 command -v "$PYTHON" >/dev/null || die "'$PYTHON' not found (set PYTHON=/path/to/python3.10..3.13)"
 py_version() { "$1" -c 'import sys; print("%d.%d" % sys.version_info[:2])'; }
 supported() { case "$1" in 3.10|3.11|3.12|3.13) return 0 ;; *) return 1 ;; esac; }
-# an interpreter that runs through a shared libpython (mapped into the process)
-shared_libpython() { "$1" -c 'import sys; sys.exit(not any("libpython" in l for l in open("/proc/self/maps")))' 2>/dev/null; }
+# an interpreter that runs through a shared libpython (mapped into its process; -S: no .pth imports)
+shared_libpython() {
+    "$1" -S -c 'import sys; sys.exit(not any("libpython" in l for l in open("/proc/self/maps")))' 2>/dev/null
+}
+has_headers() {
+    "$1" -c 'import os, sysconfig, sys
+sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'
+}
 # The venv's interpreter, when PYTHON is not given: python3, unless it runs through a shared
 # libpython — a source build's default (pyenv's among them): no profile-guided or link-time
 # optimisation, every call into the interpreter through the shared library — while the system's
@@ -50,8 +56,9 @@ shared_libpython() { "$1" -c 'import sys; sys.exit(not any("libpython" in l for 
 SYSPY=/usr/bin/python3
 if [ -z "$PYTHON_GIVEN" ] && [ -x "$SYSPY" ] && shared_libpython "$PYTHON" && ! shared_libpython "$SYSPY" \
         && supported "$(py_version "$SYSPY")" && "$SYSPY" -c 'import ensurepip' 2>/dev/null \
-        && "$SYSPY" -c 'import os, sysconfig, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'; then
-    log "python: $(command -v "$PYTHON") runs through a shared libpython (a slower build); the system's $SYSPY instead (PYTHON=... chooses)"
+        && has_headers "$SYSPY"; then
+    log "python: $(command -v "$PYTHON") runs through a shared libpython (a slower build);" \
+        "the system's $SYSPY instead (PYTHON=... chooses)"
     PYTHON="$SYSPY"
 fi
 PYVER="$(py_version "$PYTHON")"
@@ -75,7 +82,7 @@ command -v cmake >/dev/null || missing+=(cmake)
 command -v gcc >/dev/null || missing+=(gcc)
 command -v g++ >/dev/null || missing+=(g++)
 command -v make >/dev/null || missing+=(make)
-if ! "$PYTHON" -c 'import os, sysconfig, sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()["include"], "Python.h")))'; then
+if ! has_headers "$PYTHON"; then
     missing+=("python${PYVER}-dev")
 fi
 if [ ! -x "$VENV/bin/python3" ] && ! "$PYTHON" -c 'import ensurepip' 2>/dev/null; then
@@ -107,7 +114,11 @@ if [ -x "$VENV/bin/python3" ] && ! "$VENV/bin/python3" -c '' 2>/dev/null; then
     rm -rf "$VENV"
 fi
 if [ -x "$VENV/bin/python3" ]; then
-    VBASE="$("$VENV/bin/python3" -c 'import os, sys; print(os.path.realpath(sys._base_executable))')"
+    # the interpreter the venv was made with: its pyvenv.cfg's home and version (any Python's venv
+    # has them, a venv of copies too)
+    VPYVER="$(py_version "$VENV/bin/python3" 2>/dev/null || echo unknown)"
+    VHOME="$(sed -n 's/^home *= *//p' "$VENV/pyvenv.cfg" 2>/dev/null | head -n 1)"
+    VBASE="$(realpath "$VHOME/python$VPYVER" 2>/dev/null || echo "$VHOME/python$VPYVER")"
     if [ "$VBASE" != "$PYREAL" ]; then
         log "venv: made with $VBASE, not $PYREAL: recreating"
         rm -rf "$VENV"
@@ -116,6 +127,8 @@ fi
 if [ ! -x "$VENV/bin/python3" ]; then
     log "venv: creating $VENV"
     "$PYTHON" -m venv "$VENV" || die "python -m venv failed"
+    # messages built for another interpreter (its headers, its lib/python3.X) are not reused
+    rm -rf "$WS/build" "$WS/install" "$WS/.ic-colcon.stamp"
 fi
 VPY="$VENV/bin/python3"
 # Chromium for the report tests (test/report_layout.py lays the HTML reports out in it and reads

@@ -31,8 +31,10 @@ parts in time order; a part the killed recorder left without its summary is firs
 has no room for it) and the summary says so.  A recorder that ends with exit status 4 (its recording
 incomplete: a write the disk refused), or dies while the disk holding ``--out`` has less than
 :data:`RESTART_MIN_FREE_BYTES` free, is not restarted: a new part would not hold a chunk.  Nor is
-a node that ends with exit status 2 (:data:`NODE_REFUSED`: its parameters or input refused, which a
-restart would repeat); the run stops and its last line gives the node's own error line.
+a node that ends with exit status 2 (:data:`NODE_REFUSED`) after refusing its parameters or input
+at its start (its ``<Node>: error:`` line), which a restart would repeat; the run stops and its
+last line gives the node's own error line (an error in a callback mid-run, ``error while
+running``, is restarted as any death).
 
 Pre-flight.  Before anything starts (no domain reserved, ``--out`` untouched, no node started)
 :func:`preflight` checks what the nodes would refuse at their start: ``--input`` (a CSV's header, a
@@ -622,9 +624,10 @@ def _exit_text(code) -> str:
 
 
 def _node_error(ch, code) -> str:
-    """``": <reason>"`` of a node that ended with :data:`NODE_REFUSED` — its own error line
-    (:attr:`Child.error`, read to the end of its output first) — else ``""``: the run's last line
-    then says why the node stopped, not only that it did."""
+    """``": <reason>"`` of a node that ended with :data:`NODE_REFUSED` after refusing its
+    parameters or input at its start — its own ``<Node>: error:`` line (:attr:`Child.error`, read
+    to the end of its output first; ``nodes.common.run``) — else ``""``: the run's last line then
+    says why the node stopped, not only that it did."""
     if code != NODE_REFUSED:
         return ""
     ch._thread.join(2.0)
@@ -758,11 +761,13 @@ def run_graph(args, out, env) -> GraphResult:
                     drain_until = time.monotonic() + args.drain
                     continue
                 died = f"{name} died unexpectedly ({_exit_text(code)})"
-                if code == NODE_REFUSED:
-                    # it refused its parameters or input: a restart would fail the same way; the
-                    # run's last line says why in the node's words
+                refused = _node_error(ch, code)
+                if refused:
+                    # it refused its parameters or input at its start (its "<Node>: error:" line; a
+                    # callback's error mid-run says "error while running" and is restarted): a
+                    # restart would fail the same way; the run's last line says why in its words
                     reason = (f"{name} refused its parameters or input ({_exit_text(code)})"
-                              f"{_node_error(ch, code)}; not restarted: it would fail the same way")
+                              f"{refused}; not restarted: it would fail the same way")
                     result.problems.append(reason)
                     del children[name]   # it has ended: said once here, not again as a node that did not stop
                     break
@@ -1003,12 +1008,16 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
     summary["coefficient_messages"] = len(coef_msgs)
     if status is not None:
         summary["calibration_status"] = status
-    from ..io.accounting import account, recorded_counts, unique_stations
+    from ..io.accounting import account, captures_of, recorded_counts, unique_stations
 
+    try:        # the stand captures the first record was solved from (a stand-only run: all raw)
+        captures = captures_of(Calibration.from_yaml(coef_msgs[0]["coefficients_yaml"])) if coef_msgs else None
+    except (CoefficientError, ValueError):
+        captures = None         # a record the summary cannot read: said below, where it is used
     summary["accounting"] = account(stations, progress, restarts=getattr(graph, "restarts", None),
                                     calibration_ran=getattr(graph, "calibration_ran", True), paced=paced,
                                     recorded=recorded_counts([p["read"] for p in parts if p["read"] is not None]),
-                                    records=len(coef_msgs), input_counts=input_counts)
+                                    records=len(coef_msgs), captures=captures, input_counts=input_counts)
     stations, _ = unique_stations(stations)     # a restarted recorder received the latest ones again
     summary["stations_recorded"] = len(stations)
     cal = None
@@ -1466,6 +1475,7 @@ def check_csv_input(path) -> None:
     reader's own check, :func:`probelog.canonical_text`, on that line alone); its rows are the
     probe's to read.  Raises :class:`common.UserError`, one line naming the file."""
     import gzip
+    import zlib
 
     from ..io.probelog import HEADER, canonical_text
     from .common import UserError
@@ -1474,7 +1484,7 @@ def check_csv_input(path) -> None:
     try:
         with opener(path, "rt", encoding="utf-8", errors="replace", newline="") as fh:
             first = fh.readline(1 << 16)
-    except (OSError, EOFError) as exc:   # missing, unreadable, a directory, not gzip
+    except (OSError, EOFError, zlib.error) as exc:   # missing, unreadable, a directory, not gzip, corrupt
         raise UserError(f"--input {path}: {getattr(exc, 'strerror', None) or exc}") from None
     said = ("empty file" if not first else "line 1 is blank" if not first.strip()
             else "not text (a binary file?)" if "\ufffd" in first or "\x00" in first else "")

@@ -134,8 +134,7 @@ class Calibration:
         return self._hash(FORMAT_VERSION)
 
     def _hash(self, version: int) -> str:
-        blob = json.dumps(self._id_blob(version), sort_keys=True).encode()
-        return hashlib.sha256(blob).hexdigest()[:12]
+        return _blob_hash(self._id_blob(version))
 
     @property
     def plan(self) -> CorrectionPlan:
@@ -330,6 +329,8 @@ class Calibration:
                 rec = yamltext.load(fh)
         except yamltext.YAMLError as exc:
             raise CoefficientError(f"{path}: not valid YAML: {exc}") from None
+        except UnicodeDecodeError:      # a bag, a binary file given for the record
+            raise CoefficientError(f"{path}: not a calibration record (not UTF-8 text)") from None
         return cls.from_record(rec, source=str(path), base_dir=os.path.dirname(os.path.abspath(path)))
 
     @classmethod
@@ -359,9 +360,18 @@ def _plugin_named_elsewhere(cal: Calibration, version: int, items, rec_id):
             if moved is None:
                 moved = (have["name"], theirs.get("file") or theirs.get("module"),
                          ours.get("file") or ours.get("module"))
-    if moved is None or hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:12] != rec_id:
+    if moved is None:
         return None
-    return moved
+    try:
+        same = _blob_hash(blob) == rec_id
+    except (TypeError, ValueError):     # the record's plug-in entry holds what JSON cannot say
+        return None
+    return moved if same else None
+
+
+def _blob_hash(blob: dict) -> str:
+    """A record's id: the SHA-256 of its id blob as sorted JSON, 12 hex digits."""
+    return hashlib.sha256(json.dumps(blob, sort_keys=True).encode()).hexdigest()[:12]
 
 
 # --------------------------------------------------------------------------------------------

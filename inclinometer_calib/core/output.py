@@ -89,18 +89,15 @@ def exists_words(path) -> str:
     return f"{os.fspath(path)} already exists; refusing to overwrite it (choose another output name)"
 
 
-#: What the OS says of a refused write when it names no file (a writer's ``OSError(errno, text)``).
-_WRITE_REFUSALS = frozenset(_WORDS)
-
-
 def _names_output(exc: OSError, *paths) -> bool:
     """Whether ``exc`` is a refusal of writing the output at ``paths`` (a file, or a folder and
-    what is in it): it names one of them, or names no file and is a refusal of a write (a full
-    disk...).  Anything else raised while the output is written (an input that does not exist,
-    an input refused) is the input's error and keeps its own words."""
+    what is in it): it names one of them, or names no file and carries the OS's error number (a
+    writer's refusal: a full disk, a stale NFS handle...).  Anything else raised while the output
+    is written (an input that does not exist or is refused, named; the package's own words without
+    an error number) is the input's error and keeps its own words."""
     named = [os.fsdecode(f) for f in (exc.filename, exc.filename2) if isinstance(f, (str, bytes, os.PathLike))]
     if not named:
-        return exc.errno in _WRITE_REFUSALS
+        return exc.errno is not None
     outs = [os.path.abspath(os.fspath(p)) for p in paths]
     return any(f == o or f.startswith(o + os.sep) for f in map(os.path.abspath, named) for o in outs)
 

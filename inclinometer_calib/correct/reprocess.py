@@ -447,12 +447,12 @@ def reprocess(src, dst, calibration=None, site: Optional[Site] = None, tolerance
     if not report.pairs:
         # what is missing first, in words (a bag without one of the two streams said so, not as
         # thousands of samples "without a partner"); the output is the caller's to remove
-        c = engine.counts
-        absent = [t for t, n in ((TOPIC_IMU, c.imu), (TOPIC_MAG, c.mag)) if not n]
-        if absent:
-            reasons = f"no {' and no '.join(absent)} messages in the bag"
-        else:
-            reasons = "; ".join(report.warnings() + [str(e) for e in report.bag_errors]) or "no messages"
+        # (a topic of the wrong type is skipped, said among the reasons; ``copied`` has every topic
+        # read, copied to the output or not)
+        absent = [t for t in (TOPIC_IMU, TOPIC_MAG) if t not in report.copied and t not in report.skipped_topics]
+        said = [w for w in report.warnings() if not (absent and "partner" in w)]   # absent: no partners
+        reasons = "; ".join(([f"no {' and no '.join(absent)} messages in the bag"] if absent else [])
+                            + said + [str(e) for e in report.bag_errors]) or "no messages"
         raise ReprocessError(f"{src}: no usable {TOPIC_IMU} + {TOPIC_MAG} sample pairs ({reasons})")
     return report
 

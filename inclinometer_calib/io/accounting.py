@@ -102,28 +102,48 @@ def recorded_counts(paths) -> dict:
     return {k: len(v) for k, v in seen.items()}
 
 
-def none_corrected(stations, records: int) -> str:
+def none_corrected(stations, records: int, captures=None) -> str:
     """The problem of a run whose calibration solved (``records`` > 0) after every one of its
-    ``stations`` (survey first, the stand's poses last): all went out raw "before calibration",
-    which for the stand's poses alone is expected.  Empty when a station was corrected, or when
-    there are no stations or no record (said elsewhere: the calibration did not solve)."""
-    if not records or not stations or any(s["coefficients_id"] for s in stations):
+    ``stations`` while some of them were not its captures (survey first, the stand's poses last):
+    all went out raw "before calibration", which for the stand's poses alone is expected.
+    ``captures``: how many the first record was solved from (:func:`captures_of`; a session of the
+    stand alone has as many stations, all raw: its record applies after them); None, not known:
+    nothing said.  Empty when a station was corrected, when there are no stations, no record (said
+    elsewhere: the calibration did not solve), or stations raw for another reason (said as such)."""
+    if not records or not stations or captures is None:
         return ""
-    return (f"none of the {len(stations)} stations was corrected: the calibration solved after the last of them "
-            "(the survey came before the stand's poses?), so the survey is raw")
+    if any(s["coefficients_id"] or _reason_kind(s.get("uncorrected_reason", "")) != "before calibration"
+           for s in stations):
+        return ""
+    if len(stations) <= captures:
+        return ""
+    return (f"none of the {len(stations)} stations was corrected: the calibration solved from {captures} of them "
+            "after the last (the survey came before the stand's poses?), so the survey is raw")
+
+
+def captures_of(calibration) -> int | None:
+    """How many stand captures a calibration record was solved from: per pose the rounds the solve
+    used, plus the captures it left out (:func:`twelve_position.solve_captures`'s diagnostics);
+    None for a record that does not say (not solved from captures: a turntable's, a lab fit's)."""
+    diag = (getattr(calibration, "diagnostics", None) or {}).get("acc") or {}
+    per_pose = diag.get("per_pose")
+    if not per_pose:
+        return None
+    return int(sum(int(v.get("rounds") or 0) for v in per_pose.values())) + len(diag.get("left_out") or ())
 
 
 def account(stations, progress_messages, *, restarts=None, calibration_ran=True, paced=True,
             station_node: str = "correction", source: str = "probe", recorder: str = "recorder",
-            recorded=None, records: int = 0, input_counts=None) -> dict:
+            recorded=None, records: int = 0, captures=None, input_counts=None) -> dict:
     """The run's accounting (see the module docstring).  ``stations``: the recorded station dicts
     (all parts); ``progress_messages``: the recorded ``StreamProgress`` dicts in order;
     ``restarts``: node → count; ``calibration_ran``: stations before the calibration are then
-    expected to be raw, unless ``records`` (calibration records the run made) came after every
-    station (:func:`none_corrected`).  ``input_counts``: a replayed bag's messages per topic (its
-    summary), set against what the source sent: samples of the input it did not send (an imu or mag
-    sample without a partner of the same stamp, one that does not decode) are counted and said —
-    the input's own defect, as ``reprocess`` warns of it, not a loss of the run."""
+    expected to be raw, unless ``records`` (calibration records the run made; the first solved from
+    ``captures``) came after every station (:func:`none_corrected`).  ``input_counts``: a replayed
+    bag's messages per topic (its summary), set against what the source sent: samples of the input
+    it did not send (an imu or mag sample without a partner of the same stamp, one that does not
+    decode) are counted and said — the input's own defect, as ``reprocess`` warns of it, not a
+    loss of the run."""
     prog = last_progress(progress_messages)
     out: dict = {"problems": [], "readers": {}}
     problems = out["problems"]
@@ -195,7 +215,7 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
         example = next((s.get("uncorrected_reason") for s in uniq if not s["coefficients_id"]
                         and _reason_kind(s.get("uncorrected_reason", "")) == k), "")
         problems.append(f"{v} station(s) uncorrected: {example or k}")
-    late = none_corrected(uniq, records) if calibration_ran else ""
+    late = none_corrected(uniq, records, captures) if calibration_ran else ""
     if late:
         problems.append(late)
     out["restarts"] = dict(restarts or {})

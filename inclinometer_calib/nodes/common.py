@@ -48,14 +48,19 @@ def run(node_factory, args=None) -> int:
 
     Spins until Ctrl-C/SIGTERM (exit 0), or until the node's ``done`` future (if it has one)
     completes (exit with its result).  A bad parameter or unusable input ends the node with a
-    one-line error on stderr and exit status 2.  A node with ``hot_subscriptions`` (its sample
-    streams) is spun by a :class:`HotPathExecutor`, any other by rclpy's global executor.
+    one-line error on stderr and exit status 2: ``<Node>: error: ...`` when the node refused them
+    at its start (the launcher does not restart it: it would fail the same way), ``<Node>: error
+    while running: ...`` when a callback raised (the launcher restarts it as a node that died).  A
+    node with ``hot_subscriptions`` (its sample streams) is spun by a :class:`HotPathExecutor`,
+    any other by rclpy's global executor.
     """
     install_stop_hook()
     rclpy.init(args=args)
     node = executor = None
+    started = False
     try:
         node = node_factory()
+        started = True
         hot = getattr(node, "hot_subscriptions", ())
         executor = HotPathExecutor(hot) if hot else None
         done = getattr(node, "done", None)
@@ -65,7 +70,7 @@ def run(node_factory, args=None) -> int:
         return 0
     except (ParameterException, ValueError, OSError) as exc:
         name = node.get_name() if node is not None else getattr(node_factory, "__name__", "node")
-        print(f"{name}: error: {exc}", file=sys.stderr)
+        print(f"{name}: error{' while running' if started else ''}: {exc}", file=sys.stderr)
         return 2
     finally:
         # each step to its end even if a second stop signal lands in it (it would end the

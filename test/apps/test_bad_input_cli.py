@@ -436,15 +436,20 @@ def test_field_in_nT_written_as_tesla_in_a_bag_is_refused_with_the_unit_hint(sim
 def test_a_survey_recorded_before_its_calibration_is_not_a_clean_reprocess(simdir, tmp_path, capsys):
     """The survey first, the stand's poses after: every station goes out raw "before calibration",
     which for the stand's poses alone is expected: said, exit 1, as the live graph's summary does
-    (io/accounting.py); in the usual order, exit 0."""
+    (io/accounting.py); in the usual order, and the stand alone (all raw, all captures), exit 0."""
     pytest.importorskip("mcap")
     rev, ok = tmp_path / "rev.mcap", tmp_path / "ok.mcap"
     assert _run(capsys, ["bag", "from-csv", str(simdir / "val.csv"), str(simdir / "cal.csv"), "-o", str(rev)])[0] == 0
     assert _run(capsys, ["bag", "from-csv", str(simdir / "cal.csv"), str(simdir / "val.csv"), "-o", str(ok)])[0] == 0
     code, out, err = _run(capsys, ["reprocess", str(rev), "--calibrate", "-o", str(tmp_path / "r.mcap")])
     assert code == 1, err
-    assert "error: none of the " in err and "the calibration solved after the last of them" in err, err
+    assert "error: none of the " in err and "after the last (the survey came before the stand's poses?)" in err, err
     code, out, err = _run(capsys, ["reprocess", str(ok), "--calibrate", "-o", str(tmp_path / "o.mcap")])
+    assert code == 0 and "was corrected" not in err, err
+    stand = tmp_path / "stand.mcap"           # the stand alone: every station raw, all of them captures
+    assert _run(capsys, ["bag", "from-csv", str(simdir / "cal.csv"), "-o", str(stand)])[0] == 0
+    code, out, err = _run(capsys, ["reprocess", str(stand), "--calibrate", "-o", str(tmp_path / "s.mcap"),
+                                   "--coeffs-out", str(tmp_path / "s.yaml")])
     assert code == 0 and "was corrected" not in err, err
 
 
@@ -454,22 +459,26 @@ def test_a_bag_without_magnetometer_messages_says_so_and_leaves_no_output(bag, t
     from inclinometer_calib.io.bag import BagWriter, open_bag
 
     src, _ = bag
-    p = tmp_path / "nomag.mcap"
-    w = BagWriter(p, compression="none")
-    channels = {}
-    for m in open_bag(src).messages():
-        if m.topic == "/probe/mag":
-            continue
-        if m.topic not in channels:
-            channels[m.topic] = w.add_topic(m.topic, m.type)
-        w.write(channels[m.topic], m.data, m.log_time, m.publish_time)
-    w.close()
-    out = tmp_path / "o.mcap"
-    code, _, err = _run(capsys, ["reprocess", str(p), "--coeffs", "none", "-o", str(out)])
-    assert code == 2
-    assert "no /probe/mag messages in the bag" in err and "partner" not in err, err
-    assert "holds the copied input" not in err and not out.exists()
-    assert sum(line.startswith("error:") for line in err.splitlines()) == 1, err
+    for name, mag_type in (("nomag.mcap", None), ("wrongmag.mcap", "std_msgs/msg/String")):
+        p = tmp_path / name
+        w = BagWriter(p, compression="none")
+        channels = {}
+        for m in open_bag(src).messages():
+            if m.topic == "/probe/mag" and mag_type is None:
+                continue
+            if m.topic not in channels:
+                channels[m.topic] = w.add_topic(m.topic, mag_type if m.topic == "/probe/mag" else m.type)
+            w.write(channels[m.topic], m.data, m.log_time, m.publish_time)
+        w.close()
+        out = tmp_path / f"o-{name}"
+        code, _, err = _run(capsys, ["reprocess", str(p), "--coeffs", "none", "-o", str(out)])
+        assert code == 2
+        if mag_type is None:
+            assert "no /probe/mag messages in the bag" in err and "partner" not in err, err
+        else:   # there are messages, of another type: said as such, not as none
+            assert "no /probe/mag messages" not in err and "skipped topic /probe/mag" in err, err
+        assert "holds the copied input" not in err and not out.exists()
+        assert sum(line.startswith("error:") for line in err.splitlines()) == 1, err
 
 
 def test_a_killed_recorders_bag_is_recovered_by_the_cli_into_one_any_reader_opens(bag, tmp_path, capsys):

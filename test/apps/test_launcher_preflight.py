@@ -22,11 +22,19 @@ import os, signal, sys, time
 starts, name = sys.argv[1], sys.argv[2]
 with open(starts, "a") as f:
     f.write(name + "\n")
+if os.environ.get("STAND_IN_RUNERR") == name and open(starts).read().split().count(name) == 1:
+    print(f"{name.capitalize()}Node: error while running: a callback raised", file=sys.stderr)
+    sys.exit(2)
 if os.environ.get("STAND_IN_REFUSE") == name:
     print(f"{name.capitalize()}Node: error: Invalid parameter value (/x/nothere.yaml) for parameter. Reason: "
           "parameter coeffs_file: cannot use '/x/nothere.yaml': No such file or directory", file=sys.stderr)
     sys.exit(2)
 signal.signal(signal.SIGINT, lambda *_: sys.exit(0))
+if os.environ.get("STAND_IN_END") == name:      # ends once the others named have started (as often as named)
+    wait = os.environ.get("STAND_IN_WAIT", "").split(",")
+    while any(open(starts).read().split().count(w) < wait.count(w) for w in wait):
+        time.sleep(0.05)
+    sys.exit(0)
 while True:
     time.sleep(0.05)
 """
@@ -103,6 +111,13 @@ def test_a_file_that_is_not_a_coefficient_record_is_refused_before_any_node_star
     assert line.startswith("error: --coeffs notes.yaml: ") and "format" in line
 
 
+def test_a_binary_file_given_as_the_record_is_one_line_not_a_traceback(tmp_path):
+    """A bag given for --coeffs: YAML's reader raised UnicodeDecodeError, past the pre-flight."""
+    _bag_with(tmp_path / "run.mcap", ["/probe/imu"])
+    line = _refused(tmp_path, "--no-calibration", "--coeffs", "run.mcap")
+    assert line == "error: --coeffs run.mcap: not a calibration record (not UTF-8 text)", line
+
+
 def test_coeffs_none_is_not_taken_for_a_file_name(tmp_path):
     """``reprocess --coeffs none`` means no record; the launcher has no such mode: said, not passed on
     to the correction node as a file called none."""
@@ -135,11 +150,12 @@ def test_a_record_needing_a_plugin_not_named_is_refused_before_any_node_starts(t
 
 def test_a_record_whose_plugin_is_named_passes_the_checks_and_the_graph_starts(tmp_path, val_bag):
     """The same rule as the nodes': the plug-in named with --plugin, the record loads (and the
-    stand-in graph runs until --timeout)."""
+    stand-in graph runs: its probe ends once the correction has started, whatever the machine's speed)."""
     rec = _plugin_record(tmp_path)
+    env = dict(os.environ, STAND_IN_END="probe", STAND_IN_WAIT="correction")
     rc, stdout, stderr, started = _launch(tmp_path, "--out", tmp_path / "run", "--source", "mcap", "--input", val_bag,
                                           "--no-calibration", "--no-recorder", "--no-loop", "--coeffs", rec,
-                                          "--plugin", "plug/q.py", "--timeout", "1")
+                                          "--plugin", "plug/q.py", "--timeout", "60", env=env)
     assert sorted(started) == ["correction", "probe"], f"{stdout[-3000:]}\n{stderr[-2000:]}"
     assert "error:" not in stderr
 
@@ -223,3 +239,13 @@ def test_a_node_refusing_its_parameters_is_not_restarted_and_the_last_line_gives
                     "coeffs_file: cannot use '/x/nothere.yaml': No such file or directory; not restarted: it would "
                     "fail the same way"), last
     assert "restarting" not in stdout and "died unexpectedly" not in stdout
+
+
+def test_a_node_whose_callback_failed_mid_run_is_restarted_as_a_node_that_died(tmp_path):
+    """Exit status 2 with "error while running" (nodes.common.run: a callback raised, not its
+    parameters refused at the start): restarted after the lease as any node that died."""
+    env = dict(os.environ, STAND_IN_RUNERR="correction", STAND_IN_END="probe", STAND_IN_WAIT="correction,correction")
+    rc, stdout, stderr, started = _launch(tmp_path, "--out", tmp_path / "run", "--no-calibration", "--no-recorder",
+                                          "--no-loop", "--timeout", "60", env=env)
+    assert started.count("correction") == 2, stdout[-3000:]
+    assert "correction died unexpectedly (exit status 2)" in stdout and "refused its parameters" not in stdout

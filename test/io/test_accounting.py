@@ -1,7 +1,7 @@
 """The run's accounting (accounting.py): a reader is said to have taken every sample only when both
 sides' final counts are known; a loss is named per reader and topic; the recorder's counts are the
 recording's own."""
-from inclinometer_calib.io.accounting import account, format_account
+from inclinometer_calib.io.accounting import account, captures_of, format_account
 
 SENT = {"imu": 1000, "mag": 1000, "temperature": 1000, "reference": 10, "depth": 10}
 
@@ -67,17 +67,27 @@ BEFORE = "before calibration: the calibration has not solved yet"
 
 def test_a_calibration_that_solved_after_every_station_leaves_a_raw_survey_and_no_clean_run():
     """The survey before the calibration (a bag of the survey, then the stand): every station raw
-    "before calibration" although a record was made — not a clean run, said; the stand's own
-    poses raw before a survey that was corrected are expected; no record: said elsewhere."""
+    "before calibration" although a record was solved from 12 of them — not a clean run, said; the
+    stand alone (12 stations, 12 captures: its record applies after them) and the stand's poses
+    raw before a corrected survey are expected; no record, captures not known, stations raw for
+    another reason: nothing said here."""
+    class Record:   # what captures_of reads of a record solved from captures (two left out)
+        diagnostics = {"acc": {"per_pose": {p: {"rounds": 1} for p in range(1, 11)}, "left_out": ["a", "b"]}}
+
+    assert captures_of(Record()) == 12
+    assert captures_of(type("Turntable", (), {"diagnostics": {"acc": {}}})()) is None
     survey_first = [_station(i, reason=BEFORE) for i in range(210)]
-    a = account(survey_first, [], records=1)
+    a = account(survey_first, [], records=1, captures=12)
     assert [p for p in a["problems"] if "was corrected" in p] == [
-        "none of the 210 stations was corrected: the calibration solved after the last of them (the survey came "
-        "before the stand's poses?), so the survey is raw"]
+        "none of the 210 stations was corrected: the calibration solved from 12 of them after the last (the survey "
+        "came before the stand's poses?), so the survey is raw"]
+    assert account(survey_first[:12], [], records=1, captures=12)["problems"] == []          # the stand alone
     stand_first = [_station(i, reason=BEFORE) for i in range(12)] + [_station(i, "abc") for i in range(12, 210)]
-    assert account(stand_first, [], records=1)["problems"] == []
-    assert account(survey_first, [], records=0)["problems"] == []          # did not solve: the launcher says so
-    assert account(survey_first, [], records=1, calibration_ran=False)["problems"] != []   # no record: said as before
+    assert account(stand_first, [], records=1, captures=12)["problems"] == []
+    assert account(survey_first, [], records=0, captures=12)["problems"] == []   # did not solve: said elsewhere
+    assert account(survey_first, [], records=1, captures=None)["problems"] == []
+    refused = survey_first[:11] + [_station(11, reason="record refused: another probe's")]
+    assert not any("was corrected" in p for p in account(refused, [], records=1, captures=5)["problems"])
 
 
 def test_samples_of_the_input_bag_the_probe_did_not_send_are_counted_and_said():

@@ -34,7 +34,7 @@ def cmd_reprocess(args):
     be done.
     """
     from ...io.bag import BagError
-    from ...io.accounting import none_corrected
+    from ...io.accounting import captures_of, none_corrected
     from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
@@ -111,7 +111,8 @@ def cmd_reprocess(args):
             print(f"error: calibration did not solve: {rep.calibration_message or 'no twelve-pose captures'}",
                   file=sys.stderr)
             rc = 1
-        late = none_corrected(rep.stations, len(rep.calibrations))
+        late = none_corrected(rep.stations, len(rep.calibrations),
+                              captures_of(rep.calibrations[0]) if rep.calibrations else None)
         if late:        # the live graph's summary says the same (io/accounting.py): not a clean run
             print(f"error: {late}", file=sys.stderr)
             rc = 1
