@@ -121,6 +121,18 @@ def none_corrected(stations, records: int, captures=None) -> str:
             "after the last (the survey came before the stand's poses?), so the survey is raw")
 
 
+def beyond_captures(before: int, captures) -> str:
+    """What ``before`` stations raw "before calibration" beyond the record's ``captures`` (None: not
+    known) were, in words; empty when there are none.  Said, not counted against the run: which raw
+    ones were not the stand's poses (a retake, a rest, a survey station before the record) only the
+    calibration knows."""
+    if captures is None or before <= captures:
+        return ""
+    return (f"{before - captures} more than the {captures} stand captures the record was solved from: stations "
+            "that were not the stand's poses went out raw — a retake, a rest on the stand, or survey stations "
+            "before the calibration solved")
+
+
 def captures_of(calibration) -> int | None:
     """How many stand captures a calibration record was solved from: per pose the rounds the solve
     used, plus the captures it left out (:func:`twelve_position.solve_captures`'s diagnostics);
@@ -215,6 +227,8 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
         example = next((s.get("uncorrected_reason") for s in uniq if not s["coefficients_id"]
                         and _reason_kind(s.get("uncorrected_reason", "")) == k), "")
         problems.append(f"{v} station(s) uncorrected: {example or k}")
+    if calibration_ran and captures is not None:
+        st["captures"] = int(captures)      # the stand's captures the first record was solved from
     late = none_corrected(uniq, records, captures) if calibration_ran else ""
     if late:
         problems.append(late)
@@ -257,6 +271,9 @@ def format_account(a: dict) -> list:
         raw = st.get("uncorrected") or {}
         if raw:
             line += "; uncorrected: " + ", ".join(f"{v} {k}" for k, v in raw.items())
+            note = beyond_captures(raw.get("before calibration", 0), st.get("captures"))
+            if note:
+                line += f" ({note})"
         if st["id_gaps"]:
             line += "; ids missing: " + ", ".join(f"{x}" if x == y else f"{x}-{y}" for x, y in st["id_gaps"])
         lines.append(line)

@@ -102,3 +102,17 @@ def test_samples_of_the_input_bag_the_probe_did_not_send_are_counted_and_said():
     assert a["problems"] == []
     whole = account([], [progress("probe", True)], input_counts={"/probe/imu": 1000, "/probe/mag": 1000})
     assert whole["input"]["not_sent"] == {} and not any("not sent" in x for x in format_account(whole))
+
+
+def test_stations_raw_before_the_calibration_beyond_its_captures_are_said_not_hidden():
+    """23 stations raw before a record solved from 22 captures (a sequence missing a pose ended on
+    a survey station): the summary says the one more — only the calibration knows which it was, so
+    it is said, not counted against the run."""
+    stations = [_station(i, reason=BEFORE) for i in range(23)] + [_station(i, "abc") for i in range(23, 60)]
+    a = account(stations, [], records=1, captures=22)
+    assert a["problems"] == [] and a["stations"]["captures"] == 22
+    line = next(x for x in format_account(a) if x.startswith("stations:"))
+    assert "; uncorrected: 23 before calibration (1 more than the 22 stand captures the record was solved from: " \
+           "stations that were not the stand's poses went out raw" in line, line
+    exact = account(stations[:22] + stations[23:], [], records=1, captures=22)
+    assert "more than the" not in next(x for x in format_account(exact) if x.startswith("stations:"))

@@ -34,7 +34,8 @@ def cmd_reprocess(args):
     be done.
     """
     from ...io.bag import BagError
-    from ...io.accounting import captures_of, none_corrected
+    from ...io.accounting import beyond_captures, captures_of, none_corrected
+    from ...correct.engine import BEFORE_CALIBRATION
     from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
@@ -111,11 +112,16 @@ def cmd_reprocess(args):
             print(f"error: calibration did not solve: {rep.calibration_message or 'no twelve-pose captures'}",
                   file=sys.stderr)
             rc = 1
-        late = none_corrected(rep.stations, len(rep.calibrations),
-                              captures_of(rep.calibrations[0]) if rep.calibrations else None)
+        captures = captures_of(rep.calibrations[0]) if rep.calibrations else None
+        late = none_corrected(rep.stations, len(rep.calibrations), captures)
         if late:        # the live graph's summary says the same (io/accounting.py): not a clean run
             print(f"error: {late}", file=sys.stderr)
             rc = 1
+        else:           # and this, said only
+            before = sum(1 for s in rep.stations if s["uncorrected_reason"].startswith(BEFORE_CALIBRATION))
+            note = beyond_captures(before, captures)
+            if note:
+                print(f"note: {before} stations uncorrected before the calibration: {note}")
     print(f"wrote {args.output} ({n} {TOPIC_STATION} messages, "
           f"{sum(rep.copied.values())} input messages copied); {rep.log_span_s:.1f} s of data in "
           f"{rep.seconds:.2f} s ({speed:.0f}× real time)")
