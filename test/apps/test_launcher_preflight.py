@@ -201,13 +201,31 @@ def test_a_bag_without_probe_samples_names_what_it_holds(tmp_path):
     assert "no /probe/imu and no /probe/mag messages" in line and "3 on /probe/temperature" in line, line
 
 
-def test_an_unreadable_csv_input_is_refused_before_any_node_starts(tmp_path):
-    if os.geteuid() == 0:
-        pytest.skip("root reads any file")
+def test_an_unreadable_csv_input_is_refused_before_any_node_starts(tmp_path, monkeypatch):
+    """The OS's refusal to open the file, one line.  Root reads any file: there the refusal is made
+    by the open the check calls (the same OSError the OS would raise); elsewhere by chmod, through
+    the whole launcher too."""
+    import builtins
+
+    from inclinometer_calib.apps import launcher
+    from inclinometer_calib.apps.common import UserError
+
     p = tmp_path / "locked.csv"
     p.write_text("t_s,ax,ay,az,mx,my,mz\n")
-    p.chmod(0)
-    assert "Permission denied" in _refused(tmp_path, "--source", "csv", "--input", "locked.csv")
+    if os.geteuid() != 0:
+        p.chmod(0)
+        assert "Permission denied" in _refused(tmp_path, "--source", "csv", "--input", "locked.csv")
+    real_open = builtins.open
+
+    def refusing(f, *a, **k):
+        if os.fspath(f) == str(p):
+            raise PermissionError(13, "Permission denied", str(p))
+        return real_open(f, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", refusing)
+    with pytest.raises(UserError) as exc:
+        launcher.check_csv_input(str(p))
+    assert str(exc.value) == f"--input {p}: Permission denied"
 
 
 def test_the_user_trials_command_with_a_missing_coeffs_file_exits_2_in_one_line(tmp_path, val_bag):
