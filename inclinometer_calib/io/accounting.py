@@ -112,13 +112,17 @@ def none_corrected(stations, records: int, captures=None) -> str:
     elsewhere: the calibration did not solve), or stations raw for another reason (said as such)."""
     if not records or not stations or captures is None:
         return ""
-    if any(s["coefficients_id"] or _reason_kind(s.get("uncorrected_reason", "")) != "before calibration"
-           for s in stations):
-        return ""
-    if len(stations) <= captures:
+    if raw_before_calibration(stations) < len(stations) or len(stations) <= captures:
         return ""
     return (f"none of the {len(stations)} stations was corrected: the calibration solved from {captures} of them "
             "after the last (the survey came before the stand's poses?), so the survey is raw")
+
+
+def raw_before_calibration(stations) -> int:
+    """How many of ``stations`` went out without a correction because no record applied yet
+    (``uncorrected_reason`` "before calibration")."""
+    return sum(1 for s in stations if not s["coefficients_id"]
+               and _reason_kind(s.get("uncorrected_reason", "")) == "before calibration")
 
 
 def beyond_captures(before: int, captures) -> str:

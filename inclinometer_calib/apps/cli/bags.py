@@ -34,8 +34,7 @@ def cmd_reprocess(args):
     be done.
     """
     from ...io.bag import BagError
-    from ...io.accounting import beyond_captures, captures_of, none_corrected
-    from ...correct.engine import BEFORE_CALIBRATION
+    from ...io.accounting import beyond_captures, captures_of, none_corrected, raw_before_calibration
     from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
@@ -118,7 +117,7 @@ def cmd_reprocess(args):
             print(f"error: {late}", file=sys.stderr)
             rc = 1
         else:           # and this, said only
-            before = sum(1 for s in rep.stations if s["uncorrected_reason"].startswith(BEFORE_CALIBRATION))
+            before = raw_before_calibration(rep.stations)
             note = beyond_captures(before, captures)
             if note:
                 print(f"note: {before} stations uncorrected before the calibration: {note}")
