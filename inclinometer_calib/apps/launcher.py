@@ -1008,16 +1008,19 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
     summary["coefficient_messages"] = len(coef_msgs)
     if status is not None:
         summary["calibration_status"] = status
-    from ..io.accounting import account, captures_of, recorded_counts, unique_stations
+    from ..io.accounting import account, captures_of, recorded_counts, stand_of, unique_stations
 
-    try:        # the stand captures the first record was solved from (a stand-only run: all raw)
-        captures = captures_of(Calibration.from_yaml(coef_msgs[0]["coefficients_yaml"])) if coef_msgs else None
+    try:        # the stand captures the first record was solved from, and where they lie in time
+        first = Calibration.from_yaml(coef_msgs[0]["coefficients_yaml"]) if coef_msgs else None
     except (CoefficientError, ValueError):
-        captures = None         # a record the summary cannot read: said below, where it is used
+        first = None            # a record the summary cannot read: said below, where it is used
+    captures = captures_of(first) if first is not None else None
+    stand = stand_of(first) if first is not None else None
     summary["accounting"] = account(stations, progress, restarts=getattr(graph, "restarts", None),
                                     calibration_ran=getattr(graph, "calibration_ran", True), paced=paced,
                                     recorded=recorded_counts([p["read"] for p in parts if p["read"] is not None]),
-                                    records=len(coef_msgs), captures=captures, input_counts=input_counts)
+                                    records=len(coef_msgs), captures=captures, stand=stand,
+                                    input_counts=input_counts)
     stations, _ = unique_stations(stations)     # a restarted recorder received the latest ones again
     summary["stations_recorded"] = len(stations)
     cal = None

@@ -21,7 +21,11 @@ the same detector.  The session
   ``end_after_s`` of data time passed without a capture — and at the end of the data
   (:meth:`finish`); it screens out captures that do not fit and solves by least squares when a
   pose is left without one (:func:`twelve_position.solve_captures`), and says which poses are
-  missing and why.  A sequence that is over is closed: only a new round from pose 1 in Table 1's
+  missing and why.  Such a record applies from the first of the statics that ended the sequence
+  (:attr:`CaptureSession.applies_from`): until the next static or the end decides, a static that
+  is not a pose may be a rest on the stand or the survey's first station
+  (:attr:`CaptureSession.undecided_since`: the engine holds it), and the record says where the
+  stand's stations lie in the data's time (:meth:`CaptureSession.stand_span`).  A sequence that is over is closed: only a new round from pose 1 in Table 1's
   order (or a recapture) is taken after it, never a survey station near a pose that is missing;
 * with a **model** named (``effects``, the package's effect grammar, e.g.
   ``temperature_bias:mag``), fits the paper's model plus those effects to the captures with the
@@ -135,9 +139,15 @@ class CaptureSession:
         self._strays = 0                  # statics in a row that are not poses of the sequence
         self._refused: dict = {}          # pose -> why its last capture was refused
         self._pre_round = False           # a second round under way before any solve
-        #: whether the last solve during :meth:`offer` used the station offered (False: the
-        #: sequence ended at it, so it is the first survey station, corrected by that solve)
-        self.last_offer_used = True
+        self._stray_t0 = math.nan         # start (data time, s) of the first of those strays
+        #: (t_start, t_end) of every station taken as a pose (captured, merged or refused): where the
+        #: stand's stations lie (:meth:`stand_span`)
+        self._poses_seen: list = []
+        #: data time (s) from which the record of a solve in the last :meth:`offer` or
+        #: :meth:`finish` applies, when the sequence ended there: the start of the first station that
+        #: was not the stand's (the first stray — it is the survey's first station); None: the solve
+        #: came with a capture (the record applies after it) or none came
+        self.applies_from = None
 
     # ---- views -----------------------------------------------------------------------------
     @property
@@ -227,14 +237,20 @@ class CaptureSession:
         Before any solve, a static long after the last capture, or ``end_after_stations`` statics
         in a row that are not poses of the sequence, end it (:meth:`end_sequence`).
         """
+        self.applies_from = None
         if self._open:
             gap = st.t_start - self.captures[-1].t_end
             if gap > self.end_after_s:
                 self.end_sequence(f"{gap:.0f} s without a capture before the static at {st.where} (end_after_s "
-                                  f"{self.end_after_s:g})")
+                                  f"{self.end_after_s:g})", at=st.t_start)
         result = self._offer(st)
+        if result in ("accepted", "merged", "rejected", "solved"):   # a pose: the probe on the stand?
+            self._poses_seen.append((st.t_start, st.t_end))
+            del self._poses_seen[:-1000]     # bounded (a stand's poses and retakes are far fewer)
         if self._open:
             if result == "ignored":
+                if not self._strays:
+                    self._stray_t0 = st.t_start
                 self._strays += 1
                 if self._strays >= self.end_after_stations:
                     self.end_sequence(f"{self._strays} statics in a row that are not poses of the sequence, the "
@@ -243,14 +259,25 @@ class CaptureSession:
                 self._strays = 0
         return result
 
-    def end_sequence(self, why: str = "the sequence is over"):
+    @property
+    def undecided_since(self):
+        """Start (data time, s) of the first of the statics in a row, after captures, that are not
+        poses of the open sequence — whether they are the survey's first stations (the sequence
+        ends at the ``end_after_stations``-th: its record applies from the first) or a rest on the
+        stand (a capture follows: they stay the stand's) is not decided yet; None: nothing is
+        undecided.  A driver holds the survey's use of those stations until it is."""
+        return self._stray_t0 if self._open and self._strays else None
+
+    def end_sequence(self, why: str = "the sequence is over", at=None):
         """The twelve-pose sequence is over (the probe left the stand, or the time ran out) with
         poses missing or refused: solve with the captures there are (least squares), say which
         poses are missing and why, and close the session to them (a new round from pose 1, or a
-        recapture, is still taken).  Returns the calibration or None."""
+        recapture, is still taken).  The record applies (:attr:`applies_from`) from the first
+        stray's start, else from ``at`` (data time, s: the station that ended it).  Returns the
+        calibration or None."""
+        self.applies_from = self._stray_t0 if self._strays else at
         self.ended = True
         self._strays = 0
-        self.last_offer_used = False
         missing = self.pending
         if not missing and self.state == "done":
             return self.calibration
@@ -481,7 +508,6 @@ class CaptureSession:
 
     def _maybe_solve(self, now: bool) -> str:
         if now:
-            self.last_offer_used = True
             return "solved" if self.solve() is not None else "rejected"
         return "accepted"
 
@@ -506,6 +532,7 @@ class CaptureSession:
         self._h2, self._heading, self._heading_said, self.solve_notes = [0.0, 0.0], 0.0, False, []
         self._solve_texts = set()
         self.ended, self._strays, self._refused, self._pre_round = False, 0, {}, False
+        self._stray_t0, self._poses_seen, self.applies_from = math.nan, [], None
         self.result = self.calibration = None
         self.state, self.message, self.current_pose, self.solves = "collecting", "", -1, 0
 
@@ -515,8 +542,11 @@ class CaptureSession:
         A round in progress after the first solve is not used (incomplete); labelled captures are.
         Before any solve, the captures there are are solved if they determine the model (least
         squares, poses missing) — else the session ends in 'error' with a message naming the
-        poses never captured.  Returns the calibration or None.
+        poses never captured.  Statics after the last capture that had not ended the sequence
+        yet (:attr:`undecided_since`) were the survey's: the record applies from the first of them.
+        Returns the calibration or None.
         """
+        self.applies_from = self.undecided_since
         if self.state == "done" and self._round:
             self._warn(f"round {self.solves + 1} incomplete at the end of the data (poses "
                        f"{[c.pose for c in self._round]}): not used")
@@ -571,6 +601,9 @@ class CaptureSession:
                 cal.site_source = "measured"
             if self._specs or self._options:
                 cal = self._fit_model(cal, notes)
+            span = self.stand_span()
+            if span is not None:   # in the record: a run's accounting tells the stand's raw stations from a survey's
+                cal.diagnostics["stand"] = {"t_start": float(span[0]), "t_end": float(span[1])}
             self.calibration = cal
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.state = "error"
@@ -592,6 +625,30 @@ class CaptureSession:
                         f"{self.result.acc.rms_residual:.5f} m/s², mag {self.result.mag.rms_residual:.2f} nT "
                         f"({self.result.acc.z_rms:.1f}× and {self.result.mag.z_rms:.1f}× the noise)")
         return self.calibration
+
+    def stand_span(self):
+        """``(t_start, t_end)`` (data time, s) of the stand after a solve: from the first to the last
+        capture the solve used (either triad), widened by the stations taken as poses (captured,
+        merged, refused, left out) that follow on from it — each within ``end_after_s`` of the next,
+        the gap that ends a sequence; None before a solve.  A survey station taken for a pose long
+        before or after the stand (a vertical well near pose 9's attitude) is not in it."""
+        if self.result is None:
+            return None
+        used = set(self.result.acc.used) | set(self.result.mag.used)
+        caps = [c for c in self.captures if f"pose {c.pose} at {c.where}" in used]   # capture_sets' names
+        if not caps:
+            return None
+        t0, t1 = min(c.t_start for c in caps), max(c.t_end for c in caps)
+        seen = sorted(self._poses_seen)
+        for a, b in reversed(seen):          # back from the first capture used
+            if b < t0 and t0 - b > self.end_after_s:
+                break
+            t0 = min(t0, a)
+        for a, b in seen:                    # on from the last
+            if a > t1 and a - t1 > self.end_after_s:
+                break
+            t1 = max(t1, b)
+        return t0, t1
 
     @property
     def _solve_site(self) -> Site:

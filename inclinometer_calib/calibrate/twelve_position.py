@@ -159,6 +159,8 @@ class TriadSolution:
     z_rms : residual RMS in units of the noise the data show (≈ 1 when the model explains the
         data to the noise; NaN when the noise is unknown)
     left_out : messages naming the captures left out because they did not fit
+    used : the names of the captures solved from (:attr:`CaptureSet.names`; empty when not solved
+        from named captures)
     """
 
     model: TriadModel
@@ -170,6 +172,7 @@ class TriadSolution:
     method: str = "closed form (eqs. 5-16)"
     z_rms: float = float("nan")
     left_out: list = field(default_factory=list)
+    used: list = field(default_factory=list)
     uncertainty: dict = field(default_factory=dict)   # 1σ bias/scale of the corrected triad (fit_uncertainty)
 
     @property
@@ -626,6 +629,7 @@ def solve_triad_captures(caps: CaptureSet, vertical_ref: float, horizontal0, *, 
                                              f"{missing}: the closed form needs all twelve)")
         check_solution(sol, name, scale_range, unit)
     sol.left_out = left_out
+    sol.used = list(kept.names)
     if not sol.uncertainty:        # least squares over the captures: the fit's own covariance
         sol.uncertainty = fit_uncertainty(kept.poses, kept.sigmas, fit)
     return sol

@@ -195,6 +195,8 @@ class Calibration:
             rec["fit"] = self.diagnostics["fit"]             # a lab fit's statistics
         if self.diagnostics.get("turntable"):
             rec["turntable"] = self.diagnostics["turntable"]  # the turntable's α/β, sinusoids, residual
+        if self.diagnostics.get("stand"):
+            rec["stand"] = self.diagnostics["stand"]         # where the stand's poses lie in the data's time
         return rec
 
     def to_yaml(self) -> str:
@@ -306,6 +308,15 @@ class Calibration:
             diags["fit"] = rec["fit"]
         if rec.get("turntable"):
             diags["turntable"] = rec["turntable"]
+        if "stand" in rec:
+            span = rec["stand"]
+            try:
+                t0, t1 = float(span["t_start"]), float(span["t_end"])
+            except (KeyError, TypeError, ValueError):
+                fail(f"stand must be a mapping of t_start and t_end (data time, s), got {span!r}")
+            if not (np.isfinite(t0) and np.isfinite(t1) and t0 <= t1):
+                fail(f"stand: t_start {t0!r} .. t_end {t1!r} is not a span of data time")
+            diags["stand"] = {"t_start": t0, "t_end": t1}
         cal = cls(probe, probe_id=str(rec.get("probe_id", "probe")), method=str(rec.get("method", "")),
                   created=str(rec.get("created", "")), site=site, diagnostics=diags,
                   site_source=str(rec.get("site_source", "unknown")),

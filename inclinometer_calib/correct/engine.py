@@ -18,7 +18,9 @@ object with the same rules, so a bag replayed through the live graph gives the s
 3. **gates** once (:func:`gates.apply_gates`, the same limits and gravity for every role);
 4. **the capture session** (calibrate role: :class:`capture.CaptureSession` or the turntable's)
    is offered the station; a solve is a record, stamped with the data time from which it applies
-   (:meth:`_stamp_of_solve`);
+   (:meth:`_stamp_of_solve`); a station the session has not decided on yet (a rest on the stand,
+   or the survey's first station: ``undecided_since``) is held from the survey — and the
+   calibration role's :attr:`settled` stays before it — until the next station or the end decides;
 5. **the survey** (survey role: :class:`pipeline.SurveyProcessor`): the station is corrected by
    the record in force at its end — the latest whose stamp lies before it (:meth:`record_for`) —
    evaluated against the site, placed on the trajectory, and checked by the field monitor; its
@@ -226,6 +228,11 @@ class StreamEngine:
         self.cal_ended = False
         self.cal_gone = False                   # the driver gave up on it (node dead): no more waiting
         self._hold = ""                         # what every station waits for first (set_expect clears it)
+        # stations the session has not decided on yet (survey or the stand's: capture.CaptureSession.
+        # undecided_since): the survey role holds them, and the calibration role's progress does not
+        # pass them (a correction node keeping step waits for the record that may apply to them)
+        self._undecided: list = []              # held _Pending (survey role)
+        self._undecided_close = None            # t_close of the first of them (either role)
 
     def hold(self, what: str) -> None:
         """Stations wait for ``what`` (the source's announcement: :meth:`set_expect`) before anything."""
@@ -455,7 +462,7 @@ class StreamEngine:
         for st in closed:
             self._closed(st, t)
         if not self._pending:
-            self.settled = t
+            self.settled = t if self._undecided_close is None else min(t, self._undecided_close - TIME_EPS)
         return closed
 
     def samples(self, t, g, m, temp_c=None) -> None:
@@ -557,8 +564,15 @@ class StreamEngine:
                 p.station.warnings.append(text)
                 self._say("warning", text)
             self._go(p)
+        self._settle()
+
+    def _settle(self) -> None:
+        """:attr:`settled`: every station closed at or before it has gone out and been decided."""
+        pending = self._pending
         self.settled = (pending[0].t_close - TIME_EPS) if pending else (INF if self.ended else
                                                                           max(self.settled, self.t_last))
+        if self._undecided_close is not None:
+            self.settled = min(self.settled, self._undecided_close - TIME_EPS)
 
     def _go(self, p: _Pending) -> None:
         st = p.station
@@ -572,6 +586,26 @@ class StreamEngine:
         self.released_t = max(self.released_t, st.t_end)
         if self.session is not None:
             self._offer(st)
+            if getattr(self.session, "undecided_since", None) is not None:
+                # the survey's first station or a rest on the stand: the next static (or the end) says
+                if self._undecided_close is None:
+                    self._undecided_close = p.t_close
+                if self.proc is not None:
+                    self._undecided.append(p)
+                return
+            self._decided()
+        self._survey(p)
+
+    def _decided(self) -> None:
+        """The session has decided on the stations it held (the record of a sequence that ended at
+        them applies to them): they go on to the survey, in order."""
+        self._undecided_close = None
+        held, self._undecided = self._undecided, []
+        for q in held:
+            self._survey(q)
+
+    def _survey(self, p: _Pending) -> None:
+        st = p.station
         if self.proc is None or (st.short and not self.publish_short):
             return
         cal = self.record_for(st.t_end)
@@ -621,10 +655,11 @@ class StreamEngine:
     def _stamp_of_solve(self, st) -> float:
         """From when a record solved while ``st`` was offered applies: after the station when it
         was one of the captures solved from (a station is never corrected by coefficients solved
-        from itself), from its start when it was not (the sequence ended at it: it is the first
-        station of the survey)."""
-        used = getattr(self.session, "last_offer_used", True)
-        return st.t_end if used else st.t_start - TIME_EPS
+        from itself); when the sequence ended there, from the start of the first station that was
+        not the stand's (``session.applies_from``: that one, or the first of the strays before it,
+        held until then — the survey's first stations)."""
+        since = getattr(self.session, "applies_from", None)
+        return st.t_end if since is None else since - TIME_EPS
 
     def _solved(self, n_solves: int, before: tuple, stamp: float) -> None:
         s = self.session
@@ -663,7 +698,11 @@ class StreamEngine:
         for w in s.warnings[n_warn:]:
             if not (s.state == "error" and w == s.message):
                 self._say("warning", w)
-        self._solved(n_solves, before, self.t_last)
+        since = getattr(s, "applies_from", None)
+        self._solved(n_solves, before, self.t_last if since is None else since - TIME_EPS)
+        if self._undecided_close is not None:
+            self._decided()
+            self._settle()
 
     def end(self) -> None:
         """The end of the data: the open hold closes and every station goes out with what arrived
@@ -685,7 +724,7 @@ class StreamEngine:
     @property
     def done(self) -> bool:
         """The data ended and every station has gone out."""
-        return self.ended and not self._pending
+        return self.ended and not self._pending and self._undecided_close is None
 
 
 _CONSEQUENCE = {

@@ -11,8 +11,8 @@ recorded bag (all its parts) this module puts that together with the recorded st
   different values;
 * **corrections**: the recorded stations without a correction and why
   (``SurveyStation.uncorrected_reason``): before the calibration solved (the stand's poses
-  themselves: expected — but not every station: a record that came after the last of them, the
-  survey before the stand, left the whole survey raw, :func:`none_corrected`), a record refused
+  themselves: expected — but a station raw before the calibration outside the stand's span, as
+  its record says it, is a survey station left raw, :func:`survey_raw`), a record refused
   (another probe's), no record at all;
 * **patience**: stations that went out before their reference, temperatures, depth or the
   calibration's step arrived (a live source's wall-clock patience ran out);
@@ -102,6 +102,55 @@ def recorded_counts(paths) -> dict:
     return {k: len(v) for k, v in seen.items()}
 
 
+def stand_of(calibration):
+    """``(t_start, t_end)``, data time (s): where the stations a capture session took as the stand's
+    poses (captured, merged or refused) lie (``diagnostics["stand"]``, :class:`capture.CaptureSession`);
+    None for a record that does not say (a turntable's, a lab fit's, one made before it was kept)."""
+    span = (getattr(calibration, "diagnostics", None) or {}).get("stand") or {}
+    try:
+        t0, t1 = float(span["t_start"]), float(span["t_end"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    return (t0, t1) if math.isfinite(t0) and math.isfinite(t1) and t0 <= t1 else None
+
+
+#: Slack (s) on the stand's span: stamps go through a message header (ns) and a record's YAML.
+SPAN_SLACK_S = 1e-6
+
+
+def survey_raw(stations, records: int, captures=None, stand=None) -> str:
+    """The problem, one sentence, of a run whose calibration solved (``records`` > 0) but left
+    survey stations raw: stations raw "before calibration" that were not the stand's.  With the
+    first record's ``stand`` span (:func:`stand_of`) those are the raw ones that lie outside it
+    (a station from ``stamp`` − ``duration_s`` to ``stamp``): before the stand's first pose (the
+    survey, or part of it, came first) or after its last (a sequence's end the record did not
+    cover); a retake or a rest on the stand lies inside and is the stand's.  Without it (an older
+    record), or when every station is inside it, the whole survey raw is still told
+    (:func:`none_corrected`).  Empty: nothing to say here (no record: said elsewhere, the
+    calibration did not solve)."""
+    if not records or not stations:
+        return ""
+    if stand is None:
+        return none_corrected(stations, records, captures)
+    t0, t1 = stand[0] - SPAN_SLACK_S, stand[1] + SPAN_SLACK_S
+    before = after = 0
+    for s in stations:
+        if s["coefficients_id"] or _reason_kind(s.get("uncorrected_reason", "")) != "before calibration":
+            continue
+        end = float(s["stamp"])
+        start = end - float(s.get("duration_s") or 0.0)
+        if end < t0:
+            before += 1
+        elif start > t1:
+            after += 1
+    if not before + after:
+        return none_corrected(stations, records, captures)
+    where = " and ".join(w for w in (f"{before} before the stand's first pose (the survey came first?)" if before
+                                     else "", f"{after} after its last" if after else "") if w)
+    return (f"{before + after} survey station(s) raw: not the stand's poses (those lie at t={stand[0]:.3f}–"
+            f"{stand[1]:.3f} s), they went out before the calibration solved — {where}")
+
+
 def none_corrected(stations, records: int, captures=None) -> str:
     """The problem of a run whose calibration solved (``records`` > 0) after every one of its
     ``stations`` while some of them were not its captures (survey first, the stand's poses last):
@@ -127,9 +176,10 @@ def raw_before_calibration(stations) -> int:
 
 def beyond_captures(before: int, captures) -> str:
     """What ``before`` stations raw "before calibration" beyond the record's ``captures`` (None: not
-    known) were, in words; empty when there are none.  Said, not counted against the run: which raw
-    ones were not the stand's poses (a retake, a rest, a survey station before the record) only the
-    calibration knows."""
+    known) were, in words; empty when there are none.  For a record that does not say where the
+    stand's poses lie (:func:`stand_of`; with it, :func:`survey_raw` counts them): said, not counted
+    against the run — which raw ones were not the stand's (a retake, a rest, a survey station before
+    the record) the record does not tell."""
     if captures is None or before <= captures:
         return ""
     return (f"{before - captures} more than the {captures} stand captures the record was solved from: stations "
@@ -150,12 +200,13 @@ def captures_of(calibration) -> int | None:
 
 def account(stations, progress_messages, *, restarts=None, calibration_ran=True, paced=True,
             station_node: str = "correction", source: str = "probe", recorder: str = "recorder",
-            recorded=None, records: int = 0, captures=None, input_counts=None) -> dict:
+            recorded=None, records: int = 0, captures=None, stand=None, input_counts=None) -> dict:
     """The run's accounting (see the module docstring).  ``stations``: the recorded station dicts
     (all parts); ``progress_messages``: the recorded ``StreamProgress`` dicts in order;
     ``restarts``: node → count; ``calibration_ran``: stations before the calibration are then
-    expected to be raw, unless ``records`` (calibration records the run made; the first solved from
-    ``captures``) came after every station (:func:`none_corrected`).  ``input_counts``: a replayed
+    expected to be raw, the stand's poses — not a survey station (:func:`survey_raw`: ``records``,
+    the calibration records the run made, the first solved from ``captures`` over the ``stand``
+    span).  ``input_counts``: a replayed
     bag's messages per topic (its summary), set against what the source sent: samples of the input
     it did not send (an imu or mag sample without a partner of the same stamp, one that does not
     decode) are counted and said — the input's own defect, as ``reprocess`` warns of it, not a
@@ -233,7 +284,9 @@ def account(stations, progress_messages, *, restarts=None, calibration_ran=True,
         problems.append(f"{v} station(s) uncorrected: {example or k}")
     if calibration_ran and captures is not None:
         st["captures"] = int(captures)      # the stand's captures the first record was solved from
-    late = none_corrected(uniq, records, captures) if calibration_ran else ""
+    if calibration_ran and stand is not None:
+        st["stand"] = [float(stand[0]), float(stand[1])]
+    late = survey_raw(uniq, records, captures, stand) if calibration_ran else ""
     if late:
         problems.append(late)
     out["restarts"] = dict(restarts or {})
@@ -275,7 +328,7 @@ def format_account(a: dict) -> list:
         raw = st.get("uncorrected") or {}
         if raw:
             line += "; uncorrected: " + ", ".join(f"{v} {k}" for k, v in raw.items())
-            note = beyond_captures(raw.get("before calibration", 0), st.get("captures"))
+            note = "" if st.get("stand") else beyond_captures(raw.get("before calibration", 0), st.get("captures"))
             if note:
                 line += f" ({note})"
         if st["id_gaps"]:

@@ -435,15 +435,19 @@ def test_field_in_nT_written_as_tesla_in_a_bag_is_refused_with_the_unit_hint(sim
 
 def test_a_survey_recorded_before_its_calibration_is_not_a_clean_reprocess(simdir, tmp_path, capsys):
     """The survey first, the stand's poses after: every station goes out raw "before calibration",
-    which for the stand's poses alone is expected: said, exit 1, as the live graph's summary does
-    (io/accounting.py); in the usual order, and the stand alone (all raw, all captures), exit 0."""
+    which for the stand's poses alone is expected: the survey's, outside the stand's span the
+    record gives (a survey station taken for pose 9 long before the stand is not in it), said,
+    exit 1, as the live graph's summary does (io/accounting.py); in the usual order, and the stand
+    alone (all raw, all captures), exit 0."""
     pytest.importorskip("mcap")
     rev, ok = tmp_path / "rev.mcap", tmp_path / "ok.mcap"
     assert _run(capsys, ["bag", "from-csv", str(simdir / "val.csv"), str(simdir / "cal.csv"), "-o", str(rev)])[0] == 0
     assert _run(capsys, ["bag", "from-csv", str(simdir / "cal.csv"), str(simdir / "val.csv"), "-o", str(ok)])[0] == 0
     code, out, err = _run(capsys, ["reprocess", str(rev), "--calibrate", "-o", str(tmp_path / "r.mcap")])
     assert code == 1, err
-    assert "error: none of the " in err and "after the last (the survey came before the stand's poses?)" in err, err
+    assert "error: 198 survey station(s) raw: not the stand's poses (those lie at t=1700000600.980–1700000695.970 " \
+           "s), they went out before the calibration solved — 198 before the stand's first pose (the survey came " \
+           "first?)" in err, err
     code, out, err = _run(capsys, ["reprocess", str(ok), "--calibrate", "-o", str(tmp_path / "o.mcap")])
     assert code == 0 and "was corrected" not in err, err
     stand = tmp_path / "stand.mcap"           # the stand alone: every station raw, all of them captures

@@ -25,6 +25,17 @@ def test_yaml_round_trip_is_exact(tmp_path, cal):
     assert rec["magnetometer"]["units"]["offset"] == "nT"
 
 
+def test_the_stands_span_travels_with_the_record_outside_its_id(tmp_path, cal):
+    """Where the stand's poses lie in the data's time (a capture session's solve): written, read
+    back exactly, and not part of the id (the same model from another session is the same record)."""
+    path = tmp_path / "c.yaml"
+    cal.diagnostics["stand"] = {"t_start": 1700000001.56, "t_end": 1700000107.98}
+    cal.save(path)
+    back = Calibration.load(path)
+    assert back.diagnostics["stand"] == {"t_start": 1700000001.56, "t_end": 1700000107.98} and back.id == cal.id
+    assert yaml.safe_load(path.read_text())["stand"] == {"t_start": 1700000001.56, "t_end": 1700000107.98}
+
+
 def _edit(cal, fn):
     rec = cal.to_record()
     fn(rec)
@@ -42,6 +53,8 @@ def _edit(cal, fn):
     (lambda r: r["magnetometer"]["parameters"].update(bias_x=123.0), "disagree with the parameters"),
     (lambda r: r["magnetometer"]["parameters"].update(scale_x=0.0, scale_y=0.0), "singular"),
     (lambda r: r.update(id="0123456789ab"), "does not match the content"),
+    (lambda r: r.update(stand={"t_start": 5.0}), "stand must be a mapping of t_start and t_end"),
+    (lambda r: r.update(stand={"t_start": 5.0, "t_end": 1.0}), "is not a span of data time"),
 ])
 def test_malformed_record_is_refused_naming_the_field(cal, edit, msg):
     with pytest.raises(CoefficientError, match=msg):

@@ -11,7 +11,7 @@ pytest.importorskip("mcap")
 pytest.importorskip("rosbags")
 
 from inclinometer_calib.calibrate import simulate as sim  # noqa: E402
-from inclinometer_calib.io.bag import open_bag  # noqa: E402
+from inclinometer_calib.io.bag import open_bag, read_bag  # noqa: E402
 from inclinometer_calib.calibrate.capture import CaptureSession  # noqa: E402
 from inclinometer_calib.core.coeffs import Calibration  # noqa: E402
 from inclinometer_calib.correct.engine import Expect, RecordOut, StationOut, StreamEngine  # noqa: E402
@@ -173,8 +173,10 @@ def _cal_log(cut=(), rounds=2, seed=5):
 
 def test_a_pose_missing_ends_the_sequence_when_the_probe_leaves_the_stand_and_the_survey_is_corrected(tmp_path):
     """Pose 7 cut from both rounds: the second round is used too, the two statics that are not
-    poses of the sequence end it, it is solved by least squares, and every survey station from the
-    first one that ended it is corrected."""
+    poses of the sequence end it, it is solved by least squares, and every survey station is
+    corrected — the first of the two too: held until the second decided that the probe had left
+    the stand, the record applies from its start (it went out raw before).  The record says where
+    the stand's stations lie: the captures' span."""
     log, probe, n_cal = _cal_log(cut=(7,))
     bag = tmp_path / "cut.mcap"
     write_probe_bag(log, bag)
@@ -188,12 +190,107 @@ def test_a_pose_missing_ends_the_sequence_when_the_probe_leaves_the_stand_and_th
     assert len(rep.captures) == n_cal                           # both rounds, pose 7 absent from each
     survey = rep.stations[n_cal:]
     corrected = [s for s in survey if s["coefficients_id"] == cal.id]
-    assert len(survey) == 18 and len(corrected) >= 17            # the first stray may stay raw
+    assert len(survey) == 18 and len(corrected) == 18
+    span = cal.diagnostics["stand"]
+    assert span == {"t_start": min(c.t_start for c in rep.captures), "t_end": max(c.t_end for c in rep.captures)}
+    assert all(not s["coefficients_id"] for s in rep.stations[:n_cal])
     for s in corrected:
         assert abs(s["drift_deg"] - s["reference_drift_deg"]) < 0.02
     # the probe's true errors, within the least-squares solution's reach
     truth = Calibration(acc=probe.acc, mag=probe.mag, site=SITE)
     assert np.allclose(cal.triad("mag").bias, truth.triad("mag").bias, atol=5.0)
+
+
+def _spliced_log(before=(), between=(), at=6, seed=5):
+    """Survey stations ``before`` the stand, statics ``between`` its poses (after the ``at``-th),
+    the twelve poses, then a grid of 18 survey stations: one log, unlabelled, from one probe."""
+    probe = sim.build_probe(seed, severity=2.0)
+    rng = np.random.default_rng(seed)
+    poses = sim.twelve_pose_session(duration_s=2.0)
+    rest = [st for d, a in between for st in sim.stand_grid_session(drifts=(d,), azimuths=(a,), toolfaces=(0,),
+                                                                    duration_s=2.0)]
+    first = [st for d, a in before for st in sim.stand_grid_session(drifts=(d,), azimuths=(a,), toolfaces=(0,),
+                                                                     duration_s=2.0)]
+    cal = sim.run_session(probe, SITE, first + poses[:at] + rest + poses[at:], rng, rate_hz=100, move_s=1.0)
+    grid = sim.run_session(probe, SITE, sim.stand_grid_session(drifts=(2, 20, 45), azimuths=(0, 120, 240),
+                                                               toolfaces=(0, 150), duration_s=2.0),
+                           rng, rate_hz=100, move_s=1.0, t0=cal.t_s[-1] + 2.0)
+    log = ProbeLog.concatenate([cal, grid])
+    log.pose[:] = 0
+    return log
+
+
+def test_a_rest_on_the_stand_between_poses_is_the_stands_not_a_raw_survey_station(tmp_path):
+    """A static at 45° between poses 6 and 7 (the crew paused with the probe off a pose): held —
+    the survey's first station or a rest? — until pose 7 says the probe is still on the stand; it
+    goes out raw with the poses, inside the stand's span the record gives, and nothing is counted
+    against the run.  The whole survey after the stand is corrected."""
+    from inclinometer_calib.io.accounting import stand_of, survey_raw
+
+    bag = tmp_path / "rest.mcap"
+    write_probe_bag(_spliced_log(between=[(45, 30)]), bag)
+    rep = reprocess(bag, None, calibrate=True, site=SITE)
+    cal = rep.calibrations[0]
+    stations = rep.stamped_stations()
+    assert len(rep.captures) == 12 and len(stations) == 13 + 18
+    raw = [s for s in stations if not s["coefficients_id"]]
+    assert len(raw) == 13 and raw[6]["reference_drift_deg"] == 45.0       # the rest, in its place
+    t0, t1 = stand_of(cal)
+    assert t0 <= raw[6]["stamp"] - raw[6]["duration_s"] and raw[6]["stamp"] <= t1
+    assert all(s["coefficients_id"] == cal.id for s in stations[13:])
+    assert survey_raw(stations, 1, 12, (t0, t1)) == ""
+
+
+def test_survey_stations_before_the_stand_are_counted_raw_while_the_rest_is_corrected(tmp_path):
+    """Three survey stations, then the stand, then the survey: the three go out raw "before
+    calibration" — not the stand's (before its span) — a raw survey the run counts, while the
+    survey after the stand is corrected (none_corrected alone could not tell: most were).
+    ``reprocess`` exits 1 with the line, and the launcher's summary of what it wrote (the live
+    graph's record and stations) has it as a problem: one rule, both drivers."""
+    from inclinometer_calib.apps import launcher
+    from inclinometer_calib.apps.cli import main
+    from inclinometer_calib.io.accounting import stand_of, survey_raw
+
+    bag = tmp_path / "first.mcap"
+    write_probe_bag(_spliced_log(before=[(30, 0), (35, 120), (40, 240)]), bag)
+    out = tmp_path / "run"
+    out.mkdir()
+    assert main(["reprocess", str(bag), "--calibrate", "-o", str(out / "survey.mcap")]) == 1
+    summary = launcher.summarize_run(str(out), print_fn=lambda *a: None, loop=False)
+    assert [p for p in summary["accounting"]["problems"] if "survey station(s) raw" in p] == [
+        survey_raw(read_bag(out / "survey.mcap")[0], 1, 12, summary["accounting"]["stations"]["stand"])]
+    rep = reprocess(bag, None, calibrate=True, site=SITE)
+    cal = rep.calibrations[0]
+    stations = rep.stamped_stations()
+    assert [bool(s["coefficients_id"]) for s in stations] == [False] * 15 + [True] * 18
+    t0, _ = stand_of(cal)
+    assert all(s["stamp"] < t0 for s in stations[:3]) and all(s["stamp"] > t0 for s in stations[3:])
+    said = survey_raw(stations, 1, 12, stand_of(cal))
+    assert said.startswith("3 survey station(s) raw: not the stand's poses") and "3 before the stand's first" in said
+
+
+def test_a_single_station_after_an_incomplete_stand_at_the_end_of_the_data_is_corrected():
+    """Pose 7 never captured, then one survey station, then the data end: that station did not end
+    the sequence (one stray of two), but the end did — the record solved at the end applies from its
+    start, and the station, held until then, is corrected; the poses are raw and inside the span."""
+    probe = sim.build_probe(5, severity=2.0)
+    rng = np.random.default_rng(5)
+    poses = [st for st in sim.twelve_pose_session(duration_s=2.0) if st.pose != 7]
+    one = sim.stand_grid_session(drifts=(30,), azimuths=(60,), toolfaces=(0,), duration_s=2.0)
+    log = sim.run_session(probe, SITE, poses + one, rng, rate_hz=100, move_s=1.0)
+    eng = StreamEngine(None, SurveyProcessor(), CaptureSession(site=SITE), expect=Expect(False, True, False))
+    eng.samples(log.t_s, log.gravity, log.mag, log.temp_c)
+    eng.close_hold()              # the survey station closes: the session has not decided on it yet
+    out = [e for e in eng.pop() if isinstance(e, StationOut)]
+    assert len(out) == 11 and len(eng._undecided) == 1 and eng.settled < eng._undecided[0].t_close
+    eng.end()
+    ev = eng.pop()
+    (rec,) = [e for e in ev if isinstance(e, RecordOut)]
+    (last,) = [e for e in ev if isinstance(e, StationOut)]
+    assert last.fields["coefficients_id"] == rec.calibration.id and rec.stamp < last.station.t_start
+    assert abs(last.fields["drift_deg"] - 30.0) < 0.05 and eng.done
+    t0, t1 = rec.calibration.diagnostics["stand"]["t_start"], rec.calibration.diagnostics["stand"]["t_end"]
+    assert t1 < last.station.t_start and t0 < t1
 
 
 def test_after_the_sequence_ends_a_survey_station_near_a_missing_pose_is_not_taken(tmp_path):
@@ -206,7 +303,7 @@ def test_after_the_sequence_ends_a_survey_station_near_a_missing_pose_is_not_tak
     assert len(rep.calibrations) == 1 and "least squares" in rep.calibrations[0].method
     assert sorted(c.pose for c in rep.captures) == [p for p in range(1, 13) if p != 9]
     near = [s for s in rep.stations[n_cal:] if s["reference_drift_deg"] == 2.0]
-    assert len(near) == 6 and all(s["coefficients_id"] == rep.calibrations[0].id for s in near[1:])
+    assert len(near) == 6 and all(s["coefficients_id"] == rep.calibrations[0].id for s in near)
 
 
 def test_the_sequence_ends_after_end_after_s_without_a_capture():
@@ -273,3 +370,5 @@ def test_a_station_the_calibration_elsewhere_still_holds_waits_for_it(tmp_path):
     assert [e.fields["coefficients_id"] for e in got] == [e.fields["coefficients_id"] for e in expected]
     assert [e.fields["drift_deg"] for e in got] == [e.fields["drift_deg"] for e in expected]
     assert cor.counts.forced == 0
+    # the first station after the stand, held by the calibration until the second decided: corrected
+    assert got[n_cal].fields["coefficients_id"] and not any(e.fields["coefficients_id"] for e in got[:n_cal])

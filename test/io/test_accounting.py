@@ -116,3 +116,34 @@ def test_stations_raw_before_the_calibration_beyond_its_captures_are_said_not_hi
            "stations that were not the stand's poses went out raw" in line, line
     exact = account(stations[:22] + stations[23:], [], records=1, captures=22)
     assert "more than the" not in next(x for x in format_account(exact) if x.startswith("stations:"))
+
+
+def test_with_the_stand_span_raw_survey_stations_are_counted_and_the_stands_own_are_not():
+    """The record says where the stand's poses lie (t 100–160 s): raw stations inside it — captures,
+    a retake, a rest — are the stand's; raw ones before it (the survey began first) or after it are
+    a raw survey, counted against the run; the "more than the captures" note is for records that
+    do not say.  A station spans ``stamp`` − ``duration_s`` to ``stamp``."""
+    def st(i, t, cid=""):
+        return dict(_station(i, cid, "" if cid else BEFORE), stamp=float(t), duration_s=3.0)
+
+    def run(*parts):      # one recording: ids in order
+        return [dict(x, station_id=i) for i, x in enumerate(x for part in parts for x in part)]
+
+    stand = (100.0, 160.0)
+    inside = [st(i, 103 + 4 * i) for i in range(14)]                  # 12 captures, a retake, a rest
+    survey = [st(20 + i, 200 + 10 * i, "abc") for i in range(30)]
+    a = account(run(inside, survey), [], records=1, captures=12, stand=stand)
+    assert a["problems"] == [] and a["stations"]["stand"] == [100.0, 160.0]
+    assert "more than the" not in next(x for x in format_account(a) if x.startswith("stations:"))
+    early = [st(90 + i, 50 + 10 * i) for i in range(3)] + [st(97, 100.5)]    # the last ends inside: the stand's
+    a = account(run(early, inside, survey), [], records=1, captures=12, stand=stand)
+    assert a["problems"] == ["3 survey station(s) raw: not the stand's poses (those lie at t=100.000–160.000 s), "
+                             "they went out before the calibration solved — 3 before the stand's first pose (the "
+                             "survey came first?)"]
+    late = [st(60, 170)]
+    a = account(run(inside, late, survey), [], records=1, captures=12, stand=stand)
+    assert a["problems"] == ["1 survey station(s) raw: not the stand's poses (those lie at t=100.000–160.000 s), "
+                             "they went out before the calibration solved — 1 after its last"]
+    every = [st(i, 10 + 5 * i) for i in range(40)]                    # all inside a span that took them all
+    assert "none of the 40 stations was corrected" in account(every, [], records=1, captures=12,
+                                                              stand=(0.0, 300.0))["problems"][0]

@@ -29,12 +29,13 @@ def cmd_reprocess(args):
     """Offline reprocessing of a recorded bag (see :mod:`inclinometer_calib.correct.reprocess`).
 
     Exit status 0; 1 when the input bag is damaged (everything readable was processed and
-    written, the damage is reported as ``error:``), ``--calibrate`` did not solve, or it solved
-    after every station (the survey came before the stand's poses: all raw); 2 when nothing could
-    be done.
+    written, the damage is reported as ``error:``), ``--calibrate`` did not solve, or it left
+    survey stations raw before it solved (outside the stand's span its record gives: the survey,
+    or part of it, came before the stand's poses — :func:`accounting.survey_raw`, the live
+    summary's rule); 2 when nothing could be done.
     """
     from ...io.bag import BagError
-    from ...io.accounting import beyond_captures, captures_of, none_corrected, raw_before_calibration
+    from ...io.accounting import beyond_captures, captures_of, raw_before_calibration, stand_of, survey_raw
     from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
@@ -111,12 +112,14 @@ def cmd_reprocess(args):
             print(f"error: calibration did not solve: {rep.calibration_message or 'no twelve-pose captures'}",
                   file=sys.stderr)
             rc = 1
-        captures = captures_of(rep.calibrations[0]) if rep.calibrations else None
-        late = none_corrected(rep.stations, len(rep.calibrations), captures)
+        first = rep.calibrations[0] if rep.calibrations else None
+        captures = captures_of(first) if first is not None else None
+        stand = stand_of(first) if first is not None else None
+        late = survey_raw(rep.stamped_stations(), len(rep.calibrations), captures, stand)
         if late:        # the live graph's summary says the same (io/accounting.py): not a clean run
             print(f"error: {late}", file=sys.stderr)
             rc = 1
-        else:           # and this, said only
+        elif stand is None:     # a record that does not say where the stand's poses lie: said only
             before = raw_before_calibration(rep.stations)
             note = beyond_captures(before, captures)
             if note:
