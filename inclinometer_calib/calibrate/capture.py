@@ -508,6 +508,7 @@ class CaptureSession:
 
     def _maybe_solve(self, now: bool) -> str:
         if now:
+            self.applies_from = None      # solved from this capture: the record applies after it
             return "solved" if self.solve() is not None else "rejected"
         return "accepted"
 
@@ -639,7 +640,8 @@ class CaptureSession:
         if not caps:
             return None
         t0, t1 = min(c.t_start for c in caps), max(c.t_end for c in caps)
-        seen = sorted(self._poses_seen)
+        # every capture too: the one offered now (solved from) is not among the poses seen yet
+        seen = sorted(self._poses_seen + [(c.t_start, c.t_end) for c in self.captures])
         for a, b in reversed(seen):          # back from the first capture used
             if b < t0 and t0 - b > self.end_after_s:
                 break

@@ -596,6 +596,13 @@ class StreamEngine:
             self._decided()
         self._survey(p)
 
+    def release_undecided(self) -> None:
+        """The session has decided, or can no longer decide (it finished; the driver reset it): the
+        stations held go on to the survey with the records in force, and :attr:`settled` moves on."""
+        if self._undecided_close is not None:
+            self._decided()
+            self._settle()
+
     def _decided(self) -> None:
         """The session has decided on the stations it held (the record of a sequence that ended at
         them applies to them): they go on to the survey, in order."""
@@ -700,9 +707,7 @@ class StreamEngine:
                 self._say("warning", w)
         since = getattr(s, "applies_from", None)
         self._solved(n_solves, before, self.t_last if since is None else since - TIME_EPS)
-        if self._undecided_close is not None:
-            self._decided()
-            self._settle()
+        self.release_undecided()
 
     def end(self) -> None:
         """The end of the data: the open hold closes and every station goes out with what arrived

@@ -287,6 +287,7 @@ class CalibrationNode(Node):
     # ---- services --------------------------------------------------------------------------
     def _on_reset(self, request, response):
         self.session.reset()
+        self.engine.release_undecided()
         self.detector.reset()
         self._live_pose = -1
         response.success = True

@@ -201,3 +201,25 @@ def test_an_accelerometer_axis_clipped_both_ways_refuses_the_calibration_naming_
     assert s.state == "error" and s.calibration is None
     assert "accelerometer: the captures left" in s.message and "tool axis x is never vertical (poses 1-4)" in s.message
     assert any("accelerometer x is flat at" in w and "it saturates" in w for w in s.warnings)
+
+
+def test_the_stands_span_holds_every_capture_even_one_the_solve_left_out():
+    """The stand's span (the record's ``stand``): from the first to the last capture the solve used,
+    widened by the poses taken that follow on within end_after_s — the capture that completed the
+    twelve too when the solve left it out of both triads (it is not among the poses seen yet while
+    the solve runs: the span once ended before it, and its raw station was counted as a survey
+    station after the stand); a capture long before the stand (a survey station taken for a pose)
+    is not in it."""
+    from types import SimpleNamespace
+
+    def cap(pose, t0):
+        return Station(t_start=t0, t_end=t0 + 2.0, n=200, g=np.zeros(3), b=np.zeros(3), pose=pose)
+
+    s = CaptureSession(site=Site(), end_after_s=120.0)
+    early = cap(9, 0.0)                                  # 500 s before the stand
+    stand = [cap(p, 500.0 + 3.0 * k) for k, p in enumerate(range(1, 13))]
+    s.captures = [early] + stand
+    s._poses_seen = [(c.t_start, c.t_end) for c in [early] + stand[:-1]]   # the last: being offered
+    used = [f"pose {c.pose} at {c.where}" for c in stand[:-1]]
+    s.result = SimpleNamespace(acc=SimpleNamespace(used=used), mag=SimpleNamespace(used=used))
+    assert s.stand_span() == (500.0, stand[-1].t_end)

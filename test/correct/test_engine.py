@@ -293,6 +293,45 @@ def test_a_single_station_after_an_incomplete_stand_at_the_end_of_the_data_is_co
     assert t1 < last.station.t_start and t0 < t1
 
 
+def test_a_session_reset_while_a_station_is_held_lets_it_and_the_progress_go_on():
+    """The calibration node's ~/reset while a static after the captures is undecided: the engine no
+    longer holds it — its progress (``settled``, what a correction node keeping step waits for)
+    moves past it instead of staying capped until the next static."""
+    probe = sim.build_probe(5, severity=2.0)
+    poses = [st for st in sim.twelve_pose_session(duration_s=2.0) if st.pose != 7]
+    one = sim.stand_grid_session(drifts=(30,), azimuths=(60,), toolfaces=(0,), duration_s=2.0)
+    log = sim.run_session(probe, SITE, poses + one, np.random.default_rng(5), rate_hz=100, move_s=1.0)
+    eng = StreamEngine(None, session=CaptureSession(site=SITE), expect=Expect(False, True, False))
+    eng.samples(log.t_s, log.gravity, log.mag, log.temp_c)
+    eng.close_hold()
+    assert eng._undecided_close is not None and eng.settled < eng._undecided_close <= eng.t_last
+    eng.session.reset()
+    eng.release_undecided()
+    assert eng.settled >= eng.t_last and eng._undecided_close is None
+
+
+def test_a_recapture_taken_after_a_long_pause_is_solved_from_and_the_record_applies_after_it():
+    """The sequence ends on a 200 s pause, and the static after it is the recapture asked for: the
+    session solves again with it, so that record applies after it — not from its start, which would
+    correct the station with coefficients solved from itself."""
+    probe = sim.build_probe(5, severity=2.0)
+    rng = np.random.default_rng(5)
+    poses = sim.twelve_pose_session(duration_s=2.0)
+    first = sim.run_session(probe, SITE, [p for p in poses if p.pose != 12], rng, rate_hz=100, move_s=1.0)
+    again = sim.run_session(probe, SITE, [poses[2]], rng, rate_hz=100, move_s=1.0, t0=first.t_s[-1] + 200.0)
+    eng = StreamEngine(None, SurveyProcessor(), CaptureSession(site=SITE), expect=Expect(False, True, False))
+    eng.samples(first.t_s, first.gravity, first.mag, first.temp_c)
+    eng.close_hold()
+    eng.session.request_recapture(3)
+    eng.samples(again.t_s, again.gravity, again.mag, again.temp_c)
+    eng.end()
+    ev = eng.pop()
+    recs = [e for e in ev if isinstance(e, RecordOut)]
+    last = [e for e in ev if isinstance(e, StationOut)][-1]
+    assert recs and "s without a capture before the static" in " ".join(e.text for e in ev if hasattr(e, "text"))
+    assert recs[-1].stamp >= last.station.t_end and last.station.pose == 3
+
+
 def test_after_the_sequence_ends_a_survey_station_near_a_missing_pose_is_not_taken(tmp_path):
     """Pose 9 (tool axis vertical) never captured: survey stations at 2° of drift look like it, but
     once the probe has left the stand they are survey stations — never a capture, never a new solve."""
