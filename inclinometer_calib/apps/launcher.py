@@ -1008,14 +1008,13 @@ def summarize_run(out, print_fn=print, loop: bool = True, graph=None, paced: boo
     summary["coefficient_messages"] = len(coef_msgs)
     if status is not None:
         summary["calibration_status"] = status
-    from ..io.accounting import account, captures_of, recorded_counts, stand_of, unique_stations
+    from ..io.accounting import account, first_record, recorded_counts, unique_stations
 
     try:        # the stand captures the first record was solved from, and where they lie in time
         first = Calibration.from_yaml(coef_msgs[0]["coefficients_yaml"]) if coef_msgs else None
     except (CoefficientError, ValueError):
         first = None            # a record the summary cannot read: said below, where it is used
-    captures = captures_of(first) if first is not None else None
-    stand = stand_of(first) if first is not None else None
+    captures, stand = first_record(first)
     summary["accounting"] = account(stations, progress, restarts=getattr(graph, "restarts", None),
                                     calibration_ran=getattr(graph, "calibration_ran", True), paced=paced,
                                     recorded=recorded_counts([p["read"] for p in parts if p["read"] is not None]),

@@ -198,6 +198,14 @@ def captures_of(calibration) -> int | None:
     return int(sum(int(v.get("rounds") or 0) for v in per_pose.values())) + len(diag.get("left_out") or ())
 
 
+def first_record(calibration) -> tuple:
+    """``(captures, stand)`` of a run's first record (None: no record): what :func:`survey_raw`
+    and :func:`account` judge the raw stations by — :func:`captures_of`, :func:`stand_of`."""
+    if calibration is None:
+        return None, None
+    return captures_of(calibration), stand_of(calibration)
+
+
 def account(stations, progress_messages, *, restarts=None, calibration_ran=True, paced=True,
             station_node: str = "correction", source: str = "probe", recorder: str = "recorder",
             recorded=None, records: int = 0, captures=None, stand=None, input_counts=None) -> dict:

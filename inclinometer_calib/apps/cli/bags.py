@@ -35,7 +35,7 @@ def cmd_reprocess(args):
     summary's rule); 2 when nothing could be done.
     """
     from ...io.bag import BagError
-    from ...io.accounting import beyond_captures, captures_of, raw_before_calibration, stand_of, survey_raw
+    from ...io.accounting import beyond_captures, first_record, raw_before_calibration, survey_raw
     from ...correct.reprocess import TOPIC_STATION, ReprocessError, reprocess
 
     if args.compare:
@@ -112,9 +112,7 @@ def cmd_reprocess(args):
             print(f"error: calibration did not solve: {rep.calibration_message or 'no twelve-pose captures'}",
                   file=sys.stderr)
             rc = 1
-        first = rep.calibrations[0] if rep.calibrations else None
-        captures = captures_of(first) if first is not None else None
-        stand = stand_of(first) if first is not None else None
+        captures, stand = first_record(rep.calibrations[0] if rep.calibrations else None)
         late = survey_raw(rep.stamped_stations(), len(rep.calibrations), captures, stand)
         if late:        # the live graph's summary says the same (io/accounting.py): not a clean run
             print(f"error: {late}", file=sys.stderr)
